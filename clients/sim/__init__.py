@@ -1,0 +1,1 @@
+"""govnesf: clients/sim package."""

@@ -1,0 +1,4 @@
+"""The mapping node: service loop, keyframe window, cost volume, model, rendering, queries.
+
+Never imports `clients`.
+"""

@@ -1,0 +1,1 @@
+"""govnesf: mapper/model package."""
