@@ -1,0 +1,305 @@
+"""Typed configuration of the mapper node, loaded from TOML (``launch/node.toml``).
+
+Every setting is a field of a frozen dataclass with a comment saying what it means and in which
+unit. A TOML file mirrors the dataclasses: top-level keys set :class:`NodeConfig` fields, and a
+table (``[window]``) sets the sub-config of the same name. Unknown keys and values of the wrong
+type are errors that name the key and the file, so a typo never silently falls back to a default.
+
+Later pipeline stages add their own sub-config (e.g. ``model: ModelConfig``, ``cost_volume:
+CostVolumeConfig``, ``global_map: GlobalMapConfig``) as one more field of :class:`NodeConfig`
+with a default factory; the loader, the overrides and the error messages need no change.
+
+TOML has no null, so an optional string (``str | None``) is disabled with an empty string::
+
+    events_endpoint = ""   # no PUB socket
+
+Example::
+
+    >>> cfg = config_from_dict({"map_dir": "maps", "window": {"max_keyframes": 8}})
+    >>> cfg.window.max_keyframes
+    8
+    >>> apply_overrides(cfg, {"window.min_translation_m": 0.5}).window.min_translation_m
+    0.5
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import ipaddress
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mapper.store import validate_map_name
+
+#: Where ``govnesf serve`` looks for its config when ``--config`` is not given (relative to the repo).
+DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "launch" / "node.toml"
+
+
+class ConfigError(ValueError):
+    """A configuration file or override is invalid; the message names the key and the source."""
+
+
+@dataclass(frozen=True)
+class WindowConfig:
+    """The bounded window of keyframes (see :mod:`mapper.window`)."""
+
+    max_keyframes: int = 30
+    """Most keyframes kept; adding one more evicts the oldest. 1..10000."""
+
+    min_translation_m: float = 0.10
+    """A frame becomes a keyframe when its camera centre moved at least this far (metres) from the
+    most recent keyframe of the same camera. >= 0."""
+
+    min_rotation_deg: float = 10.0
+    """... or when its viewing direction turned by at least this angle (degrees, the angle of the
+    relative rotation) from that keyframe. 0..180."""
+
+    def validate(self, where: str) -> None:
+        _check_range(where, "window.max_keyframes", self.max_keyframes, 1, 10_000)
+        _check_range(where, "window.min_translation_m", self.min_translation_m, 0.0, 1e6)
+        _check_range(where, "window.min_rotation_deg", self.min_rotation_deg, 0.0, 180.0)
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    """Everything ``govnesf serve`` needs. Sub-configs are nested dataclasses (TOML tables)."""
+
+    ingest_endpoint: str = "tcp://127.0.0.1:5555"
+    """ZeroMQ endpoint the node binds a ROUTER on for ``frame`` messages."""
+
+    query_endpoint: str = "tcp://127.0.0.1:5556"
+    """ZeroMQ endpoint the node binds a ROUTER on for queries (status, save, load, ...)."""
+
+    events_endpoint: str | None = "tcp://127.0.0.1:5557"
+    """ZeroMQ endpoint the node binds a PUB on for ``map_updated`` notices; "" (None) disables it."""
+
+    allow_remote: bool = False
+    """Binding to a non-loopback address (``tcp://*:5555``, ``tcp://0.0.0.0:...``, a LAN address)
+    is refused unless this is true: exposing the node is an explicit choice."""
+
+    map_dir: str = "maps"
+    """Directory for saved maps; save/load never read or write outside it. A relative path is
+    relative to the working directory of the node. Created on first save."""
+
+    max_message_bytes: int = 64 * 1024 * 1024
+    """Largest accepted message (bytes); larger ones get a ``too_large`` error. Messages above
+    four times this are dropped by ZeroMQ itself (the peer is disconnected) to bound memory."""
+
+    ov_space: str | None = None
+    """Pin the open-vocabulary embedding space (e.g. "minilm-l6-v2"); "" (None) means the first
+    keyframe carrying ``ov`` sets it. Frames with another space get ``ov_space_mismatch``."""
+
+    autosave_name: str | None = None
+    """Map name for periodic and final saves ("" / None: no automatic saves)."""
+
+    autosave_interval_s: float = 0.0
+    """Seconds between automatic saves of a changed map to ``autosave_name``; 0 disables periodic
+    saves (a final save on shutdown still happens when ``save_on_exit`` and ``autosave_name``)."""
+
+    save_on_exit: bool = True
+    """On SIGINT/SIGTERM, save the map to ``autosave_name`` (if set) before exiting."""
+
+    poll_interval_s: float = 0.1
+    """How often the socket threads wake up to check for shutdown (seconds). 0.001..5."""
+
+    log_level: str = "INFO"
+    """Python logging level: DEBUG, INFO, WARNING, ERROR."""
+
+    window: WindowConfig = field(default_factory=WindowConfig)
+    """Keyframe window settings (TOML table ``[window]``)."""
+
+    def validate(self, where: str) -> None:
+        """Check ranges and cross-field rules; raise :class:`ConfigError` naming ``where``."""
+        for key in ("ingest_endpoint", "query_endpoint", "events_endpoint"):
+            endpoint = getattr(self, key)
+            if endpoint is None:
+                continue
+            _check_endpoint(where, key, endpoint, self.allow_remote)
+        endpoints = [e for e in (self.ingest_endpoint, self.query_endpoint, self.events_endpoint) if e]
+        if len(set(endpoints)) != len(endpoints):
+            raise ConfigError(f"{where}: ingest, query and events endpoints must differ, got {endpoints}")
+        if not self.map_dir:
+            raise ConfigError(f"{where}: map_dir must not be empty")
+        _check_range(where, "max_message_bytes", self.max_message_bytes, 1024, 2**31 - 1)
+        _check_range(where, "autosave_interval_s", self.autosave_interval_s, 0.0, 1e9)
+        _check_range(where, "poll_interval_s", self.poll_interval_s, 0.001, 5.0)
+        if self.log_level.upper() not in ("DEBUG", "INFO", "WARNING", "ERROR"):
+            raise ConfigError(
+                f"{where}: log_level {self.log_level!r} is not one of DEBUG, INFO, WARNING, ERROR"
+            )
+        if self.autosave_name is not None:
+            try:
+                validate_map_name(self.autosave_name)
+            except ValueError as exc:
+                raise ConfigError(f"{where}: autosave_name: {exc}") from None
+        self.window.validate(where)
+
+
+# --------------------------------------------------------------------------------------------
+# loading
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> NodeConfig:
+    """Read a TOML file into a validated :class:`NodeConfig`, then apply ``overrides``.
+
+    ``path=None`` uses :data:`DEFAULT_CONFIG_PATH` when it exists and the built-in defaults
+    otherwise (an installed package without the repo's ``launch/`` directory still runs).
+    ``overrides`` maps dotted keys (``"window.max_keyframes"``) to values; ``None`` values are
+    skipped so that unset command-line options can be passed straight through.
+    """
+    if path is None:
+        cfg = config_from_dict({}, where="defaults")
+        if DEFAULT_CONFIG_PATH.is_file():
+            cfg = _load_file(DEFAULT_CONFIG_PATH)
+    else:
+        cfg = _load_file(Path(path))
+    return apply_overrides(cfg, overrides or {})
+
+
+def _load_file(path: Path) -> NodeConfig:
+    try:
+        with path.open("rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"config file {str(path)!r} not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    return config_from_dict(data, where=str(path))
+
+
+def config_from_dict(data: dict[str, Any], where: str = "<dict>") -> NodeConfig:
+    """Build and validate a :class:`NodeConfig` from a TOML-shaped dict; ``where`` names the source."""
+    cfg = _build(NodeConfig, data, where, prefix="")
+    cfg.validate(where)
+    return cfg
+
+
+def apply_overrides(cfg: NodeConfig, overrides: dict[str, Any], where: str = "command line") -> NodeConfig:
+    """Return a copy of ``cfg`` with dotted keys replaced (``{"window.max_keyframes": 5}``).
+
+    Values are type-checked like TOML values; ``None`` values are ignored.
+    """
+    data = to_dict(cfg)
+    for dotted, value in overrides.items():
+        if value is None:
+            continue
+        parts = dotted.split(".")
+        node: dict[str, Any] = data
+        for part in parts[:-1]:
+            child = node.get(part)
+            if not isinstance(child, dict):
+                raise ConfigError(f"{where}: unknown config key {dotted!r}")
+            node = child
+        if parts[-1] not in node or isinstance(node[parts[-1]], dict):
+            raise ConfigError(f"{where}: unknown config key {dotted!r}")
+        node[parts[-1]] = value
+    new = _build(NodeConfig, data, where, prefix="")
+    new.validate(where)
+    return new
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """The config as a TOML-shaped dict (None written as ""), e.g. for logging or a status reply."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value):
+            out[f.name] = to_dict(value)
+        else:
+            out[f.name] = "" if value is None else value
+    return out
+
+
+def _build(cls: type, data: dict[str, Any], where: str, prefix: str) -> Any:
+    """Construct dataclass ``cls`` from ``data``, checking keys and types against its annotations."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: {prefix.rstrip('.') or 'config'} must be a table, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    for key in data:
+        if key not in names:
+            allowed = ", ".join(sorted(names))
+            raise ConfigError(f"{where}: unknown config key {prefix + key!r} (allowed here: {allowed})")
+    kwargs: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        hint = hints[f.name]
+        key = prefix + f.name
+        value = data[f.name]
+        if dataclasses.is_dataclass(hint):
+            kwargs[f.name] = _build(typing.cast(type, hint), value, where, prefix=key + ".")
+        else:
+            kwargs[f.name] = _coerce(hint, value, where, key)
+    return cls(**kwargs)
+
+
+def _coerce(hint: Any, value: Any, where: str, key: str) -> Any:
+    """Check ``value`` against a scalar annotation (str, int, float, bool, ``X | None``)."""
+    optional = False
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if len(args) != 1:
+            raise ConfigError(f"{where}: {key}: unsupported annotation {hint!r}")
+        hint, optional = args[0], True
+    if optional and (value is None or value == ""):
+        return None
+    ok: bool
+    if hint is bool:
+        ok = isinstance(value, bool)
+    elif hint is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif hint is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if ok:
+            value = float(value)
+    elif hint is str:
+        ok = isinstance(value, str)
+    else:
+        raise ConfigError(f"{where}: {key}: unsupported annotation {hint!r}")
+    if not ok:
+        name = getattr(hint, "__name__", str(hint))
+        raise ConfigError(
+            f"{where}: {key} must be {'a' if name != 'int' else 'an'} {name}"
+            f"{' or empty string' if optional else ''}, got {type(value).__name__} {value!r}"
+        )
+    return value
+
+
+def _check_range(where: str, key: str, value: float, lo: float, hi: float) -> None:
+    if not lo <= value <= hi:
+        raise ConfigError(f"{where}: {key} = {value!r} out of range {lo}..{hi}")
+
+
+_LOOPBACK_HOSTS = {"localhost", "127.0.0.1", "::1", "[::1]"}
+
+
+def _check_endpoint(where: str, key: str, endpoint: str, allow_remote: bool) -> None:
+    """Accept ``tcp://HOST:PORT``, ``ipc://PATH``, ``inproc://NAME``; refuse remote binds unless allowed."""
+    scheme, sep, rest = endpoint.partition("://")
+    if not sep or scheme not in ("tcp", "ipc", "inproc") or not rest:
+        raise ConfigError(
+            f"{where}: {key} {endpoint!r} is not a ZeroMQ endpoint like tcp://127.0.0.1:5555, "
+            "ipc:///tmp/mapper.sock or inproc://name"
+        )
+    if scheme != "tcp":
+        return
+    host, colon, port = rest.rpartition(":")
+    if not colon or not host or not (port == "*" or (port.isdigit() and 0 < int(port) < 65536)):
+        raise ConfigError(f"{where}: {key} {endpoint!r} needs a host and a port 1..65535 (tcp://HOST:PORT)")
+    if allow_remote or host in _LOOPBACK_HOSTS:
+        return
+    try:
+        if ipaddress.ip_address(host.strip("[]")).is_loopback:
+            return
+    except ValueError:
+        pass
+    raise ConfigError(
+        f"{where}: {key} {endpoint!r} binds a non-loopback address; "
+        "set allow_remote = true to expose the node"
+    )
