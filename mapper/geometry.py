@@ -219,11 +219,7 @@ def in_view(
     """
     u, v = uv[..., 0], uv[..., 1]
     return (
-        (z > eps)
-        & (u >= border_px)
-        & (u <= width - border_px)
-        & (v >= border_px)
-        & (v <= height - border_px)
+        (z > eps) & (u >= border_px) & (u <= width - border_px) & (v >= border_px) & (v <= height - border_px)
     )
 
 

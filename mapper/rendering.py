@@ -1,0 +1,219 @@
+"""Volume rendering as pure functions (nerfstudio style).
+
+A ray ``o + t d`` is cut into S bins ``[t_i - delta_i / 2, t_i + delta_i / 2]``. With density
+``sigma_i`` (1/m) in bin i, the optical depth is ``tau_i = sigma_i * delta_i`` and
+
+    alpha_i = 1 - exp(-tau_i)                (WITH the spacing, unlike the official code)
+    T_i     = exp(-sum_{j < i} tau_j)        (exclusive cumulative sum, computed in log space)
+    w_i     = T_i * alpha_i
+
+so that ``sum_i w_i = 1 - T_S <= 1``. ``alpha`` uses ``expm1`` (accurate for tiny tau), tau is
+clamped to ``[0, TAU_MAX]`` so that neither the cumulative sum nor its gradient overflows, and
+half-precision inputs are computed in float32 and returned in their dtype.
+
+Example:
+    >>> import torch
+    >>> t, deltas = sample_along_rays(torch.zeros(1, 3), torch.tensor([[0.0, 0.0, 1.0]]), 1.0, 3.0, 4,
+    ...                               stratified=False)
+    >>> t.tolist(), deltas.tolist()
+    ([[1.25, 1.75, 2.25, 2.75]], [[0.5, 0.5, 0.5, 0.5]])
+    >>> weights, transmittance = render_weights(torch.full((1, 4), 1e6), deltas)
+    >>> weights.tolist()
+    [[1.0, 0.0, 0.0, 0.0]]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "TAU_MAX",
+    "RaySamples",
+    "Rays",
+    "accumulated_opacity",
+    "composite",
+    "expected_depth",
+    "render_weights",
+    "sample_along_rays",
+]
+
+TAU_MAX = 1.0e4
+"""Largest optical depth a single bin may have; exp(-TAU_MAX) is 0 in every float dtype."""
+
+
+@dataclass
+class Rays:
+    """A batch of rays."""
+
+    origins: Tensor
+    """(R, 3) ray origins in the world frame (m)."""
+    directions: Tensor
+    """(R, 3) unit directions in the world frame."""
+
+    def __post_init__(self) -> None:
+        if (
+            self.origins.ndim != 2
+            or self.origins.shape[-1] != 3
+            or self.origins.shape != self.directions.shape
+        ):
+            raise ValueError(
+                f"origins and directions must both be (R, 3), got {tuple(self.origins.shape)} "
+                f"and {tuple(self.directions.shape)}"
+            )
+
+    def __len__(self) -> int:
+        return int(self.origins.shape[0])
+
+
+@dataclass
+class RaySamples:
+    """Samples along a batch of rays."""
+
+    rays: Rays
+    """The R rays."""
+    t: Tensor
+    """(R, S) distance of each sample from the ray origin along the unit direction (m)."""
+    deltas: Tensor
+    """(R, S) length of the bin each sample stands for (m)."""
+
+    @property
+    def positions(self) -> Tensor:
+        """(R, S, 3) world positions of the samples."""
+        return self.rays.origins[:, None, :] + self.t[..., None] * self.rays.directions[:, None, :]
+
+
+def _as_column(value: float | Tensor, n_rays: int, like: Tensor) -> Tensor:
+    out = torch.as_tensor(value, dtype=like.dtype, device=like.device)
+    if out.ndim == 0:
+        return out.expand(n_rays).unsqueeze(-1)
+    if out.shape != (n_rays,):
+        raise ValueError(f"near/far must be a float or a ({n_rays},) tensor, got shape {tuple(out.shape)}")
+    return out.unsqueeze(-1)
+
+
+def sample_along_rays(
+    origins: Tensor,
+    directions: Tensor,
+    near_m: float | Tensor,
+    far_m: float | Tensor,
+    n_samples: int,
+    *,
+    stratified: bool,
+    generator: torch.Generator | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Split ``[near, far]`` into ``n_samples`` equal bins and place one sample in each.
+
+    Args:
+        origins: (R, 3); directions: (R, 3) unit (only their count, dtype and device are used).
+        near_m, far_m: a float or (R,) per-ray bounds (m), ``0 <= near < far``.
+        n_samples: S >= 1.
+        stratified: jitter each sample uniformly inside its bin (training) instead of taking the
+            bin midpoint (evaluation).
+        generator: random source for the jitter.
+
+    Returns:
+        t: (R, S) sample distances (m); deltas: (R, S) bin lengths (m).
+    """
+    if origins.shape != directions.shape or origins.ndim != 2 or origins.shape[-1] != 3:
+        raise ValueError(
+            f"origins and directions must both be (R, 3), got {tuple(origins.shape)}, "
+            f"{tuple(directions.shape)}"
+        )
+    if n_samples < 1:
+        raise ValueError(f"n_samples {n_samples} out of range: must be >= 1")
+    n_rays = origins.shape[0]
+    near = _as_column(near_m, n_rays, origins)
+    far = _as_column(far_m, n_rays, origins)
+    if bool((near < 0).any()) or not bool((far > near).all()):
+        raise ValueError(
+            "ray bounds must satisfy 0 <= near < far, got near in "
+            f"[{near.min().item()}, {near.max().item()}], "
+            f"far in [{far.min().item()}, {far.max().item()}]"
+        )
+    steps = torch.linspace(0.0, 1.0, n_samples + 1, dtype=origins.dtype, device=origins.device)
+    edges = near + (far - near) * steps  # (R, S + 1)
+    lower, upper = edges[:, :-1], edges[:, 1:]
+    if stratified:
+        u = torch.rand(lower.shape, generator=generator, dtype=torch.float64, device="cpu")
+        u = u.to(device=origins.device, dtype=origins.dtype)
+    else:
+        u = torch.full_like(lower, 0.5)
+    t = lower + (upper - lower) * u
+    return t, upper - lower
+
+
+def _compute_dtype(x: Tensor) -> torch.dtype:
+    return torch.float32 if x.dtype in (torch.float16, torch.bfloat16) else x.dtype
+
+
+def render_weights(sigma: Tensor, deltas: Tensor) -> tuple[Tensor, Tensor]:
+    """Volume-rendering weights of samples along rays.
+
+    Args:
+        sigma: (R, S) densities (1/m); negative values are treated as 0.
+        deltas: (R, S) bin lengths (m), >= 0.
+
+    Returns:
+        weights: (R, S) ``T_i * alpha_i`` (>= 0, sum over S <= 1).
+        transmittance: (R, S) ``T_i``, the probability that the ray reaches bin i (non-increasing).
+    """
+    if sigma.shape != deltas.shape:
+        raise ValueError(
+            f"sigma {tuple(sigma.shape)} and deltas {tuple(deltas.shape)} must have the same shape"
+        )
+    out_dtype = sigma.dtype
+    work = _compute_dtype(sigma)
+    tau = (sigma.to(work).clamp_min(0.0) * deltas.to(work).clamp_min(0.0)).clamp_max(TAU_MAX)
+    tau = torch.nan_to_num(tau, nan=0.0)  # 0 * inf spacing; keeps the clamp gradient defined
+    alpha = -torch.expm1(-tau)
+    # Exclusive cumulative sum by shifting (not inclusive minus own term, which loses the small
+    # prefix next to a huge tau to rounding).
+    log_t_exclusive = torch.cumsum(torch.cat([torch.zeros_like(tau[..., :1]), tau[..., :-1]], dim=-1), dim=-1)
+    transmittance = torch.exp(-log_t_exclusive)
+    weights = transmittance * alpha
+    return weights.to(out_dtype), transmittance.to(out_dtype)
+
+
+def accumulated_opacity(weights: Tensor) -> Tensor:
+    """(R, S) weights -> (R,) opacity ``sum_i w_i`` in [0, 1]."""
+    return weights.sum(dim=-1)
+
+
+def composite(weights: Tensor, values: Tensor) -> Tensor:
+    """Alpha-composite per-sample values along rays.
+
+    Args:
+        weights: (R, S); values: (R, S, C).
+
+    Returns:
+        (R, C) ``sum_i w_i v_i`` (no background: a constant colour renders to itself times the
+        opacity; add ``(1 - opacity) * background`` yourself if you want one).
+    """
+    if values.shape[:-1] != weights.shape:
+        raise ValueError(f"values {tuple(values.shape)} must be weights {tuple(weights.shape)} + (C,)")
+    work = torch.promote_types(_compute_dtype(weights), _compute_dtype(values))
+    out = (weights.to(work).unsqueeze(-1) * values.to(work)).sum(dim=-2)
+    return out.to(torch.promote_types(weights.dtype, values.dtype))
+
+
+def expected_depth(weights: Tensor, t: Tensor, eps: float = 1e-10) -> Tensor:
+    """Expected ray distance of the surface, normalised by the opacity.
+
+    Args:
+        weights: (R, S); t: (R, S) sample distances (m).
+
+    Returns:
+        (R,) ``sum_i w_i t_i / sum_i w_i`` clamped to ``[t_0, t_{S-1}]`` (a ray with no opacity gets
+        ``t_0``; use ``accumulated_opacity`` to tell it apart). This is a distance along the unit
+        ray direction, not a camera z-depth.
+    """
+    if weights.shape != t.shape:
+        raise ValueError(f"weights {tuple(weights.shape)} and t {tuple(t.shape)} must have the same shape")
+    work = torch.promote_types(_compute_dtype(weights), _compute_dtype(t))
+    w, tt = weights.to(work), t.to(work)
+    depth = (w * tt).sum(dim=-1) / (w.sum(dim=-1) + eps)
+    depth = torch.maximum(torch.minimum(depth, tt[..., -1]), tt[..., 0])
+    return depth.to(torch.promote_types(weights.dtype, t.dtype))
