@@ -5,7 +5,7 @@ docs/PROTOCOL.md; conventions (frames, units, poses) are in docs/CONVENTIONS.md.
 """
 
 from protocol.arrays import decode_image, decode_nd, encode_image, encode_nd
-from protocol.errors import ERROR_CODES, ErrorCode, ProtocolError
+from protocol.errors import ERROR_CODES, ErrorCode, ProtocolError, RemoteError
 from protocol.messages import (
     MAX_MESSAGE_BYTES,
     ORTHONORMAL_TOL,
@@ -40,6 +40,7 @@ __all__ = [
     "ERROR_CODES", "MAX_MESSAGE_BYTES", "ORTHONORMAL_TOL", "PROTOCOL_VERSION",
     "Ack", "Error", "ErrorCode", "Frame", "Load", "MapUpdated", "Message", "ObjectCandidate", "Ok",
     "Points", "ProtocolError", "QueryPoints", "RecordingHeader", "RecordingReader", "RecordingWriter",
+    "RemoteError",
     "Render", "RenderResult", "Save", "SegmentPoints", "Segmentation", "Status", "StatusRequest",
     "decode", "decode_as", "decode_image", "decode_nd", "encode", "encode_image", "encode_nd",
     "error_reply", "peek_id", "read_recording",

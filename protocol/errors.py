@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal, get_args
+from typing import Any, Literal, get_args
 
 ErrorCode = Literal[
     "bad_request", "unsupported_version", "too_large", "ov_space_mismatch", "not_ready", "busy", "internal"
@@ -29,3 +29,18 @@ class ProtocolError(Exception):
     def __reduce__(self) -> tuple[type[ProtocolError], tuple[ErrorCode, str]]:
         # Keep the exception picklable (e.g. across multiprocessing) despite the 2-arg __init__.
         return (ProtocolError, (self.code, self.message))
+
+
+class RemoteError(ProtocolError):
+    """An `error` reply received from the mapper (raised by client-side `decode_as`).
+
+    Distinguishes "the node refused my request" from "I could not parse the node's reply".
+    `id` is the request id the error reply echoed.
+    """
+
+    def __init__(self, code: ErrorCode, message: str, id: int | str | None = None) -> None:
+        super().__init__(code, message)
+        self.id = id
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (RemoteError, (self.code, self.message, self.id))

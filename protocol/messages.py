@@ -30,7 +30,7 @@ import msgpack
 import numpy as np
 
 from protocol.arrays import decode_image, decode_nd, encode_image, encode_nd
-from protocol.errors import ERROR_CODES, ErrorCode, ProtocolError
+from protocol.errors import ERROR_CODES, ErrorCode, ProtocolError, RemoteError
 
 PROTOCOL_VERSION = 1
 """The wire protocol version this module speaks (`v` in every message)."""
@@ -89,6 +89,8 @@ Direction = Literal["request", "reply", "any"]
 RequestId = int | str | None
 
 _MISSING: Any = object()
+_INT_MIN = -(2**63)
+_INT_MAX = 2**64 - 1
 
 
 # ----------------------------------------------------------------------------------------------
@@ -122,6 +124,8 @@ def _check_int(name: str, value: Any, lo: int | None = None, hi: int | None = No
         value = int(value)
     if not _is_int(value):
         raise _bad(f"{name}: expected an int, got {_type_name(value)} {_short(value)}")
+    if not _INT_MIN <= value <= _INT_MAX:
+        raise _bad(f"{name}: {_short(value)} does not fit in a 64-bit msgpack int")
     if (lo is not None and value < lo) or (hi is not None and value > hi):
         rng = f"{'' if lo is None else lo}..{'' if hi is None else hi}"
         raise _bad(f"{name}: {value} out of range {rng}")
@@ -173,7 +177,7 @@ def _check_id(value: Any) -> RequestId:
     if isinstance(value, np.integer):
         value = int(value)
     if _is_int(value):
-        return int(value)
+        return _check_int("id", value)
     if isinstance(value, str):
         return _check_str("id", value, max_chars=MAX_ID_CHARS, nonempty=False)
     raise _bad(f"id: expected an int or a string, got {_type_name(value)} {_short(value)}")
@@ -1253,9 +1257,18 @@ def _resolve_any(type_: str, obj: dict[str, Any]) -> type[Message] | None:
     return REQUEST_TYPES.get(type_) or REPLY_TYPES.get(type_) or OTHER_TYPES.get(type_)
 
 
+def _pack_default(value: Any) -> Any:
+    """msgpack fallback for numpy scalars/arrays in free-form maps (`Status.extra`, header meta)."""
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"cannot serialise {type(value).__name__} {_short(value)} to msgpack")
+
+
 def encode(msg: Message) -> bytes:
     """Serialise a message to its wire bytes (one msgpack map, binary payloads as `bin`)."""
-    packed = msgpack.packb(msg.to_wire(), use_bin_type=True)
+    packed = msgpack.packb(msg.to_wire(), use_bin_type=True, default=_pack_default)
     assert isinstance(packed, bytes)
     return packed
 
@@ -1332,17 +1345,20 @@ M = TypeVar("M", bound=Message)
 def decode_as(data: bytes | bytearray | memoryview, cls: type[M], *, max_bytes: int = MAX_MESSAGE_BYTES) -> M:
     """Decode a message that must be of class `cls` (e.g. a client expecting `Points`).
 
-    An `Error` reply is raised as `ProtocolError(code, message)`; any other type is bad_request.
+    Raises:
+        RemoteError: the message is an `error` reply (and `cls` is not `Error`); carries the
+            remote code, message and id.
+        ProtocolError: the message is malformed, or of another type (``bad_request``).
     """
     obj = _unpack(data, max_bytes)
-    if isinstance(obj, dict) and obj.get("type") == Error.TYPE and cls is not Error:
-        err = Error.from_wire(obj)
-        raise ProtocolError(err.code, err.message)
-    if isinstance(obj, dict) and "type" in obj and obj.get("type") != cls.TYPE and "v" in obj:
-        _check_header(obj)
-        raise _bad(f"expected a {cls.TYPE!r} message, got {_short(obj.get('type'))}")
     if not isinstance(obj, dict):
         raise _bad(f"message must be a msgpack map, got {_type_name(obj)}")
+    _check_header(obj)
+    if obj["type"] == Error.TYPE and cls is not Error:
+        err = Error.from_wire(obj)
+        raise RemoteError(err.code, err.message, id=err.id)
+    if obj["type"] != cls.TYPE:
+        raise _bad(f"expected a {cls.TYPE!r} message, got type {_short(obj['type'])}")
     return cls.from_wire(obj)
 
 
