@@ -1,0 +1,592 @@
+"""The long-running mapper node: sockets, threads, shared map state, and the request dispatch.
+
+Threads and sockets (a ZeroMQ socket is only ever used by the thread that created it):
+
+- **ingest thread**: ROUTER bound on ``ingest_endpoint``; decodes each ``frame``, updates the
+  keyframe window and replies with exactly one ``ack`` or ``error``.
+- **query thread**: ROUTER bound on ``query_endpoint``; dispatches each request through
+  :attr:`MapperNode.query_handlers` (message class -> handler) and replies exactly once.
+- **events thread** (optional): PUB bound on ``events_endpoint``; publishes ``map_updated``
+  notices handed to it through a queue by whichever thread changed the map.
+- **main thread**: :meth:`MapperNode.run` waits for SIGINT/SIGTERM, does periodic autosaves and,
+  on shutdown, stops the threads, does the final save and returns exit code 0.
+
+Ingest and queries never wait on each other's sockets; they share :class:`MapState` behind one
+lock, held only for the short state updates (decoding, file I/O and replies happen outside it).
+
+Replies on a ROUTER reuse the request's envelope: every frame but the last is routing
+(identities, and the empty delimiter REQ peers add), the last frame is the message. So DEALER
+peers (with or without an empty delimiter) and REQ peers all get their reply. Replies to one
+connection leave in the order its requests arrived (each socket is served by one thread).
+
+Robustness: every message is handled inside a catch-all; a ``ProtocolError`` becomes its wire
+error, anything else an ``internal`` error (logged with traceback), and the node keeps serving.
+A rejected message changes nothing but the counters.
+
+Later stages plug in here: ``register_query_handler(QueryPoints, handler)`` replaces the
+``not_ready`` answers; the cost volume and OV cache hook :attr:`MapState.window`'s ``on_add`` /
+``on_evict`` callbacks (called under the state lock); saving more state goes through
+``MapState.snapshot`` / ``restore``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import signal
+import threading
+import time
+import traceback
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import FrameType
+from typing import Any
+
+import zmq
+
+from mapper.config import NodeConfig, to_dict
+from mapper.store import MapStore, StoreError
+from mapper.window import Keyframe, KeyframeWindow, keyframes_from_arrays, keyframes_to_arrays
+from protocol.errors import ProtocolError
+from protocol.messages import (
+    Ack,
+    AckStatus,
+    Error,
+    Frame,
+    Load,
+    MapUpdated,
+    Message,
+    Ok,
+    QueryPoints,
+    Render,
+    Save,
+    SegmentPoints,
+    Status,
+    StatusRequest,
+    decode,
+    encode,
+    error_reply,
+    peek_id,
+)
+
+log = logging.getLogger("mapper.service")
+
+QueryHandler = Callable[[Message], Message]
+"""Takes a decoded request, returns the reply (its ``id`` is filled in by the node); raises
+``ProtocolError`` for an error reply."""
+
+HARD_LIMIT_FACTOR = 4
+"""ZeroMQ drops messages above ``HARD_LIMIT_FACTOR * max_message_bytes`` at the transport (the
+peer is disconnected, no reply) so a hostile sender cannot make the node allocate without bound;
+between ``max_message_bytes`` and that, the node answers ``too_large``."""
+
+
+@dataclass(frozen=True)
+class MapSnapshot:
+    """An immutable view of the map for saving (taken under the lock, written outside it)."""
+
+    map_version: int
+    keyframes: tuple[Keyframe, ...]
+    ov_space: str | None
+    ov_dim: int | None
+
+
+class MapState:
+    """Everything the node knows, behind :attr:`lock`. Counters are part of the state."""
+
+    def __init__(self, config: NodeConfig) -> None:
+        self.lock = threading.Lock()
+        self.config = config
+        self.window = KeyframeWindow(config.window)
+        self.map_version = 0
+        self.ov_space: str | None = config.ov_space
+        """Embedding space of the map (pinned by config, else set by the first keyframe with ov)."""
+        self.ov_dim: int | None = None
+        """Feature dimension of that space, learned from the first keyframe with ov."""
+        self.frames_received = 0
+        self.frames_rejected = 0
+        self.ack_counts: Counter[str] = Counter()
+        self.error_counts: Counter[str] = Counter()
+        self.requests_by_type: Counter[str] = Counter()
+        self.keyframes_evicted = 0
+        self.last_save: dict[str, Any] | None = None
+        self.started_monotonic = time.monotonic()
+
+    # -- called with the lock held ------------------------------------------------------------
+
+    def memory_bytes(self) -> int:
+        """Bytes of map data held (keyframe arrays; later stages add their volumes and caches)."""
+        return self.window.nbytes
+
+    def snapshot(self) -> MapSnapshot:
+        return MapSnapshot(self.map_version, self.window.keyframes, self.ov_space, self.ov_dim)
+
+
+def _rss_bytes() -> int | None:
+    """Resident set size of this process (Linux), for operators; None where unavailable."""
+    try:
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+class MapperNode:
+    """The node. ``start()`` binds the sockets (raising if one cannot be bound), ``run()`` serves
+    until a signal or :meth:`request_stop`, ``stop()`` shuts down. Also usable in-process."""
+
+    def __init__(self, config: NodeConfig) -> None:
+        self.config = config
+        self.state = MapState(config)
+        self.store = MapStore(config.map_dir)
+        self.query_handlers: dict[type[Message], QueryHandler] = {
+            StatusRequest: self._handle_status,
+            Save: self._handle_save,
+            Load: self._handle_load,
+            QueryPoints: self._not_ready("query_points", "semantic point queries"),
+            SegmentPoints: self._not_ready("segment_points", "3D segmentation"),
+            Render: self._not_ready("render", "rendering"),
+        }
+        """Dispatch table of the query endpoint: request class -> handler."""
+        self._stop = threading.Event()
+        self._context = zmq.Context()
+        self._threads: list[threading.Thread] = []
+        self._events: queue.SimpleQueue[MapUpdated | None] = queue.SimpleQueue()
+        self._bind_errors: list[str] = []
+        self._saved_version: int | None = None
+        self._last_autosave = time.monotonic()
+
+    # -- extension points ---------------------------------------------------------------------
+
+    def register_query_handler(self, message_type: type[Message], handler: QueryHandler) -> None:
+        """Serve ``message_type`` requests on the query endpoint with ``handler`` (replacing any)."""
+        self.query_handlers[message_type] = handler
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Start the socket threads; return once every socket is bound. Raises ``RuntimeError``
+        naming the endpoint when a bind fails (e.g. address in use)."""
+        workers: list[tuple[str, Callable[[threading.Event], None]]] = [
+            ("ingest", self._ingest_loop),
+            ("query", self._query_loop),
+        ]
+        if self.config.events_endpoint:
+            workers.append(("events", self._events_loop))
+        ready: list[threading.Event] = []
+        for name, target in workers:
+            bound = threading.Event()
+            thread = threading.Thread(target=target, args=(bound,), name=f"mapper-{name}", daemon=True)
+            thread.start()
+            self._threads.append(thread)
+            ready.append(bound)
+        for bound in ready:
+            bound.wait(timeout=10.0)
+        if self._bind_errors or not all(b.is_set() for b in ready):
+            self._stop.set()
+            self._join()
+            self._context.term()
+            raise RuntimeError("; ".join(self._bind_errors) or "socket threads did not start in 10 s")
+        log.info(
+            "serving: ingest %s, query %s, events %s, map_dir %s",
+            self.config.ingest_endpoint,
+            self.config.query_endpoint,
+            self.config.events_endpoint or "(off)",
+            os.path.abspath(self.config.map_dir),
+        )
+
+    def request_stop(self) -> None:
+        """Ask :meth:`run` to shut down (thread-safe, signal-safe)."""
+        self._stop.set()
+
+    def run(self) -> int:
+        """Serve until :meth:`request_stop` (or a signal, see :meth:`install_signal_handlers`);
+        then shut down. Returns the exit code."""
+        last_report = time.monotonic()
+        reported = (-1, -1)
+        while not self._stop.wait(timeout=0.5):
+            dead = [t.name for t in self._threads if not t.is_alive()]
+            if dead:
+                log.error("socket thread(s) %s stopped unexpectedly; shutting down", ", ".join(dead))
+                self.stop()
+                return 1
+            self._maybe_autosave()
+            now = time.monotonic()
+            if now - last_report >= 30.0:
+                last_report = now
+                with self.state.lock:
+                    current = (self.state.frames_received, self.state.map_version)
+                    line = self._summary_line()
+                if current != reported:
+                    reported = current
+                    log.info("%s", line)
+        return self.stop()
+
+    def stop(self) -> int:
+        """Stop the threads, close the sockets, do the final save if configured. Idempotent."""
+        self._stop.set()
+        self._events.put(None)
+        self._join()
+        code = 0
+        if self.config.save_on_exit and self.config.autosave_name:
+            try:
+                self._save_to(self.config.autosave_name, reason="final")
+            except StoreError as exc:
+                log.error("final save failed: %s", exc)
+                code = 1
+        self._context.term()
+        with self.state.lock:
+            log.info("stopped: %s", self._summary_line())
+        return code
+
+    def _join(self) -> None:
+        for thread in self._threads:
+            thread.join(timeout=10.0)
+            if thread.is_alive():
+                log.error("thread %s did not stop within 10 s", thread.name)
+        self._threads = [t for t in self._threads if t.is_alive()]
+
+    def install_signal_handlers(self) -> None:
+        """Make SIGINT and SIGTERM request a clean shutdown (call from the main thread)."""
+        def handler(signum: int, _frame: FrameType | None) -> None:
+            log.info("received %s, shutting down", signal.Signals(signum).name)
+            self._stop.set()
+
+        signal.signal(signal.SIGINT, handler)
+        signal.signal(signal.SIGTERM, handler)
+
+    # -- socket loops -------------------------------------------------------------------------
+
+    def _bind(self, kind: int, endpoint: str, bound: threading.Event) -> zmq.Socket[bytes] | None:
+        sock: zmq.Socket[bytes] = self._context.socket(kind)
+        sock.setsockopt(zmq.LINGER, 1000)  # flush pending replies for up to 1 s on close
+        if kind == zmq.ROUTER:
+            sock.setsockopt(zmq.MAXMSGSIZE, HARD_LIMIT_FACTOR * self.config.max_message_bytes)
+        try:
+            sock.bind(endpoint)
+        except zmq.ZMQError as exc:
+            self._bind_errors.append(f"cannot bind {endpoint}: {exc}")
+            sock.close(linger=0)
+            bound.set()
+            return None
+        bound.set()
+        return sock
+
+    def _serve_router(
+        self, endpoint: str, bound: threading.Event, handle: Callable[[bytes], bytes], name: str
+    ) -> None:
+        sock = self._bind(zmq.ROUTER, endpoint, bound)
+        if sock is None:
+            return
+        poller = zmq.Poller()
+        poller.register(sock, zmq.POLLIN)
+        timeout_ms = int(self.config.poll_interval_s * 1000)
+        try:
+            while not self._stop.is_set():
+                if not poller.poll(timeout_ms):
+                    continue
+                while not self._stop.is_set():
+                    try:
+                        parts = sock.recv_multipart(zmq.NOBLOCK)
+                    except zmq.Again:
+                        break
+                    if len(parts) < 2:  # a ROUTER always prepends the identity; be defensive
+                        log.warning("%s: dropped a message without envelope (%d parts)", name, len(parts))
+                        continue
+                    reply = handle(parts[-1])
+                    try:
+                        sock.send_multipart([*parts[:-1], reply], zmq.NOBLOCK)
+                    except zmq.ZMQError as exc:  # peer gone or its queue full: nothing else to do
+                        log.warning("%s: could not send a reply: %s", name, exc)
+        finally:
+            sock.close()
+
+    def _ingest_loop(self, bound: threading.Event) -> None:
+        self._serve_router(self.config.ingest_endpoint, bound, self.handle_ingest, "ingest")
+
+    def _query_loop(self, bound: threading.Event) -> None:
+        self._serve_router(self.config.query_endpoint, bound, self.handle_query, "query")
+
+    def _events_loop(self, bound: threading.Event) -> None:
+        assert self.config.events_endpoint
+        sock = self._bind(zmq.PUB, self.config.events_endpoint, bound)
+        if sock is None:
+            return
+        try:
+            while True:
+                event = self._events.get()
+                if event is None or self._stop.is_set():
+                    break
+                try:
+                    sock.send(encode(event), zmq.NOBLOCK)
+                except zmq.ZMQError as exc:
+                    log.debug("events: dropped a notice: %s", exc)
+        finally:
+            sock.close(linger=0)
+
+    def _publish(self, map_version: int, keyframes: int) -> None:
+        if self.config.events_endpoint:
+            self._events.put(MapUpdated(map_version=map_version, keyframes=keyframes))
+
+    # -- message handling (pure bytes -> bytes, never raises) ----------------------------------
+
+    def handle_ingest(self, data: bytes) -> bytes:
+        """Handle one message of the ingest endpoint; returns the encoded ``ack`` or ``error``."""
+        with self.state.lock:
+            self.state.frames_received += 1
+        try:
+            msg = decode(data, max_bytes=self.config.max_message_bytes, direction="request")
+            if not isinstance(msg, Frame):
+                raise ProtocolError(
+                    "bad_request",
+                    f"the ingest endpoint accepts only 'frame' messages, got {msg.TYPE!r}; "
+                    "send queries to the query endpoint",
+                )
+            reply: Message = self._ingest_frame(msg)
+        except ProtocolError as exc:
+            reply = self._error(exc, data, "ingest")
+        except Exception as exc:  # a bug: answer, log, keep serving
+            reply = self._internal(exc, data, "ingest")
+        if isinstance(reply, Error) or (isinstance(reply, Ack) and reply.status == "rejected"):
+            with self.state.lock:
+                self.state.frames_rejected += 1
+        return encode(reply)
+
+    def handle_query(self, data: bytes) -> bytes:
+        """Handle one message of the query endpoint via :attr:`query_handlers`."""
+        try:
+            msg = decode(data, max_bytes=self.config.max_message_bytes, direction="request")
+            with self.state.lock:
+                self.state.requests_by_type[msg.TYPE] += 1
+            handler = self.query_handlers.get(type(msg))
+            if handler is None:
+                if isinstance(msg, Frame):
+                    raise ProtocolError(
+                        "bad_request", "'frame' messages go to the ingest endpoint, not the query endpoint"
+                    )
+                raise ProtocolError("bad_request", f"the query endpoint does not serve {msg.TYPE!r} requests")
+            reply = handler(msg)
+            msg_id = getattr(msg, "id", None)
+            if hasattr(reply, "id") and getattr(reply, "id", None) is None and msg_id is not None:
+                reply.id = msg_id
+        except ProtocolError as exc:
+            reply = self._error(exc, data, "query")
+        except Exception as exc:
+            reply = self._internal(exc, data, "query")
+        try:
+            return encode(reply)
+        except Exception as exc:  # a handler returned something unencodable: still answer
+            return encode(self._internal(exc, data, "query"))
+
+    def _error(self, exc: ProtocolError, data: bytes, where: str) -> Error:
+        with self.state.lock:
+            self.state.error_counts[exc.code] += 1
+        log.debug("%s: %s error: %s", where, exc.code, exc.message)
+        return error_reply(exc, peek_id(data))
+
+    def _internal(self, exc: Exception, data: bytes, where: str) -> Error:
+        log.error("%s: internal error while handling a message:\n%s", where, traceback.format_exc())
+        with self.state.lock:
+            self.state.error_counts["internal"] += 1
+        message = f"internal error ({type(exc).__name__}) while handling the request; see the node log"
+        return error_reply(ProtocolError("internal", message), peek_id(data))
+
+    # -- ingest -------------------------------------------------------------------------------
+
+    def _ingest_frame(self, frame: Frame) -> Ack:
+        keyframe = Keyframe(
+            seq=frame.seq,
+            stamp_ns=frame.stamp_ns,
+            camera=frame.camera,
+            K=frame.K,
+            world_from_cam=frame.world_from_cam,
+            rgb=frame.rgb,
+            depth_m=frame.depth_m,
+            ov=frame.ov,
+            ov_space=frame.ov_space,
+        )
+        state = self.state
+        with state.lock:
+            if frame.ov is not None:
+                if state.ov_space is not None and frame.ov_space != state.ov_space:
+                    raise ProtocolError(
+                        "ov_space_mismatch",
+                        f"frame seq {frame.seq}: ov_space {frame.ov_space!r} differs from the map's "
+                        f"{state.ov_space!r}; send features of that space, or load/start a map for yours",
+                    )
+                dim = int(frame.ov.shape[2])
+                if state.ov_dim is not None and dim != state.ov_dim:
+                    return self._reject(
+                        frame,
+                        f"ov feature dimension {dim} differs from the map's {state.ov_dim} "
+                        f"for space {state.ov_space!r}",
+                    )
+            update = state.window.consider(keyframe)
+            status: AckStatus
+            if update.added:
+                if frame.ov is not None:
+                    state.ov_space = frame.ov_space
+                    state.ov_dim = int(frame.ov.shape[2])
+                state.map_version += 1
+                state.keyframes_evicted += len(update.evicted)
+                status = "keyframe"
+                self._publish(state.map_version, len(state.window))
+            else:
+                status = "accepted"
+            state.ack_counts[status] += 1
+            version = state.map_version
+        log.debug(
+            "frame seq %d (%s): %s, moved %.3f m, turned %.1f deg",
+            frame.seq, frame.camera, status, update.translation_m, update.rotation_deg,
+        )
+        return Ack(seq=frame.seq, status=status, map_version=version, id=frame.id)
+
+    def _reject(self, frame: Frame, reason: str) -> Ack:
+        """A rejected ack (called with the lock held)."""
+        self.state.ack_counts["rejected"] += 1
+        log.debug("frame seq %d rejected: %s", frame.seq, reason)
+        return Ack(
+            seq=frame.seq, status="rejected", map_version=self.state.map_version, reason=reason, id=frame.id
+        )
+
+    # -- queries ------------------------------------------------------------------------------
+
+    def _handle_status(self, msg: Message) -> Status:
+        state = self.state
+        with state.lock:
+            extra: dict[str, Any] = {
+                "max_keyframes": self.config.window.max_keyframes,
+                "frames_keyframe": state.ack_counts["keyframe"],
+                "frames_accepted": state.ack_counts["accepted"],
+                "frames_rejected_ack": state.ack_counts["rejected"],
+                "keyframes_evicted": state.keyframes_evicted,
+                "errors": dict(state.error_counts),
+                "requests": dict(state.requests_by_type),
+                "ov_dim": state.ov_dim,
+                "last_save": state.last_save,
+                "endpoints": {
+                    "ingest": self.config.ingest_endpoint,
+                    "query": self.config.query_endpoint,
+                    "events": self.config.events_endpoint,
+                },
+                "map_dir": os.path.abspath(self.config.map_dir),
+                "pid": os.getpid(),
+                "rss_bytes": _rss_bytes(),
+                "serving": sorted(t.TYPE for t, h in self.query_handlers.items() if not _is_not_ready(h)),
+            }
+            return Status(
+                map_version=state.map_version,
+                keyframes=len(state.window),
+                frames_received=state.frames_received,
+                frames_rejected=state.frames_rejected,
+                ov_space=state.ov_space,
+                memory_bytes=state.memory_bytes(),
+                uptime_s=time.monotonic() - state.started_monotonic,
+                extra=extra,
+                id=getattr(msg, "id", None),
+            )
+
+    def _handle_save(self, msg: Message) -> Ok:
+        assert isinstance(msg, Save)
+        try:
+            path, version, count = self._save_to(msg.name, reason="request")
+        except StoreError as exc:
+            raise ProtocolError("bad_request", f"save failed: {exc}") from None
+        return Ok(id=msg.id, message=f"saved map version {version} ({count} keyframes) to {path}")
+
+    def _save_to(self, name: str, reason: str) -> tuple[str, int, int]:
+        """Snapshot under the lock, write outside it. Returns (path, map_version, keyframes)."""
+        with self.state.lock:
+            snap = self.state.snapshot()
+        arrays, entries = keyframes_to_arrays(snap.keyframes)
+        manifest = {
+            "map_version": snap.map_version,
+            "ov_space": snap.ov_space,
+            "ov_dim": snap.ov_dim,
+            "keyframes": entries,
+            "saved_unix_s": time.time(),
+            "config": to_dict(self.config),
+        }
+        started = time.monotonic()
+        path = self.store.save(name, arrays, manifest)
+        elapsed = time.monotonic() - started
+        with self.state.lock:
+            self.state.last_save = {"name": name, "map_version": snap.map_version, "unix_s": time.time()}
+        self._saved_version = snap.map_version
+        log.info(
+            "%s save: map version %d (%d keyframes) -> %s in %.2f s",
+            reason, snap.map_version, len(snap.keyframes), path, elapsed,
+        )
+        return str(path), snap.map_version, len(snap.keyframes)
+
+    def _handle_load(self, msg: Message) -> Ok:
+        assert isinstance(msg, Load)
+        try:
+            arrays, manifest = self.store.load(msg.name)
+            keyframes = keyframes_from_arrays(arrays, manifest.get("keyframes"))
+        except (StoreError, ValueError) as exc:
+            raise ProtocolError("bad_request", f"load failed: {exc}") from None
+        ov_space = manifest.get("ov_space")
+        ov_dim = manifest.get("ov_dim")
+        valid_space = ov_space is None or isinstance(ov_space, str)
+        if not valid_space or not (ov_dim is None or isinstance(ov_dim, int)):
+            raise ProtocolError("bad_request", f"load failed: map {msg.name!r} has a corrupt manifest (ov)")
+        state = self.state
+        with state.lock:
+            if self.config.ov_space is not None and ov_space is not None and ov_space != self.config.ov_space:
+                raise ProtocolError(
+                    "ov_space_mismatch",
+                    f"map {msg.name!r} holds ov_space {ov_space!r}; this node is pinned to "
+                    f"{self.config.ov_space!r}",
+                )
+            state.window.replace(keyframes)
+            state.ov_space = ov_space if ov_space is not None else self.config.ov_space
+            state.ov_dim = ov_dim
+            state.map_version += 1
+            version, count = state.map_version, len(state.window)
+            self._publish(version, count)
+        log.info("loaded map %r: %d keyframes, now map version %d", msg.name, count, version)
+        return Ok(id=msg.id, message=f"loaded map {msg.name!r}: {count} keyframes, map version {version}")
+
+    @staticmethod
+    def _not_ready(type_name: str, what: str) -> QueryHandler:
+        def handler(msg: Message) -> Message:
+            raise ProtocolError(
+                "not_ready",
+                f"{type_name} ({what}) is not served by this node yet: the model stage is not "
+                "installed; status, save and load are served",
+            )
+
+        handler.not_ready = True  # type: ignore[attr-defined]
+        return handler
+
+    # -- housekeeping -------------------------------------------------------------------------
+
+    def _maybe_autosave(self) -> None:
+        cfg = self.config
+        if not cfg.autosave_name or cfg.autosave_interval_s <= 0:
+            return
+        if time.monotonic() - self._last_autosave < cfg.autosave_interval_s:
+            return
+        self._last_autosave = time.monotonic()
+        with self.state.lock:
+            version = self.state.map_version
+        if version == self._saved_version:
+            return
+        try:
+            self._save_to(cfg.autosave_name, reason="periodic")
+        except StoreError as exc:
+            log.error("periodic save failed: %s", exc)
+
+    def _summary_line(self) -> str:
+        s = self.state
+        return (
+            f"map_version {s.map_version}, keyframes {len(s.window)}, frames received "
+            f"{s.frames_received} (rejected {s.frames_rejected}), memory {s.memory_bytes() / 1e6:.1f} MB"
+        )
+
+
+def _is_not_ready(handler: QueryHandler) -> bool:
+    return bool(getattr(handler, "not_ready", False))
