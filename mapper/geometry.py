@@ -24,6 +24,8 @@ Example:
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -229,8 +231,9 @@ def _flatten_for_sampling(image: Tensor, uv: Tensor) -> tuple[Tensor, Tensor, tu
     if uv.ndim < 2 or uv.shape[-1] != 2:
         raise ValueError(f"uv must have shape (..., N, 2), got {tuple(uv.shape)}")
     batch = torch.broadcast_shapes(image.shape[:-3], uv.shape[:-2])
-    img = image.expand(*batch, *image.shape[-3:]).reshape(-1, *image.shape[-3:])
-    pts = uv.expand(*batch, *uv.shape[-2:]).reshape(-1, uv.shape[-2], 2)
+    n_batch = math.prod(batch)
+    img = image.expand(*batch, *image.shape[-3:]).reshape(n_batch, *image.shape[-3:])
+    pts = uv.expand(*batch, *uv.shape[-2:]).reshape(n_batch, uv.shape[-2], 2)
     return img, pts, tuple(batch)
 
 
