@@ -14,6 +14,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "serve": ("mapper.cli", "serve_main", "run the mapper node"),
     "replay": ("clients.replay", "main", "replay a .govrec recording into a node"),
     "status": ("clients.client_cli", "status_main", "print a node's status"),
+    "import": ("clients.importers.cli", "main", "convert a dataset folder to .govrec"),
 }
 
 
