@@ -446,3 +446,165 @@ def test_bad_K_and_layout_errors(tmp_path: Path) -> None:
         open_dataset("scannet", tmp_path / "empty")
     with pytest.raises(ImporterError, match="missing Replica results folder"):
         open_dataset("replica", tmp_path / "empty")
+
+
+# ---------------------------------------------------------------------------------------------
+# Conversion to .govrec and the `govnesf import` command
+
+
+def read_back(path: Path):
+    from protocol.recording import read_recording
+
+    recording = read_recording(path)
+    frames = list(recording.frames())
+    assert not recording.truncated
+    return recording.header.meta, frames
+
+
+def test_cli_replica_stride_png(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from clients.importers.cli import main
+
+    scene = write_replica(tmp_path / "Replica")
+    out = tmp_path / "room0.govrec"
+    rc = main(["replica", str(scene), "--out", str(out), "--stride", "2", "--rgb-encoding", "png"])
+    assert rc == 0
+    assert "wrote 3 frames (32x24)" in capsys.readouterr().out
+    meta, frames = read_back(out)
+    assert meta["source_format"] == "replica" and meta["stride"] == 2
+    source = frames_of(open_dataset("replica", scene))
+    assert [f.seq for f in frames] == [0, 1, 2]
+    for frame, expected in zip(frames, source[::2], strict=True):
+        assert frame.rgb_encoding == "png"
+        np.testing.assert_array_equal(frame.rgb, expected.rgb)  # png: lossless
+        np.testing.assert_array_equal(frame.depth_m, expected.depth_m)
+        np.testing.assert_array_equal(frame.K, expected.K)
+        np.testing.assert_array_equal(frame.world_from_cam, expected.world_from_cam)
+        assert frame.stamp_ns == expected.stamp_ns
+
+
+def test_cli_scannet_summary_counts_skips(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from clients.cli import main as govnesf
+
+    scene = write_scannet(tmp_path / "scene", invalid_pose_ids=(1, 5))
+    out = tmp_path / "scene.govrec"
+    rc = govnesf(["import", "scannet", str(scene), "--out", str(out), "--quiet", "--rgb-encoding", "jpeg"])
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert "wrote 4 frames" in printed and "2  invalid pose (non-finite values)" in printed
+    _, frames = read_back(out)
+    assert [f.stamp_ns for f in frames] == [round(i * 1e9 / 30) for i in (0, 2, 3, 4)]
+    assert all(f.rgb_encoding == "jpeg" and f.rgb.shape == (H, W, 3) for f in frames)
+
+
+def test_cli_max_frames_no_depth(tmp_path: Path) -> None:
+    from clients.importers.cli import main
+
+    out = tmp_path / "seven.govrec"
+    args = ["7scenes", str(write_7scenes(tmp_path)), "--out", str(out), "--K", "30,29,15.2,11.7"]
+    assert main([*args, "--max-frames", "2", "--no-depth", "--quiet"]) == 0
+    _, frames = read_back(out)
+    assert len(frames) == 2 and all(f.depth_m is None for f in frames)
+    np.testing.assert_allclose(frames[0].K, expected_K())
+
+
+def test_cli_errors_leave_nothing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from clients.importers.cli import main
+
+    scene = write_replica(tmp_path / "Replica")
+    (scene / "results" / "frame000003.jpg").write_bytes(b"garbage")
+    out = tmp_path / "out.govrec"
+    assert main(["replica", str(scene), "--out", str(out), "--quiet"]) == 1
+    assert "unreadable colour image" in capsys.readouterr().err
+    assert list(tmp_path.glob("out.govrec*")) == []  # no output, no partial file
+
+    out.write_bytes(b"keep me")
+    assert main(["replica", str(scene), "--out", str(out), "--max-frames", "1", "--quiet"]) == 1
+    assert "exists; pass --overwrite" in capsys.readouterr().err
+    assert out.read_bytes() == b"keep me"
+    assert main(["replica", str(scene), "--out", str(out), "--max-frames", "1", "--overwrite"]) == 0
+    assert len(read_back(out)[1]) == 1
+
+    assert main(["replica", str(scene), "--out", str(tmp_path / "x.bag"), "--quiet"]) == 1
+    assert "--out must name a .govrec file, got" in capsys.readouterr().err
+    assert main(["replica", str(scene), "--out", str(tmp_path / "y.govrec"), "--K", "1,2"]) == 1
+    assert "--K wants 4 numbers" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["replica", str(scene), "--out", str(tmp_path / "z.govrec"), "--stride", "0"])
+
+
+def test_all_frames_skipped_is_an_error(tmp_path: Path) -> None:
+    from clients.importers import convert
+
+    scene = write_scannet(tmp_path / "scene", invalid_pose_ids=tuple(range(len(POSES) + 1)))
+    out = tmp_path / "none.govrec"
+    with pytest.raises(ImporterError, match=r"no frames to write.*6 x invalid pose"):
+        convert(open_dataset("scannet", scene), out, progress=False)
+    assert not out.exists() and not out.with_name("none.govrec.partial").exists()
+
+
+def write_sim_export(root: Path) -> Path:
+    """A simulator-style export: DIR/frames.govrec (with depth and OV features) + DIR/gt/."""
+    from protocol.messages import Frame
+    from protocol.recording import RecordingWriter
+
+    root.mkdir()
+    (root / "gt").mkdir()
+    rng = np.random.default_rng(0)
+    with RecordingWriter(root / "frames.govrec", {"scene": "room_a", "generator": "test"}) as writer:
+        for i, world_from_cam in enumerate(POSES):
+            rgb, depth = render(world_from_cam)
+            writer.write(
+                Frame(
+                    seq=i,
+                    stamp_ns=1_000 + i * 33_000_000,
+                    width=W,
+                    height=H,
+                    K=expected_K(),
+                    world_from_cam=world_from_cam,
+                    rgb=rgb,
+                    depth_m=depth.astype(np.float32),
+                    ov=rng.standard_normal((6, 8, 4)).astype(np.float16),
+                    ov_space="minilm-l6-v2",
+                )
+            )
+    return root
+
+
+def test_sim_import_reencodes_and_passes_through(tmp_path: Path) -> None:
+    from clients.importers import convert
+
+    export = write_sim_export(tmp_path / "export")
+    _, source = read_back(export / "frames.govrec")
+    out = tmp_path / "sim.govrec"
+    reader = open_dataset("sim", export)
+    summary = convert(reader, out, stride=2, rgb_encoding="jpeg", progress=False)
+    assert summary.frames_written == 3 and not summary.skipped
+    meta, frames = read_back(out)
+    assert meta["source_meta"] == {"scene": "room_a", "generator": "test"}
+    assert meta["gt_dir"] == str((export / "gt").resolve())
+    for frame, expected in zip(frames, source[::2], strict=True):
+        assert frame.rgb_encoding == "jpeg"
+        assert np.abs(frame.rgb.astype(int) - expected.rgb.astype(int)).mean() < 3.0
+        np.testing.assert_array_equal(frame.depth_m, expected.depth_m)
+        np.testing.assert_array_equal(frame.ov, expected.ov)
+        assert frame.ov_space == "minilm-l6-v2" and frame.stamp_ns == expected.stamp_ns
+        np.testing.assert_array_equal(frame.world_from_cam, expected.world_from_cam)
+    convert(open_dataset("sim", export / "frames.govrec"), tmp_path / "all.govrec", progress=False)
+    _, all_frames = read_back(tmp_path / "all.govrec")
+    check_geometry([ImportedFrame(f.rgb, f.depth_m, f.K, f.world_from_cam, 0, "") for f in all_frames])
+
+
+def test_sim_import_of_a_cut_recording(tmp_path: Path) -> None:
+    from clients.importers import convert
+
+    export = write_sim_export(tmp_path / "export")
+    path = export / "frames.govrec"
+    path.write_bytes(path.read_bytes()[:-100])  # last frame cut short
+    with pytest.raises(ImporterError, match="--K does not apply to sim"):
+        open_dataset("sim", path, ReaderOptions(K=K_DATASET))
+    summary = convert(open_dataset("sim", path), tmp_path / "cut.govrec", progress=False)
+    assert summary.frames_written == len(POSES) - 1
+    assert any("damaged" in w and "cut short" in w for w in summary.warnings)
+    (tmp_path / "junk.govrec").write_bytes(b"\x93not a recording")
+    with pytest.raises(ImporterError, match="cannot read recording"):
+        open_dataset("sim", tmp_path / "junk.govrec")
