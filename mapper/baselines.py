@@ -54,6 +54,7 @@ def average_features(
     depth_rel_tol: float = 0.25,
     chunk: int = 16384,
     distance_power: float = 0.0,
+    mask: np.ndarray | Tensor | None = None,
     device: str | torch.device = "cpu",
 ) -> tuple[Tensor, Tensor]:
     """Multi-view average of OV features at 3D points (OpenScene-2D baseline).
@@ -70,6 +71,9 @@ def average_features(
         chunk: points per chunk (bounds memory: about chunk x D x 8 bytes per view sample).
         distance_power: weight each view by z ** -distance_power (0 = plain mean); the
             "visible views weighted by distance" oracle of the reference numbers uses > 0.
+        mask: optional (V, N) bool, False excludes view v for point n on top of the other tests
+            (e.g. a ray-cast visibility oracle). Rows follow ``views`` (before views without
+            depth are dropped by ``use_depth``).
         device: torch device for the computation.
 
     Returns:
@@ -99,8 +103,16 @@ def average_features(
     n_pts = pts.shape[0]
     feats = torch.zeros(n_pts, dim, dtype=torch.float32, device=device)
     n_views = torch.zeros(n_pts, dtype=torch.int64, device=device)
-    if use_depth:
-        parsed = [v for v in parsed if v.depth_m is not None]
+    view_ids = [i for i, v in enumerate(parsed) if not use_depth or v.depth_m is not None]
+    mask_t = None
+    if mask is not None:
+        mask_t = _as_tensor(mask, torch.bool, device)
+        if tuple(mask_t.shape) != (len(parsed), n_pts):
+            raise ValueError(
+                f"mask must have shape (V, N) = ({len(parsed)}, {n_pts}), got {tuple(mask_t.shape)}"
+            )
+        mask_t = mask_t[view_ids]
+    parsed = [parsed[i] for i in view_ids]
     if not parsed or n_pts == 0:
         return feats, n_views
 
@@ -119,6 +131,8 @@ def average_features(
             width, height = int(v.image_wh[0]), int(v.image_wh[1])
             uv, z = uv_all[i], z_all[i]
             ok = in_view(uv, z, width, height, border_px=border_px)  # (n,)
+            if mask_t is not None:
+                ok &= mask_t[i, start:start + chunk]
             if not bool(ok.any()):
                 continue
             idx = ok.nonzero().squeeze(1)

@@ -118,3 +118,13 @@ def test_bad_input():
     with pytest.raises(ValueError, match="different dimensions"):
         average_features(POINT, [(np.zeros((4, 4, 3)), K, np.eye(4), (W, H), None),
                                  (np.zeros((4, 4, 5)), K, np.eye(4), (W, H), None)], use_depth=False)
+
+
+def test_mask_excludes_views_per_point():
+    views = two_views(occluded_in_b=False)
+    mask = np.array([[True], [False]])
+    f, n = average_features(POINT, views, use_depth=False, mask=mask)
+    assert n.tolist() == [1]
+    np.testing.assert_allclose(f.numpy(), [FEAT_A], atol=1e-6)
+    with pytest.raises(ValueError, match="mask must have shape"):
+        average_features(POINT, views, use_depth=False, mask=np.ones((3, 1), bool))
