@@ -14,6 +14,8 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "serve": ("mapper.cli", "serve_main", "run the mapper node"),
     "replay": ("clients.replay", "main", "replay a .govrec recording into a node"),
     "status": ("clients.client_cli", "status_main", "print a node's status"),
+    "save": ("clients.client_cli", "save_main", "save a node's map in its map directory"),
+    "load": ("clients.client_cli", "load_main", "load a saved map into a node"),
     "import": ("clients.importers.cli", "main", "convert a dataset folder to .govrec"),
 }
 
