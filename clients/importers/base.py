@@ -45,7 +45,8 @@ class ImportedFrame:
     K: np.ndarray
     """(4,) float64 [fx, fy, cx, cy] in pixels for ``rgb`` as stored here, half-pixel centres."""
     world_from_cam: np.ndarray
-    """(4, 4) float64 camera-to-world, OpenCV optical camera frame, metres."""
+    """(4, 4) float64 camera-to-world, OpenCV optical camera frame, metres, in the dataset's world
+    frame (``convert`` applies :attr:`DatasetReader.world_from_dataset` when writing)."""
     stamp_ns: int
     """Capture time in nanoseconds (synthesised from the frame index where the dataset has none)."""
     source: str
@@ -75,6 +76,29 @@ class ReaderOptions:
     """Read depth images (False: frames carry no depth and depth files are not opened)."""
     fps: float = 30.0
     """Frame rate used to synthesise ``stamp_ns`` for datasets without timestamps."""
+    up_axis: str | None = None
+    """Which axis of the dataset's world frame points up (one of :data:`UP_AXES`); the import
+    rotates the world so that it becomes +z. None = the reader's default."""
+
+
+# dataset world axis pointing up -> rotation (3, 3) taking it to +z (a proper rotation)
+UP_AXES: dict[str, tuple[tuple[float, ...], ...]] = {
+    "z": ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
+    "-z": ((1, 0, 0), (0, -1, 0), (0, 0, -1)),
+    "y": ((1, 0, 0), (0, 0, -1), (0, 1, 0)),
+    "-y": ((1, 0, 0), (0, 0, 1), (0, -1, 0)),
+    "x": ((0, 0, -1), (0, 1, 0), (1, 0, 0)),
+    "-x": ((0, 0, 1), (0, 1, 0), (-1, 0, 0)),
+}
+
+
+def world_from_dataset(up_axis: str) -> np.ndarray:
+    """(4, 4) float64 rotation taking the dataset world's ``up_axis`` to +z."""
+    if up_axis not in UP_AXES:
+        raise ImporterError(f"--up-axis must be one of {', '.join(UP_AXES)}, got {up_axis!r}")
+    matrix = np.eye(4)
+    matrix[:3, :3] = np.asarray(UP_AXES[up_axis], dtype=np.float64)
+    return matrix
 
 
 class DatasetReader(ABC):
@@ -89,6 +113,8 @@ class DatasetReader(ABC):
     """Name used on the command line (``govnesf import <format_name> ...``)."""
     description: ClassVar[str]
     """One line for ``--help``."""
+    default_up_axis: ClassVar[str] = "z"
+    """Axis of the dataset's world frame that points up (rotated to +z on import)."""
 
     def __init__(self, root: Path | str, options: ReaderOptions | None = None) -> None:
         self.root = Path(root)
@@ -97,6 +123,9 @@ class DatasetReader(ABC):
             raise ImporterError(f"{self.format_name}: dataset path {str(self.root)!r} does not exist")
         if self.options.fps <= 0 or not math.isfinite(self.options.fps):
             raise ImporterError(f"fps must be a positive number, got {self.options.fps}")
+        self.up_axis = self.options.up_axis or self.default_up_axis
+        self.world_from_dataset = world_from_dataset(self.up_axis)
+        """(4, 4) rotation applied to every pose on import (identity for up_axis "z")."""
 
     @abstractmethod
     def __len__(self) -> int:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from clients.importers.base import ImporterError, ReaderOptions, parse_K
+from clients.importers.base import UP_AXES, ImporterError, ReaderOptions, parse_K
 from clients.importers.convert import RGB_ENCODINGS, convert
 from clients.importers.registry import FORMATS, open_dataset
 
@@ -54,6 +54,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--fps", type=float, default=30.0, help="frame rate for synthesised timestamps (default 30)"
     )
+    parser.add_argument(
+        "--up-axis",
+        choices=list(UP_AXES),
+        default=None,
+        help="axis of the dataset's world that points up, rotated to +z (default: per format; "
+        "7scenes -y, others z)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace FILE.govrec if it exists")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
@@ -64,7 +71,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         options = ReaderOptions(
-            K=parse_K(args.K) if args.K is not None else None, load_depth=args.depth, fps=args.fps
+            K=parse_K(args.K) if args.K is not None else None,
+            load_depth=args.depth,
+            fps=args.fps,
+            up_axis=args.up_axis,
         )
         reader = open_dataset(args.format, args.path, options)
         summary = convert(

@@ -19,9 +19,20 @@ RGB_ENCODINGS = ("rgb8", "jpeg", "png")
 MAX_IMAGE_SIDE = 4096  # protocol limit on width and height
 
 
-def to_protocol_frame(frame: ImportedFrame, seq: int, rgb_encoding: str, with_depth: bool) -> Any:
-    """An :class:`ImportedFrame` as a ``protocol.messages.Frame`` with sequence number ``seq``."""
+def to_protocol_frame(
+    frame: ImportedFrame,
+    seq: int,
+    rgb_encoding: str,
+    with_depth: bool,
+    world_from_dataset: np.ndarray | None = None,
+) -> Any:
+    """An :class:`ImportedFrame` as a ``protocol.messages.Frame`` with sequence number ``seq``;
+    ``world_from_dataset`` (4, 4), if given, re-expresses the pose in the project's world frame."""
     from protocol.messages import Frame
+
+    world_from_cam = np.asarray(frame.world_from_cam, dtype=np.float64)
+    if world_from_dataset is not None:
+        world_from_cam = world_from_dataset @ world_from_cam
 
     height, width = frame.rgb.shape[:2]
     depth_m = None
@@ -33,7 +44,7 @@ def to_protocol_frame(frame: ImportedFrame, seq: int, rgb_encoding: str, with_de
         width=int(width),
         height=int(height),
         K=np.asarray(frame.K, dtype=np.float64),
-        world_from_cam=np.asarray(frame.world_from_cam, dtype=np.float64),
+        world_from_cam=world_from_cam,
         rgb=np.ascontiguousarray(frame.rgb, dtype=np.uint8),
         camera="cam0",
         depth_m=depth_m,
@@ -108,6 +119,8 @@ def convert(
         "imported_at_ns": time.time_ns(),
         "stride": stride,
         "K_convention": "pixel centres at integer + 0.5",
+        "up_axis": reader.up_axis,
+        "world_from_dataset": reader.world_from_dataset.reshape(16).tolist(),
         **reader.meta(),
         **(extra_meta or {}),
     }
@@ -130,7 +143,9 @@ def convert(
                 _check_frame(item, first)
                 first = first or item
                 try:
-                    message = to_protocol_frame(item, summary.frames_written, rgb_encoding, with_depth)
+                    message = to_protocol_frame(
+                        item, summary.frames_written, rgb_encoding, with_depth, reader.world_from_dataset
+                    )
                 except ProtocolError as exc:
                     raise ImporterError(f"{item.source}: not a valid protocol frame: {exc.message}") from None
                 writer.write(message)

@@ -7,7 +7,9 @@
 PATH is a scene folder (all ``seq-XX`` folders are imported one after another, in name order;
 they share one world frame) or a single ``seq-XX`` folder. Intrinsics default to the published
 nominal values fx = fy = 585, cx = 320, cy = 240; ``--K`` overrides. Capture times are
-synthesised at ``--fps`` over the concatenated frames.
+synthesised at ``--fps`` over the concatenated frames. The 7-Scenes world frame is that of the
+KinectFusion volume, set by a roughly upright camera, so its -y axis points (approximately) up:
+the import rotates it to +z by default (``--up-axis -y``; ``--up-axis z`` keeps it as is).
 
 Limitation: 7-Scenes colour and depth are NOT registered (the depth comes from the Kinect's
 depth camera, a few centimetres beside the colour camera, with its own intrinsics). The importer
@@ -46,6 +48,7 @@ _FRAME = re.compile(r"frame-(\d+)\.(color|depth|pose)")
 class SevenScenesReader(DatasetReader):
     format_name = "7scenes"
     description = "Microsoft 7-Scenes: seq-XX/frame-XXXXXX.{color,depth}.png + .pose.txt"
+    default_up_axis = "-y"  # the world is KinectFusion's first camera frame: y points down
 
     def __init__(self, root: Path | str, options: ReaderOptions | None = None) -> None:
         super().__init__(root, options)

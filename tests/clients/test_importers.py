@@ -608,3 +608,44 @@ def test_sim_import_of_a_cut_recording(tmp_path: Path) -> None:
     (tmp_path / "junk.govrec").write_bytes(b"\x93not a recording")
     with pytest.raises(ImporterError, match="cannot read recording"):
         open_dataset("sim", tmp_path / "junk.govrec")
+
+
+def test_up_axis_rotates_the_world(tmp_path: Path) -> None:
+    from clients.importers import convert
+
+    scene = write_7scenes(tmp_path)
+    options = ReaderOptions(K=K_DATASET)  # 7-Scenes default: dataset -y is up
+    convert(open_dataset("7scenes", scene, options), tmp_path / "up.govrec", progress=False)
+    meta, frames = read_back(tmp_path / "up.govrec")
+    assert meta["up_axis"] == "-y"
+    up = np.array([0.0, -1.0, 0.0])  # the dataset's up direction ...
+    world_from_dataset = np.asarray(meta["world_from_dataset"]).reshape(4, 4)
+    np.testing.assert_allclose(world_from_dataset[:3, :3] @ up, [0, 0, 1])  # ... becomes +z
+    for frame, pose in zip(frames, POSES, strict=True):
+        np.testing.assert_allclose(frame.world_from_cam, world_from_dataset @ pose, atol=1e-12)
+        # the fixture plane z = 0 (normal +z) is now the plane y = 0
+        rows, cols = np.nonzero(frame.depth_m > 0)
+        fx, fy, cx, cy = frame.K
+        d = frame.depth_m[rows, cols].astype(np.float64)
+        cam = np.stack([(cols + 0.5 - cx) / fx * d, (rows + 0.5 - cy) / fy * d, d], axis=-1)
+        world = cam @ frame.world_from_cam[:3, :3].T + frame.world_from_cam[:3, 3]
+        assert np.abs(world[:, 1]).max() < TOL_M and np.ptp(world[:, 2]) > 0.1
+
+    same = ReaderOptions(K=K_DATASET, up_axis="z")
+    convert(open_dataset("7scenes", scene, same), tmp_path / "z.govrec", progress=False)
+    for frame, pose in zip(read_back(tmp_path / "z.govrec")[1], POSES, strict=True):
+        np.testing.assert_array_equal(frame.world_from_cam, pose)
+    with pytest.raises(ImporterError, match="--up-axis must be one of z, -z, y, -y, x, -x, got 'up'"):
+        open_dataset("7scenes", scene, ReaderOptions(up_axis="up"))
+
+
+@pytest.mark.parametrize("axis", ["z", "-z", "y", "-y", "x", "-x"])
+def test_up_axis_table_is_a_rotation_taking_the_axis_to_z(axis: str) -> None:
+    from clients.importers.base import world_from_dataset
+
+    rotation = world_from_dataset(axis)[:3, :3]
+    direction = np.zeros(3)
+    direction["xyz".index(axis[-1])] = -1.0 if axis.startswith("-") else 1.0
+    np.testing.assert_allclose(rotation.T @ rotation, np.eye(3))
+    assert np.linalg.det(rotation) == pytest.approx(1.0)
+    np.testing.assert_allclose(rotation @ direction, [0.0, 0.0, 1.0])
