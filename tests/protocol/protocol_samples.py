@@ -77,7 +77,7 @@ def samples() -> list[Message]:
     """One valid instance of every message type."""
     return [
         frame(),
-        Ack(seq=3, status="rejected", map_version=2, reason="blurry", id=1),
+        Ack(seq=3, status="accepted", map_version=2, reason="too close to keyframe 2", id=1),
         Error(code="busy", message="try again", id="q1"),
         QueryPoints(texts=["chair", "red mug"], negatives=["wall"], min_score=0.2, max_points=10, id=2),
         Points(
@@ -85,7 +85,7 @@ def samples() -> list[Message]:
             xyz=np.zeros((2, 3), np.float32),
             score=np.array([0.5, 0.25], np.float32),
             label=np.array([0, 1], np.int32),
-            objects=[ObjectCandidate("chair", [1.0, 2.0, 0.5], [0.5, 1.5, 0.0], [1.5, 2.5, 1.0], 0.5, 2)],
+            objects=[ObjectCandidate("chair", np.array([1.0, 2.0, 0.5]), np.zeros(3), np.ones(3), 0.5, 2)],
             timing_ms={"query": 1.5},
             id=2,
         ),
