@@ -1,0 +1,330 @@
+"""The GOV-NeSF field: source views + volume features -> density, colour and OV features at points.
+
+Pipeline for query points p (R rays x S samples):
+
+1. Project p into every source view; a view counts for p only if p is in front of it and inside
+   its image (and, with Depth Guided Masking, if p's depth agrees with the view's depth map).
+2. Bilinearly sample rgb, 2D feature and OV feature there; trilinearly sample v = V_a(p).
+3. FusionNet blends colours (query-direction dependent) and OV features (source-view agnostic);
+   sigma = DensityMLP(v), 0 outside the volume.
+
+``render_rays`` composites along rays; the OV features are composited with DETACHED weights so
+the OV loss never trains the density (2D OV maps are not view-consistent).
+
+Point mode (``query_points``): the source-view-agnostic OV feature at given points, each a single
+sample (3D segmentation). Distill mode (``mode="distill"``): the OV feature is regressed by
+``DistillHead`` instead of blended (the paper's Distill baseline).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from mapper.cost_volume import VolumeBounds, build_cost_volume, cost_volume_features, sample_volume
+from mapper.geometry import (
+    camera_centers,
+    in_view,
+    invert_pose,
+    project_points,
+    sample_bilinear,
+    sample_nearest,
+    scale_uv,
+)
+from mapper.model.config import ModelConfig
+from mapper.model.encoder2d import ImageEncoder
+from mapper.model.fusion import DensityMLP, DistillHead, FusionNet, blend
+from mapper.model.unet3d import VolumeUNet
+from mapper.rendering import Rays, composite, expected_depth, render_weights, sample_along_rays
+
+__all__ = [
+    "FieldOutputs",
+    "GovNeSF",
+    "PointOutputs",
+    "RenderOutputs",
+    "SourceViews",
+    "default_device",
+    "render_rays",
+]
+
+
+def default_device() -> torch.device:
+    """CUDA when available, else CPU."""
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+@dataclass
+class SourceViews:
+    """N posed source views with their sampled maps."""
+
+    rgb: Tensor
+    """(N, 3, H, W) colours in [0, 1]."""
+    features: Tensor
+    """(N, F, h, w) 2D encoder features (any resolution covering the image)."""
+    ov: Tensor
+    """(N, D, h_ov, w_ov) open-vocabulary feature maps (any resolution covering the image)."""
+    K: Tensor
+    """(N, 4) intrinsics [fx, fy, cx, cy] for the (W, H) image."""
+    world_from_cam: Tensor
+    """(N, 4, 4) camera-to-world poses."""
+    depth_m: Tensor | None = None
+    """(N, H_d, W_d) optional z-depth maps (m); 0 or non-finite = no measurement."""
+
+    def __post_init__(self) -> None:
+        n = self.rgb.shape[0]
+        checks = [
+            (self.rgb.ndim == 4 and self.rgb.shape[1] == 3, "rgb (N, 3, H, W)", self.rgb.shape),
+            (
+                self.features.ndim == 4 and self.features.shape[0] == n,
+                "features (N, F, h, w)",
+                self.features.shape,
+            ),
+            (self.ov.ndim == 4 and self.ov.shape[0] == n, "ov (N, D, h, w)", self.ov.shape),
+            (tuple(self.K.shape) == (n, 4), "K (N, 4)", self.K.shape),
+            (
+                tuple(self.world_from_cam.shape) == (n, 4, 4),
+                "world_from_cam (N, 4, 4)",
+                self.world_from_cam.shape,
+            ),
+        ]
+        if self.depth_m is not None:
+            checks.append(
+                (
+                    self.depth_m.ndim == 3 and self.depth_m.shape[0] == n,
+                    "depth_m (N, H, W)",
+                    self.depth_m.shape,
+                )
+            )
+        for ok, expected, got in checks:
+            if not ok:
+                raise ValueError(f"SourceViews: expected {expected} with N={n}, got {tuple(got)}")
+
+    @property
+    def image_wh(self) -> tuple[int, int]:
+        return int(self.rgb.shape[-1]), int(self.rgb.shape[-2])
+
+    def __len__(self) -> int:
+        return int(self.rgb.shape[0])
+
+
+@dataclass
+class PointViewSamples:
+    """What each source view says about each point."""
+
+    rgb: Tensor  # (P, N, 3)
+    features: Tensor  # (P, N, F)
+    ov: Tensor  # (P, N, D)
+    mask: Tensor  # (P, N) bool: the view sees the point (and passes depth masking)
+    source_dirs: Tensor  # (P, N, 3) unit directions source camera -> point
+
+
+@dataclass
+class FieldOutputs:
+    """Field values at R x S query points."""
+
+    sigma: Tensor
+    """(R, S) density (1/m), 0 outside the volume."""
+    rgb: Tensor
+    """(R, S, 3) blended colour (0 where no view sees the point)."""
+    ov: Tensor
+    """(R, S, D) blended (or, in distill mode, regressed) OV feature."""
+    valid: Tensor
+    """(R, S) bool: at least one source view sees the point."""
+
+
+@dataclass
+class PointOutputs:
+    """Point-mode OV features."""
+
+    ov: Tensor
+    """(P, D) source-view-agnostic OV feature (0 where no view sees the point)."""
+    valid: Tensor
+    """(P,) bool: at least one view sees the point."""
+    num_views: Tensor
+    """(P,) long: number of views that see the point (evaluation keeps points seen by > 1)."""
+
+
+@dataclass
+class RenderOutputs:
+    """Per-ray rendering results."""
+
+    rgb: Tensor  # (R, 3)
+    ov: Tensor  # (R, D), composited with detached weights
+    depth_m: Tensor  # (R,) expected distance along the unit ray direction
+    opacity: Tensor  # (R,)
+    weights: Tensor  # (R, S)
+    valid_fraction: Tensor  # (R,) fraction of samples some view sees
+
+
+class GovNeSF(nn.Module):
+    """The network: 2D encoder, 3D U-Net, FusionNet, density MLP (and the Distill head)."""
+
+    def __init__(self, cfg: ModelConfig, mode: Literal["blend", "distill"] = "blend") -> None:
+        super().__init__()
+        if mode not in ("blend", "distill"):
+            raise ValueError(f"mode {mode!r} not supported: use 'blend' or 'distill'")
+        self.cfg = cfg
+        self.mode = mode
+        f = cfg.encoder.feature_dim
+        dv = cfg.volume.volume_feature_dim
+        self.encoder = ImageEncoder(cfg.encoder)
+        self.unet = VolumeUNet(2 * f + 1, cfg.volume)
+        self.fusion = FusionNet(f, dv, cfg.fusion)
+        self.density = DensityMLP(dv, cfg.fusion)
+        self.distill = DistillHead(dv, cfg.fusion) if mode == "distill" else None
+
+    # ---- per-view and per-volume stages -------------------------------------------------------
+    def encode(self, rgb: Tensor) -> Tensor:
+        """(N, 3, H, W) -> (N, F, H/4, W/4) 2D features."""
+        return self.encoder(rgb)
+
+    def make_source_views(
+        self, rgb: Tensor, ov: Tensor, K: Tensor, world_from_cam: Tensor, depth_m: Tensor | None = None
+    ) -> SourceViews:
+        """Encode images and bundle them: rgb (N, 3, H, W), ov (N, D, h, w), K (N, 4), poses (N, 4, 4)."""
+        return SourceViews(rgb, self.encode(rgb), ov, K, world_from_cam, depth_m)
+
+    def volume_features(self, cost_input: Tensor) -> Tensor:
+        """(2F + 1, X, Y, Z) cost-volume network input -> (Dv, X, Y, Z) volume features V_a."""
+        return self.unet(cost_input.unsqueeze(0)).squeeze(0)
+
+    def build_volume(self, views: SourceViews, bounds: VolumeBounds) -> Tensor:
+        """Differentiable batch cost volume from the views -> (Dv, X, Y, Z)."""
+        mean, var, count = build_cost_volume(
+            bounds, views.features, views.K, views.world_from_cam, views.image_wh
+        )
+        return self.volume_features(cost_volume_features(mean, var, count))
+
+    # ---- per-point stages ---------------------------------------------------------------------
+    def sample_views(
+        self, views: SourceViews, points: Tensor, depth_guided_masking: bool
+    ) -> PointViewSamples:
+        """Project P points (P, 3) into the N views and sample them."""
+        n = len(views)
+        wh = views.image_wh
+        pts = points.to(views.K.dtype).unsqueeze(0).expand(n, -1, -1)  # (N, P, 3)
+        uv, z = project_points(pts, views.K, invert_pose(views.world_from_cam))  # (N, P, 2), (N, P)
+        mask = in_view(uv, z, wh[0], wh[1])
+        if depth_guided_masking and views.depth_m is not None:
+            d_wh = (views.depth_m.shape[-1], views.depth_m.shape[-2])
+            measured, _ = sample_nearest(views.depth_m.unsqueeze(1), scale_uv(uv, wh, d_wh))
+            measured = measured.squeeze(-1)  # (N, P)
+            has_depth = torch.isfinite(measured) & (measured > 0)
+            # |range_p - range_m| > r * range_m  <=>  |z_p - z_m| > r * z_m on the same pixel ray.
+            agrees = (z - measured).abs() <= self.cfg.render.depth_mask_ratio * measured
+            mask = mask & (agrees | ~has_depth)
+        rgb, _ = sample_bilinear(views.rgb, uv)
+        feat, _ = sample_bilinear(
+            views.features, scale_uv(uv, wh, (views.features.shape[-1], views.features.shape[-2]))
+        )
+        ov, _ = sample_bilinear(views.ov, scale_uv(uv, wh, (views.ov.shape[-1], views.ov.shape[-2])))
+        centres = camera_centers(views.world_from_cam)  # (N, 3)
+        dirs = F.normalize(pts - centres.unsqueeze(1), dim=-1, eps=1e-9)
+        return PointViewSamples(
+            rgb=rgb.transpose(0, 1),
+            features=feat.transpose(0, 1),
+            ov=ov.transpose(0, 1),
+            mask=mask.transpose(0, 1),
+            source_dirs=dirs.transpose(0, 1),
+        )
+
+    def forward(
+        self,
+        views: SourceViews,
+        volume: Tensor,
+        bounds: VolumeBounds,
+        points: Tensor,
+        view_dirs: Tensor,
+        *,
+        depth_guided_masking: bool = False,
+    ) -> FieldOutputs:
+        """Field at query points.
+
+        Args:
+            views: N source views; volume: (Dv, X, Y, Z) volume features over ``bounds``.
+            points: (R, S, 3) world points; view_dirs: (R, 3) or (R, S, 3) unit query directions.
+            depth_guided_masking: mask views whose depth map disagrees (views without depth
+                there are not masked).
+        """
+        R, S, _ = points.shape
+        flat = points.reshape(R * S, 3)
+        dirs = view_dirs.unsqueeze(1).expand(R, S, 3) if view_dirs.ndim == 2 else view_dirs
+        samples = self.sample_views(views, flat, depth_guided_masking)
+        v, inside = sample_volume(volume, bounds, flat)
+        fused = self.fusion(
+            samples.rgb, samples.features, v, samples.source_dirs, samples.mask, dirs.reshape(R * S, 3)
+        )
+        assert fused.color_weights is not None
+        rgb = blend(fused.color_weights, samples.rgb)
+        if self.distill is not None:
+            ov = self.distill(fused.x_att, samples.mask, v) * fused.valid.unsqueeze(-1)
+        else:
+            ov = blend(fused.ov_weights, samples.ov)
+        sigma = self.density(v) * inside.to(torch.float32)
+        return FieldOutputs(
+            sigma=sigma.reshape(R, S),
+            rgb=rgb.reshape(R, S, 3),
+            ov=ov.reshape(R, S, -1),
+            valid=fused.valid.reshape(R, S),
+        )
+
+    def query_points(
+        self,
+        views: SourceViews,
+        volume: Tensor,
+        bounds: VolumeBounds,
+        points: Tensor,
+        *,
+        depth_guided_masking: bool = False,
+    ) -> PointOutputs:
+        """Point mode: source-view-agnostic OV feature at (P, 3) points, each a single sample."""
+        samples = self.sample_views(views, points, depth_guided_masking)
+        v, _ = sample_volume(volume, bounds, points.to(volume.dtype))
+        fused = self.fusion(samples.rgb, samples.features, v, samples.source_dirs, samples.mask, None)
+        if self.distill is not None:
+            ov = self.distill(fused.x_att, samples.mask, v) * fused.valid.unsqueeze(-1)
+        else:
+            ov = blend(fused.ov_weights, samples.ov)
+        return PointOutputs(ov=ov, valid=fused.valid, num_views=samples.mask.sum(dim=1))
+
+
+def render_rays(
+    model: GovNeSF,
+    views: SourceViews,
+    volume: Tensor,
+    bounds: VolumeBounds,
+    rays: Rays,
+    *,
+    n_samples: int | None = None,
+    near_m: float | Tensor | None = None,
+    far_m: float | Tensor | None = None,
+    stratified: bool = False,
+    generator: torch.Generator | None = None,
+    depth_guided_masking: bool = False,
+) -> RenderOutputs:
+    """Volume-render R rays (defaults from ``model.cfg.render``)."""
+    rc = model.cfg.render
+    t, deltas = sample_along_rays(
+        rays.origins,
+        rays.directions,
+        rc.near_m if near_m is None else near_m,
+        rc.far_m if far_m is None else far_m,
+        rc.n_samples if n_samples is None else n_samples,
+        stratified=stratified,
+        generator=generator,
+    )
+    points = rays.origins[:, None, :] + t[..., None] * rays.directions[:, None, :]
+    out = model(views, volume, bounds, points, rays.directions, depth_guided_masking=depth_guided_masking)
+    weights, _ = render_weights(out.sigma, deltas.to(out.sigma.dtype))
+    return RenderOutputs(
+        rgb=composite(weights, out.rgb),
+        ov=composite(weights.detach(), out.ov),
+        depth_m=expected_depth(weights, t.to(weights.dtype)),
+        opacity=weights.sum(dim=-1),
+        weights=weights,
+        valid_fraction=out.valid.float().mean(dim=-1),
+    )
