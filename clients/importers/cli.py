@@ -32,9 +32,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("path", metavar="PATH", help="dataset folder (scene / sequence)")
     parser.add_argument("--out", required=True, metavar="FILE.govrec", help="recording to write")
     parser.add_argument(
-        "--stride", type=_positive_int, default=1, help="take every N-th source frame (default 1)"
+        "--stride",
+        type=_positive_int,
+        default=1,
+        metavar="N",
+        help="take every N-th source frame (default 1)",
     )
-    parser.add_argument("--max-frames", type=_positive_int, default=None, help="stop after writing N frames")
+    parser.add_argument(
+        "--max-frames", type=_positive_int, default=None, metavar="N", help="stop after writing N frames"
+    )
     parser.add_argument(
         "--rgb-encoding",
         choices=RGB_ENCODINGS,
