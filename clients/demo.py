@@ -193,6 +193,9 @@ class NodeProcess:
         self._log_file: object = None
 
     def start(self) -> NodeProcess:
+        """Spawn the process (once; a second call does nothing)."""
+        if self.process is not None:
+            return self
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), env.get("PYTHONPATH")]))
         env.setdefault("HF_HUB_OFFLINE", "1")
@@ -278,8 +281,7 @@ def main(argv: list[str] | None = None) -> int:
 
     _step(2, "starting `govnesf serve` on free loopback ports")
     node = NodeProcess(out / "maps", log_path=out / "node.log")
-    with node:
-        node.start()
+    with node:  # starts the process, and kills it on the way out whatever happens
         node.wait_ready()
         print(f"  pid {node.process.pid if node.process else '?'}; ingest {node.ingest}, query {node.query}")
         print(f"  node log: {node.log_path}")
