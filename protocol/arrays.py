@@ -68,8 +68,8 @@ def encode_nd(array: np.ndarray) -> dict[str, Any]:
     name = array.dtype.name
     if name not in _WIRE_DTYPE or array.dtype.kind == "b":
         raise TypeError(f"dtype {array.dtype} cannot be sent; wire dtypes: {', '.join(ND_DTYPES)}")
-    wire = np.ascontiguousarray(array, dtype=_WIRE_DTYPE[name])
-    return {"dtype": name, "shape": [int(n) for n in wire.shape], "data": wire.tobytes(order="C")}
+    wire = array.astype(_WIRE_DTYPE[name], order="C", copy=False)  # keeps 0-d arrays 0-d
+    return {"dtype": name, "shape": [int(n) for n in array.shape], "data": wire.tobytes(order="C")}
 
 
 def decode_nd(
