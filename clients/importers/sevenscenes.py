@@ -118,4 +118,6 @@ class SevenScenesReader(DatasetReader):
         return {"sequences": self._sequences, "K_dataset": list(self._K_dataset), "registered_depth": False}
 
     def warnings(self) -> list[str]:
+        if not self.options.load_depth:
+            return []
         return ["7-Scenes colour and depth are not registered; they are paired as is (see docs/IMPORT.md)"]
