@@ -1,0 +1,242 @@
+"""Tests for mapper.model: presets, FusionNet masking, field behaviour, DGM, losses, autocast."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from mapper.cost_volume import CostVolume, VolumeBounds, build_cost_volume, cost_volume_features
+from mapper.geometry import pixel_rays
+from mapper.model.config import (
+    PRESETS,
+    EncoderConfig,
+    FusionConfig,
+    ModelConfig,
+    RenderConfig,
+    VolumeConfig,
+    get_preset,
+)
+from mapper.model.encoder2d import ImageEncoder
+from mapper.model.field import GovNeSF, SourceViews, render_rays
+from mapper.model.fusion import CrossViewAttention, masked_softmax
+from mapper.model.losses import govnesf_loss, ov_cosine_loss
+from mapper.model.unet3d import VolumeUNet
+from mapper.rendering import Rays
+
+TINY = ModelConfig(
+    name="tiny",
+    encoder=EncoderConfig(base_channels=8, blocks=(1, 1, 1), feature_dim=8),
+    volume=VolumeConfig(unet_channels=(4, 8, 8), group_norm_groups=4, volume_feature_dim=4, max_voxels=512),
+    fusion=FusionConfig(hidden_dim=16, attention_dim=8, num_heads=2, ov_dim=6),
+    render=RenderConfig(n_samples=8, near_m=0.5, far_m=3.5),
+    num_source_views=3,
+    image_wh=(32, 24),
+)
+W, H = TINY.image_wh
+BOUNDS = VolumeBounds((-1.0, -1.0, 0.5), 0.25, (8, 8, 12))
+
+
+def make_views(model: GovNeSF, n: int = 3, depth: torch.Tensor | None = None, seed: int = 0) -> SourceViews:
+    g = torch.Generator().manual_seed(seed)
+    rgb = torch.rand(n, 3, H, W, generator=g)
+    ov = torch.randn(n, TINY.fusion.ov_dim, 6, 8, generator=g)
+    K = torch.tensor([28.0, 28.0, W / 2, H / 2]).expand(n, 4)
+    poses = torch.eye(4).repeat(n, 1, 1)
+    poses[:, 0, 3] = torch.linspace(-0.3, 0.3, n)  # cameras side by side, looking along +z
+    return model.make_source_views(rgb, ov, K, poses, depth)
+
+
+@pytest.fixture(scope="module")
+def model() -> GovNeSF:
+    torch.manual_seed(0)
+    return GovNeSF(TINY).eval()
+
+
+def test_presets_match_the_brief() -> None:
+    paper = get_preset("paper")
+    assert (
+        paper.encoder.base_channels == 64
+        and paper.encoder.feature_dim == 32
+        and paper.encoder.norm == "instance"
+    )
+    assert paper.volume.unet_channels == (16, 32, 64)
+    assert (paper.fusion.hidden_dim, paper.fusion.attention_dim, paper.fusion.num_heads) == (64, 32, 8)
+    assert (paper.render.n_samples, paper.render.near_m, paper.render.far_m) == (64, 0.2, 8.0)
+    assert paper.num_source_views == 30 and paper.image_wh == (320, 240)
+    small = get_preset("cpu-small")
+    assert small.image_wh == (160, 120) and small.num_source_views <= 8 and 32 <= small.render.n_samples <= 48
+    assert get_preset("cpu-small", ov_dim=12).fusion.ov_dim == 12
+    assert set(PRESETS) == {"cpu-small", "paper"}
+    with pytest.raises(ValueError, match="unknown model preset 'huge'"):
+        get_preset("huge")
+    with pytest.raises(ValueError, match="num_heads 3 must divide attention_dim 32"):
+        FusionConfig(num_heads=3)
+
+
+def test_encoder_and_unet_shapes_for_odd_sizes() -> None:
+    enc = ImageEncoder(TINY.encoder)
+    assert enc(torch.rand(2, 3, 30, 42)).shape == (2, 8, 8, 11)
+    unet = VolumeUNet(5, TINY.volume)
+    assert unet(torch.rand(1, 5, 5, 6, 7)).shape == (1, 4, 5, 6, 7)
+
+
+def test_masked_softmax_partial_all_masked_and_extremes() -> None:
+    logits = torch.tensor([[1.0, 2.0, 3.0], [1e30, -1e30, 0.0], [5.0, 5.0, 5.0]], requires_grad=True)
+    mask = torch.tensor([[True, False, True], [True, True, False], [False, False, False]])
+    weights, valid = masked_softmax(logits, mask)
+    assert valid.tolist() == [True, True, False]
+    assert weights[0, 1] == 0 and weights[0].sum().item() == pytest.approx(1.0)
+    assert weights[1].tolist() == [1.0, 0.0, 0.0]
+    assert weights[2].tolist() == [0.0, 0.0, 0.0]
+    (weights * torch.arange(3.0)).sum().backward()
+    assert logits.grad is not None and torch.isfinite(logits.grad).all()
+    assert logits.grad[2].abs().sum() == 0
+
+
+def test_attention_ignores_masked_views() -> None:
+    torch.manual_seed(1)
+    att = CrossViewAttention(8, 2)
+    x = torch.randn(4, 5, 8)
+    mask = torch.tensor([[True, True, False, True, False]]).expand(4, 5)
+    y1 = att(x, mask)
+    x2 = x.clone()
+    x2[:, [2, 4]] = torch.randn(4, 2, 8) * 100  # change only the masked views
+    y2 = att(x2, mask)
+    torch.testing.assert_close(y1[:, [0, 1, 3]], y2[:, [0, 1, 3]])
+    none = att(x, torch.zeros(4, 5, dtype=torch.bool))  # the extra token keeps it finite
+    assert torch.isfinite(none).all()
+
+
+def test_field_outputs_shapes_validity_and_unseen_points(model: GovNeSF) -> None:
+    views = make_views(model)
+    volume = model.build_volume(views, BOUNDS)
+    points = torch.tensor([[[0.0, 0.0, 2.0], [0.0, 0.0, -1.0], [0.0, 0.0, 9.0]]])  # seen, behind, outside vol
+    out = model(views, volume, BOUNDS, points, torch.tensor([[0.0, 0.0, 1.0]]))
+    assert out.sigma.shape == (1, 3) and out.rgb.shape == (1, 3, 3) and out.ov.shape == (1, 3, 6)
+    assert out.valid[0].tolist() == [True, False, True]
+    assert out.rgb[0, 1].abs().sum() == 0 and out.ov[0, 1].abs().sum() == 0  # no view: zero, not NaN
+    assert out.sigma[0, 0] > 0 and out.sigma[0, 2] == 0  # sigma is 0 outside the volume
+    for t in (out.sigma, out.rgb, out.ov):
+        assert torch.isfinite(t).all()
+
+
+def test_constant_colour_scene_blends_to_that_colour(model: GovNeSF) -> None:
+    views = make_views(model)
+    views.rgb[:] = torch.tensor([0.2, 0.5, 0.7]).reshape(1, 3, 1, 1)
+    volume = model.build_volume(views, BOUNDS)
+    g = torch.Generator().manual_seed(3)
+    pts = torch.rand(4, 5, 3, generator=g) * torch.tensor([0.4, 0.3, 1.5]) + torch.tensor([-0.2, -0.15, 1.0])
+    out = model(
+        views, volume, BOUNDS, pts, torch.nn.functional.normalize(torch.randn(4, 3, generator=g), dim=-1)
+    )
+    assert out.valid.all()
+    torch.testing.assert_close(out.rgb, torch.tensor([0.2, 0.5, 0.7]).expand(4, 5, 3))
+
+
+def test_ov_is_source_view_agnostic_and_point_mode_matches(model: GovNeSF) -> None:
+    views = make_views(model)
+    volume = model.build_volume(views, BOUNDS)
+    pts = torch.tensor([[[0.1, 0.0, 1.5], [-0.1, 0.1, 2.5]]])
+    a = model(views, volume, BOUNDS, pts, torch.tensor([[0.0, 0.0, 1.0]]))
+    b = model(
+        views, volume, BOUNDS, pts, torch.nn.functional.normalize(torch.tensor([[0.5, 0.2, 1.0]]), dim=-1)
+    )
+    torch.testing.assert_close(a.ov, b.ov)
+    assert not torch.allclose(a.rgb, b.rgb)  # colour weights do depend on the query direction
+    point = model.query_points(views, volume, BOUNDS, pts[0])
+    torch.testing.assert_close(point.ov, a.ov[0])
+    assert point.num_views.tolist() == [3, 3] and point.valid.all()
+
+
+def test_depth_guided_masking(model: GovNeSF) -> None:
+    depth = torch.zeros(3, H, W)
+    depth[0] = 2.0  # agrees with a point at z = 2.0
+    depth[1] = 1.0  # occluder in front: |2 - 1| > 0.25 * 1 -> masked
+    # view 2 has no depth (0): never masked
+    views = make_views(model, depth=depth)
+    volume = model.build_volume(views, BOUNDS)
+    pts = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 2.4]])  # 2.4: |2.4 - 2| = 0.4 <= 0.5 keeps view 0
+    with_dgm = model.query_points(views, volume, BOUNDS, pts, depth_guided_masking=True)
+    without = model.query_points(views, volume, BOUNDS, pts, depth_guided_masking=False)
+    assert without.num_views.tolist() == [3, 3]
+    assert with_dgm.num_views.tolist() == [2, 2]
+    far = model.query_points(
+        views, volume, BOUNDS, torch.tensor([[0.0, 0.0, 3.0]]), depth_guided_masking=True
+    )
+    assert far.num_views.tolist() == [1]  # view 0: |3 - 2| > 0.5 masked; view 1 masked; view 2 kept
+
+
+def test_ov_loss_does_not_reach_the_density_but_colour_loss_does() -> None:
+    torch.manual_seed(0)
+    model = GovNeSF(TINY)
+    views = make_views(model)
+    volume = model.build_volume(views, BOUNDS)
+    origins, dirs = pixel_rays(views.K[0], views.world_from_cam[0], W, H)
+    rays = Rays(origins.reshape(-1, 3)[::7], dirs.reshape(-1, 3)[::7])
+    out = render_rays(
+        model, views, volume, BOUNDS, rays, stratified=True, generator=torch.Generator().manual_seed(0)
+    )
+    target_ov = torch.randn_like(out.ov)
+    ov_cosine_loss(out.ov, target_ov).backward(retain_graph=True)
+    density_grads = [p.grad for p in model.density.parameters()]
+    assert all(g is None or g.abs().sum() == 0 for g in density_grads)
+    fusion_grad = model.fusion.mlp_s[0].weight.grad
+    assert fusion_grad is not None and fusion_grad.abs().sum() > 0  # the OV branch does learn
+    model.zero_grad()
+    loss = govnesf_loss(out.rgb, torch.rand_like(out.rgb), out.ov, target_ov, ov_weight=0.5)
+    loss.total.backward()
+    assert loss.total.item() == pytest.approx(loss.color.item() + 0.5 * loss.ov.item())
+    density_grad = model.density.mlp[0].weight.grad
+    assert density_grad is not None and density_grad.abs().sum() > 0
+    assert model.encoder.head.weight.grad is not None  # gradients reach the encoder via the cost volume
+
+
+def test_bf16_autocast_forward_on_cpu(model: GovNeSF) -> None:
+    views = make_views(model)
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        volume = model.build_volume(views, BOUNDS)
+        origins, dirs = pixel_rays(views.K[0], views.world_from_cam[0], W, H)
+        rays = Rays(origins.reshape(-1, 3)[:20], dirs.reshape(-1, 3)[:20])
+        out = render_rays(model, views, volume, BOUNDS, rays)
+    ref = render_rays(model, views, model.build_volume(views, BOUNDS), BOUNDS, rays)
+    for t in (out.rgb, out.ov, out.depth_m, out.opacity):
+        assert torch.isfinite(t).all()
+    torch.testing.assert_close(out.rgb.float(), ref.rgb, atol=0.1, rtol=0.1)
+
+
+def test_distill_mode_regresses_ov() -> None:
+    torch.manual_seed(0)
+    model = GovNeSF(TINY, mode="distill")
+    views = make_views(model)
+    volume = model.build_volume(views, BOUNDS)
+    pts = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, -1.0]])
+    out = model.query_points(views, volume, BOUNDS, pts)
+    assert out.ov.shape == (2, 6) and out.valid.tolist() == [True, False]
+    assert out.ov[1].abs().sum() == 0
+    out.ov.sum().backward()
+    assert model.distill is not None and model.distill.mlp[0].weight.grad is not None
+    with pytest.raises(ValueError, match="mode 'nope'"):
+        GovNeSF(TINY, mode="nope")  # type: ignore[arg-type]
+
+
+def test_incremental_cost_volume_feeds_the_same_network_input(model: GovNeSF) -> None:
+    views = make_views(model)
+    feats = views.features.detach()
+    incremental = CostVolume(BOUNDS, feature_dim=feats.shape[1])
+    for i in range(len(views)):
+        incremental.add_view(i, feats[i], views.K[i], views.world_from_cam[i], views.image_wh)
+    batch = cost_volume_features(
+        *build_cost_volume(BOUNDS, feats, views.K, views.world_from_cam, views.image_wh)
+    )
+    torch.testing.assert_close(incremental.network_input(), batch, atol=1e-5, rtol=1e-5)
+
+
+def test_source_views_validate_shapes() -> None:
+    with pytest.raises(ValueError, match=r"K \(N, 4\)"):
+        SourceViews(
+            torch.rand(2, 3, 4, 4),
+            torch.rand(2, 8, 1, 1),
+            torch.rand(2, 6, 1, 1),
+            torch.rand(3, 4),
+            torch.eye(4).repeat(2, 1, 1),
+        )
