@@ -7,9 +7,9 @@ times, after which a :class:`TimeoutError` says which endpoint did not answer. A
 twice this way is handled twice by the node (the second copy is usually just ``accepted``).
 
 Frames go over one DEALER socket and may be pipelined (:meth:`MapperClient.send_frames`,
-``window`` frames in flight). The node serves each socket from one thread, so the replies of a
-connection come back in the order of its requests; the client pairs them in that order and
-checks the echoed ``id`` where the request carried one.
+``window`` frames in flight). Replies are paired with requests by the echoed ``id`` (the client
+gives every :class:`Frame` and request one); raw frame bytes without an id are paired in order,
+which is exact because the node serves each socket from one thread and answers every message.
 
 Example (needs a running node)::
 
@@ -112,7 +112,9 @@ class _Channel:
         rate_hz: float = 0.0,
     ) -> Generator[tuple[int, bytes, float], None, None]:
         """Send ``payloads`` with up to ``window`` in flight; yield ``(index, reply, latency_s)``
-        in order. Raises :class:`TimeoutError` after ``retries`` re-sends without any reply."""
+        as replies arrive. A reply is paired with the in-flight request carrying the same ``id``;
+        without ids, with the oldest one (replies of a connection come back in order).
+        Raises :class:`TimeoutError` after ``retries`` re-sends without any reply."""
         if window < 1:
             raise ValueError(f"window must be >= 1, got {window}")
         if retries < 0 or timeout_s <= 0:
@@ -136,7 +138,7 @@ class _Channel:
                     if not inflight:
                         deadline = now + timeout_s
                     self.send(payload)
-                    inflight.append(_InFlight(index, payload, now))
+                    inflight.append(_InFlight(index, payload, now, peek_id(payload)))
                     if period:
                         next_send = max(next_send + period, now - period)
                     now = time.monotonic()
@@ -150,7 +152,7 @@ class _Channel:
                     wait_s = min(wait_s, next_send - now)
                 if self.socket.poll(max(0, int(wait_s * 1000))):
                     parts = self.socket.recv_multipart()
-                    entry = inflight.popleft()
+                    entry = _pop_match(inflight, peek_id(parts[-1]))
                     received = time.monotonic()
                     deadline = received + timeout_s
                     failures = 0
@@ -180,6 +182,17 @@ class _InFlight:
     index: int
     payload: bytes
     sent_at: float
+    id: RequestId
+
+
+def _pop_match(inflight: deque[_InFlight], reply_id: RequestId) -> _InFlight:
+    """Remove and return the oldest in-flight request with ``reply_id`` (else the oldest one)."""
+    if reply_id is not None:
+        for entry in inflight:
+            if entry.id == reply_id:
+                inflight.remove(entry)
+                return entry
+    return inflight.popleft()
 
 
 class MapperClient:
@@ -254,8 +267,9 @@ class MapperClient:
         rate_hz: float = 0.0,
         timeout_s: float | None = None,
     ) -> Iterator[FrameResult]:
-        """Pipelined ingest: keep up to ``window`` frames in flight, yield one result per frame in
-        input order. ``rate_hz`` > 0 sends at most that many frames per second.
+        """Pipelined ingest: keep up to ``window`` frames in flight, yield one result per frame as
+        the replies arrive (in input order unless a reply had to be re-requested; ``index`` says
+        which frame). ``rate_hz`` > 0 sends at most that many frames per second.
 
         :class:`Frame` objects without an ``id`` are sent with one (a copy; the caller's object is
         unchanged); raw bytes are sent unchanged. Error replies are yielded, not raised.
