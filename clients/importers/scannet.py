@@ -90,9 +90,12 @@ class ScanNetReader(DatasetReader):
         color_h, color_w = read_rgb(self._colors[first]).shape[:2]
         self._color_size = (color_w, color_h)
         if self._depths:
-            depth = cv2.imread(str(self._depths[first]), cv2.IMREAD_UNCHANGED)
+            first_depth = self._depths.get(first, next(iter(self._depths.values())))
+            depth = cv2.imread(str(first_depth), cv2.IMREAD_UNCHANGED)
             if depth is None or depth.ndim != 2:
-                raise ImporterError(f"unreadable depth image {str(self._depths[first])!r}")
+                raise ImporterError(
+                    f"unreadable depth image {str(first_depth)!r}: not a decodable 1-channel PNG"
+                )
             self._size = (int(depth.shape[1]), int(depth.shape[0]))
         else:
             self._size = self._color_size

@@ -406,7 +406,12 @@ def test_mismatched_counts(tmp_path: Path) -> None:
         open_dataset("replica", replica)
 
     scannet = write_scannet(tmp_path / "scannet")
-    (scannet / "depth" / "3.png").unlink()
+    (scannet / "depth" / "0.png").unlink()
+    with pytest.raises(ImporterError, match=r"5 depth/\*\.png, missing for frames 0"):
+        open_dataset("scannet", scannet)
+    no_depth = open_dataset("scannet", scannet, ReaderOptions(load_depth=False))
+    assert no_depth.read(0).rgb.shape == (H, W, 3) and no_depth.read(0).depth_m is None  # depth size
+    (scannet / "depth" / "3.png").rename(scannet / "depth" / "0.png")
     with pytest.raises(ImporterError, match=r"5 depth/\*\.png, missing for frames 3"):
         open_dataset("scannet", scannet)
     assert len(open_dataset("scannet", scannet, ReaderOptions(load_depth=False))) == len(POSES) + 1
@@ -649,3 +654,14 @@ def test_up_axis_table_is_a_rotation_taking_the_axis_to_z(axis: str) -> None:
     np.testing.assert_allclose(rotation.T @ rotation, np.eye(3))
     assert np.linalg.det(rotation) == pytest.approx(1.0)
     np.testing.assert_allclose(rotation @ direction, [0.0, 0.0, 1.0])
+
+
+def test_scannet_warns_when_depth_intrinsics_disagree(tmp_path: Path) -> None:
+    scene = write_scannet(tmp_path / "scene")
+    fx, fy, cx, cy = K_DATASET
+    np.savetxt(scene / "intrinsic" / "intrinsic_depth.txt", K_matrix((1.1 * fx, fy, cx, cy)))
+    reader = open_dataset("scannet", scene)
+    assert len(reader.warnings()) == 1 and "by 9.1%; the colour K is used" in reader.warnings()[0]
+    np.testing.assert_allclose(reader.read(0).K, expected_K())  # the scaled colour K is used
+    override = open_dataset("scannet", scene, ReaderOptions(K=(60.0, 58.0, 30.9, 23.9)))
+    np.testing.assert_allclose(override.read(0).K, [30.0, 29.0, 15.7, 12.2])  # colour K, halved
