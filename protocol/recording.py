@@ -142,7 +142,7 @@ class RecordingReader:
             unpacker = msgpack.Unpacker(
                 scan,
                 raw=False,
-                read_size=_READ_CHUNK,
+                read_size=min(_READ_CHUNK, self.max_bytes),
                 max_buffer_size=self.max_bytes,
                 strict_map_key=False,
             )
