@@ -656,14 +656,14 @@ class ObjectCandidate(Message):
     """Number of map points in the object, >= 0."""
 
     def __post_init__(self) -> None:
-        self.text = _check_str("objects.text", self.text, max_chars=MAX_TEXT_CHARS, nonempty=False)
+        self.text = _check_str("text", self.text, max_chars=MAX_TEXT_CHARS, nonempty=False)
         for name in ("centroid", "aabb_min", "aabb_max"):
-            arr = _check_array(f"objects.{name}", getattr(self, name), "float64", (3,), coerce=True)
+            arr = _check_array(name, getattr(self, name), "float64", (3,), coerce=True)
             if not np.all(np.isfinite(arr)):
-                raise _bad(f"objects.{name}: values must be finite, got {arr.tolist()}")
+                raise _bad(f"{name}: values must be finite, got {arr.tolist()}")
             setattr(self, name, arr)
-        self.score = _check_float("objects.score", self.score, finite=False)
-        self.n_points = _check_int("objects.n_points", self.n_points, 0)
+        self.score = _check_float("score", self.score, finite=False)
+        self.n_points = _check_int("n_points", self.n_points, 0)
 
     def to_wire(self) -> dict[str, Any]:
         return {
@@ -677,18 +677,25 @@ class ObjectCandidate(Message):
 
     @classmethod
     def from_wire(cls, obj: dict[str, Any]) -> Self:
-        m = _check_str_map("objects[]", obj)
+        m = _check_str_map("object", obj)
         for key in ("text", "centroid", "aabb_min", "aabb_max", "score", "n_points"):
             if key not in m:
-                raise _bad(f"objects[]: missing required field {key!r}")
+                raise _bad(f"missing required field {key!r}")
         return cls(
             text=m["text"],
-            centroid=_wire_numbers("objects.centroid", m["centroid"], 3),
-            aabb_min=_wire_numbers("objects.aabb_min", m["aabb_min"], 3),
-            aabb_max=_wire_numbers("objects.aabb_max", m["aabb_max"], 3),
+            centroid=_wire_numbers("centroid", m["centroid"], 3),
+            aabb_min=_wire_numbers("aabb_min", m["aabb_min"], 3),
+            aabb_max=_wire_numbers("aabb_max", m["aabb_max"], 3),
             score=m["score"],
             n_points=m["n_points"],
         )
+
+
+def _object_from_wire(index: int, obj: Any) -> ObjectCandidate:
+    try:
+        return ObjectCandidate.from_wire(obj)
+    except ProtocolError as exc:
+        raise _bad(f"objects[{index}]: {exc.message}") from None
 
 
 @dataclass(eq=False)
@@ -750,7 +757,7 @@ class Points(Message):
             xyz=xyz,
             score=decode_nd(w.req("score"), field="score", dtypes=("float32",), shape=(n,)),
             label=decode_nd(w.req("label"), field="label", dtypes=("int32",), shape=(n,)),
-            objects=[ObjectCandidate.from_wire(o) for o in objects],
+            objects=[_object_from_wire(i, o) for i, o in enumerate(objects)],
             timing_ms=w.opt("timing_ms", {}),
             id=w.id(),
         )
@@ -1295,6 +1302,12 @@ def _unpack(data: bytes | bytearray | memoryview, max_bytes: int) -> Any:
             max_map_len=n // 2,
             max_ext_len=n,
         )
+    except msgpack.StackError:
+        raise _bad("message is not valid msgpack: nested too deeply") from None
+    except ValueError as exc:
+        if "map key" in str(exc):
+            raise _bad(f"message keys must be strings ({exc})") from None
+        raise _bad(f"message is not valid msgpack: {type(exc).__name__}: {_short(str(exc))}") from None
     except Exception as exc:  # msgpack raises several unrelated types on malformed input
         raise _bad(f"message is not valid msgpack: {type(exc).__name__}: {_short(str(exc))}") from None
 

@@ -31,6 +31,7 @@ from protocol.messages import (
     Frame,
     Load,
     Message,
+    ObjectCandidate,
     Points,
     QueryPoints,
     Render,
@@ -86,7 +87,20 @@ def test_truncated_frame_bytes() -> None:
 
 
 def test_non_string_keys() -> None:
-    rejects(b"\x83\xa1v\x01\xa4type\xa6status\x01\x02", match="")  # {v:1, type:"status", 1:2}
+    rejects(b"\x83\xa1v\x01\xa4type\xa6status\x01\x02", match="keys must be strings")  # {..., 1: 2}
+    rejects(pack({"v": 1, "type": "status", b"raw": 2}), match="keys must be strings")
+
+
+def test_deep_nesting() -> None:
+    rejects(b"\x91" * 100_000 + b"\x00", match="nested too deeply")
+
+
+def test_bytes_like_input() -> None:
+    data = encode(StatusRequest(id=1))
+    assert decode(bytearray(data)) == StatusRequest(id=1)
+    assert decode(memoryview(data)) == StatusRequest(id=1)
+    with pytest.raises(ProtocolError, match="message must be bytes, got str"):
+        decode("text")  # type: ignore[arg-type]
 
 
 def test_invalid_utf8_string() -> None:
@@ -451,8 +465,16 @@ def test_reply_fields() -> None:
     pts = Points(0, np.zeros((2, 3), np.float32), np.zeros(2, np.float32), np.zeros(2, np.int32)).to_wire()
     three = encode_nd(np.zeros(3, np.int32))
     rejects({**pts, "label": three}, direction="reply", match="label: dimension 0 must be 2")
-    rejects({**pts, "objects": [{"text": "a"}]}, direction="reply", match="missing required field 'centroid'")
+    rejects({**pts, "objects": [{"text": "a"}]}, direction="reply",
+            match="objects[0]: missing required field 'centroid'")
     rejects({**pts, "timing_ms": {"a": "1"}}, direction="reply", match="timing_ms.a")
+    obj = ObjectCandidate("a", np.zeros(3), np.zeros(3), np.ones(3), 0.5, 1).to_wire()
+    rejects({**pts, "objects": [obj, {**obj, "centroid": [0, 0]}]}, direction="reply",
+            match="objects[1]: centroid: expected 3 numbers, got 2")
+    rejects({**pts, "objects": [{**obj, "n_points": -1}]}, direction="reply",
+            match="objects[0]: n_points: -1")
+    rejects({**pts, "objects": [{**obj, "aabb_max": [0, math.inf, 0]}]}, direction="reply",
+            match="objects[0]: aabb_max: values must be finite")
     status = Status(1, 2, 3, 4, None, 5, 6.0).to_wire()
     rejects({**status, "uptime_s": -1.0}, direction="reply", match="uptime_s")
     rejects({**status, "frames_received": -1}, direction="reply", match="frames_received: -1 out of range")
