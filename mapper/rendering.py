@@ -9,7 +9,9 @@ A ray ``o + t d`` is cut into S bins ``[t_i - delta_i / 2, t_i + delta_i / 2]``.
 
 so that ``sum_i w_i = 1 - T_S <= 1``. ``alpha`` uses ``expm1`` (accurate for tiny tau), tau is
 clamped to ``[0, TAU_MAX]`` so that neither the cumulative sum nor its gradient overflows, and
-half-precision inputs are computed in float32 and returned in their dtype.
+half-precision inputs are computed in float32 and returned in their dtype. Density and spacing
+are each capped at 1e10 before multiplying (an fp16 density that overflowed to inf still
+renders as opaque with finite gradients).
 
 Example:
     >>> import torch
@@ -42,6 +44,8 @@ __all__ = [
 
 TAU_MAX = 1.0e4
 """Largest optical depth a single bin may have; exp(-TAU_MAX) is 0 in every float dtype."""
+
+_FACTOR_MAX = 1.0e10  # cap on density (1/m) and spacing (m) before their product
 
 
 @dataclass
@@ -166,8 +170,10 @@ def render_weights(sigma: Tensor, deltas: Tensor) -> tuple[Tensor, Tensor]:
         )
     out_dtype = sigma.dtype
     work = _compute_dtype(sigma)
-    tau = (sigma.to(work).clamp_min(0.0) * deltas.to(work).clamp_min(0.0)).clamp_max(TAU_MAX)
-    tau = torch.nan_to_num(tau, nan=0.0)  # 0 * inf spacing; keeps the clamp gradient defined
+    # Finite caps on both factors keep every product (and its gradient, e.g. 0 * inf) finite,
+    # also for densities that overflowed to inf in half precision.
+    tau = sigma.to(work).clamp(0.0, _FACTOR_MAX) * deltas.to(work).clamp(0.0, _FACTOR_MAX)
+    tau = tau.clamp_max(TAU_MAX)
     alpha = -torch.expm1(-tau)
     # Exclusive cumulative sum by shifting (not inclusive minus own term, which loses the small
     # prefix next to a huge tau to rounding).
