@@ -1,0 +1,123 @@
+"""The node in-process with real sockets: extension points, internal errors, non-blocking ingest."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from clients.client import MapperClient
+from clients.demo import free_endpoints, synthetic_frame
+from mapper.config import config_from_dict
+from mapper.service import MapperNode
+from mapper.window import Keyframe
+from protocol.errors import RemoteError
+from protocol.messages import Message, Ok, QueryPoints, Save, encode
+
+W, H = 32, 24
+
+
+@pytest.fixture()
+def node(tmp_path: Path) -> Iterator[MapperNode]:
+    ingest, query = free_endpoints(2)
+    config = config_from_dict(
+        {
+            "ingest_endpoint": ingest,
+            "query_endpoint": query,
+            "events_endpoint": "",
+            "map_dir": str(tmp_path / "maps"),
+            "poll_interval_s": 0.02,
+            "window": {"max_keyframes": 3},
+        }
+    )
+    mapper = MapperNode(config)
+    mapper.start()
+    try:
+        yield mapper
+    finally:
+        mapper.stop()
+
+
+def _client(node: MapperNode) -> MapperClient:
+    return MapperClient(node.config.ingest_endpoint, node.config.query_endpoint, timeout_s=5.0, retries=0)
+
+
+def test_handler_bug_becomes_internal_error_and_node_keeps_serving(node: MapperNode) -> None:
+    def buggy(msg: Message) -> Message:
+        raise ZeroDivisionError("boom")
+
+    node.register_query_handler(QueryPoints, buggy)
+    with _client(node) as client:
+        with pytest.raises(RemoteError) as info:
+            client.query_points(["chair"])
+        assert info.value.code == "internal" and "ZeroDivisionError" in info.value.message
+        status = client.status()
+        assert status.extra["errors"] == {"internal": 1}
+        assert "query_points" in status.extra["serving"]
+
+
+def test_registered_handler_replaces_not_ready(node: MapperNode) -> None:
+    node.register_query_handler(QueryPoints, lambda msg: Ok(message=f"{len(msg.texts)} texts"))  # type: ignore[attr-defined]
+    with _client(node) as client:
+        reply = client.request(QueryPoints(texts=["a", "b"], id="q1"))
+        assert isinstance(reply, Ok) and reply.message == "2 texts" and reply.id == "q1"  # id filled in
+
+
+def test_slow_query_does_not_block_ingest(node: MapperNode) -> None:
+    entered, release = threading.Event(), threading.Event()
+
+    def slow(msg: Message) -> Message:
+        entered.set()
+        release.wait(timeout=30)
+        return Ok()
+
+    node.register_query_handler(QueryPoints, slow)
+    results: list[Message] = []
+    with _client(node) as query_client, _client(node) as ingest_client:
+        waiter = threading.Thread(
+            target=lambda: results.append(query_client.request(QueryPoints(texts=["x"])))
+        )
+        waiter.start()
+        try:
+            assert entered.wait(timeout=10)
+            # the query thread is busy inside the handler; frames are still acknowledged
+            acks = [ingest_client.send_frame(synthetic_frame(i, 8, W, H)) for i in range(4)]
+            assert [a.seq for a in acks] == [0, 1, 2, 3]
+        finally:
+            release.set()
+            waiter.join(timeout=10)
+        assert len(results) == 1 and isinstance(results[0], Ok)
+
+
+def test_window_callbacks_and_map_version(node: MapperNode) -> None:
+    added: list[int] = []
+    evicted: list[int] = []
+
+    def on_add(k: Keyframe) -> None:
+        added.append(k.seq)
+
+    def on_evict(k: Keyframe) -> None:
+        evicted.append(k.seq)
+
+    node.state.window.on_add.append(on_add)
+    node.state.window.on_evict.append(on_evict)
+    with _client(node) as client:
+        acks = [client.send_frame(synthetic_frame(i, 8, W, H)) for i in range(8)]
+        keyframe_seqs = [a.seq for a in acks if a.status == "keyframe"]
+        assert added == keyframe_seqs and len(keyframe_seqs) > 3
+        assert evicted == keyframe_seqs[:-3]  # max_keyframes = 3, oldest first
+        assert client.status().map_version == len(keyframe_seqs)
+        client.save("cb")
+        added.clear()
+        evicted.clear()
+        client.load("cb")
+        assert evicted == keyframe_seqs[-3:] and added == keyframe_seqs[-3:]
+
+
+def test_handle_functions_never_raise(node: MapperNode) -> None:
+    for data in (b"", b"\x00", b"\x81\xa1v\x01", encode(Save(name="ok")) + b"tail"):
+        for handle in (node.handle_ingest, node.handle_query):
+            reply = handle(data)
+            assert isinstance(reply, bytes) and reply
