@@ -266,7 +266,7 @@ class MapperClient:
         window: int = 8,
         rate_hz: float = 0.0,
         timeout_s: float | None = None,
-    ) -> Iterator[FrameResult]:
+    ) -> Generator[FrameResult, None, None]:
         """Pipelined ingest: keep up to ``window`` frames in flight, yield one result per frame as
         the replies arrive (in input order unless a reply had to be re-requested; ``index`` says
         which frame). ``rate_hz`` > 0 sends at most that many frames per second.

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -14,7 +15,10 @@ from mapper.store import MapStore, StoreError, validate_map_name
 def test_roundtrip_and_names(tmp_path: Path) -> None:
     store = MapStore(tmp_path / "maps")
     assert store.names() == []
-    arrays = {"kf.0.rgb": np.arange(24, dtype=np.uint8).reshape(2, 4, 3), "x": np.eye(4)}
+    arrays: dict[str, np.ndarray] = {
+        "kf.0.rgb": np.arange(24, dtype=np.uint8).reshape(2, 4, 3),
+        "x": np.eye(4),
+    }
     path = store.save("room_1.v2", arrays, {"map_version": 3, "keyframes": [{"seq": 1}]})
     assert path == (tmp_path / "maps" / "room_1.v2.govmap").resolve()
     loaded, manifest = store.load("room_1.v2")
@@ -39,8 +43,20 @@ def test_overwrite_replaces_atomically(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     "name",
     [
-        "../evil", "..", ".", "...", "a/b", "/etc/passwd", "a\\b", "", "x" * 65, "na me", "ü", "a\x00b",
-        None, 3,
+        "../evil",
+        "..",
+        ".",
+        "...",
+        "a/b",
+        "/etc/passwd",
+        "a\\b",
+        "",
+        "x" * 65,
+        "na me",
+        "ü",
+        "a\x00b",
+        None,
+        3,
     ],
 )
 def test_bad_names_rejected_and_nothing_written(tmp_path: Path, name: object) -> None:
@@ -77,8 +93,11 @@ def test_pickle_and_bad_arrays_refused(tmp_path: Path) -> None:
         store.save("m", {"../a": np.zeros(1)}, {})
     # a hand-made file with a pickled object array does not load
     with open(tmp_path / "p.govmap", "wb") as fh:
-        objects = np.array([1, "x"], dtype=object)
-        np.savez(fh, **{"manifest.json": np.frombuffer(b"{}", np.uint8), "o": objects})
+        payload: dict[str, Any] = {
+            "manifest.json": np.frombuffer(b"{}", np.uint8),
+            "o": np.array([1, "x"], dtype=object),
+        }
+        np.savez(fh, allow_pickle=True, **payload)
     with pytest.raises(StoreError):
         store.load("p")
 
@@ -92,7 +111,8 @@ def test_missing_and_corrupt_maps(tmp_path: Path) -> None:
     with pytest.raises(StoreError, match="corrupt"):
         store.load("junk")
     with open(tmp_path / "other.govmap", "wb") as fh:
-        np.savez(fh, **{"manifest.json": np.frombuffer(b'{"format": "x"}', np.uint8)})
+        other: dict[str, Any] = {"manifest.json": np.frombuffer(b'{"format": "x"}', np.uint8)}
+        np.savez(fh, allow_pickle=False, **other)
     with pytest.raises(StoreError, match="not a govnesf map"):
         store.load("other")
     # a truncated file (crash while someone else wrote it by hand) is reported, not crashed on
