@@ -345,6 +345,20 @@ class Message:
 
     __hash__ = None  # type: ignore[assignment]
 
+    def __repr__(self) -> str:
+        """Like the dataclass repr, but arrays are summarised (frames stay one short log line)."""
+        parts = []
+        for f in fields(self):  # type: ignore[arg-type]
+            value = getattr(self, f.name)
+            if isinstance(value, np.ndarray):
+                text = f"<{value.dtype} {tuple(value.shape)}>" if value.size > 16 else repr(value.tolist())
+            elif isinstance(value, list) and len(value) > 8:
+                text = f"<list of {len(value)}>"
+            else:
+                text = _short(value)
+            parts.append(f"{f.name}={text}")
+        return f"{type(self).__name__}({', '.join(parts)})"
+
     def _head(self) -> dict[str, Any]:
         head: dict[str, Any] = {"v": PROTOCOL_VERSION, "type": self.TYPE}
         msg_id = getattr(self, "id", None)
@@ -365,7 +379,7 @@ class Message:
 # ----------------------------------------------------------------------------------------------
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class Frame(Message):
     """One camera frame sent to the ingest endpoint (wire type ``frame``)."""
 
@@ -509,7 +523,7 @@ class Frame(Message):
 AckStatus = Literal["keyframe", "accepted", "rejected"]
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class Ack(Message):
     """Reply to every `frame` that was not an error (wire type ``ack``)."""
 
@@ -552,7 +566,7 @@ class Ack(Message):
         )
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class Error(Message):
     """Error reply to any request (wire type ``error``)."""
 
@@ -586,7 +600,7 @@ class Error(Message):
 # ----------------------------------------------------------------------------------------------
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class QueryPoints(Message):
     """"Find the chair": request map points matching texts (wire type ``query_points``)."""
 
@@ -636,7 +650,7 @@ class QueryPoints(Message):
         )
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class ObjectCandidate(Message):
     """One object candidate in a `points` reply (a map inside the message, not a message)."""
 
@@ -698,7 +712,7 @@ def _object_from_wire(index: int, obj: Any) -> ObjectCandidate:
         raise _bad(f"objects[{index}]: {exc.message}") from None
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class Points(Message):
     """Reply to `query_points` (wire type ``points``)."""
 
@@ -766,7 +780,7 @@ class Points(Message):
 SegmentMethod = Literal["govnesf", "average", "average_depth"]
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class SegmentPoints(Message):
     """Label given world points with one of `texts` (wire type ``segment_points``)."""
 
@@ -811,7 +825,7 @@ class SegmentPoints(Message):
         )
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class Segmentation(Message):
     """Reply to `segment_points` (wire type ``segmentation``)."""
 
@@ -847,7 +861,7 @@ class Segmentation(Message):
         )
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class Render(Message):
     """Render a view from any pose (wire type ``render``, request)."""
 
@@ -913,7 +927,7 @@ class Render(Message):
         )
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class RenderResult(Message):
     """Reply to `render` (wire type ``render``, reply). Absent outputs are None.
 
@@ -1004,7 +1018,7 @@ class RenderResult(Message):
         )
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class StatusRequest(Message):
     """Ask the mapper for its status (wire type ``status``, request)."""
 
@@ -1029,7 +1043,7 @@ _STATUS_KEYS = (
 )
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class Status(Message):
     """The mapper's status (wire type ``status``, reply). Unknown wire keys land in `extra`."""
 
@@ -1105,7 +1119,7 @@ def _check_map_name(value: Any) -> str:
     return value
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class Save(Message):
     """Save the map under `name` in the mapper's map directory (wire type ``save``)."""
 
@@ -1130,7 +1144,7 @@ class Save(Message):
         return cls(name=w.req("name"), id=w.id())
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class Load(Message):
     """Load the map `name` from the mapper's map directory (wire type ``load``)."""
 
@@ -1155,7 +1169,7 @@ class Load(Message):
         return cls(name=w.req("name"), id=w.id())
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class Ok(Message):
     """Success reply without a payload (wire type ``ok``), e.g. to `save`/`load`."""
 
@@ -1182,7 +1196,7 @@ class Ok(Message):
         return cls(id=w.id(), message=w.opt("message"))
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class MapUpdated(Message):
     """Event published on the events endpoint when the map changes (wire type ``map_updated``)."""
 
@@ -1206,7 +1220,7 @@ class MapUpdated(Message):
         return cls(map_version=w.req("map_version"), keyframes=w.req("keyframes"))
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class RecordingHeader(Message):
     """First message of a `.govrec` recording (wire type ``recording``)."""
 
