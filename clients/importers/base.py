@@ -304,3 +304,59 @@ def describe_missing(ids: Sequence[int], limit: int = 5) -> str:
     shown = ", ".join(str(i) for i in list(ids)[:limit])
     more = f" and {len(ids) - limit} more" if len(ids) > limit else ""
     return f"{shown}{more}"
+
+
+# ---------------------------------------------------------------------------------------------
+# Undistortion
+
+
+def undistort_maps(
+    K_dataset: Sequence[float], distortion: Sequence[float], width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) float32 source x and y (pixel centres at integers) for each pixel of the
+    undistorted image, which keeps the same intrinsics ``K_dataset`` (OpenCV convention).
+
+    ``distortion`` is OpenCV's (k1, k2, p1, p2[, k3]).
+    """
+    fx, fy, cx, cy = K_dataset
+    camera = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    map_x, map_y = cv2.initUndistortRectifyMap(
+        camera, np.asarray(distortion, dtype=np.float64), None, camera, (width, height), cv2.CV_32FC1
+    )
+    return map_x, map_y
+
+
+def remap_rgb(rgb: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """(H, W, 3) uint8 resampled bilinearly at ``maps``; outside the source image becomes black."""
+    height, width = rgb.shape[:2]
+    map_x, map_y = maps
+    out = cv2.remap(rgb, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    inside = (map_x > -0.5) & (map_x < width - 0.5) & (map_y > -0.5) & (map_y < height - 0.5)
+    out[~inside] = 0
+    return out
+
+
+def remap_depth(
+    depth_m: np.ndarray, maps: tuple[np.ndarray, np.ndarray], max_ratio: float = 1.05
+) -> np.ndarray:
+    """(H, W) float32 depth resampled at ``maps`` without mixing surfaces: bilinear where the four
+    source neighbours are all valid and within ``max_ratio`` of each other, else the nearest
+    source pixel; 0 (unknown) outside the hull of the source pixel centres (no extrapolation)."""
+    height, width = depth_m.shape
+    map_x, map_y = maps
+    x0 = np.floor(map_x).astype(np.int64)
+    y0 = np.floor(map_y).astype(np.int64)
+    fx = (map_x - x0).astype(np.float32)
+    fy = (map_y - y0).astype(np.float32)
+    inside = (map_x >= 0) & (map_x <= width - 1) & (map_y >= 0) & (map_y <= height - 1)
+    xa, xb = np.clip(x0, 0, width - 1), np.clip(x0 + 1, 0, width - 1)
+    ya, yb = np.clip(y0, 0, height - 1), np.clip(y0 + 1, 0, height - 1)
+    d00, d01, d10, d11 = depth_m[ya, xa], depth_m[ya, xb], depth_m[yb, xa], depth_m[yb, xb]
+    low = np.minimum(np.minimum(d00, d01), np.minimum(d10, d11))
+    high = np.maximum(np.maximum(d00, d01), np.maximum(d10, d11))
+    smooth = (low > 0) & (high <= low * max_ratio)
+    bilinear = (d00 * (1 - fx) + d01 * fx) * (1 - fy) + (d10 * (1 - fx) + d11 * fx) * fy
+    xn = np.clip(np.rint(map_x).astype(np.int64), 0, width - 1)
+    yn = np.clip(np.rint(map_y).astype(np.int64), 0, height - 1)
+    out = np.where(smooth, bilinear, depth_m[yn, xn])
+    return np.where(inside, out, 0.0).astype(np.float32)

@@ -12,14 +12,16 @@ capture world, i.e. camera-to-world with an OpenCV optical camera (the TUM tools
 with it unchanged). The frame's capture time is the colour image's timestamp.
 
 Intrinsics default to TUM's published calibration of the colour camera, chosen from the folder
-name (``freiburg1``/``fr1`` etc.); ``--K`` overrides, and is required for other names. Images are
-not undistorted: fr1 and fr2 have radial distortion (k1 about 0.25), so pixels near the image
-border are off by a few pixels (a warning says so); fr3 images are already undistorted.
+name (``freiburg1``/``fr1`` etc.); ``--K`` overrides, and is required for other names. With the
+default intrinsics, fr1 and fr2 images are undistorted with TUM's published coefficients (same K;
+colour bilinear, depth edge-aware, see :func:`~clients.importers.base.remap_depth`); fr3 images are
+undistorted already. With ``--K`` images are used as they are (a warning says so for fr1/fr2).
 """
 
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +39,10 @@ from clients.importers.base import (
     pose_problem,
     read_depth_png,
     read_rgb,
+    remap_depth,
+    remap_rgb,
     require_file,
+    undistort_maps,
 )
 
 DEPTH_UNITS_PER_M = 5000.0
@@ -47,6 +52,12 @@ FREIBURG_K: dict[str, tuple[float, float, float, float]] = {
     "fr1": (517.3, 516.5, 318.6, 255.3),
     "fr2": (520.9, 521.0, 325.1, 249.7),
     "fr3": (535.4, 539.2, 320.1, 247.6),
+}
+# OpenCV (k1, k2, p1, p2, k3) of the colour cameras, same source; fr3 images are undistorted already
+FREIBURG_DISTORTION: dict[str, tuple[float, float, float, float, float]] = {
+    "fr1": (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
+    "fr2": (0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
+    "fr3": (0.0, 0.0, 0.0, 0.0, 0.0),
 }
 _FREIBURG = re.compile(r"(?:freiburg|fr)([123])(?![0-9])")
 
@@ -110,7 +121,15 @@ class TumReader(DatasetReader):
     format_name = "tum"
     description = "TUM RGB-D sequence: rgb.txt depth.txt groundtruth.txt"
 
-    def __init__(self, root: Path | str, options: ReaderOptions | None = None, max_dt_s: float = MAX_DT_S):
+    def __init__(
+        self,
+        root: Path | str,
+        options: ReaderOptions | None = None,
+        max_dt_s: float = MAX_DT_S,
+        distortion: Sequence[float] | None = None,
+    ) -> None:
+        """``distortion``: OpenCV (k1, k2, p1, p2[, k3]) to undo; None = the published coefficients
+        of the Freiburg camera when its default intrinsics are used, none with ``--K``."""
         super().__init__(root, options)
         rgb_stamps, rgb_rows = read_list(self.root / "rgb.txt", 1, "TUM colour list rgb.txt")
         gt_stamps, gt_rows = read_list(self.root / "groundtruth.txt", 7, "TUM ground truth groundtruth.txt")
@@ -141,6 +160,16 @@ class TumReader(DatasetReader):
             )
         self._K_dataset = tuple(float(v) for v in K_dataset)
         self._K = half_pixel_K(*K_dataset)
+        if distortion is None:
+            use_published = self.options.K is None and self._sequence is not None
+            distortion = FREIBURG_DISTORTION[self._sequence] if use_published else (0.0,) * 5
+        if len(distortion) not in (4, 5) or not all(np.isfinite(distortion)):
+            raise ImporterError(
+                f"distortion must be 4 or 5 finite numbers (k1, k2, p1, p2[, k3]), got {distortion}"
+            )
+        self._distortion = tuple(float(v) for v in distortion)
+        self._maps: tuple[np.ndarray, np.ndarray] | None = None
+        self._maps_size: tuple[int, int] | None = None
 
     def _camera_name(self) -> str | None:
         match = _FREIBURG.search(self.root.resolve().name.lower())
@@ -171,6 +200,10 @@ class TumReader(DatasetReader):
                     f"depth image {str(depth_path)!r} is {depth_m.shape[1]}x{depth_m.shape[0]}, "
                     f"colour {source} is {rgb.shape[1]}x{rgb.shape[0]}"
                 )
+        if any(self._distortion):
+            maps = self._undistort_maps(rgb.shape[1], rgb.shape[0])
+            rgb = remap_rgb(rgb, maps)
+            depth_m = remap_depth(depth_m, maps) if depth_m is not None else None
         return ImportedFrame(
             rgb=rgb,
             depth_m=depth_m,
@@ -180,14 +213,24 @@ class TumReader(DatasetReader):
             source=source,
         )
 
+    def _undistort_maps(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        if self._maps is None or self._maps_size != (width, height):
+            self._maps = undistort_maps(self._K_dataset, self._distortion, width, height)
+            self._maps_size = (width, height)
+        return self._maps
+
     def meta(self) -> dict[str, Any]:
         return {
             "camera": self._sequence or "custom",
             "K_dataset": list(self._K_dataset),
+            "distortion_removed": list(self._distortion),
             "max_dt_s": self._max_dt_s,
         }
 
     def warnings(self) -> list[str]:
-        if self._sequence in ("fr1", "fr2"):
-            return [f"{self._sequence} images are imported without undistortion (radial k1 about 0.25)"]
+        if self._sequence in ("fr1", "fr2") and not any(self._distortion):
+            return [
+                f"{self._sequence} images are imported without undistortion (--K given): rays near the "
+                "border are off by up to about 20 pixels"
+            ]
         return []

@@ -66,7 +66,12 @@ def texture(points: np.ndarray) -> np.ndarray:
 def render(world_from_cam: np.ndarray, K=K_DATASET, width=W, height=H) -> tuple[np.ndarray, np.ndarray]:
     """Analytic view of the plane z = 0: (H, W, 3) uint8 colour and (H, W) float64 depth in metres
     (0 where the ray misses the plane or hits it beyond 8 m)."""
-    rays_world = pixel_rays(K, width, height) @ world_from_cam[:3, :3].T
+    return render_rays(world_from_cam, pixel_rays(K, width, height))
+
+
+def render_rays(world_from_cam: np.ndarray, rays_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Like :func:`render` for given (H, W, 3) camera-frame rays with z = 1."""
+    rays_world = rays_cam @ world_from_cam[:3, :3].T
     eye = world_from_cam[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         depth = -eye[2] / rays_world[..., 2]
@@ -172,9 +177,42 @@ def write_replica(root: Path, cam_params: bool = True) -> Path:
 TUM_T0 = 1305031102.175304
 
 
-def write_tum(root: Path, name: str = "rgbd_dataset_freiburg3_synthetic") -> Path:
+def distort(x: np.ndarray, y: np.ndarray, D: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's (k1, k2, p1, p2, k3) model on normalised coordinates."""
+    k1, k2, p1, p2, k3 = D
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+    return x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x), y * radial + p1 * (
+        r2 + 2 * y * y
+    ) + 2 * p2 * x * y
+
+
+def distorted_pixel_rays(K: tuple[float, float, float, float], D: tuple[float, ...], width: int, height: int):
+    """(H, W, 3) rays (z = 1) seen by the pixels of a camera with distortion D (inverted by
+    fixed-point iteration, checked to 1e-10)."""
+    fx, fy, cx, cy = K
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    xd, yd = (u - cx) / fx, (v - cy) / fy
+    x, y = xd.copy(), yd.copy()
+    for _ in range(500):
+        ex, ey = distort(x, y, D)
+        x, y = x - (ex - xd), y - (ey - yd)
+    ex, ey = distort(x, y, D)
+    assert max(np.abs(ex - xd).max(), np.abs(ey - yd).max()) < 1e-10
+    return np.stack([x, y, np.ones_like(x)], axis=-1)
+
+
+def write_tum(
+    root: Path,
+    name: str = "rgbd_dataset_freiburg3_synthetic",
+    K: tuple[float, float, float, float] = K_DATASET,
+    size: tuple[int, int] = (W, H),
+    distortion: tuple[float, ...] | None = None,
+) -> Path:
     """TUM sequence: rgb at 30 Hz, depth 4 ms later, ground truth 3 ms later plus a decoy pose
-    12 ms earlier, and one last colour image with no pose within 0.02 s."""
+    12 ms earlier, and one last colour image with no pose within 0.02 s. With ``distortion``
+    the images are those of a camera with that lens distortion."""
+    rays = pixel_rays(K, *size) if distortion is None else distorted_pixel_rays(K, distortion, *size)
     seq = root / name
     rgb_lines = ["# color images", "# timestamp filename"]
     depth_lines = ["# depth maps", "# timestamp filename"]
@@ -183,7 +221,7 @@ def write_tum(root: Path, name: str = "rgbd_dataset_freiburg3_synthetic") -> Pat
     stamps = [TUM_T0 + i / 30.0 for i in range(len(POSES) + 1)]
     for i, stamp in enumerate(stamps):
         world_from_cam = POSES[i % len(POSES)]
-        rgb, depth = render(world_from_cam)
+        rgb, depth = render_rays(world_from_cam, rays)
         write_png(seq / "rgb" / f"{stamp:.6f}.png", rgb)
         write_png(seq / "depth" / f"{stamp + 0.004:.6f}.png", depth_u16(depth, 5000.0))
         rgb_lines.append(f"{stamp:.6f} rgb/{stamp:.6f}.png")
@@ -327,7 +365,10 @@ def test_tum_default_intrinsics_by_sequence_name(tmp_path: Path) -> None:
     seq = write_tum(tmp_path, name="rgbd_dataset_freiburg1_xyz")
     reader = open_dataset("tum", seq)
     np.testing.assert_allclose(reader.read(0).K, [517.3, 516.5, 318.6 + 0.5, 255.3 + 0.5])
-    assert any("fr1" in w for w in reader.warnings())
+    assert reader.meta()["distortion_removed"] == [0.2624, -0.9531, -0.0054, 0.0026, 1.1633]
+    assert not reader.warnings()
+    with_K = open_dataset("tum", seq, ReaderOptions(K=K_DATASET))
+    assert not any(with_K.meta()["distortion_removed"]) and "without undistortion" in with_K.warnings()[0]
     other = seq.rename(tmp_path / "my_sequence")
     with pytest.raises(ImporterError, match="pass --K"):
         open_dataset("tum", other)
@@ -665,3 +706,54 @@ def test_scannet_warns_when_depth_intrinsics_disagree(tmp_path: Path) -> None:
     np.testing.assert_allclose(reader.read(0).K, expected_K())  # the scaled colour K is used
     override = open_dataset("scannet", scene, ReaderOptions(K=(60.0, 58.0, 30.9, 23.9)))
     np.testing.assert_allclose(override.read(0).K, [30.0, 29.0, 15.7, 12.2])  # colour K, halved
+
+
+def test_tum_undistortion(tmp_path: Path) -> None:
+    """fr1's lens distortion, at 64x48: undistorted frames put every valid pixel on the plane;
+    the raw (distorted) images taken as pinhole do not."""
+    from clients.importers.tum import FREIBURG_DISTORTION, TumReader
+
+    K = (60.0, 58.0, 31.9, 23.9)
+    D = FREIBURG_DISTORTION["fr1"]
+    seq = write_tum(tmp_path, K=K, size=(64, 48), distortion=D)
+
+    def off_plane_m(reader: TumReader) -> list[float]:
+        errors = []
+        for frame in frames_of(reader):
+            if isinstance(frame, SkippedFrame):
+                continue
+            rows, cols = np.nonzero(frame.depth_m > 0)
+            assert len(rows) > 0.5 * 64 * 48
+            fx, fy, cx, cy = frame.K
+            d = frame.depth_m[rows, cols].astype(np.float64)
+            cam = np.stack([(cols + 0.5 - cx) / fx * d, (rows + 0.5 - cy) / fy * d, d], axis=-1)
+            world = cam @ frame.world_from_cam[:3, :3].T + frame.world_from_cam[:3, 3]
+            errors.append(float(np.abs(world[:, 2]).max()))
+        return errors
+
+    undistorted = TumReader(seq, ReaderOptions(K=K), distortion=D)
+    assert max(off_plane_m(undistorted)) < TOL_M
+    raw = TumReader(seq, ReaderOptions(K=K), distortion=(0.0,) * 5)
+    assert max(off_plane_m(raw)) > 10 * TOL_M
+    # colour follows the geometry: compare with a pinhole render of the same pose
+    frame = undistorted.read(0)
+    expected, depth = render(POSES[0], K, 64, 48)
+    valid = (depth > 0) & (frame.depth_m > 0)
+    diff = np.abs(frame.rgb.astype(int) - expected.astype(int))[valid]
+    assert diff.mean() < 4.0, diff.mean()
+
+
+def test_remap_depth_does_not_mix_surfaces() -> None:
+    from clients.importers.base import remap_depth
+
+    depth = np.full((6, 8), 1.0, dtype=np.float32)
+    depth[:, 4:] = 3.0  # a step edge between columns 3 and 4
+    depth[0, 0] = 0.0  # a hole
+    map_y, map_x = np.meshgrid(np.arange(6, dtype=np.float32), np.arange(8, dtype=np.float32), indexing="ij")
+    out = remap_depth(depth, (map_x + 0.5, map_y))  # half a pixel to the right
+    assert set(np.unique(out[1:, :7]).tolist()) == {1.0, 3.0}  # never 2.0 across the edge
+    assert out[0, 0] in (0.0, 1.0) and np.all(out[:, 7] == 0)  # beyond the last centre: unknown
+    smooth = np.linspace(1.0, 1.2, 8, dtype=np.float32)[None, :].repeat(6, axis=0)
+    np.testing.assert_allclose(
+        remap_depth(smooth, (map_x + 0.25, map_y))[:, :7], smooth[:, :7] + 0.25 * 0.2 / 7, rtol=1e-6
+    )
