@@ -121,3 +121,39 @@ def test_handle_functions_never_raise(node: MapperNode) -> None:
         for handle in (node.handle_ingest, node.handle_query):
             reply = handle(data)
             assert isinstance(reply, bytes) and reply
+
+
+def test_periodic_autosave_and_clean_run_exit(tmp_path: Path) -> None:
+    ingest, query = free_endpoints(2)
+    config = config_from_dict(
+        {
+            "ingest_endpoint": ingest,
+            "query_endpoint": query,
+            "events_endpoint": "",
+            "map_dir": str(tmp_path / "maps"),
+            "autosave_name": "auto",
+            "autosave_interval_s": 0.01,
+            "save_on_exit": False,
+        }
+    )
+    mapper = MapperNode(config)
+    mapper.start()
+    codes: list[int] = []
+    runner = threading.Thread(target=lambda: codes.append(mapper.run()))
+    runner.start()
+    try:
+        with _client(mapper) as client:
+            client.send_frame(synthetic_frame(0, 8, W, H))
+            deadline = threading.Event()
+            for _ in range(200):  # up to 20 s on a loaded machine; normally well under a second
+                status = client.status()
+                if status.extra["last_save"] is not None:
+                    break
+                deadline.wait(0.1)
+            assert status.extra["last_save"]["name"] == "auto"
+            assert status.extra["last_save"]["map_version"] == 1
+        assert (tmp_path / "maps" / "auto.govmap").is_file()
+    finally:
+        mapper.request_stop()
+        runner.join(timeout=20)
+    assert codes == [0]

@@ -121,3 +121,15 @@ def test_missing_and_broken_files(tmp_path: Path) -> None:
         load_config(tmp_path / "nope.toml")
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_config(_write(tmp_path, "x = = 1\n"))
+
+
+def test_docstring_examples_of_config_window_store() -> None:
+    import doctest
+
+    import mapper.config
+    import mapper.store
+    import mapper.window
+
+    for module in (mapper.config, mapper.window, mapper.store):
+        result = doctest.testmod(module)
+        assert result.attempted > 0 and result.failed == 0, module.__name__
