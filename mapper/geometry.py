@@ -132,15 +132,18 @@ def project_points(
         z: (..., N) depth along the optical axis in metres (negative behind the camera).
     """
     _check_K(K)
-    points_cam = transform_points(cam_from_world, points_world)
+    out_dtype = points_world.dtype
+    # Half precision is computed in float32 (x / z and its gradient x / z^2 overflow fp16).
+    work = torch.float32 if out_dtype in (torch.float16, torch.bfloat16) else out_dtype
+    points_cam = transform_points(cam_from_world.to(work), points_world.to(work))
     z = points_cam[..., 2]
     # Divide only by a safe depth; torch.where keeps the gradient of the masked branch finite.
     z_safe = torch.where(z > eps, z, torch.full_like(z, eps))
     xy = points_cam[..., :2] / z_safe.unsqueeze(-1)
-    focal = K[..., None, 0:2]
-    centre = K[..., None, 2:4]
+    focal = K[..., None, 0:2].to(work)
+    centre = K[..., None, 2:4].to(work)
     uv = (xy * focal + centre).clamp(-_UV_LIMIT, _UV_LIMIT)
-    return uv, z
+    return uv.to(out_dtype), z.to(out_dtype)
 
 
 def unproject_points(uv: Tensor, z: Tensor, K: Tensor, world_from_cam: Tensor) -> Tensor:
