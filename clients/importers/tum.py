@@ -161,8 +161,8 @@ class TumReader(DatasetReader):
         self._K_dataset = tuple(float(v) for v in K_dataset)
         self._K = half_pixel_K(*K_dataset)
         if distortion is None:
-            use_published = self.options.K is None and self._sequence is not None
-            distortion = FREIBURG_DISTORTION[self._sequence] if use_published else (0.0,) * 5
+            published = self._sequence is not None and self.options.K is None
+            distortion = FREIBURG_DISTORTION[self._sequence] if self._sequence and published else (0.0,) * 5
         if len(distortion) not in (4, 5) or not all(np.isfinite(distortion)):
             raise ImporterError(
                 f"distortion must be 4 or 5 finite numbers (k1, k2, p1, p2[, k3]), got {distortion}"
