@@ -32,6 +32,7 @@ Later stages plug in here: ``register_query_handler(QueryPoints, handler)`` repl
 from __future__ import annotations
 
 import logging
+import math
 import os
 import queue
 import signal
@@ -47,7 +48,7 @@ from typing import Any
 import zmq
 
 from mapper.config import NodeConfig, to_dict
-from mapper.store import MapStore, StoreError
+from mapper.store import MapStore, StoreError, StoreWriteError
 from mapper.window import Keyframe, KeyframeWindow, keyframes_from_arrays, keyframes_to_arrays
 from protocol.errors import ProtocolError
 from protocol.messages import (
@@ -76,6 +77,9 @@ log = logging.getLogger("mapper.service")
 QueryHandler = Callable[[Message], Message]
 """Takes a decoded request, returns the reply (its ``id`` is filled in by the node); raises
 ``ProtocolError`` for an error reply."""
+
+WARN_INTERVAL_S = 5.0
+"""Rejections and errors are logged as warnings at most this often per kind (DEBUG otherwise)."""
 
 HARD_LIMIT_FACTOR = 4
 """ZeroMQ drops messages above ``HARD_LIMIT_FACTOR * max_message_bytes`` at the transport (the
@@ -156,6 +160,7 @@ class MapperNode:
         self._events: queue.SimpleQueue[MapUpdated | None] = queue.SimpleQueue()
         self._bind_errors: list[str] = []
         self._saved_version: int | None = None
+        self._last_warning: dict[str, float] = {}
         self._last_autosave = time.monotonic()
 
     # -- extension points ---------------------------------------------------------------------
@@ -250,6 +255,7 @@ class MapperNode:
 
     def install_signal_handlers(self) -> None:
         """Make SIGINT and SIGTERM request a clean shutdown (call from the main thread)."""
+
         def handler(signum: int, _frame: FrameType | None) -> None:
             log.info("received %s, shutting down", signal.Signals(signum).name)
             self._stop.set()
@@ -383,8 +389,21 @@ class MapperNode:
     def _error(self, exc: ProtocolError, data: bytes, where: str) -> Error:
         with self.state.lock:
             self.state.error_counts[exc.code] += 1
-        log.debug("%s: %s error: %s", where, exc.code, exc.message)
+            count = self.state.error_counts[exc.code]
+        self._warn_limited(
+            f"{where}:{exc.code}", "%s: %s error (%d so far): %s", where, exc.code, count, exc.message
+        )
         return error_reply(exc, peek_id(data))
+
+    def _warn_limited(self, key: str, fmt: str, *args: object) -> None:
+        """Log a warning at most once per ``WARN_INTERVAL_S`` per key (DEBUG otherwise), so a
+        misbehaving client cannot flood the log."""
+        now = time.monotonic()
+        if now - self._last_warning.get(key, -math.inf) >= WARN_INTERVAL_S:
+            self._last_warning[key] = now
+            log.warning(fmt, *args)
+        else:
+            log.debug(fmt, *args)
 
     def _internal(self, exc: Exception, data: bytes, where: str) -> Error:
         log.error("%s: internal error while handling a message:\n%s", where, traceback.format_exc())
@@ -439,14 +458,18 @@ class MapperNode:
             version = state.map_version
         log.debug(
             "frame seq %d (%s): %s, moved %.3f m, turned %.1f deg",
-            frame.seq, frame.camera, status, update.translation_m, update.rotation_deg,
+            frame.seq,
+            frame.camera,
+            status,
+            update.translation_m,
+            update.rotation_deg,
         )
         return Ack(seq=frame.seq, status=status, map_version=version, id=frame.id)
 
     def _reject(self, frame: Frame, reason: str) -> Ack:
         """A rejected ack (called with the lock held)."""
         self.state.ack_counts["rejected"] += 1
-        log.debug("frame seq %d rejected: %s", frame.seq, reason)
+        self._warn_limited("ingest:rejected", "frame seq %d rejected: %s", frame.seq, reason)
         return Ack(
             seq=frame.seq, status="rejected", map_version=self.state.map_version, reason=reason, id=frame.id
         )
@@ -492,6 +515,9 @@ class MapperNode:
         assert isinstance(msg, Save)
         try:
             path, version, count = self._save_to(msg.name, reason="request")
+        except StoreWriteError as exc:
+            log.error("save of map %r failed: %s", msg.name, exc)
+            raise ProtocolError("internal", f"save failed on the node: {exc}") from None
         except StoreError as exc:
             raise ProtocolError("bad_request", f"save failed: {exc}") from None
         return Ok(id=msg.id, message=f"saved map version {version} ({count} keyframes) to {path}")
@@ -517,7 +543,11 @@ class MapperNode:
         self._saved_version = snap.map_version
         log.info(
             "%s save: map version %d (%d keyframes) -> %s in %.2f s",
-            reason, snap.map_version, len(snap.keyframes), path, elapsed,
+            reason,
+            snap.map_version,
+            len(snap.keyframes),
+            path,
+            elapsed,
         )
         return str(path), snap.map_version, len(snap.keyframes)
 

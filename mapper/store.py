@@ -48,6 +48,10 @@ class StoreError(Exception):
     """A save or load failed; the message says why (safe to send to a client)."""
 
 
+class StoreWriteError(StoreError):
+    """Writing failed on the node's side (disk full, permissions): not the requester's fault."""
+
+
 def validate_map_name(name: object) -> str:
     """Return ``name`` if it is a valid map name, else raise ``ValueError`` saying what is allowed."""
     if not isinstance(name, str) or not re.fullmatch(MAP_NAME_PATTERN, name) or set(name) == {"."}:
@@ -95,7 +99,9 @@ class MapStore:
             path.parent.mkdir(parents=True, exist_ok=True)
             fd, tmp_name = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=path.parent)
         except OSError as exc:
-            raise StoreError(f"cannot write to map directory {str(path.parent)!r}: {exc.strerror}") from None
+            raise StoreWriteError(
+                f"cannot write to map directory {str(path.parent)!r}: {exc.strerror}"
+            ) from None
         try:
             with os.fdopen(fd, "wb") as fh:
                 payload: dict[str, Any] = {_MANIFEST_KEY: manifest_bytes, **arrays}
@@ -109,7 +115,7 @@ class MapStore:
             except OSError:
                 pass
             if isinstance(exc, OSError):
-                raise StoreError(f"saving map {name!r} failed: {exc}") from None
+                raise StoreWriteError(f"saving map {name!r} failed: {exc}") from None
             raise
         _fsync_dir(path.parent)
         return path

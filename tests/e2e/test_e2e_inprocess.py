@@ -157,3 +157,25 @@ def test_periodic_autosave_and_clean_run_exit(tmp_path: Path) -> None:
         mapper.request_stop()
         runner.join(timeout=20)
     assert codes == [0]
+
+
+def test_save_failure_on_the_node_is_internal_and_changes_nothing(tmp_path: Path) -> None:
+    not_a_dir = tmp_path / "maps"
+    not_a_dir.write_text("a file where the map directory should be")
+    ingest, query = free_endpoints(2)
+    config = config_from_dict(
+        {"ingest_endpoint": ingest, "query_endpoint": query, "events_endpoint": "", "map_dir": str(not_a_dir)}
+    )
+    mapper = MapperNode(config)
+    mapper.start()
+    try:
+        with _client(mapper) as client:
+            client.send_frame(synthetic_frame(0, 8, W, H))
+            with pytest.raises(RemoteError) as info:
+                client.save("x")
+            assert info.value.code == "internal" and "cannot write to map directory" in info.value.message
+            status = client.status()
+            assert status.keyframes == 1 and status.extra["last_save"] is None
+    finally:
+        mapper.stop()
+    assert not_a_dir.read_text().startswith("a file")

@@ -201,6 +201,23 @@ def test_garbage_never_kills_the_node(node: NodeProcess, client: MapperClient) -
         ctx.destroy(linger=0)
 
 
+def test_message_beyond_the_hard_limit_drops_only_that_peer(node: NodeProcess, client: MapperClient) -> None:
+    """Above 4x max_message_bytes ZeroMQ refuses the message at the transport (no reply, the
+    peer is disconnected); the node and its other peers carry on."""
+    ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context()
+    try:
+        sock = _dealer(ctx, node.ingest)
+        sock.setsockopt(zmq.RCVTIMEO, 500)
+        sock.send_multipart([b"", b"\x00" * (4 * MAX_MESSAGE_BYTES + 1)])
+        with pytest.raises(zmq.Again):
+            sock.recv_multipart()
+        sock.close()
+        assert isinstance(client.send_frame(synthetic_frame(2, 20, W, H)), Ack)
+        assert node.process is not None and node.process.poll() is None
+    finally:
+        ctx.destroy(linger=0)
+
+
 def test_req_and_dealer_peers_are_answered(node: NodeProcess) -> None:
     ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context()
     try:
