@@ -13,7 +13,11 @@ from protocol.errors import ERROR_CODES, ProtocolError
 from protocol.messages import Message, decode, encode, peek_id
 
 # PROTOCOL_FUZZ_EXAMPLES=5000 for a longer hunt; the default keeps the suite fast.
-SETTINGS = settings(max_examples=int(os.environ.get("PROTOCOL_FUZZ_EXAMPLES", "150")), deadline=None, suppress_health_check=[HealthCheck.too_slow])
+SETTINGS = settings(
+    max_examples=int(os.environ.get("PROTOCOL_FUZZ_EXAMPLES", "150")),
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
 ENCODED = [encode(m) for m in samples()] + [pack(frame_wire())]
 
 
