@@ -61,6 +61,8 @@ _DTYPES = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch
 _ACTIVATIONS = ("quick_gelu", "gelu")
 _MODEL_NAME = re.compile(r"[A-Za-z0-9_.@/+-]{1,64}")
 _TEXT_BATCH = 256
+#: Most patches one dense forward may hold (a 128 x 128 grid); bounds memory on odd aspect ratios.
+MAX_DENSE_PATCHES = 16384
 
 
 class ClipWeightsError(ValueError):
@@ -395,10 +397,11 @@ class ClipVisionTower(nn.Module):
     def dense(self, pixels: Tensor) -> Tensor:
         """MaskCLIP dense features (not normalised): (B, 3, H, W) -> (B, h_p, w_p, D)."""
         x, h_p, w_p = self.tokens(pixels)
-        blocks = list(self.transformer.resblocks)
-        for block in blocks[:-1]:
+        *blocks, last = self.transformer.resblocks
+        for block in blocks:
             x = block(x)
-        x = blocks[-1].forward_maskclip(x)
+        assert isinstance(last, _ResidualBlock)
+        x = last.forward_maskclip(x)
         feats = self.ln_post(x[:, 1:]) @ self.proj  # (B, h_p*w_p, D)
         return feats.reshape(x.shape[0], h_p, w_p, -1)
 
@@ -628,9 +631,9 @@ class ClipDenseBackend:
                 chunk = missing[start : start + _TEXT_BATCH]
                 tokens = torch.from_numpy(self.tokenizer.tokenize(chunk)).to(self.device)  # (M, L)
                 with torch.inference_mode():
-                    emb = self.model.encode_text(tokens).float()  # (M, D)
-                    emb = F.normalize(emb, dim=-1).cpu().numpy()
-                for t, e in zip(chunk, emb, strict=True):
+                    emb = F.normalize(self.model.encode_text(tokens).float(), dim=-1)  # (M, D)
+                rows = emb.cpu().numpy()
+                for t, e in zip(chunk, rows, strict=True):
                     e.setflags(write=False)
                     self._text_cache[t] = e
             if not texts:
@@ -660,9 +663,18 @@ class ClipDenseBackend:
 
         The image is resized (bicubic) so its short side is ``input_size`` and each side a whole
         number of patches; ``dense_grid(H, W)`` gives (h_p, w_p).
+
+        Raises:
+            ValueError: not an (H, W, 3) uint8 image, or its grid exceeds ``MAX_DENSE_PATCHES``.
         """
         _check_rgb(rgb)
         h_p, w_p = self.dense_grid(rgb.shape[0], rgb.shape[1])
+        if h_p * w_p > MAX_DENSE_PATCHES:
+            raise ValueError(
+                f"a {rgb.shape[0]}x{rgb.shape[1]} image at input_size {self.input_size} needs a "
+                f"{h_p}x{w_p} patch grid ({h_p * w_p} patches), more than {MAX_DENSE_PATCHES}; "
+                "lower input_size or crop the image"
+            )
         p = self.arch.patch_size
         with torch.inference_mode():
             img = _resize(self._to_tensor(rgb), (h_p * p, w_p * p))

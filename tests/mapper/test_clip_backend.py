@@ -493,3 +493,6 @@ def test_bad_images_are_refused(backend: ClipDenseBackend) -> None:
         backend.dense_features(np.zeros((0, 8, 3), np.uint8))
     with pytest.raises(TypeError):
         backend.dense_features([[0, 0, 0]])
+    # A 1 x 5000 strip at a 64 px short side would need a 4 x 20000 grid.
+    with pytest.raises(ValueError, match="patch grid.*more than 16384"):
+        backend.dense_features(np.zeros((1, 5000, 3), np.uint8))
