@@ -161,6 +161,7 @@ class MapperNode:
         self._bind_errors: list[str] = []
         self._saved_version: int | None = None
         self._last_warning: dict[str, float] = {}
+        self._stopped = False
         self._last_autosave = time.monotonic()
 
     # -- extension points ---------------------------------------------------------------------
@@ -190,9 +191,9 @@ class MapperNode:
         for bound in ready:
             bound.wait(timeout=10.0)
         if self._bind_errors or not all(b.is_set() for b in ready):
-            self._stop.set()
-            self._join()
+            self._stop_threads()
             self._context.term()
+            self._stopped = True
             raise RuntimeError("; ".join(self._bind_errors) or "socket threads did not start in 10 s")
         log.info(
             "serving: ingest %s, query %s, events %s, map_dir %s",
@@ -230,10 +231,12 @@ class MapperNode:
         return self.stop()
 
     def stop(self) -> int:
-        """Stop the threads, close the sockets, do the final save if configured. Idempotent."""
-        self._stop.set()
-        self._events.put(None)
-        self._join()
+        """Stop the threads, close the sockets, do the final save if configured; returns the exit
+        code (0, or 1 when the final save failed). A second call does nothing and returns 0."""
+        if self._stopped:
+            return 0
+        self._stopped = True
+        self._stop_threads()
         code = 0
         if self.config.save_on_exit and self.config.autosave_name:
             try:
@@ -246,7 +249,9 @@ class MapperNode:
             log.info("stopped: %s", self._summary_line())
         return code
 
-    def _join(self) -> None:
+    def _stop_threads(self) -> None:
+        self._stop.set()
+        self._events.put(None)  # wakes the events thread
         for thread in self._threads:
             thread.join(timeout=10.0)
             if thread.is_alive():
