@@ -133,3 +133,11 @@ def test_docstring_examples_of_config_window_store() -> None:
     for module in (mapper.config, mapper.window, mapper.store):
         result = doctest.testmod(module)
         assert result.attempted > 0 and result.failed == 0, module.__name__
+
+
+def test_every_launch_preset_loads() -> None:
+    presets = sorted(DEFAULT_CONFIG_PATH.parent.glob("node*.toml"))
+    assert DEFAULT_CONFIG_PATH in presets and len(presets) >= 2
+    for path in presets:
+        cfg = load_config(path)
+        assert cfg.window.max_keyframes >= 1, path
