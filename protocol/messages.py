@@ -482,6 +482,14 @@ class Frame(Message):
         _check_int("seq", seq, 0)
         _check_int("stamp_ns", stamp_ns)
         _check_camera("K", K, "T_world_cam", pose)
+        msg_id = w.id()
+        camera = _check_str("camera", w.opt("camera", "cam0"), max_chars=MAX_NAME_CHARS)
+        if (w.opt("ov") is None) != (w.opt("ov_space") is None):
+            raise _bad(
+                "ov_space: required when ov is sent (name the embedding space, e.g. 'minilm-l6-v2')"
+                if w.opt("ov_space") is None
+                else "ov_space: sent without ov (send both or neither)"
+            )
         rgb_obj = w.req("rgb")
         rgb = decode_image(rgb_obj, width=width, height=height, field="rgb")
         depth_m: np.ndarray | None = None
@@ -511,12 +519,12 @@ class Frame(Message):
             K=K,
             world_from_cam=pose,
             rgb=rgb,
-            camera=w.opt("camera", "cam0"),
+            camera=camera,
             depth_m=depth_m,
             ov=ov,
             ov_space=ov_space,
             rgb_encoding=rgb_obj["encoding"],
-            id=w.id(),
+            id=msg_id,
         )
 
 
