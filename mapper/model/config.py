@@ -129,10 +129,10 @@ class ModelConfig:
     """Image size (W, H) the network is trained on (paper: 320 x 240)."""
 
     def __post_init__(self) -> None:
-        if self.num_source_views < 1 or min(self.image_wh) < 8:
+        if self.num_source_views < 1 or len(self.image_wh) != 2 or min(self.image_wh) < 1:
             raise ValueError(
-                f"model settings out of range: num_source_views {self.num_source_views}, "
-                f"image_wh {self.image_wh} (>= 1 view, >= 8 px)"
+                f"model settings out of range: num_source_views {self.num_source_views} (>= 1), "
+                f"image_wh {self.image_wh} ((W, H) >= 1 px)"
             )
 
 

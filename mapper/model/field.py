@@ -264,7 +264,8 @@ class GovNeSF(nn.Module):
             ov = self.distill(fused.x_att, samples.mask, v) * fused.valid.unsqueeze(-1)
         else:
             ov = blend(fused.ov_weights, samples.ov)
-        sigma = self.density(v) * inside.to(torch.float32)
+        sigma = self.density(v)
+        sigma = sigma * inside.to(sigma.dtype)
         return FieldOutputs(
             sigma=sigma.reshape(R, S),
             rgb=rgb.reshape(R, S, 3),

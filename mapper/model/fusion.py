@@ -35,6 +35,10 @@ __all__ = [
 ]
 
 
+def _at_least_float32(x: Tensor) -> Tensor:
+    return x.float() if x.dtype in (torch.float16, torch.bfloat16) else x
+
+
 def masked_softmax(logits: Tensor, mask: Tensor, dim: int = -1) -> tuple[Tensor, Tensor]:
     """Softmax over the entries where ``mask`` is True.
 
@@ -42,16 +46,17 @@ def masked_softmax(logits: Tensor, mask: Tensor, dim: int = -1) -> tuple[Tensor,
         logits: (..., N, ...); mask: bool, same shape.
 
     Returns:
-        weights: float32 (same shape), 0 where masked; all 0 where every entry is masked.
+        weights: float32 or float64 (same shape), 0 where masked; all 0 where every entry is
+            masked.
         valid: bool (logits.shape without ``dim``), False where every entry is masked.
     """
-    x = logits.float()
-    very_negative = torch.finfo(torch.float32).min
+    x = _at_least_float32(logits)
+    very_negative = torch.finfo(x.dtype).min
     x = x.masked_fill(~mask, very_negative)
     peak = x.amax(dim=dim, keepdim=True).detach()
     e = torch.exp((x - peak).clamp(max=0.0)) * mask.to(x.dtype)
     total = e.sum(dim=dim, keepdim=True)
-    weights = e / total.clamp_min(torch.finfo(torch.float32).tiny)
+    weights = e / total.clamp_min(torch.finfo(x.dtype).tiny)
     return weights, mask.any(dim=dim)
 
 
@@ -205,7 +210,7 @@ class DensityMLP(nn.Module):
             self.mlp[-1].bias.fill_(cfg.density_bias_init)
 
     def forward(self, v: Tensor) -> Tensor:
-        logit = self.mlp(v).squeeze(-1).float()
+        logit = _at_least_float32(self.mlp(v).squeeze(-1))
         if self.activation == "softplus":
             return F.softplus(logit)
         return torch.exp((logit - 1.0).clamp(-15.0, 15.0))
