@@ -98,9 +98,18 @@ class _Channel:
             self._socket.close(linger=0)
             self._socket = None
 
-    def send(self, payload: bytes) -> None:
+    def send(self, payload: bytes, timeout_s: float) -> None:
         # An empty delimiter first: the REQ-style envelope, which the node echoes back.
-        self.socket.send_multipart([b"", payload], copy=False)
+        sock = self.socket
+        sock.setsockopt(zmq.SNDTIMEO, max(1, int(timeout_s * 1000)))
+        try:
+            sock.send_multipart([b"", payload], copy=False)
+        except zmq.Again:  # the outgoing queue is full and nobody takes from it
+            self.reset()
+            raise TimeoutError(
+                f"could not send to {self.endpoint} within {timeout_s:g} s (outgoing queue full): "
+                "is the mapper node running there?"
+            ) from None
 
     def exchange(
         self,
@@ -137,7 +146,7 @@ class _Channel:
                     index, payload = item
                     if not inflight:
                         deadline = now + timeout_s
-                    self.send(payload)
+                    self.send(payload, timeout_s)
                     inflight.append(_InFlight(index, payload, now, peek_id(payload)))
                     if period:
                         next_send = max(next_send + period, now - period)
@@ -167,7 +176,7 @@ class _Channel:
                     self.reset()  # lazy pirate: a fresh socket, then send what is in flight again
                     resend_at = time.monotonic()
                     for entry in inflight:
-                        self.send(entry.payload)
+                        self.send(entry.payload, timeout_s)
                         entry.sent_at = resend_at
                     deadline = resend_at + timeout_s
         finally:
