@@ -17,6 +17,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "save": ("clients.client_cli", "save_main", "save a node's map in its map directory"),
     "load": ("clients.client_cli", "load_main", "load a saved map into a node"),
     "import": ("clients.importers.cli", "main", "convert a dataset folder to .govrec"),
+    "sim": ("clients.sim.cli", "main", "simulated robot: record or stream procedural rooms"),
 }
 
 

@@ -207,7 +207,7 @@ class SceneRenderer:
         T = np.asarray(world_from_cam, dtype=np.float64)
         R, c = T[:3, :3], T[:3, 3]
         d_cam = camera_rays(K, width, height).reshape(-1, 3)    # (N, 3)
-        d_world = d_cam @ R.T
+        d_world = np.einsum("pk,jk->pj", d_cam, R)            # R @ d, per pixel
         origins = np.broadcast_to(c, d_world.shape)
         t, face = self.cast(origins, d_world)
         hit = face >= 0
@@ -229,7 +229,7 @@ class SceneRenderer:
             n_w = scene.face_normal[f].astype(np.float64)
             facing = np.sum(n_w * d_world[hit], axis=1) > 0
             n_w[facing] *= -1.0                                     # towards the camera
-            normal_cam[hit] = n_w @ R
+            normal_cam[hit] = np.einsum("pk,kj->pj", n_w, R)   # R^T @ n
             p = c + th[:, None] * d_world[hit]
             albedo = procedural_albedo(p, scene.face_normal[f].astype(np.float64), scene.face_colour[f],
                                        scene.face_colour2[f], scene.face_texture[f],
