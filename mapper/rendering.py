@@ -38,6 +38,7 @@ __all__ = [
     "accumulated_opacity",
     "composite",
     "expected_depth",
+    "intersect_aabb",
     "render_weights",
     "sample_along_rays",
 ]
@@ -223,3 +224,34 @@ def expected_depth(weights: Tensor, t: Tensor, eps: float = 1e-10) -> Tensor:
     depth = (w * tt).sum(dim=-1) / (w.sum(dim=-1) + eps)
     depth = torch.maximum(torch.minimum(depth, tt[..., -1]), tt[..., 0])
     return depth.to(torch.promote_types(weights.dtype, t.dtype))
+
+
+def intersect_aabb(
+    origins: Tensor, directions: Tensor, box_min: Tensor, box_max: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Slab-method intersection of rays with an axis-aligned box (for empty-space skipping).
+
+    Rays parallel to a face are handled without NaN (a zero direction component is replaced by
+    a tiny one of the same sign); the box is closed, so a ray lying in a face plane hits.
+
+    Args:
+        origins: (R, 3); directions: (R, 3); box_min, box_max: (3,) world corners (m).
+
+    Returns:
+        t_near: (R,) entry distance clamped at 0, t_far: (R,) exit distance, hit: (R,) bool
+        (``t_far >= t_near``); where there is no hit, t_near = t_far = 0.
+    """
+    out_dtype = origins.dtype
+    if out_dtype in (torch.float16, torch.bfloat16):
+        origins, directions = origins.float(), directions.float()
+    tiny = 1e-12 if origins.dtype == torch.float64 else 1e-30
+    sign = torch.where(directions < 0, -1.0, 1.0).to(directions.dtype)
+    safe = torch.where(directions.abs() < tiny, sign * tiny, directions)
+    t1 = (box_min.to(origins) - origins) / safe
+    t2 = (box_max.to(origins) - origins) / safe
+    t_near = torch.minimum(t1, t2).amax(dim=-1).clamp_min(0.0)
+    t_far = torch.maximum(t1, t2).amin(dim=-1)
+    hit = t_far >= t_near
+    zero = torch.zeros_like(t_near)
+    t_near, t_far = torch.where(hit, t_near, zero), torch.where(hit, t_far, zero)
+    return t_near.to(out_dtype), t_far.to(out_dtype), hit

@@ -39,7 +39,14 @@ from mapper.model.config import ModelConfig
 from mapper.model.encoder2d import ImageEncoder
 from mapper.model.fusion import DensityMLP, DistillHead, FusionNet, blend
 from mapper.model.unet3d import VolumeUNet
-from mapper.rendering import Rays, composite, expected_depth, render_weights, sample_along_rays
+from mapper.rendering import (
+    Rays,
+    composite,
+    expected_depth,
+    intersect_aabb,
+    render_weights,
+    sample_along_rays,
+)
 
 __all__ = [
     "FieldOutputs",
@@ -157,6 +164,7 @@ class RenderOutputs:
     depth_m: Tensor  # (R,) expected distance along the unit ray direction
     opacity: Tensor  # (R,)
     weights: Tensor  # (R, S)
+    t: Tensor  # (R, S) sample distances along the rays (m)
     valid_fraction: Tensor  # (R,) fraction of samples some view sees
 
 
@@ -306,14 +314,33 @@ def render_rays(
     stratified: bool = False,
     generator: torch.Generator | None = None,
     depth_guided_masking: bool = False,
+    clip_to_volume: bool = False,
 ) -> RenderOutputs:
-    """Volume-render R rays (defaults from ``model.cfg.render``)."""
+    """Volume-render R rays (defaults from ``model.cfg.render``).
+
+    ``clip_to_volume`` (empty-space skipping): sample only the part of [near, far] inside the
+    volume's bounds (density is 0 outside it); rays that miss the volume keep [near, far].
+    Off by default so that training matches the paper's uniform sampling.
+    """
     rc = model.cfg.render
+    n_rays = len(rays)
+    like = rays.origins
+    near = torch.as_tensor(rc.near_m if near_m is None else near_m, dtype=like.dtype, device=like.device)
+    far = torch.as_tensor(rc.far_m if far_m is None else far_m, dtype=like.dtype, device=like.device)
+    if clip_to_volume:
+        near, far = near.expand(n_rays), far.expand(n_rays)
+        box_min = like.new_tensor(bounds.origin_m)
+        box_max = like.new_tensor(bounds.max_corner_m)
+        t_in, t_out, hit = intersect_aabb(rays.origins, rays.directions, box_min, box_max)
+        clipped_near, clipped_far = torch.maximum(near, t_in), torch.minimum(far, t_out)
+        use = hit & (clipped_far > clipped_near)
+        near = torch.where(use, clipped_near, near)
+        far = torch.where(use, clipped_far, far)
     t, deltas = sample_along_rays(
         rays.origins,
         rays.directions,
-        rc.near_m if near_m is None else near_m,
-        rc.far_m if far_m is None else far_m,
+        near,
+        far,
         rc.n_samples if n_samples is None else n_samples,
         stratified=stratified,
         generator=generator,
@@ -327,5 +354,6 @@ def render_rays(
         depth_m=expected_depth(weights, t.to(weights.dtype)),
         opacity=weights.sum(dim=-1),
         weights=weights,
+        t=t,
         valid_fraction=out.valid.float().mean(dim=-1),
     )

@@ -240,3 +240,18 @@ def test_source_views_validate_shapes() -> None:
             torch.rand(3, 4),
             torch.eye(4).repeat(2, 1, 1),
         )
+
+
+def test_clip_to_volume_samples_only_inside_the_bounds(model: GovNeSF) -> None:
+    views = make_views(model)
+    volume = model.build_volume(views, BOUNDS)
+    origins, dirs = pixel_rays(views.K[1], views.world_from_cam[1], W, H)
+    rays = Rays(origins.reshape(-1, 3)[::5], dirs.reshape(-1, 3)[::5])
+    clipped = render_rays(model, views, volume, BOUNDS, rays, clip_to_volume=True)
+    full = render_rays(model, views, volume, BOUNDS, rays, clip_to_volume=False)
+    pts = rays.origins[:, None] + clipped.t[..., None] * rays.directions[:, None]
+    lo, hi = torch.tensor(BOUNDS.origin_m), torch.tensor(BOUNDS.max_corner_m)
+    assert ((pts >= lo - 1e-5) & (pts <= hi + 1e-5)).all()
+    full_pts = rays.origins[:, None] + full.t[..., None] * rays.directions[:, None]
+    assert not ((full_pts >= lo) & (full_pts <= hi)).all()  # without clipping, samples fall outside
+    assert torch.isfinite(clipped.rgb).all() and torch.isfinite(clipped.depth_m).all()

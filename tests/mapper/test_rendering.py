@@ -15,6 +15,7 @@ from mapper.rendering import (
     accumulated_opacity,
     composite,
     expected_depth,
+    intersect_aabb,
     render_weights,
     sample_along_rays,
 )
@@ -166,3 +167,38 @@ def test_low_precision_matches_float64_reference(dtype: torch.dtype, tol: float)
     torch.testing.assert_close(out.double(), ref_rounded, atol=tol, rtol=tol)
     # And the rounding of the inputs themselves costs at most a few dtype ulps of the colour.
     torch.testing.assert_close(out.double(), ref, atol=8 * tol, rtol=8 * tol)
+
+
+def test_intersect_aabb_inside_outside_miss_and_parallel() -> None:
+    box_min = torch.tensor([0.0, 0.0, 0.0], dtype=torch.float64)
+    box_max = torch.tensor([2.0, 1.0, 1.0], dtype=torch.float64)
+    origins = torch.tensor(
+        [
+            [1.0, 0.5, 0.5],
+            [-1.0, 0.5, 0.5],
+            [-1.0, 5.0, 0.5],
+            [0.0, -1.0, 0.5],
+            [3.0, -1.0, 0.5],
+            [1.0, 0.5, 2.0],
+        ],
+        dtype=torch.float64,
+    )
+    dirs = torch.tensor(
+        [
+            [1.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+        ],
+        dtype=torch.float64,
+    )
+    t_near, t_far, hit = intersect_aabb(origins, dirs, box_min, box_max)
+    # inside; from outside; parallel and off the box; in the x = 0 face plane; parallel outside; away.
+    assert hit.tolist() == [True, True, False, True, False, False]
+    assert t_near.tolist() == [0.0, 1.0, 0.0, 1.0, 0.0, 0.0]
+    assert t_far.tolist() == [1.0, 3.0, 0.0, 2.0, 0.0, 0.0]
+    for dtype in (torch.float32, torch.float16, torch.bfloat16):
+        tn, tf, h = intersect_aabb(origins.to(dtype), dirs.to(dtype), box_min, box_max)
+        assert h.tolist() == hit.tolist() and torch.isfinite(tn).all() and torch.isfinite(tf).all()
