@@ -108,6 +108,7 @@ class SceneStyle:
     n_zones: tuple[int, int]               # how many furniture zones per room (min, max)
     zone_weights: dict[str, float]         # relative frequency of each zone
     n_windows: tuple[int, int]
+    n_clutter: tuple[int, int]             # free-standing objects in the middle (min, max)
     wall_colours: tuple[Colour, ...]
     wall_textures: tuple[tuple[Texture, float], ...]   # (kind, scale_m)
     floor_colours: tuple[tuple[Colour, Colour], ...]   # (colour, colour2)
@@ -131,7 +132,7 @@ STYLES: dict[str, SceneStyle] = {
         notch_prob=0.0, n_zones=(3, 4),
         zone_weights={"living": 1.0, "dining": 1.0, "bedroom": 1.0, "kitchen": 1.0,
                       "bathroom": 0.8, "office": 0.8},
-        n_windows=(1, 2),
+        n_windows=(1, 2), n_clutter=(1, 3),
         wall_colours=((0.86, 0.80, 0.70), (0.80, 0.76, 0.66), (0.90, 0.86, 0.78),
                       (0.74, 0.78, 0.70), (0.84, 0.72, 0.62)),
         wall_textures=((Texture.PLAIN, 0.25), (Texture.STRIPES, 0.12), (Texture.FABRIC, 0.08)),
@@ -155,7 +156,7 @@ STYLES: dict[str, SceneStyle] = {
         notch_prob=0.6, n_zones=(3, 5),
         zone_weights={"living": 1.2, "dining": 0.8, "bedroom": 0.7, "kitchen": 1.0,
                       "bathroom": 0.6, "office": 1.2},
-        n_windows=(2, 3),
+        n_windows=(2, 3), n_clutter=(2, 4),
         wall_colours=((0.92, 0.93, 0.95), (0.70, 0.72, 0.75), (0.55, 0.65, 0.75), (0.88, 0.88, 0.82)),
         wall_textures=((Texture.MARBLE, 0.60), (Texture.TILES, 0.55), (Texture.PLAIN, 0.40)),
         floor_colours=(((0.35, 0.36, 0.38), (0.20, 0.21, 0.22)), ((0.85, 0.85, 0.84), (0.60, 0.60, 0.62)),
@@ -660,9 +661,9 @@ def _vanity(r: _Rand) -> _Object:
     return v
 
 
-def _kitchen_run(r: _Rand) -> list[_Object]:
+def _kitchen_run(r: _Rand, max_cabinets: int = 4) -> list[_Object]:
     """Base cabinets with a counter top and a sink on it (the fridge is placed separately)."""
-    n = int(r.rng.integers(2, 5))
+    n = int(r.rng.integers(min(2, max_cabinets), max_cabinets + 1))
     cw, d, h = 0.6, r.dim(0.6), 0.86
     m = r.wood()
     cabinets = [_cabinet(r, cw, d, h, m).transformed(0, np.array([(k + 0.5) * cw - n * cw / 2, 0, 0]))
@@ -915,13 +916,18 @@ def _flatten(obj: _Object, support: int, out: list[tuple[_Object, int]]) -> None
 # ----------------------------------------------------------------------------------------------
 
 
-def _zone_living(p: _Placer) -> None:
+def _living_anchor(p: _Placer) -> None:
     r = p.r
     sofa = _sofa(r)
     sofa_aabb = sofa.aabb()
     ct = _table(r, r.dim(1.0), r.dim(0.55), r.dim(0.42)).transformed(
         0, np.array([0.0, sofa_aabb[1, 1] + 0.45, 0.0]))
-    p.try_place(_group("living", [sofa, ct]))
+    if p.try_place(_group("living", [sofa, ct]), tries=80) is None:
+        p.try_place(sofa, tries=40)
+
+
+def _living_extras(p: _Placer) -> None:
+    r = p.r
     p.try_place(_tv_stand(r))
     p.try_place(_bookshelf(r))
     p.try_place(_floor_lamp(r))
@@ -933,7 +939,7 @@ def _zone_living(p: _Placer) -> None:
         p.try_place(rug, central=True, blocks_floor=False)
 
 
-def _zone_dining(p: _Placer) -> None:
+def _dining_anchor(p: _Placer) -> None:
     r = p.r
     n_side = int(r.rng.integers(1, 3))
     tw, td, th = max(0.8, 0.55 * n_side + 0.2) * r.u(1.0, 1.2), r.dim(0.85), r.dim(0.75)
@@ -955,12 +961,12 @@ def _zone_dining(p: _Placer) -> None:
         rug_mat = r.mat(r.pick(r.style.fabric_colours), Texture.CHECKER, 0.25)
         group = _Object("rug", [_box((box[0, 0] - 0.25, box[0, 1] - 0.25, 0.0),
                                      (box[1, 0] + 0.25, box[1, 1] + 0.25, 0.01), rug_mat)], lifted)
-    placed = p.try_place(group, central=True, walkway_m=0.5)
-    if placed is None:  # fall back to a smaller table against a wall
+    if p.try_place(group, central=True, walkway_m=0.5, tries=60) is None:
+        # fall back to a smaller table with one chair against a wall
         p.try_place(_group("dining", [_table(r, 0.9, 0.7, 0.75), _facing_table(_chair(r), 0.0, 0.7, +1)]))
 
 
-def _zone_bedroom(p: _Placer) -> None:
+def _bedroom_anchor(p: _Placer) -> None:
     r = p.r
     bed = _bed(r)
     bw = bed.aabb()[1, 0]
@@ -969,54 +975,109 @@ def _zone_bedroom(p: _Placer) -> None:
     members = [bed, ns1.transformed(0, np.array([bw + nw + 0.03, 0.0, 0.0]))]
     if r.chance(0.6):
         members.append(_nightstand(r, lamp=r.chance(0.5)).transformed(0, np.array([-bw - nw - 0.03, 0, 0])))
-    p.try_place(_group("bedroom", members))
+    if p.try_place(_group("bedroom", members), tries=100) is None:
+        p.try_place(bed, tries=60)
+
+
+def _bedroom_extras(p: _Placer) -> None:
+    r = p.r
     p.try_place(_cabinet(r, r.dim(1.0), r.dim(0.58), r.dim(2.0)))   # wardrobe
     if r.chance(0.5):
         p.try_place(_plant(r))
 
 
-def _zone_kitchen(p: _Placer) -> None:
+def _kitchen_anchor(p: _Placer) -> None:
     r = p.r
-    run = _kitchen_run(r)
-    run_w = run[-1].aabb()[1, 0]
-    fridge = _refrigerator(r)
-    fw = fridge.aabb()[1, 0]
-    members = run + [fridge.transformed(0, np.array([run_w + fw + 0.03, 0.0, 0.0]))]
-    upper = _wall_cabinet(r, 2 * run_w - 0.1)
-    members.append(upper)
-    placed = p.try_place(_group("kitchen", members))
-    if placed is None:
-        p.try_place(_refrigerator(r))
-    p.try_place(_trash_can(r))
+    for attempt in range(3):  # shorter runs when the long one does not fit
+        run = _kitchen_run(r, max_cabinets=4 - attempt)
+        run_w = run[-1].aabb()[1, 0]
+        fridge = _refrigerator(r)
+        fw = fridge.aabb()[1, 0]
+        members = run + [fridge.transformed(0, np.array([run_w + fw + 0.03, 0.0, 0.0]))]
+        members.append(_wall_cabinet(r, 2 * run_w - 0.1))
+        if p.try_place(_group("kitchen", members), tries=60) is not None:
+            return
+    p.try_place(_refrigerator(r))
 
 
-def _zone_bathroom(p: _Placer) -> None:
+def _kitchen_extras(p: _Placer) -> None:
+    p.try_place(_trash_can(p.r))
+
+
+def _bathroom_anchor(p: _Placer) -> None:
     r = p.r
     tub, curtain = _bathtub(r)
     tub.children.append(curtain)
-    p.try_place(tub)
-    p.try_place(_toilet(r))
-    vanity = _vanity(r)
-    mirror = _mirror(r)
-    p.try_place(_group("vanity", [vanity, mirror]))
+    p.try_place(tub, tries=80)
+    p.try_place(_toilet(r), tries=60)
+
+
+def _bathroom_extras(p: _Placer) -> None:
+    r = p.r
+    p.try_place(_group("vanity", [_vanity(r), _mirror(r)]))
     p.try_place(_towel(r), blocks_floor=False)
 
 
-def _zone_office(p: _Placer) -> None:
+def _office_anchor(p: _Placer) -> None:
     r = p.r
     desk = _desk(r)
     dd = desk.aabb()[1, 1]
     chair = _facing_table(_chair(r), 0.0, dd, +1)
-    p.try_place(_group("office", [desk, chair]))
+    p.try_place(_group("office", [desk, chair]), tries=80)
+
+
+def _office_extras(p: _Placer) -> None:
+    r = p.r
     p.try_place(_bookshelf(r))
     p.try_place(_cabinet(r, r.dim(0.5), r.dim(0.55), r.dim(1.1)))
     p.try_place(_trash_can(r))
 
 
-_ZONES: dict[str, Callable[[_Placer], None]] = {
-    "living": _zone_living, "dining": _zone_dining, "bedroom": _zone_bedroom,
-    "kitchen": _zone_kitchen, "bathroom": _zone_bathroom, "office": _zone_office,
+def _nothing(p: _Placer) -> None:
+    return None
+
+
+_ZONES: dict[str, tuple[Callable[[_Placer], None], Callable[[_Placer], None]]] = {
+    "living": (_living_anchor, _living_extras), "dining": (_dining_anchor, _nothing),
+    "bedroom": (_bedroom_anchor, _bedroom_extras), "kitchen": (_kitchen_anchor, _kitchen_extras),
+    "bathroom": (_bathroom_anchor, _bathroom_extras), "office": (_office_anchor, _office_extras),
 }
+"""Zone -> (anchor placement, extras). All anchors (big groups) are placed before any extras."""
+
+
+def _armchair(r: _Rand) -> _Object:
+    w, d = r.dim(0.85), r.dim(0.85)
+    m = r.fabric()
+    return _Object("chair", [_box((-w / 2, 0, 0), (w / 2, d, 0.42), m),
+                             _box((-w / 2, 0, 0.42), (w / 2, 0.2, 0.85), m),
+                             _box((-w / 2, 0.2, 0.42), (-w / 2 + 0.15, d, 0.62), m),
+                             _box((w / 2 - 0.15, 0.2, 0.42), (w / 2, d, 0.62), m)])
+
+
+def _ottoman(r: _Rand) -> _Object:
+    w, d, h = r.dim(0.6), r.dim(0.5), r.dim(0.42)
+    return _Object("otherfurniture", [_box((-w / 2, 0, 0.05), (w / 2, d, h), r.fabric())] +
+                   _legs(w, d, 0.05, 0.04, r.wood(), inset=0.02))
+
+
+def _side_table(r: _Rand) -> _Object:
+    rad, h = r.dim(0.28), r.dim(0.55)
+    m = r.wood()
+    t = _Object("table", [_cylinder(0, rad, 0, 0.03, rad * 0.6, m),
+                          _cylinder(0, rad, 0.03, h - 0.03, 0.03, m),
+                          _cylinder(0, rad, h - 0.03, h, rad, m, sections=20)])
+    if r.chance(0.5):
+        t.children.append(_Object("vase", [_cylinder(0, rad, h, h + r.u(0.18, 0.3), 0.05, r.accent(),
+                                                     radius_top=0.035)]))
+    return t
+
+
+def _clutter(p: _Placer, n: int) -> None:
+    """Free-standing objects away from the walls: occluders at middle depths."""
+    r = p.r
+    makers = (_armchair, _ottoman, _plant, _floor_lamp, _side_table, _trash_can)
+    for _ in range(n):
+        p.try_place(r.pick(makers)(r), central=True, walkway_m=0.45, tries=30)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1072,7 +1133,10 @@ def generate_scene(seed: int, style: str = "apartment") -> Scene:
     n_z = int(r.rng.integers(st.n_zones[0], st.n_zones[1] + 1))
     chosen = r.rng.choice(len(names), size=min(n_z, len(names)), replace=False, p=weights / weights.sum())
     for zi in chosen:
-        _ZONES[names[int(zi)]](p)
+        _ZONES[names[int(zi)]][0](p)
+    for zi in chosen:
+        _ZONES[names[int(zi)]][1](p)
+    _clutter(p, int(r.rng.integers(st.n_clutter[0], st.n_clutter[1] + 1)))
 
     # decoration on the walls
     for _ in range(int(r.rng.integers(1, 4))):
