@@ -261,25 +261,38 @@ class GovNeSF(nn.Module):
         R, S, _ = points.shape
         flat = points.reshape(R * S, 3)
         dirs = view_dirs.unsqueeze(1).expand(R, S, 3) if view_dirs.ndim == 2 else view_dirs
-        samples = self.sample_views(views, flat, depth_guided_masking)
-        v, inside = sample_volume(volume, bounds, flat)
-        fused = self.fusion(
-            samples.rgb, samples.features, v, samples.source_dirs, samples.mask, dirs.reshape(R * S, 3)
+        sigma, v = self.density_at(volume, bounds, flat)
+        rgb, ov, valid = self.appearance(views, v, flat, dirs.reshape(R * S, 3), depth_guided_masking)
+        return FieldOutputs(
+            sigma=sigma.reshape(R, S),
+            rgb=rgb.reshape(R, S, 3),
+            ov=ov.reshape(R, S, -1),
+            valid=valid.reshape(R, S),
         )
+
+    def density_at(self, volume: Tensor, bounds: VolumeBounds, points: Tensor) -> tuple[Tensor, Tensor]:
+        """Density and volume feature at (P, 3) points -> sigma (P,) (0 outside), v (P, Dv)."""
+        v, inside = sample_volume(volume, bounds, points)
+        sigma = self.density(v)
+        return sigma * inside.to(sigma.dtype), v
+
+    def appearance(
+        self, views: SourceViews, v: Tensor, points: Tensor, view_dirs: Tensor, depth_guided_masking: bool
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Blended colour (P, 3), OV feature (P, D) and validity (P,) at (P, 3) points.
+
+        Args:
+            v: (P, Dv) volume features at the points; view_dirs: (P, 3) unit query directions.
+        """
+        samples = self.sample_views(views, points, depth_guided_masking)
+        fused = self.fusion(samples.rgb, samples.features, v, samples.source_dirs, samples.mask, view_dirs)
         assert fused.color_weights is not None
         rgb = blend(fused.color_weights, samples.rgb)
         if self.distill is not None:
             ov = self.distill(fused.x_att, samples.mask, v) * fused.valid.unsqueeze(-1)
         else:
             ov = blend(fused.ov_weights, samples.ov)
-        sigma = self.density(v)
-        sigma = sigma * inside.to(sigma.dtype)
-        return FieldOutputs(
-            sigma=sigma.reshape(R, S),
-            rgb=rgb.reshape(R, S, 3),
-            ov=ov.reshape(R, S, -1),
-            valid=fused.valid.reshape(R, S),
-        )
+        return rgb, ov, fused.valid
 
     def query_points(
         self,
@@ -315,13 +328,21 @@ def render_rays(
     generator: torch.Generator | None = None,
     depth_guided_masking: bool = False,
     clip_to_volume: bool = False,
+    weight_threshold: float = 0.0,
 ) -> RenderOutputs:
     """Volume-render R rays (defaults from ``model.cfg.render``).
 
     ``clip_to_volume`` (empty-space skipping): sample only the part of [near, far] inside the
     volume's bounds (density is 0 outside it); rays that miss the volume keep [near, far].
     Off by default so that training matches the paper's uniform sampling.
+
+    ``weight_threshold`` > 0: density first (cheap: volume lookup + MLP), then the expensive
+    per-view appearance (projection, sampling, FusionNet) only for samples whose rendering weight
+    exceeds it; the others contribute 0 colour / OV. This is an approximation (it drops the
+    colour gradient through those tiny weights); 0 (default) is exact.
     """
+    if weight_threshold < 0:
+        raise ValueError(f"weight_threshold {weight_threshold} out of range: must be >= 0")
     rc = model.cfg.render
     n_rays = len(rays)
     like = rays.origins
@@ -345,15 +366,29 @@ def render_rays(
         stratified=stratified,
         generator=generator,
     )
-    points = rays.origins[:, None, :] + t[..., None] * rays.directions[:, None, :]
-    out = model(views, volume, bounds, points, rays.directions, depth_guided_masking=depth_guided_masking)
-    weights, _ = render_weights(out.sigma, deltas.to(out.sigma.dtype))
+    points = rays.origins[:, None, :] + t[..., None] * rays.directions[:, None, :]  # (R, S, 3)
+    S = t.shape[1]
+    flat = points.reshape(-1, 3)
+    sigma, v = model.density_at(volume, bounds, flat)
+    sigma = sigma.reshape(n_rays, S)
+    weights, _ = render_weights(sigma, deltas.to(sigma.dtype))
+    dirs = rays.directions[:, None, :].expand(n_rays, S, 3).reshape(-1, 3)
+    if weight_threshold > 0:
+        # Appearance only where the sample matters; the rest render as 0 (their weight is tiny).
+        keep = (weights.detach() > weight_threshold).reshape(-1).nonzero().squeeze(-1)
+        rgb_k, ov_k, valid_k = model.appearance(views, v[keep], flat[keep], dirs[keep], depth_guided_masking)
+        rgb = rgb_k.new_zeros(n_rays * S, 3).index_copy(0, keep, rgb_k)
+        ov = ov_k.new_zeros(n_rays * S, ov_k.shape[-1]).index_copy(0, keep, ov_k)
+        valid = valid_k.new_zeros(n_rays * S).index_copy(0, keep, valid_k)
+    else:
+        rgb, ov, valid = model.appearance(views, v, flat, dirs, depth_guided_masking)
+    rgb, ov, valid = rgb.reshape(n_rays, S, 3), ov.reshape(n_rays, S, -1), valid.reshape(n_rays, S)
     return RenderOutputs(
-        rgb=composite(weights, out.rgb),
-        ov=composite(weights.detach(), out.ov),
+        rgb=composite(weights, rgb),
+        ov=composite(weights.detach(), ov),
         depth_m=expected_depth(weights, t.to(weights.dtype)),
         opacity=weights.sum(dim=-1),
         weights=weights,
         t=t,
-        valid_fraction=out.valid.float().mean(dim=-1),
+        valid_fraction=valid.float().mean(dim=-1),
     )

@@ -255,3 +255,20 @@ def test_clip_to_volume_samples_only_inside_the_bounds(model: GovNeSF) -> None:
     full_pts = rays.origins[:, None] + full.t[..., None] * rays.directions[:, None]
     assert not ((full_pts >= lo) & (full_pts <= hi)).all()  # without clipping, samples fall outside
     assert torch.isfinite(clipped.rgb).all() and torch.isfinite(clipped.depth_m).all()
+
+
+def test_weight_threshold_prunes_appearance_but_keeps_the_result(model: GovNeSF) -> None:
+    views = make_views(model)
+    volume = model.build_volume(views, BOUNDS)
+    origins, dirs = pixel_rays(views.K[0], views.world_from_cam[0], W, H)
+    rays = Rays(origins.reshape(-1, 3)[::9], dirs.reshape(-1, 3)[::9])
+    exact = render_rays(model, views, volume, BOUNDS, rays)
+    pruned = render_rays(model, views, volume, BOUNDS, rays, weight_threshold=1e-3)
+    assert (exact.weights <= 1e-3).any()  # something was actually pruned
+    dropped = (exact.weights * (exact.weights <= 1e-3)).sum(dim=-1, keepdim=True)  # weight left out
+    assert ((pruned.rgb - exact.rgb).abs() <= dropped + 1e-6).all()  # colours are in [0, 1]
+    torch.testing.assert_close(pruned.depth_m, exact.depth_m)
+    nothing = render_rays(model, views, volume, BOUNDS, rays, weight_threshold=2.0)  # keeps no sample
+    assert nothing.rgb.abs().sum() == 0 and torch.isfinite(nothing.ov).all()
+    with pytest.raises(ValueError, match="weight_threshold -1"):
+        render_rays(model, views, volume, BOUNDS, rays, weight_threshold=-1)
