@@ -15,7 +15,7 @@ Example:
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Any, Literal
 
 __all__ = [
     "PRESETS",
@@ -160,11 +160,11 @@ PRESETS: dict[str, ModelConfig] = {
 }
 
 
-def get_preset(name: str, **overrides: object) -> ModelConfig:
-    """A preset by name, optionally with top-level fields replaced (``ov_dim`` goes to fusion)."""
+def get_preset(name: str, *, ov_dim: int | None = None, **overrides: Any) -> ModelConfig:
+    """A preset by name, optionally with the OV dimension and top-level fields replaced."""
     if name not in PRESETS:
         raise ValueError(f"unknown model preset {name!r}; choose one of {sorted(PRESETS)}")
     cfg = PRESETS[name]
-    if "ov_dim" in overrides:
-        cfg = replace(cfg, fusion=replace(cfg.fusion, ov_dim=int(overrides.pop("ov_dim"))))  # type: ignore[arg-type]
-    return replace(cfg, **overrides) if overrides else cfg  # type: ignore[arg-type]
+    if ov_dim is not None:
+        cfg = replace(cfg, fusion=replace(cfg.fusion, ov_dim=int(ov_dim)))
+    return replace(cfg, **overrides) if overrides else cfg

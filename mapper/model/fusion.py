@@ -206,8 +206,10 @@ class DensityMLP(nn.Module):
         super().__init__()
         self.activation = cfg.density_activation
         self.mlp = _mlp(volume_feature_dim, 2 * volume_feature_dim, 1)
+        last = self.mlp[-1]
+        assert isinstance(last, nn.Linear)
         with torch.no_grad():
-            self.mlp[-1].bias.fill_(cfg.density_bias_init)
+            last.bias.fill_(cfg.density_bias_init)
 
     def forward(self, v: Tensor) -> Tensor:
         logit = _at_least_float32(self.mlp(v).squeeze(-1))

@@ -72,4 +72,3 @@ def govnesf_loss(
     color = color_loss(pred_rgb, target_rgb, rgb_mask)
     ov = ov_cosine_loss(pred_ov, target_ov, ov_mask)
     return LossOutputs(total=color + ov_weight * ov, color=color, ov=ov)
-
