@@ -19,7 +19,7 @@ sample (3D segmentation). Distill mode (``mode="distill"``): the OV feature is r
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
@@ -30,6 +30,7 @@ from mapper.geometry import (
     camera_centers,
     in_view,
     invert_pose,
+    pixel_rays,
     project_points,
     sample_bilinear,
     sample_nearest,
@@ -55,6 +56,7 @@ __all__ = [
     "RenderOutputs",
     "SourceViews",
     "default_device",
+    "render_image",
     "render_rays",
 ]
 
@@ -302,8 +304,34 @@ class GovNeSF(nn.Module):
         points: Tensor,
         *,
         depth_guided_masking: bool = False,
+        chunk_size: int | None = None,
     ) -> PointOutputs:
-        """Point mode: source-view-agnostic OV feature at (P, 3) points, each a single sample."""
+        """Point mode: source-view-agnostic OV feature at (P, 3) points, each a single sample.
+
+        ``chunk_size`` bounds memory (about chunk_size x N x (D + F + 6) floats at a time).
+        """
+        if chunk_size is not None:
+            if chunk_size < 1:
+                raise ValueError(f"chunk_size {chunk_size} out of range: must be >= 1")
+            parts = [
+                self.query_points(
+                    views,
+                    volume,
+                    bounds,
+                    points[i : i + chunk_size],
+                    depth_guided_masking=depth_guided_masking,
+                )
+                for i in range(0, points.shape[0], chunk_size)
+            ]
+            if not parts:
+                return self.query_points(
+                    views, volume, bounds, points, depth_guided_masking=depth_guided_masking
+                )
+            return PointOutputs(
+                ov=torch.cat([p.ov for p in parts]),
+                valid=torch.cat([p.valid for p in parts]),
+                num_views=torch.cat([p.num_views for p in parts]),
+            )
         samples = self.sample_views(views, points, depth_guided_masking)
         v, _ = sample_volume(volume, bounds, points.to(volume.dtype))
         fused = self.fusion(samples.rgb, samples.features, v, samples.source_dirs, samples.mask, None)
@@ -391,4 +419,57 @@ def render_rays(
         weights=weights,
         t=t,
         valid_fraction=valid.float().mean(dim=-1),
+    )
+
+
+def render_image(
+    model: GovNeSF,
+    views: SourceViews,
+    volume: Tensor,
+    bounds: VolumeBounds,
+    K: Tensor,
+    world_from_cam: Tensor,
+    image_wh: tuple[int, int],
+    *,
+    chunk_rays: int = 4096,
+    **render_kwargs: Any,
+) -> RenderOutputs:
+    """Render a whole novel view in ray chunks.
+
+    Args:
+        K: (4,) intrinsics for ``image_wh = (W, H)``; world_from_cam: (4, 4).
+        render_kwargs: forwarded to ``render_rays`` (n_samples, clip_to_volume, ...).
+
+    Returns:
+        RenderOutputs with per-pixel fields shaped (H, W, ...) instead of (R, ...).
+    """
+    if chunk_rays < 1:
+        raise ValueError(f"chunk_rays {chunk_rays} out of range: must be >= 1")
+    width, height = image_wh
+    origins, dirs = pixel_rays(K, world_from_cam, width, height)
+    origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+    parts = [
+        render_rays(
+            model,
+            views,
+            volume,
+            bounds,
+            Rays(origins[i : i + chunk_rays], dirs[i : i + chunk_rays]),
+            **render_kwargs,
+        )
+        for i in range(0, origins.shape[0], chunk_rays)
+    ]
+
+    def cat(name: str) -> Tensor:
+        joined = torch.cat([getattr(p, name) for p in parts])
+        return joined.reshape(height, width, *joined.shape[1:])
+
+    return RenderOutputs(
+        rgb=cat("rgb"),
+        ov=cat("ov"),
+        depth_m=cat("depth_m"),
+        opacity=cat("opacity"),
+        weights=cat("weights"),
+        t=cat("t"),
+        valid_fraction=cat("valid_fraction"),
     )
