@@ -7,9 +7,10 @@ Lambert's law under the scene's point light plus an ambient term (two-sided surf
 is flipped towards the camera). Window panes (`Texture.SKY`) are emissive.
 
 >>> from clients.sim.scenes import generate_scene
->>> from clients.sim.robot import default_intrinsics
+>>> from clients.sim.robot import default_intrinsics, look_at
 >>> scene = generate_scene(0)
->>> view = SceneRenderer(scene).render(default_intrinsics(64, 48), _look_at_room_centre(scene), 64, 48)
+>>> world_from_cam = look_at(eye=[0.5, 0.5, 1.3], target=0.5 * (scene.room_min + scene.room_max))
+>>> view = SceneRenderer(scene).render(default_intrinsics(64, 48), world_from_cam, 64, 48)
 >>> view.rgb.shape, view.depth_m.dtype, bool((view.label >= 0).all())
 ((48, 64, 3), dtype('float32'), True)
 """
@@ -252,10 +253,3 @@ class SceneRenderer:
         s[emissive] = 1.0
         return s
 
-
-def _look_at_room_centre(scene: Scene) -> np.ndarray:
-    """(4, 4) world_from_cam of a camera in a room corner looking at the room centre (examples)."""
-    from clients.sim.robot import look_at
-
-    eye = scene.room_min + np.array([0.5, 0.5, 1.3])
-    return look_at(eye, 0.5 * (scene.room_min + scene.room_max))
