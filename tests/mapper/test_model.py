@@ -67,6 +67,8 @@ def test_presets_match_the_brief() -> None:
     assert small.image_wh == (160, 120) and small.num_source_views <= 8 and 32 <= small.render.n_samples <= 48
     assert get_preset("cpu-small", ov_dim=12).fusion.ov_dim == 12
     assert set(PRESETS) == {"cpu-small", "paper"}
+    sizes = {name: sum(p.numel() for p in GovNeSF(cfg).parameters()) for name, cfg in PRESETS.items()}
+    assert sizes["cpu-small"] < 500_000 < 5_000_000 < sizes["paper"]  # tiny vs ResNet-34-sized encoder
     with pytest.raises(ValueError, match="unknown model preset 'huge'"):
         get_preset("huge")
     with pytest.raises(ValueError, match="num_heads 3 must divide attention_dim 32"):
