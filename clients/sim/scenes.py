@@ -533,8 +533,8 @@ def _desk(r: _Rand) -> _Object:
            _box((-mw / 2, 0.13, h + 0.10), (mw / 2, 0.16, h + 0.10 + mh),
                 r.mat((0.05, 0.07, 0.10), Texture.PATCHES, 0.06, contrast=0.3))]
     desk.children.append(_Object("monitor", mon))
-    if r.chance(0.5):  # a small desk lamp on the other side
-        x = w / 2 - 0.15
+    x = w / 2 - 0.13
+    if r.chance(0.5) and x - 0.11 > mw / 2 + 0.02:  # a small desk lamp beside the monitor
         desk.children.append(_Object("lamp", [
             _cylinder(x, 0.15, h, h + 0.02, 0.07, r.metal()),
             _cylinder(x, 0.15, h + 0.02, h + 0.32, 0.012, r.metal(), sections=8),
@@ -974,7 +974,8 @@ def _bedroom_anchor(p: _Placer) -> None:
     nw = ns1.aabb()[1, 0]
     members = [bed, ns1.transformed(0, np.array([bw + nw + 0.03, 0.0, 0.0]))]
     if r.chance(0.6):
-        members.append(_nightstand(r, lamp=r.chance(0.5)).transformed(0, np.array([-bw - nw - 0.03, 0, 0])))
+        ns2 = _nightstand(r, lamp=r.chance(0.5))
+        members.append(ns2.transformed(0, np.array([-bw - ns2.aabb()[1, 0] - 0.03, 0.0, 0.0])))
     if p.try_place(_group("bedroom", members), tries=100) is None:
         p.try_place(bed, tries=60)
 
