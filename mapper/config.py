@@ -65,6 +65,87 @@ class WindowConfig:
 
 
 @dataclass(frozen=True)
+class GlobalMapConfig:
+    """The global semantic point map (see :mod:`mapper.global_map`): voxel-hashed surface points
+    with fused OV features, kept when keyframes leave the window."""
+
+    voxel_size_m: float = 0.05
+    """Edge of a map voxel (metres); one fused point per occupied voxel. 0.005..1."""
+
+    pixel_stride: int = 2
+    """Back-project every ``pixel_stride``-th pixel of each keyframe's depth (both axes). 1..64."""
+
+    max_points: int = 250_000
+    """Most voxels kept; beyond this the lowest-priority voxels are dropped (confidence halved per
+    ``stale_half_life_keyframes`` keyframes since last seen) down to ``prune_to_fraction``. 1..1e8."""
+
+    prune_to_fraction: float = 0.9
+    """After a prune, keep this fraction of ``max_points`` (hysteresis: not every frame prunes). 0.1..1."""
+
+    stale_half_life_keyframes: float = 200.0
+    """Keyframes after which an unseen voxel's pruning priority halves. > 0."""
+
+    min_depth_m: float = 0.1
+    """Depths below this (metres) are ignored (sensor minimum range). >= 0."""
+
+    max_depth_m: float = 8.0
+    """Depths beyond this (metres) are ignored (noisy far returns). > min_depth_m."""
+
+    near_m: float = 2.0
+    """Observation weight is 1 up to this distance along the ray (metres) ..."""
+
+    falloff_m: float = 3.0
+    """... and decays as exp(-(distance - near_m) / falloff_m) beyond it (metres). > 0."""
+
+    grazing_power: float = 1.0
+    """Weight is also multiplied by |cos(ray, surface normal)| ** grazing_power (0 disables). 0..10."""
+
+    min_weight: float = 0.02
+    """Observations whose weight falls below this are not fused. 0..1."""
+
+    def validate(self, where: str) -> None:
+        _check_range(where, "global_map.voxel_size_m", self.voxel_size_m, 0.005, 1.0)
+        _check_range(where, "global_map.pixel_stride", self.pixel_stride, 1, 64)
+        _check_range(where, "global_map.max_points", self.max_points, 1, 100_000_000)
+        _check_range(where, "global_map.prune_to_fraction", self.prune_to_fraction, 0.1, 1.0)
+        _check_range(where, "global_map.stale_half_life_keyframes", self.stale_half_life_keyframes, 1e-3, 1e9)
+        _check_range(where, "global_map.min_depth_m", self.min_depth_m, 0.0, 1e3)
+        _check_range(where, "global_map.max_depth_m", self.max_depth_m, 1e-3, 1e4)
+        if self.max_depth_m <= self.min_depth_m:
+            raise ConfigError(
+                f"{where}: global_map.max_depth_m = {self.max_depth_m} must exceed "
+                f"global_map.min_depth_m = {self.min_depth_m}"
+            )
+        _check_range(where, "global_map.near_m", self.near_m, 0.0, 1e3)
+        _check_range(where, "global_map.falloff_m", self.falloff_m, 1e-3, 1e3)
+        _check_range(where, "global_map.grazing_power", self.grazing_power, 0.0, 10.0)
+        _check_range(where, "global_map.min_weight", self.min_weight, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class QueryConfig:
+    """Semantic queries (see :mod:`mapper.queries`)."""
+
+    default_max_points: int = 200_000
+    """``query_points`` returns at most this many points when the request gives no ``max_points``."""
+
+    cluster_radius_m: float = 0.12
+    """Points of one text closer than this (metres) join the same object candidate. > 0."""
+
+    min_object_points: int = 15
+    """Clusters with fewer points are not reported as objects. >= 1."""
+
+    max_objects: int = 32
+    """Most object candidates per reply (best first). >= 1."""
+
+    def validate(self, where: str) -> None:
+        _check_range(where, "queries.default_max_points", self.default_max_points, 1, 100_000_000)
+        _check_range(where, "queries.cluster_radius_m", self.cluster_radius_m, 1e-3, 10.0)
+        _check_range(where, "queries.min_object_points", self.min_object_points, 1, 1_000_000)
+        _check_range(where, "queries.max_objects", self.max_objects, 1, 10_000)
+
+
+@dataclass(frozen=True)
 class NodeConfig:
     """Everything ``govnesf serve`` needs. Sub-configs are nested dataclasses (TOML tables)."""
 
@@ -103,6 +184,11 @@ class NodeConfig:
     save_on_exit: bool = True
     """On SIGINT/SIGTERM, save the map to ``autosave_name`` (if set) before exiting."""
 
+    load_autosave_on_start: bool = True
+    """At start, load ``autosave_name`` from ``map_dir`` when that file exists (so a node restarted
+    after a crash serves the last saved map). A file that cannot be loaded is renamed aside
+    (``NAME.govmap.unreadable``) and the node starts empty."""
+
     poll_interval_s: float = 0.1
     """How often the socket threads wake up to check for shutdown (seconds). 0.001..5."""
 
@@ -111,6 +197,12 @@ class NodeConfig:
 
     window: WindowConfig = field(default_factory=WindowConfig)
     """Keyframe window settings (TOML table ``[window]``)."""
+
+    global_map: GlobalMapConfig = field(default_factory=GlobalMapConfig)
+    """Global semantic point map settings (TOML table ``[global_map]``)."""
+
+    queries: QueryConfig = field(default_factory=QueryConfig)
+    """Semantic query settings (TOML table ``[queries]``)."""
 
     def validate(self, where: str) -> None:
         """Check ranges and cross-field rules; raise :class:`ConfigError` naming ``where``."""
@@ -137,6 +229,8 @@ class NodeConfig:
             except ValueError as exc:
                 raise ConfigError(f"{where}: autosave_name: {exc}") from None
         self.window.validate(where)
+        self.global_map.validate(where)
+        self.queries.validate(where)
 
 
 # --------------------------------------------------------------------------------------------

@@ -23,10 +23,18 @@ Robustness: every message is handled inside a catch-all; a ``ProtocolError`` bec
 error, anything else an ``internal`` error (logged with traceback), and the node keeps serving.
 A rejected message changes nothing but the counters.
 
-Later stages plug in here: ``register_query_handler(QueryPoints, handler)`` replaces the
-``not_ready`` answers; the cost volume and OV cache hook :attr:`MapState.window`'s ``on_add`` /
-``on_evict`` callbacks (called under the state lock); saving more state goes through
-``MapState.snapshot`` / ``restore``.
+The global semantic point map (:mod:`mapper.global_map`) is fed by the ingest thread: after a
+frame became a keyframe (state lock released), it is integrated under the map's own lock. Queries
+(:mod:`mapper.queries`) read the map's immutable per-version snapshot, so a query never waits on an
+integrate (beyond the one copy per map version) and an integrate never waits on a query.
+
+Extension points: ``register_query_handler(MsgClass, handler)`` replaces a request type's
+handler (``render`` still answers ``not_ready``); ``register_segment_method(name, handler)``
+serves a ``segment_points`` method (``"govnesf"`` answers ``not_ready`` until the learned model
+registers it); ``GlobalSemanticMap.fusion`` is the feature fusion rule the learned model may
+replace; the cost volume and OV cache hook :attr:`MapState.window`'s ``on_add`` / ``on_evict``
+callbacks (called under the state lock); saving more state goes through ``MapState.snapshot`` /
+``restore`` and the ``global.*`` arrays of the map file.
 """
 
 from __future__ import annotations
@@ -45,9 +53,11 @@ from dataclasses import dataclass
 from types import FrameType
 from typing import Any
 
+import numpy as np
 import zmq
 
 from mapper.config import NodeConfig, to_dict
+from mapper.global_map import GlobalSemanticMap
 from mapper.store import MapStore, StoreError, StoreWriteError
 from mapper.window import Keyframe, KeyframeWindow, keyframes_from_arrays, keyframes_to_arrays
 from protocol.errors import ProtocolError
@@ -63,6 +73,7 @@ from protocol.messages import (
     QueryPoints,
     Render,
     Save,
+    Segmentation,
     SegmentPoints,
     Status,
     StatusRequest,
@@ -77,6 +88,10 @@ log = logging.getLogger("mapper.service")
 QueryHandler = Callable[[Message], Message]
 """Takes a decoded request, returns the reply (its ``id`` is filled in by the node); raises
 ``ProtocolError`` for an error reply."""
+
+SegmentHandler = Callable[[SegmentPoints], Segmentation]
+"""Serves one ``segment_points`` method: takes the request, returns the reply (``id`` filled in by
+the node); raises ``ProtocolError`` (e.g. ``not_ready``) for an error reply."""
 
 WARN_INTERVAL_S = 5.0
 """Rejections and errors are logged as warnings at most this often per kind (DEBUG otherwise)."""
@@ -104,6 +119,8 @@ class MapState:
         self.lock = threading.Lock()
         self.config = config
         self.window = KeyframeWindow(config.window)
+        self.global_map = GlobalSemanticMap(config.global_map)
+        """Global semantic point map (own lock; kept when keyframes leave the window)."""
         self.map_version = 0
         self.ov_space: str | None = config.ov_space
         """Embedding space of the map (pinned by config, else set by the first keyframe with ov)."""
@@ -121,8 +138,9 @@ class MapState:
     # -- called with the lock held ------------------------------------------------------------
 
     def memory_bytes(self) -> int:
-        """Bytes of map data held (keyframe arrays; later stages add their volumes and caches)."""
-        return self.window.nbytes
+        """Bytes of map data held: keyframe arrays plus the global map's arrays (later stages add
+        their volumes and caches)."""
+        return self.window.nbytes + self.global_map.nbytes
 
     def snapshot(self) -> MapSnapshot:
         return MapSnapshot(self.map_version, self.window.keyframes, self.ov_space, self.ov_dim)
@@ -149,11 +167,18 @@ class MapperNode:
             StatusRequest: self._handle_status,
             Save: self._handle_save,
             Load: self._handle_load,
-            QueryPoints: self._not_ready("query_points", "semantic point queries"),
-            SegmentPoints: self._not_ready("segment_points", "3D segmentation"),
+            QueryPoints: self._handle_query_points,
+            SegmentPoints: self._handle_segment_points,
             Render: self._not_ready("render", "rendering"),
         }
         """Dispatch table of the query endpoint: request class -> handler."""
+        self.segment_methods: dict[str, SegmentHandler] = {
+            "govnesf": _govnesf_not_loaded,
+            "average": lambda msg: self._segment_average(msg, use_depth=False),
+            "average_depth": lambda msg: self._segment_average(msg, use_depth=True),
+        }
+        """``segment_points`` methods: name -> handler (the learned model registers "govnesf")."""
+        self._warmed_spaces: set[str] = set()
         self._stop = threading.Event()
         self._context = zmq.Context()
         self._threads: list[threading.Thread] = []
@@ -170,11 +195,17 @@ class MapperNode:
         """Serve ``message_type`` requests on the query endpoint with ``handler`` (replacing any)."""
         self.query_handlers[message_type] = handler
 
+    def register_segment_method(self, method: str, handler: SegmentHandler) -> None:
+        """Serve ``segment_points`` requests with ``method`` (e.g. "govnesf") by ``handler``."""
+        self.segment_methods[method] = handler
+
     # -- lifecycle ----------------------------------------------------------------------------
 
     def start(self) -> None:
         """Start the socket threads; return once every socket is bound. Raises ``RuntimeError``
-        naming the endpoint when a bind fails (e.g. address in use)."""
+        naming the endpoint when a bind fails (e.g. address in use). With ``load_autosave_on_start``
+        the autosaved map is loaded first (see :meth:`load_autosave`)."""
+        self.load_autosave()
         workers: list[tuple[str, Callable[[threading.Event], None]]] = [
             ("ingest", self._ingest_loop),
             ("query", self._query_loop),
@@ -202,6 +233,37 @@ class MapperNode:
             self.config.events_endpoint or "(off)",
             os.path.abspath(self.config.map_dir),
         )
+
+    def load_autosave(self) -> bool:
+        """Load ``autosave_name`` from the map directory if configured and present. A file that
+        cannot be loaded is renamed to ``NAME.govmap.unreadable`` (kept for inspection, not
+        overwritten by the next autosave) and the node starts empty. Returns True if loaded."""
+        cfg = self.config
+        if not (cfg.load_autosave_on_start and cfg.autosave_name):
+            return False
+        try:
+            path = self.store.path_for(cfg.autosave_name)
+        except StoreError as exc:
+            log.error("autosave %r: %s", cfg.autosave_name, exc)
+            return False
+        if not path.is_file():
+            log.info("no autosave at %s: starting with an empty map", path)
+            return False
+        try:
+            message = self._load_map(cfg.autosave_name)
+        except ProtocolError as exc:
+            aside = path.with_name(path.name + ".unreadable")
+            log.error("cannot load the autosave %s (%s); moved it to %s and starting empty", path,
+                      exc.message, aside)
+            try:
+                os.replace(path, aside)
+            except OSError as move_exc:
+                log.error("could not move %s aside: %s", path, move_exc)
+            return False
+        log.info("start-up: %s", message)
+        with self.state.lock:
+            self._saved_version = self.state.map_version
+        return True
 
     def request_stop(self) -> None:
         """Ask :meth:`run` to shut down (thread-safe, signal-safe)."""
@@ -461,6 +523,15 @@ class MapperNode:
                 status = "accepted"
             state.ack_counts[status] += 1
             version = state.map_version
+            space = state.ov_space
+        if update.added:
+            # outside the state lock, under the global map's own lock (status/save never wait on it)
+            stats = state.global_map.integrate(keyframe, map_version=version)
+            log.debug("frame seq %d: %d points into the global map (%d new voxels) in %.1f ms%s",
+                      frame.seq, stats.points, stats.voxels_new, 1e3 * stats.seconds,
+                      f" ({stats.skipped})" if stats.skipped else "")
+            if frame.ov is not None and space is not None:
+                self._warm_text_encoder(space)
         log.debug(
             "frame seq %d (%s): %s, moved %.3f m, turned %.1f deg",
             frame.seq,
@@ -503,6 +574,8 @@ class MapperNode:
                 "pid": os.getpid(),
                 "rss_bytes": _rss_bytes(),
                 "serving": sorted(t.TYPE for t, h in self.query_handlers.items() if not _is_not_ready(h)),
+                "segment_methods": sorted(m for m, h in self.segment_methods.items() if not _is_not_ready(h)),
+                **state.global_map.stats(),
             }
             return Status(
                 map_version=state.map_version,
@@ -531,12 +604,15 @@ class MapperNode:
         """Snapshot under the lock, write outside it. Returns (path, map_version, keyframes)."""
         with self.state.lock:
             snap = self.state.snapshot()
+            global_arrays, global_manifest = self.state.global_map.to_arrays()
         arrays, entries = keyframes_to_arrays(snap.keyframes)
+        arrays.update(global_arrays)
         manifest = {
             "map_version": snap.map_version,
             "ov_space": snap.ov_space,
             "ov_dim": snap.ov_dim,
             "keyframes": entries,
+            "global_map": global_manifest,
             "saved_unix_s": time.time(),
             "config": to_dict(self.config),
         }
@@ -558,32 +634,175 @@ class MapperNode:
 
     def _handle_load(self, msg: Message) -> Ok:
         assert isinstance(msg, Load)
+        return Ok(id=msg.id, message=self._load_map(msg.name))
+
+    def _load_map(self, name: str) -> str:
+        """Replace the window and the global map with the saved map ``name``; returns a note.
+        Raises ``ProtocolError`` (nothing changed) when the file is missing or damaged. Maps
+        saved without a global map section get one rebuilt from their keyframes."""
         try:
-            arrays, manifest = self.store.load(msg.name)
+            arrays, manifest = self.store.load(name)
             keyframes = keyframes_from_arrays(arrays, manifest.get("keyframes"))
         except (StoreError, ValueError) as exc:
             raise ProtocolError("bad_request", f"load failed: {exc}") from None
         ov_space = manifest.get("ov_space")
         ov_dim = manifest.get("ov_dim")
+        saved_version = manifest.get("map_version")
         valid_space = ov_space is None or isinstance(ov_space, str)
         if not valid_space or not (ov_dim is None or isinstance(ov_dim, int)):
-            raise ProtocolError("bad_request", f"load failed: map {msg.name!r} has a corrupt manifest (ov)")
+            raise ProtocolError("bad_request", f"load failed: map {name!r} has a corrupt manifest (ov)")
+        if self.config.ov_space is not None and ov_space is not None and ov_space != self.config.ov_space:
+            raise ProtocolError(
+                "ov_space_mismatch",
+                f"map {name!r} holds ov_space {ov_space!r}; this node is pinned to {self.config.ov_space!r}",
+            )
+        # build the new global map aside, so a damaged section changes nothing
+        fresh = GlobalSemanticMap(self.config.global_map, fusion=self.state.global_map.fusion)
+        section = manifest.get("global_map")
+        try:
+            if section is not None:
+                fresh.restore(arrays, section, map_version=0)
+            else:
+                for keyframe in keyframes:
+                    fresh.integrate(keyframe)
+        except ValueError as exc:
+            raise ProtocolError("bad_request", f"load failed: map {name!r}: {exc}") from None
         state = self.state
         with state.lock:
-            if self.config.ov_space is not None and ov_space is not None and ov_space != self.config.ov_space:
-                raise ProtocolError(
-                    "ov_space_mismatch",
-                    f"map {msg.name!r} holds ov_space {ov_space!r}; this node is pinned to "
-                    f"{self.config.ov_space!r}",
-                )
             state.window.replace(keyframes)
             state.ov_space = ov_space if ov_space is not None else self.config.ov_space
             state.ov_dim = ov_dim
-            state.map_version += 1
+            # keep the saved version when it is ahead, so versions seen by clients stay comparable
+            if isinstance(saved_version, int) and saved_version > state.map_version:
+                state.map_version = saved_version
+            else:
+                state.map_version += 1
             version, count = state.map_version, len(state.window)
+            fresh.retag(version)
+            state.global_map = fresh  # a frame being integrated into the old map right now is dropped
             self._publish(version, count)
-        log.info("loaded map %r: %d keyframes, now map version %d", msg.name, count, version)
-        return Ok(id=msg.id, message=f"loaded map {msg.name!r}: {count} keyframes, map version {version}")
+        points = len(state.global_map)
+        log.info("loaded map %r: %d keyframes, %d global points, now map version %d", name, count, points,
+                 version)
+        return f"loaded map {name!r}: {count} keyframes, {points} map points, map version {version}"
+
+    # -- semantic queries ---------------------------------------------------------------------
+
+    def _text_encoder(self, what: str) -> Any:
+        """The text encoder of the map's ov_space, or ``not_ready`` saying why there is none."""
+        from mapper.encoders import UnknownSpaceError, get_text_encoder
+
+        with self.state.lock:
+            space = self.state.ov_space
+        if space is None:
+            raise ProtocolError(
+                "not_ready",
+                f"{what}: the map has no open-vocabulary features yet (no keyframe carried ov); "
+                "send frames with ov (e.g. minilm-l6-v2 features) first",
+            )
+        try:
+            return get_text_encoder(space)
+        except UnknownSpaceError as exc:
+            raise ProtocolError("not_ready", f"{what}: {exc}") from None
+
+    def _warm_text_encoder(self, space: str) -> None:
+        """Load the text encoder of ``space`` in the background once, so the first query is fast."""
+        if space in self._warmed_spaces:
+            return
+        self._warmed_spaces.add(space)
+
+        def warm() -> None:
+            from mapper.encoders import UnknownSpaceError, get_text_encoder
+
+            try:
+                get_text_encoder(space).encode(["chair"])
+            except UnknownSpaceError:
+                log.info("no text encoder for ov_space %r: semantic queries will answer not_ready", space)
+            except Exception:  # a broken encoder must not take the node down; queries report it
+                log.exception("text encoder warm-up for %r failed", space)
+
+        threading.Thread(target=warm, name="mapper-encoder-warmup", daemon=True).start()
+
+    def _handle_query_points(self, msg: Message) -> Message:
+        assert isinstance(msg, QueryPoints)
+        from mapper.queries import query_points
+
+        encoder = self._text_encoder("query_points")
+        snapshot = self.state.global_map.snapshot()
+        return query_points(
+            snapshot,
+            encoder,
+            msg.texts,
+            negatives=msg.negatives,
+            min_score=msg.min_score,
+            max_points=msg.max_points,
+            objects=msg.objects,
+            config=self.config.queries,
+        )
+
+    def _handle_segment_points(self, msg: Message) -> Message:
+        assert isinstance(msg, SegmentPoints)
+        handler = self.segment_methods.get(msg.method)
+        if handler is None:
+            raise ProtocolError(
+                "bad_request",
+                f"method: {msg.method!r} unknown; served: {', '.join(sorted(self.segment_methods))}",
+            )
+        return handler(msg)
+
+    def _segment_average(self, msg: SegmentPoints, use_depth: bool) -> Segmentation:
+        """``average`` / ``average_depth``: OpenScene-2D averaging over the window's keyframes."""
+        from mapper.queries import segment_average
+
+        started = time.perf_counter()
+        method = "average_depth" if use_depth else "average"
+        with self.state.lock:
+            keyframes = self.state.window.keyframes
+        with_ov = [k for k in keyframes if k.ov is not None]
+        views = [
+            (k.ov, k.K, k.world_from_cam, (k.width, k.height), k.depth_m)
+            for k in with_ov
+            if not use_depth or k.depth_m is not None
+        ]
+        if not with_ov:
+            raise ProtocolError(
+                "not_ready",
+                f"segment_points method {method!r}: none of the {len(keyframes)} keyframes in the window "
+                "carries ov features; send frames with ov",
+            )
+        if not views:
+            raise ProtocolError(
+                "not_ready",
+                f"segment_points method 'average_depth' needs keyframes with both depth and ov: the "
+                f"window has {len(with_ov)} keyframes with ov, none with depth; send depth or use "
+                "method 'average'",
+            )
+        encoder = self._text_encoder(f"segment_points ({method})")
+        with self.state.lock:
+            dim = self.state.ov_dim
+        if dim is not None and dim != encoder.dim:
+            raise ProtocolError(
+                "not_ready",
+                f"segment_points: the map's features have dimension {dim}, the text encoder of "
+                f"{encoder.space!r} produces {encoder.dim}",
+            )
+        t_views = time.perf_counter()
+        text_emb = encoder.encode(list(msg.texts))
+        t_text = time.perf_counter()
+        xyz = np.asarray(msg.xyz, np.float32)
+        label, score, _ = segment_average(xyz, views, text_emb, use_depth=use_depth)
+        t_done = time.perf_counter()
+        return Segmentation(
+            label=label,
+            score=score,
+            timing_ms={
+                "views": 1e3 * (t_views - started),
+                "encode_text": 1e3 * (t_text - t_views),
+                "average": 1e3 * (t_done - t_text),
+                "total": 1e3 * (t_done - started),
+                "n_views": float(len(views)),
+            },
+        )
 
     @staticmethod
     def _not_ready(type_name: str, what: str) -> QueryHandler:
@@ -623,5 +842,16 @@ class MapperNode:
         )
 
 
-def _is_not_ready(handler: QueryHandler) -> bool:
+def _is_not_ready(handler: Callable[..., Any]) -> bool:
     return bool(getattr(handler, "not_ready", False))
+
+
+def _govnesf_not_loaded(msg: SegmentPoints) -> Segmentation:
+    raise ProtocolError(
+        "not_ready",
+        "segment_points method 'govnesf' (learned blending): the learned model is not loaded on this "
+        "node yet; use method 'average' or 'average_depth'",
+    )
+
+
+_govnesf_not_loaded.not_ready = True  # type: ignore[attr-defined]
