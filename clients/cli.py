@@ -16,8 +16,10 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "status": ("clients.client_cli", "status_main", "print a node's status"),
     "save": ("clients.client_cli", "save_main", "save a node's map in its map directory"),
     "load": ("clients.client_cli", "load_main", "load a saved map into a node"),
+    "query": ("clients.client_cli", "query_main", "find points and objects matching texts"),
     "import": ("clients.importers.cli", "main", "convert a dataset folder to .govrec"),
     "sim": ("clients.sim.cli", "main", "simulated robot: record or stream procedural rooms"),
+    "train": ("mapper.cli_train", "main", "train the GOV-NeSF model"),
 }
 
 

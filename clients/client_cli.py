@@ -1,7 +1,11 @@
-"""``govnesf status | save | load``: one-shot requests to a node's query endpoint.
+"""``govnesf status | save | load | query``: one-shot requests to a node's query endpoint.
 
 Exit codes: 0 success, 1 the node did not answer, 2 invalid arguments, 3 the node answered
 with an error.
+
+``govnesf query "find the chair" --out chair.ply --json chair.json`` prints the object candidates
+(text, centroid, score, points), writes the matching points as a PLY (Open3D; coloured by score
+with the viridis colormap, dark = low, yellow = high) and the objects as JSON.
 """
 
 from __future__ import annotations
@@ -10,10 +14,14 @@ import argparse
 import json
 import sys
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from clients.client import DEFAULT_QUERY, MapperClient
 from protocol.errors import ProtocolError, RemoteError
-from protocol.messages import Message, Ok, Status
+from protocol.messages import Message, Ok, Points, Status
 
 
 def _parser(prog: str, description: str, with_name: bool) -> argparse.ArgumentParser:
@@ -45,6 +53,8 @@ def _run(args: argparse.Namespace, call: Callable[[MapperClient], Message], prog
     except ProtocolError as exc:  # invalid request built locally (e.g. a bad map name)
         print(f"{prog}: {exc.message}", file=sys.stderr)
         return 2
+    if isinstance(reply, Points):
+        return _report_points(reply, args)
     if isinstance(reply, Status):
         print(format_status(reply, as_json=getattr(args, "json", False)))
     elif isinstance(reply, Ok):
@@ -93,3 +103,117 @@ def load_main(argv: list[str] | None = None) -> int:
     """``govnesf load NAME [--query EP]``."""
     args = _parser("govnesf load", "Load a saved map into the node.", with_name=True).parse_args(argv)
     return _run(args, lambda c: c.load(args.name), "govnesf load")
+
+
+# ---------------------------------------------------------------------------------------------
+# govnesf query
+
+_VIRIDIS = np.array(
+    [[68, 1, 84], [72, 40, 120], [62, 74, 137], [49, 104, 142], [38, 130, 142], [31, 158, 137],
+     [53, 183, 121], [109, 205, 89], [180, 222, 44], [253, 231, 37]], np.float64,
+) / 255.0  # fmt: skip
+"""Anchor colours of matplotlib's viridis colormap (evenly spaced), interpolated linearly."""
+
+
+def score_colours(score: np.ndarray) -> np.ndarray:
+    """(N,) scores -> (N, 3) float64 RGB in [0, 1] (viridis over the scores' min..max range)."""
+    score = np.asarray(score, np.float64)
+    if score.size == 0:
+        return np.zeros((0, 3))
+    lo, hi = float(score.min()), float(score.max())
+    t = (score - lo) / (hi - lo) if hi > lo else np.ones_like(score)
+    pos = t * (len(_VIRIDIS) - 1)
+    i0 = np.clip(np.floor(pos).astype(int), 0, len(_VIRIDIS) - 2)
+    frac = (pos - i0)[:, None]
+    return _VIRIDIS[i0] * (1 - frac) + _VIRIDIS[i0 + 1] * frac
+
+
+def write_points_ply(path: str | Path, xyz: np.ndarray, score: np.ndarray) -> Path:
+    """Write points (N, 3) coloured by score (N,) as a PLY file with Open3D; returns the path."""
+    import open3d as o3d  # heavy import, only when a PLY is asked for
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cloud = o3d.geometry.PointCloud()
+    cloud.points = o3d.utility.Vector3dVector(np.asarray(xyz, np.float64).reshape(-1, 3))
+    cloud.colors = o3d.utility.Vector3dVector(score_colours(score))
+    if not o3d.io.write_point_cloud(str(path), cloud, write_ascii=False):
+        raise OSError(f"Open3D could not write {path}")
+    return path
+
+
+def objects_as_json(points: Points) -> dict[str, Any]:
+    """The reply's objects (and a summary) as a JSON-able dict."""
+    return {
+        "map_version": points.map_version,
+        "n_points": int(points.xyz.shape[0]),
+        "timing_ms": {k: round(float(v), 3) for k, v in points.timing_ms.items()},
+        "objects": [
+            {
+                "text": o.text,
+                "centroid": [round(float(v), 4) for v in o.centroid],
+                "aabb_min": [round(float(v), 4) for v in o.aabb_min],
+                "aabb_max": [round(float(v), 4) for v in o.aabb_max],
+                "score": round(float(o.score), 5),
+                "n_points": int(o.n_points),
+            }
+            for o in points.objects
+        ],
+    }
+
+
+def format_objects(points: Points, limit: int = 10) -> str:
+    """Object candidates as aligned lines: rank, text, centroid (m), score, points."""
+    if not points.objects:
+        return f"no object candidates ({points.xyz.shape[0]} matching points)"
+    lines = [f"{'#':>3}  {'text':<24} {'centroid x, y, z (m)':<24} {'score':>6} {'points':>7}"]
+    for i, o in enumerate(points.objects[:limit]):
+        c = ", ".join(f"{v:.2f}" for v in o.centroid)
+        lines.append(f"{i + 1:>3}  {o.text[:24]:<24} {c:<24} {o.score:>6.3f} {o.n_points:>7d}")
+    if len(points.objects) > limit:
+        lines.append(f"     ... and {len(points.objects) - limit} more")
+    return "\n".join(lines)
+
+
+def _report_points(points: Points, args: argparse.Namespace) -> int:
+    print(format_objects(points, limit=args.top))
+    total = points.timing_ms.get("total")
+    print(f"{points.xyz.shape[0]} points matched, map version {points.map_version}"
+          + (f", {total:.1f} ms on the node" if total is not None else ""))
+    if args.out:
+        print(f"wrote {write_points_ply(args.out, points.xyz, points.score)}")
+    if args.json:
+        path = Path(args.json)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(objects_as_json(points), indent=1) + "\n")
+        print(f"wrote {path}")
+    return 0
+
+
+def query_main(argv: list[str] | None = None) -> int:
+    """``govnesf query TEXT [TEXT...] [--negatives N...] [--min-score S] [--out F.ply] [--json F.json]``."""
+    parser = _parser("govnesf query", "Find map points and objects matching texts (\"find the chair\").",
+                     with_name=False)
+    parser.add_argument("texts", nargs="+", metavar="TEXT",
+                        help='what to find, e.g. "chair" or "find the chair"')
+    parser.add_argument("--negatives", nargs="*", metavar="NEG", default=None,
+                        help="background prompts (default: the node's set; give none for no negatives)")
+    parser.add_argument("--min-score", type=float, default=None, metavar="S",
+                        help="drop points whose cosine is below S")
+    parser.add_argument("--max-points", type=int, default=None, metavar="N", help="return at most N points")
+    parser.add_argument("--no-objects", action="store_true", help="skip the object clustering")
+    parser.add_argument("--out", metavar="FILE.ply", help="write the matching points coloured by score")
+    parser.add_argument("--json", metavar="FILE.json", help="write the object candidates as JSON")
+    parser.add_argument("--top", type=int, default=10, metavar="K", help="objects to print (default 10)")
+    parser.set_defaults(timeout=30.0)
+    args = parser.parse_args(argv)
+    if args.top < 0:
+        parser.error(f"--top {args.top} must be >= 0")
+    return _run(
+        args,
+        lambda c: c.query_points(
+            list(args.texts), negatives=args.negatives, min_score=args.min_score, max_points=args.max_points,
+            objects=not args.no_objects,
+        ),
+        "govnesf query",
+    )

@@ -1,27 +1,34 @@
-"""End-to-end demo (``make demo``): a synthetic recording, a real node process, replay, save.
+"""End-to-end demo (``make demo``): a simulated robot maps a room, then "find the chair".
 
 Steps, each printed as it happens:
 
-1. write a small synthetic recording: a camera circling a checkerboard floor, with the speed
-   varying along the path (so some frames become keyframes and some do not), ray-cast RGB,
-   metric depth and a tiny procedural feature map (``ov_space = "demo-checker"``);
+1. generate a procedural apartment room (``clients.sim``; seed 3 by default: chairs, a table and a
+   bed) and the simulated robot's path;
 2. start ``govnesf serve`` as a subprocess on free loopback ports, with the map directory under
    the output directory;
-3. replay the recording into it and print the summary;
-4. print the node's status, save the map, and check the saved file;
-5. stop the node with SIGINT and check that it exited cleanly (exit code 0).
+3. stream the robot's frames into it (rgb, depth and SimLSeg open-vocabulary features, 160x120)
+   with a progress bar;
+4. ask "find the chair", "a place to sleep" and "where is the table"; print the top objects with
+   their positions, write a PLY (points coloured by score) and a JSON of the objects for each,
+   and check that the top chair lies within 0.5 m of a real chair (ground-truth instances);
+5. 3D semantic segmentation against ground truth: ``segment_points`` (``average_depth`` and
+   ``average``) at ground-truth surface points with the class names as texts, plus the global
+   map's own labels (``query_points`` with every class name), each as mIoU;
+6. save the map, stop the node with SIGINT and check that it exited cleanly (exit code 0).
 
-Outputs under ``out/demo/`` (override with ``--out``): the recording, the node log, the map.
-A later stage replaces the synthetic recording with the simulated robot.
+Outputs under ``out/demo/`` (override with ``--out``): ``*.ply`` / ``*.json`` per query,
+``segmentation.json``, ``scene.ply`` (the ground-truth mesh), the node log and the map directory.
+The demo exits non-zero if the chair answer is wrong or the node misbehaves.
 
-This module also provides the helpers the end-to-end tests and the benchmark share:
-:func:`write_synthetic_recording`, :func:`synthetic_frame`, :func:`free_endpoints` and
-:class:`NodeProcess`.
+This module also provides helpers the end-to-end tests and benchmarks share:
+:func:`write_synthetic_recording`, :func:`synthetic_frame` (a checkerboard floor),
+:func:`sim_stream`, :func:`mean_iou`, :func:`free_endpoints` and :class:`NodeProcess`.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import signal
@@ -32,6 +39,7 @@ import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
+from typing import Any
 
 import numpy as np
 
@@ -254,69 +262,212 @@ class NodeProcess:
 
 
 # ---------------------------------------------------------------------------------------------
+# the simulated robot and ground truth (shared with tests/e2e and benchmarks)
+
+DEMO_SEED = 3
+"""Scene seed of the demo: an apartment room with two chairs at a table, a bed, a kitchen run."""
+
+
+def sim_stream(
+    seed: int = DEMO_SEED, frames: int = 240, width: int = 160, height: int = 120, *, depth: bool = True,
+    ov: bool = True, style: str = "apartment",
+) -> Any:
+    """A ``clients.sim.export.SimStream`` (scene, renderer, robot poses, SimLSeg); its
+    ``frames()`` yields ``(Frame, RenderedView)`` lazily."""
+    from clients.sim.export import RecordConfig, SimStream
+
+    return SimStream.build(RecordConfig(seed=seed, style=style, frames=frames, width=width, height=height,
+                                        depth=depth, ov=ov, novel_views=0, previews=0))
+
+
+def chair_distance(centroid: np.ndarray, scene: Any, class_name: str = "chair") -> float:
+    """Distance (m) from ``centroid`` (3,) to the nearest ground-truth instance centroid of a class
+    (inf when the scene has none)."""
+    dists = [float(np.linalg.norm(np.asarray(centroid) - inst.centroid))
+             for inst in scene.instances if inst.class_name == class_name]
+    return min(dists, default=math.inf)
+
+
+def mean_iou(pred: np.ndarray, gt: np.ndarray, n_classes: int) -> tuple[float, dict[int, float]]:
+    """Mean IoU over the classes present in ``gt`` (N,) ints; ``pred`` (N,) -1 (unlabelled) counts
+    as wrong. Returns (mIoU, {class: IoU})."""
+    valid_pred = (pred >= 0) & (pred < n_classes)
+    inter = np.bincount(gt[valid_pred & (pred == gt)], minlength=n_classes)
+    gt_count = np.bincount(gt, minlength=n_classes)
+    pred_count = np.bincount(pred[valid_pred], minlength=n_classes)
+    union = gt_count + pred_count - inter
+    present = np.flatnonzero(gt_count > 0)
+    ious = {int(c): float(inter[c] / union[c]) for c in present}
+    return (float(np.mean(list(ious.values()))) if ious else 0.0), ious
+
+
+def label_by_nearest(query_xyz: np.ndarray, map_xyz: np.ndarray, map_label: np.ndarray,
+                     max_dist_m: float) -> np.ndarray:
+    """(N,) label of the nearest map point within ``max_dist_m``, else -1."""
+    from scipy.spatial import cKDTree
+
+    out = np.full(query_xyz.shape[0], -1, np.int64)
+    if map_xyz.shape[0] == 0:
+        return out
+    dist, idx = cKDTree(map_xyz).query(query_xyz, distance_upper_bound=max_dist_m)
+    hit = np.isfinite(dist)
+    out[hit] = map_label[idx[hit]]
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
 # the demo
+
+DEMO_QUERIES = (("find the chair", "chair"), ("a place to sleep", "sleep"), ("where is the table", "table"))
+N_STEPS = 6
 
 
 def _step(n: int, text: str) -> None:
-    print(f"\n[demo {n}/5] {text}", flush=True)
+    print(f"\n[demo {n}/{N_STEPS}] {text}", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m clients.demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=str(REPO_ROOT / "out" / "demo"), help="output directory")
-    parser.add_argument("--frames", type=int, default=60, help="frames in the synthetic recording")
+    parser.add_argument("--seed", type=int, default=DEMO_SEED, help=f"scene seed (default {DEMO_SEED})")
+    parser.add_argument("--frames", type=int, default=240, help="frames the robot streams (default 240)")
     parser.add_argument("--width", type=int, default=160)
     parser.add_argument("--height", type=int, default=120)
+    parser.add_argument("--window", type=int, default=160, help="node window.max_keyframes (default 160)")
+    parser.add_argument("--gt-points-per-m2", type=float, default=150.0,
+                        help="density of the ground-truth surface samples for the mIoU (default 150)")
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
 
-    from clients.client_cli import format_status
-    from clients.replay import replay
+    from tqdm import tqdm
 
-    _step(1, f"writing a synthetic recording ({args.frames} frames, {args.width}x{args.height})")
-    recording = write_synthetic_recording(out / "synthetic.govrec", args.frames, args.width, args.height)
-    print(f"  {recording} ({recording.stat().st_size / 1e6:.1f} MB)")
+    from clients.client_cli import format_objects, objects_as_json, write_points_ply
+    from clients.sim.export import count_views, write_ply
+    from clients.sim.scenes import CLASS_NAMES, LABEL_OF
+    from protocol.messages import Error
+
+    _step(1, f"generating the room (apartment, seed {args.seed}) and the robot's path ({args.frames} frames)")
+    stream = sim_stream(args.seed, args.frames, args.width, args.height)
+    scene = stream.scene
+    names = sorted({i.class_name for i in scene.instances})
+    chairs = [i for i in scene.instances if i.class_name == "chair"]
+    size = scene.room_max - scene.room_min
+    print(f"  room {size[0]:.1f} x {size[1]:.1f} x {size[2]:.1f} m, {len(scene.instances)} objects: "
+          + ", ".join(names))
+    print("  chairs at " + "; ".join(", ".join(f"{v:.2f}" for v in c.centroid) for c in chairs))
+    write_ply(out / "scene.ply", scene)
+    n_gt = max(1, int(args.gt_points_per_m2 * float(
+        scene.face_areas()[scene.face_label != LABEL_OF["ceiling"]].sum())))
+    gt_xyz, gt_label, _ = scene.sample_surface(n_gt, seed=args.seed, exclude_labels=(LABEL_OF["ceiling"],))
+    gt_views = np.zeros(n_gt, np.int32)
 
     _step(2, "starting `govnesf serve` on free loopback ports")
-    node = NodeProcess(out / "maps", log_path=out / "node.log")
+    node = NodeProcess(
+        out / "maps", log_path=out / "node.log",
+        extra_args=["--set", f"window.max_keyframes={args.window}", "--set", "autosave_name=demo",
+                    "--set", "load_autosave_on_start=false"],
+    )  # fmt: skip
+    failures: list[str] = []
     with node:  # starts the process, and kills it on the way out whatever happens
         node.wait_ready()
         print(f"  pid {node.process.pid if node.process else '?'}; ingest {node.ingest}, query {node.query}")
         print(f"  node log: {node.log_path}")
 
-        _step(3, f"replaying {recording.name}")
-        with node.client(timeout_s=10.0) as client:
-            summary = replay(recording, client, window=8, progress=True)
-            print("  " + "\n  ".join(summary.lines()))
-            if summary.unreachable:
-                print("demo FAILED: the node stopped answering", file=sys.stderr)
-                return 1
+        _step(3, f"streaming {args.frames} frames ({args.width}x{args.height}, rgb + depth + SimLSeg ov)")
+        statuses: dict[str, int] = {}
 
-            _step(4, "status, then save the map")
+        def frames() -> Iterator[Frame]:
+            for k, (frame, view) in enumerate(stream.frames()):
+                count_views(gt_xyz, stream.K, stream.poses[k], view.depth_m, gt_views)
+                yield frame
+
+        t_stream = time.monotonic()
+        with node.client(timeout_s=60.0) as client:
+            results = client.send_frames(frames(), window=4)
+            for res in tqdm(results, total=args.frames, desc="  stream", unit="frame"):
+                key = f"error:{res.reply.code}" if isinstance(res.reply, Error) else res.reply.status
+                statuses[key] = statuses.get(key, 0) + 1
+            dt = time.monotonic() - t_stream
+            print(f"  {args.frames} frames in {dt:.1f} s ({args.frames / max(dt, 1e-9):.1f} Hz): "
+                  + ", ".join(f"{k} {v}" for k, v in sorted(statuses.items())))
+            if any(k.startswith("error") for k in statuses):
+                failures.append("some frames got errors")
             status = client.status()
-            print("  " + format_status(status).replace("\n", "\n  "))
-            ok = client.save("demo")
-            print(f"  {ok.message}")
-            saved = node.map_dir / "demo.govmap"
-            if not saved.is_file():
-                print(f"demo FAILED: {saved} was not written", file=sys.stderr)
-                return 1
-            print(f"  {saved} ({saved.stat().st_size / 1e6:.1f} MB)")
+            extra = status.extra
+            print(f"  map: {extra.get('global_points')} points ({extra.get('global_points_with_features')} "
+                  f"with features), {status.keyframes} keyframes in the window, map data "
+                  f"{status.memory_bytes / 1e6:.0f} MB, node RSS "
+                  f"{(extra.get('rss_bytes') or 0) / 1e6:.0f} MB, "
+                  f"integrate {extra.get('global_integrate_ms_mean')} ms per keyframe")
 
-        _step(5, "stopping the node with SIGINT")
+            _step(4, "queries")
+            answers = {}
+            for text, stem in DEMO_QUERIES:
+                points = client.query_points([text], timeout_s=120.0)
+                answers[stem] = points
+                total_ms = points.timing_ms.get("total", 0.0)
+                print(f'\n  "{text}": {points.xyz.shape[0]} points, {total_ms:.0f} ms on the node')
+                print("  " + format_objects(points, limit=3).replace("\n", "\n  "))
+                write_points_ply(out / f"{stem}.ply", points.xyz, points.score)
+                (out / f"{stem}.json").write_text(json.dumps(objects_as_json(points), indent=1) + "\n")
+                print(f"  wrote {out / f'{stem}.ply'} and {out / f'{stem}.json'}")
+            chair_objects = answers["chair"].objects
+            if not chair_objects:
+                failures.append('"find the chair" returned no object')
+                print("\n  chair check: FAILED (no object)")
+            else:
+                top = chair_objects[0]
+                dist = chair_distance(top.centroid, scene)
+                ok = dist <= 0.5
+                print(f"\n  chair check: top object at ({', '.join(f'{v:.2f}' for v in top.centroid)}) is "
+                      f"{dist:.2f} m from the nearest real chair -> "
+                      f"{'CORRECT' if ok else 'WRONG'} (<= 0.5 m)")
+                if not ok:
+                    failures.append(f"top chair object is {dist:.2f} m from a real chair")
+
+            _step(5, "3D semantic segmentation against ground truth (mIoU)")
+            seen = gt_views > 0
+            xyz, gt = gt_xyz[seen], gt_label[seen].astype(np.int64)
+            texts = list(CLASS_NAMES)
+            print(f"  {int(seen.sum())} of {n_gt} ground-truth surface points seen by the stream, "
+                  f"{len(texts)} class names as texts")
+            report: dict[str, Any] = {"gt_points": int(seen.sum()), "classes": texts}
+            for method in ("average_depth", "average"):
+                seg = client.segment_points(xyz, texts, method=method, timeout_s=300.0)
+                pred = seg.label.astype(np.int64)
+                covered = pred >= 0
+                miou, _ = mean_iou(pred, gt, len(texts))
+                miou_cov, _ = mean_iou(pred[covered], gt[covered], len(texts))
+                print(f"  segment_points {method:<13}: mIoU {100 * miou:5.1f}% (points seen by the window: "
+                      f"{100 * covered.mean():.0f}%, mIoU on those {100 * miou_cov:5.1f}%), "
+                      f"{seg.timing_ms.get('total', 0):.0f} ms")
+                report[method] = {"miou": miou, "miou_covered": miou_cov, "coverage": float(covered.mean()),
+                                  "timing_ms": dict(seg.timing_ms)}
+            full = client.query_points(texts, negatives=[], max_points=10_000_000, objects=False,
+                                       timeout_s=300.0)
+            pred = label_by_nearest(xyz, full.xyz, full.label.astype(np.int64), 0.1)
+            miou, ious = mean_iou(pred, gt, len(texts))
+            print(f"  global map (fused features, nearest map point <= 0.1 m): mIoU {100 * miou:5.1f}%")
+            worst = sorted(ious.items(), key=lambda kv: kv[1])[:3]
+            print("  hardest classes: " + ", ".join(f"{texts[c]} {100 * v:.0f}%" for c, v in worst))
+            report["global_map"] = {"miou": miou, "per_class": {texts[c]: v for c, v in ious.items()}}
+            (out / "segmentation.json").write_text(json.dumps(report, indent=1) + "\n")
+
+            _step(6, "save the map, then stop the node with SIGINT")
+            ok_msg = client.save("demo")
+            print(f"  {ok_msg.message}")
         code = node.signal(signal.SIGINT)
         print(f"  node exited with code {code}")
         if code != 0:
-            print(f"demo FAILED: node exit code {code} (see {node.log_path})", file=sys.stderr)
-            return 1
-    ok_frames = summary.sent == args.frames
-    print(
-        f"\ndemo finished in {time.monotonic() - started:.1f} s: {summary.sent}/{args.frames} frames acked, "
-        f"{status.keyframes} keyframes in the window, map saved to {saved}"
-    )
-    return 0 if ok_frames else 1
+            failures.append(f"node exit code {code} (see {node.log_path})")
+    elapsed = time.monotonic() - started
+    if failures:
+        print(f"\ndemo FAILED after {elapsed:.0f} s: " + "; ".join(failures), file=sys.stderr)
+        return 1
+    print(f"\ndemo finished in {elapsed:.0f} s: the chair was found; outputs in {out}")
+    return 0
 
 
 if __name__ == "__main__":
