@@ -1,0 +1,288 @@
+"""Tests of the global semantic point map: back-projection conventions, OV sampling, fusion,
+incremental updates, the max_points bound, snapshots, persistence and thread safety."""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+
+import numpy as np
+import pytest
+
+from mapper.config import GlobalMapConfig
+from mapper.global_map import GlobalSemanticMap, voxel_keys, weighted_mean_fusion
+from mapper.window import Keyframe
+
+W, H = 32, 24
+K = np.array([30.0, 28.0, 16.0, 12.0])
+
+
+def rot_z(deg: float) -> np.ndarray:
+    a = np.deg2rad(deg)
+    m = np.eye(4)
+    m[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    return m
+
+
+def make_kf(
+    depth: np.ndarray | None,
+    *,
+    world_from_cam: np.ndarray | None = None,
+    ov: np.ndarray | None = None,
+    stamp_ns: int = 0,
+) -> Keyframe:
+    h, w = (depth.shape if depth is not None else (H, W))
+    return Keyframe(
+        seq=stamp_ns, stamp_ns=stamp_ns, camera="cam0", K=K.copy(),
+        world_from_cam=np.eye(4) if world_from_cam is None else world_from_cam,
+        rgb=np.zeros((h, w, 3), np.uint8), depth_m=depth, ov=ov, ov_space="test" if ov is not None else None,
+    )  # fmt: skip
+
+
+def plane_depth(z_m: float = 2.0) -> np.ndarray:
+    return np.full((H, W), z_m, np.float32)
+
+
+def tilted_plane_depth(normal_cam: np.ndarray, offset_m: float) -> np.ndarray:
+    """z-depth of the plane n . X = offset seen through every pixel centre."""
+    cols, rows = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    rays = np.stack([(cols - K[2]) / K[0], (rows - K[3]) / K[1], np.ones_like(cols)], -1)  # z = 1
+    return (offset_m / (rays @ normal_cam)).astype(np.float32)
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def test_backprojection_uses_pixel_centres_k_and_pose() -> None:
+    cfg = GlobalMapConfig(pixel_stride=3, grazing_power=0.0, min_weight=0.0)
+    gmap = GlobalSemanticMap(cfg)
+    world_from_cam = rot_z(30.0)
+    world_from_cam[:3, 3] = [1.0, -2.0, 0.5]
+    obs = gmap.observe(make_kf(plane_depth(2.0), world_from_cam=world_from_cam))
+    assert not isinstance(obs, str)
+    rows, cols = np.arange(1, H, 3), np.arange(1, W, 3)
+    jj, ii = (a.ravel() for a in np.meshgrid(rows, cols, indexing="ij"))
+    z = np.full(ii.shape, 2.0)
+    cam = np.stack([(ii + 0.5 - K[2]) / K[0] * z, (jj + 0.5 - K[3]) / K[1] * z, z], 1)
+    expected = cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
+    np.testing.assert_allclose(obs.xyz, expected, atol=1e-9)
+
+
+def test_depth_range_and_invalid_depth_are_skipped() -> None:
+    cfg = GlobalMapConfig(pixel_stride=1, min_depth_m=0.5, max_depth_m=3.0)
+    depth = plane_depth(2.0)
+    depth[0, :] = 0.0
+    depth[1, :] = np.nan
+    depth[2, :] = 5.0
+    obs = GlobalSemanticMap(cfg).observe(make_kf(depth))
+    assert not isinstance(obs, str) and obs.xyz.shape[0] == (H - 3) * W
+    assert GlobalSemanticMap(cfg).observe(make_kf(np.zeros((H, W), np.float32))) == "no valid depth in range"
+
+
+def test_weight_falls_with_distance_and_grazing_angle() -> None:
+    cfg = GlobalMapConfig(pixel_stride=4, near_m=1.0, falloff_m=2.0, grazing_power=1.0, min_weight=0.0)
+    gmap = GlobalSemanticMap(cfg)
+    near = gmap.observe(make_kf(plane_depth(1.0)))
+    far = gmap.observe(make_kf(plane_depth(4.0)))
+    normal = unit(np.array([0.8, 0.0, 0.6]))
+    depth = tilted_plane_depth(normal, 1.0)
+    tilted = gmap.observe(make_kf(depth))
+    assert not isinstance(near, str) and not isinstance(far, str) and not isinstance(tilted, str)
+    # far: exp(-(d - 1) / 2) with d >= 4 m
+    assert far.weight.max() <= np.exp(-1.5) + 1e-6 < near.weight.min()
+    # tilted plane: weight = distance term * |cos(ray, plane normal)| (normals from the depth image);
+    # where the depth changes by more than 10% between neighbours the normal counts as unknown (0.5)
+    dist = np.linalg.norm(tilted.xyz, axis=1)
+    cos = np.abs(tilted.xyz @ normal) / dist
+    falloff = np.exp(-np.maximum(dist - 1.0, 0.0) / 2.0)
+    rows, cols = np.arange(2, H, 4), np.arange(2, W, 4)
+    d = depth[np.ix_(rows, cols)]
+    jump = np.maximum.reduce([np.abs(depth[np.ix_(rows, cols + s)] - d) for s in (-1, 1)]
+                             + [np.abs(depth[np.ix_(rows + s, cols)] - d) for s in (-1, 1)]) / d
+    known = (jump <= 0.1).ravel()
+    assert known.sum() > known.size // 2 and (~known).any()
+    np.testing.assert_allclose(tilted.weight[known], (falloff * cos)[known], rtol=1e-4)
+    np.testing.assert_allclose(tilted.weight[~known], 0.5 * falloff[~known], rtol=1e-4)
+    assert cos.min() < 0.5
+
+
+def test_ov_sampled_bilinearly_on_a_coarser_map() -> None:
+    """ov at 1/8 resolution: left half feature e0, right half e1; fused features follow the side."""
+    cfg = GlobalMapConfig(pixel_stride=1, voxel_size_m=0.02, grazing_power=0.0)
+    gmap = GlobalSemanticMap(cfg)
+    ov = np.zeros((H // 8, W // 8, 4), np.float16)
+    ov[:, : ov.shape[1] // 2, 0] = 1.0
+    ov[:, ov.shape[1] // 2:, 1] = 1.0
+    gmap.integrate(make_kf(plane_depth(2.0), ov=ov))
+    snap = gmap.snapshot()
+    assert snap.feat is not None and snap.has_feature.all()
+    feat = snap.unit_features_f32()
+    left = snap.xyz[:, 0] < -0.3
+    right = snap.xyz[:, 0] > 0.3
+    assert left.any() and right.any()
+    assert np.all(feat[left, 0] > 0.99) and np.all(feat[right, 1] > 0.99)
+    # at the boundary (x = 0 in the image centre) the bilinear blend mixes both
+    mid = np.abs(snap.xyz[:, 0]) < 0.05  # the pixel columns next to the image centre
+    assert mid.any() and np.all(np.abs(feat[mid, 0] - feat[mid, 1]) < 0.5)
+
+
+def test_weighted_mean_fusion_is_exact_running_mean() -> None:
+    rng = np.random.default_rng(0)
+    f1, f2 = rng.normal(size=(5, 8)).astype(np.float32), rng.normal(size=(5, 8)).astype(np.float32)
+    w1, w2 = rng.uniform(0.1, 1, 5).astype(np.float32), rng.uniform(0.1, 1, 5).astype(np.float32)
+    zero = np.zeros((5, 8), np.float16)
+    nothing = np.zeros(5, np.float32)
+    u1, n1, fw1 = weighted_mean_fusion(zero, nothing, nothing, f1 * w1[:, None], w1)
+    u2, n2, fw2 = weighted_mean_fusion(u1, n1, fw1, f2 * w2[:, None], w2)
+    expected = (f1 * w1[:, None] + f2 * w2[:, None]) / (w1 + w2)[:, None]
+    assert u2.dtype == np.float16
+    np.testing.assert_allclose(fw2, w1 + w2, rtol=1e-6)
+    np.testing.assert_allclose(u2.astype(np.float32) * n2[:, None], expected, rtol=2e-3, atol=2e-3)
+
+
+def test_integrate_is_incremental_and_keeps_points_of_old_frames() -> None:
+    cfg = GlobalMapConfig(pixel_stride=2)
+    gmap = GlobalSemanticMap(cfg)
+    ov = np.ones((3, 4, 4), np.float16)
+    gmap.integrate(make_kf(plane_depth(2.0), ov=ov, stamp_ns=1), map_version=1)
+    first = gmap.snapshot()
+    away = np.eye(4)
+    away[:3, 3] = [10.0, 0.0, 0.0]  # sees a disjoint region
+    stats = gmap.integrate(make_kf(plane_depth(2.0), world_from_cam=away, ov=ov, stamp_ns=2), map_version=2)
+    second = gmap.snapshot()
+    assert stats.voxels_new == stats.voxels_touched > 0
+    assert len(second) == len(first) + stats.voxels_new and second.map_version == 2
+    old = second.last_seen_ns == 1
+    assert old.sum() == len(first)
+    np.testing.assert_array_equal(second.xyz[old], first.xyz)  # untouched voxels unchanged
+    np.testing.assert_array_equal(second.weight[old], first.weight)
+    # the same view again touches the same voxels: no new ones, confidence and hits grow
+    stats3 = gmap.integrate(make_kf(plane_depth(2.0), ov=ov, stamp_ns=3))
+    third = gmap.snapshot()
+    assert stats3.voxels_new == 0 and len(third) == len(second)
+    again = third.last_seen_ns == 3
+    assert np.all(third.hits[again] > second.hits[again])
+    assert np.all(third.weight[again] > second.weight[again])
+
+
+def test_frames_without_depth_or_ov() -> None:
+    gmap = GlobalSemanticMap(GlobalMapConfig(pixel_stride=2))
+    stats = gmap.integrate(make_kf(None, ov=np.ones((3, 4, 4), np.float16)))
+    assert stats.points == 0 and stats.skipped == "no depth" and len(gmap) == 0
+    assert gmap.dim == 4  # the dimension is still learned
+    gmap2 = GlobalSemanticMap(GlobalMapConfig(pixel_stride=2))
+    gmap2.integrate(make_kf(plane_depth(2.0)))  # geometry only
+    snap = gmap2.snapshot()
+    assert len(snap) > 0 and snap.feat is None and not snap.has_feature.any()
+    gmap2.integrate(make_kf(plane_depth(2.0), ov=np.ones((3, 4, 4), np.float16)))  # now with features
+    snap = gmap2.snapshot()
+    assert snap.feat is not None and snap.has_feature.all()
+    assert np.all(snap.feat_weight < snap.weight)  # the geometry-only observation counted for confidence only
+    with pytest.raises(ValueError, match="dimension 5"):
+        gmap2.integrate(make_kf(plane_depth(2.0), ov=np.ones((3, 4, 5), np.float16)))
+
+
+def test_max_points_drops_least_recently_seen_voxels_first() -> None:
+    cfg = GlobalMapConfig(pixel_stride=1, voxel_size_m=0.02, max_points=400, prune_to_fraction=0.5,
+                          stale_half_life_keyframes=1.0)  # fmt: skip
+    gmap = GlobalSemanticMap(cfg)
+    first = gmap.integrate(make_kf(plane_depth(2.0), stamp_ns=1))
+    assert first.voxels_pruned > 0 and len(gmap) == 200
+    away = np.eye(4)
+    away[:3, 3] = [10.0, 0.0, 0.0]
+    for stamp in (2, 3, 4):
+        gmap.integrate(make_kf(plane_depth(2.0), world_from_cam=away, stamp_ns=stamp))
+    snap = gmap.snapshot()
+    assert len(snap) <= cfg.max_points and gmap.points_pruned > 0
+    assert np.all(snap.xyz[:, 0] > 5.0)  # only the recently seen region survives
+    assert gmap.stats()["global_points"] == len(snap)
+    assert gmap.nbytes > 0 and gmap.allocated_bytes >= gmap.nbytes
+
+
+def test_snapshot_is_immutable_and_cached_per_version() -> None:
+    gmap = GlobalSemanticMap(GlobalMapConfig(pixel_stride=2))
+    gmap.integrate(make_kf(plane_depth(2.0), ov=np.ones((3, 4, 4), np.float16)))
+    snap = gmap.snapshot()
+    assert gmap.snapshot() is snap  # same version: shared
+    assert snap.unit_features_f32() is snap.unit_features_f32()
+    with pytest.raises(ValueError):
+        snap.xyz[0, 0] = 1.0
+    xyz = snap.xyz.copy()
+    gmap.integrate(make_kf(plane_depth(3.0), ov=np.ones((3, 4, 4), np.float16)))
+    np.testing.assert_array_equal(snap.xyz, xyz)
+    assert gmap.snapshot() is not snap and len(gmap.snapshot()) > len(snap)
+
+
+def test_save_restore_roundtrip_and_rekey() -> None:
+    cfg = GlobalMapConfig(pixel_stride=2)
+    gmap = GlobalSemanticMap(cfg)
+    gmap.integrate(make_kf(plane_depth(2.0), ov=np.ones((3, 4, 4), np.float16), stamp_ns=7), map_version=3)
+    gmap.integrate(make_kf(plane_depth(1.5)), map_version=4)
+    arrays, manifest = gmap.to_arrays()
+    assert all(isinstance(a, np.ndarray) and a.dtype != object for a in arrays.values())
+    other = GlobalSemanticMap(cfg)
+    other.restore(arrays, manifest, map_version=9)
+    a, b = gmap.snapshot(), other.snapshot()
+    assert b.map_version == 9 and len(a) == len(b)
+    order_a, order_b = np.lexsort(a.xyz.T), np.lexsort(b.xyz.T)
+    np.testing.assert_array_equal(a.xyz[order_a], b.xyz[order_b])
+    assert a.feat is not None and b.feat is not None
+    np.testing.assert_array_equal(a.feat[order_a], b.feat[order_b])
+    np.testing.assert_array_equal(a.weight[order_a], b.weight[order_b])
+    # a coarser voxel size merges voxels on restore; the most confident one is kept
+    coarse = GlobalSemanticMap(dataclasses.replace(cfg, voxel_size_m=0.2))
+    coarse.restore(arrays, manifest, map_version=1)
+    keys, _ = voxel_keys(a.xyz, 0.2)
+    assert len(coarse) == np.unique(keys).size < len(a)
+
+
+@pytest.mark.parametrize(
+    "damage, fragment",
+    [
+        (lambda arr, man: arr.pop("global.xyz"), "xyz must be float32"),
+        (lambda arr, man: arr.__setitem__("global.hits", arr["global.hits"].astype(np.float64)), "hits"),
+        (lambda arr, man: man.__setitem__("format", "other"), "unknown format"),
+        (lambda arr, man: man.__setitem__("points", "3"), "'points' must be"),
+        (lambda arr, man: arr["global.xyz"].__setitem__((0, 0), np.nan), "finite"),
+    ],
+)
+def test_restore_rejects_damaged_sections_and_changes_nothing(damage, fragment: str) -> None:  # noqa: ANN001
+    cfg = GlobalMapConfig(pixel_stride=2)
+    src = GlobalSemanticMap(cfg)
+    src.integrate(make_kf(plane_depth(2.0), ov=np.ones((3, 4, 4), np.float16)))
+    arrays, manifest = src.to_arrays()
+    damage(arrays, manifest)
+    target = GlobalSemanticMap(cfg)
+    target.integrate(make_kf(plane_depth(1.0)))
+    before = target.snapshot()
+    with pytest.raises(ValueError, match=fragment):
+        target.restore(arrays, manifest, map_version=1)
+    assert target.snapshot() is before
+
+
+def test_concurrent_integrate_and_snapshots_are_consistent() -> None:
+    gmap = GlobalSemanticMap(GlobalMapConfig(pixel_stride=2, voxel_size_m=0.03))
+    errors: list[str] = []
+    stop = threading.Event()
+
+    def reader() -> None:
+        while not stop.is_set():
+            snap = gmap.snapshot()
+            n = len(snap)
+            if snap.feat is not None and snap.feat.shape[0] != n or snap.weight.shape[0] != n:
+                errors.append("inconsistent snapshot")
+            if n and not np.isfinite(snap.unit_features_f32()).all():
+                errors.append("non-finite features")
+
+    thread = threading.Thread(target=reader)
+    thread.start()
+    try:
+        for k in range(12):
+            pose = rot_z(15.0 * k)
+            gmap.integrate(make_kf(plane_depth(1.0 + 0.1 * k), world_from_cam=pose,
+                                   ov=np.ones((3, 4, 4), np.float16), stamp_ns=k))  # fmt: skip
+    finally:
+        stop.set()
+        thread.join()
+    assert not errors and gmap.keyframes_integrated == 12
