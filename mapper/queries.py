@@ -83,7 +83,7 @@ def normalise_query(text: str) -> str:
     folded = " ".join(text.lower().split())
     out = folded
     for _ in range(4):  # "please can you show me the ..." peels several layers
-        stripped = _PREFIX_RE.sub("", out, count=1)
+        stripped = _PREFIX_RE.sub("", out, count=1).lstrip(" ,;:")
         if stripped == out:
             break
         out = stripped

@@ -1,0 +1,210 @@
+"""Tests of the semantic queries: phrasing normalisation, negatives, scoring, clustering, limits,
+and the averaging segmentation baseline. Natural phrasings are checked with the real
+all-MiniLM-L6-v2 text encoder on a synthetic map whose features are class-name embeddings."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapper.config import QueryConfig
+from mapper.encoders import get_text_encoder
+from mapper.global_map import GlobalMapSnapshot
+from mapper.queries import (
+    DEFAULT_NEGATIVES,
+    cluster_points,
+    normalise_query,
+    query_points,
+    segment_average,
+)
+from protocol.errors import ProtocolError
+
+CONFIG = QueryConfig(cluster_radius_m=0.12, min_object_points=10)
+
+# object name -> box centre (x, y, z), half size (m)
+OBJECTS = {
+    "chair": [((1.0, 1.0, 0.45), 0.2), ((3.0, 1.0, 0.45), 0.2)],
+    "table": [((2.0, 1.0, 0.7), 0.35)],
+    "bed": [((4.8, 3.0, 0.6), 0.5)],
+    "sofa": [((1.0, 4.0, 0.55), 0.45)],
+}
+
+
+def _box_surface(centre: tuple[float, float, float], half: float, step: float = 0.05) -> np.ndarray:
+    g = np.arange(-half, half + 1e-9, step)
+    a, b = np.meshgrid(g, g, indexing="ij")
+    a, b = a.ravel(), b.ravel()
+    faces = [np.stack([a, b, np.full_like(a, s * half)], 1) for s in (-1, 1)]
+    faces += [np.stack([a, np.full_like(a, s * half), b], 1) for s in (-1, 1)]
+    faces += [np.stack([np.full_like(a, s * half), a, b], 1) for s in (-1, 1)]
+    return np.concatenate(faces) + np.asarray(centre)
+
+
+def make_snapshot(
+    names_and_points: list[tuple[str, np.ndarray]],
+    noise: float = 0.03,
+    seed: int = 0,
+    with_features: bool = True,
+) -> GlobalMapSnapshot:
+    """A snapshot whose features are the class-name embeddings plus noise (per dimension)."""
+    encoder = get_text_encoder()
+    rng = np.random.default_rng(seed)
+    xyz = np.concatenate([p for _, p in names_and_points]).astype(np.float32)
+    emb = encoder.encode([n for n, _ in names_and_points])
+    sizes = [len(p) for _, p in names_and_points]
+    feat = np.repeat(emb, sizes, axis=0)
+    feat = feat + noise * rng.normal(size=feat.shape).astype(np.float32)
+    feat /= np.linalg.norm(feat, axis=1, keepdims=True)
+    n = xyz.shape[0]
+    return GlobalMapSnapshot(
+        version=1, map_version=5, voxel_size_m=0.05, xyz=xyz,
+        feat=feat.astype(np.float16) if with_features else None,
+        weight=np.ones(n, np.float32), feat_weight=np.full(n, 1.0 if with_features else 0.0, np.float32),
+        hits=np.ones(n, np.int32), last_seen_ns=np.zeros(n, np.int64),
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def room() -> GlobalMapSnapshot:
+    parts: list[tuple[str, np.ndarray]] = []
+    for name, boxes in OBJECTS.items():
+        for centre, half in boxes:
+            parts.append((name, _box_surface(centre, half)))
+    g = np.arange(0.0, 6.0, 0.05)
+    x, y = np.meshgrid(g, g, indexing="ij")
+    floor = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1)
+    wall = np.stack([x.ravel(), np.full(x.size, 6.0), y.ravel() / 2.5], 1)
+    parts += [("floor", floor), ("wall", wall)]
+    return make_snapshot(parts)
+
+
+def ask(snapshot: GlobalMapSnapshot, texts: list[str], **kwargs: object):  # noqa: ANN201
+    opts: dict[str, object] = {"negatives": None, "min_score": None, "max_points": None, "objects": True}
+    opts.update(kwargs)
+    return query_points(snapshot, get_text_encoder(), texts, config=CONFIG, **opts)  # type: ignore[arg-type]
+
+
+def _nearest_object(centroid: np.ndarray) -> tuple[str, float]:
+    centres = [(name, np.asarray(c)) for name, boxes in OBJECTS.items() for c, _ in boxes]
+    dist, name = min((float(np.linalg.norm(centroid - c)), name) for name, c in centres)
+    return name, dist
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("find the chair", "chair"),
+        ("Where is a place to sit?", "place to sit"),
+        ("show me the table", "table"),
+        ("please, can you show me the bed", "bed"),
+        ("navigate to the sofa please", "sofa"),
+        ("Locate my keys.", "keys"),
+        ("  chair  ", "chair"),
+        ("the", "the"),
+        ("a place to sleep", "place to sleep"),
+        ("findings", "findings"),  # a command word only at a word boundary
+    ],
+)
+def test_normalise_query(text: str, expected: str) -> None:
+    assert normalise_query(text) == expected
+
+
+@pytest.mark.parametrize(
+    "text, allowed",
+    [
+        ("find the chair", {"chair"}),
+        ("show me the table", {"table"}),
+        ("where is the bed", {"bed"}),
+        ("a place to sleep", {"bed"}),
+        ("where is a place to sit", {"chair", "sofa"}),
+    ],
+)
+def test_natural_phrasings_find_the_right_object(
+    room: GlobalMapSnapshot, text: str, allowed: set[str]
+) -> None:
+    reply = ask(room, [text])
+    assert reply.objects, f"no object for {text!r}"
+    top = reply.objects[0]
+    name, dist = _nearest_object(top.centroid)
+    assert name in allowed and dist < 0.2, (text, name, dist)
+    assert top.text == text
+    assert reply.map_version == 5 and reply.timing_ms["total"] >= 0
+
+
+def test_points_labels_scores_and_objects_are_consistent(room: GlobalMapSnapshot) -> None:
+    reply = ask(room, ["chair", "table"])
+    assert reply.xyz.shape[0] == reply.score.shape[0] == reply.label.shape[0] > 0
+    assert np.all(np.diff(reply.score) <= 0)  # best first
+    assert set(np.unique(reply.label)) == {0, 1}
+    # floor and wall points lose to the negatives
+    assert np.all(reply.xyz[:, 2] > 0.04) and np.all(reply.xyz[:, 1] < 5.9)
+    # the two chairs are the two best "chair" candidates (a sofa may follow, with a lower score)
+    chairs = [o for o in reply.objects if o.text == "chair"]
+    assert sorted(_nearest_object(o.centroid)[0] for o in chairs[:2]) == ["chair", "chair"]
+    assert all(_nearest_object(o.centroid)[1] < 0.05 for o in chairs[:2])
+    tables = [o for o in reply.objects if o.text == "table"]
+    assert _nearest_object(tables[0].centroid)[0] == "table"
+    for o in reply.objects:
+        assert np.all(o.aabb_min <= o.centroid) and np.all(o.centroid <= o.aabb_max)
+        assert o.n_points >= CONFIG.min_object_points
+    assert [o.score for o in reply.objects] == sorted((o.score for o in reply.objects), reverse=True)
+
+
+def test_negatives_veto_background_but_not_asked_for_structure(room: GlobalMapSnapshot) -> None:
+    # a vague text matches little beyond the negatives; with no negatives every point gets a label
+    none = ask(room, ["chair"], negatives=[])
+    default = ask(room, ["chair"])
+    assert none.xyz.shape[0] == room.xyz.shape[0] > default.xyz.shape[0]
+    # asking for the wall drops the negative "wall" instead of vetoing every wall point
+    wall = ask(room, ["walls"])
+    assert wall.objects and wall.objects[0].centroid[1] > 5.9
+    assert "wall" in DEFAULT_NEGATIVES
+
+
+def test_min_score_and_max_points(room: GlobalMapSnapshot) -> None:
+    base = ask(room, ["chair"], negatives=[])
+    threshold = float(np.median(base.score))
+    high = ask(room, ["chair"], negatives=[], min_score=threshold)
+    assert 0 < high.xyz.shape[0] < base.xyz.shape[0] and high.score.min() >= threshold
+    few = ask(room, ["chair"], negatives=[], max_points=50, objects=False)
+    assert few.xyz.shape[0] == 50 and few.objects == []
+    np.testing.assert_allclose(few.score, base.score[:50])
+
+
+def test_map_without_features_is_not_ready() -> None:
+    snap = make_snapshot([("chair", _box_surface((0, 0, 0), 0.2))], with_features=False)
+    with pytest.raises(ProtocolError, match="none carries an open-vocabulary feature") as info:
+        ask(snap, ["chair"])
+    assert info.value.code == "not_ready"
+
+
+def test_cluster_points_min_points_and_separation() -> None:
+    rng = np.random.default_rng(1)
+    a = rng.uniform(0, 0.3, (40, 3))
+    b = rng.uniform(0, 0.3, (25, 3)) + [2.0, 0, 0]
+    c = rng.uniform(0, 0.05, (4, 3)) + [5.0, 0, 0]  # too small
+    xyz = np.concatenate([a, b, c]).astype(np.float32)
+    score = np.concatenate([np.full(40, 0.5), np.full(25, 0.9), np.full(4, 1.0)]).astype(np.float32)
+    clusters = cluster_points(xyz, score, np.zeros(len(xyz), np.int64), radius_m=0.2, min_points=10)
+    assert [c.indices.size for c in clusters] == [25, 40]  # sorted by score
+    np.testing.assert_allclose(clusters[0].centroid, b.mean(0), atol=1e-6)
+
+
+def test_segment_average_labels_seen_points_and_leaves_unseen_at_minus_one() -> None:
+    """Two views of the plane z = 2: left half of the image shows class 0, right half class 1."""
+    d = 4
+    emb = np.eye(d, dtype=np.float32)[:2]
+    width, height = 40, 30
+    K = np.array([40.0, 40.0, 20.0, 15.0])
+    ov = np.zeros((height // 5, width // 5, d), np.float32)
+    ov[:, : ov.shape[1] // 2, 0] = 1.0
+    ov[:, ov.shape[1] // 2:, 1] = 1.0
+    depth = np.full((height, width), 2.0, np.float32)
+    views = [(ov, K, np.eye(4), (width, height), depth)] * 2
+    pts = np.array([[-0.5, 0.0, 2.0], [0.5, 0.0, 2.0], [30.0, 0.0, 2.0], [-0.5, 0.0, 1.0]], np.float32)
+    label, score, n = segment_average(pts, views, emb, use_depth=False)
+    assert label.tolist()[:3] == [0, 1, -1] and score[2] == 0.0 and n.tolist()[:3] == [2, 2, 0]
+    assert score[0] > 0.99
+    # the depth test drops the views for a point in front of the surface
+    label_d, _, n_d = segment_average(pts, views, emb, use_depth=True)
+    assert label_d.tolist() == [0, 1, -1, -1] and n_d[3] == 0
