@@ -286,8 +286,10 @@ def load_training_state(
         )
     state = _read_verified(weights_path, meta.get("weights_sha256"))
     device = next(model.parameters()).device
-    model.load_state_dict({k: v.to(device, torch.float32) if v.is_floating_point() else v.to(device)
-                           for k, v in state.items()}, strict=True)
+    model.load_state_dict(
+        {k: v.to(device, torch.float32) if v.is_floating_point() else v.to(device) for k, v in state.items()},
+        strict=True,
+    )
     extra: dict[str, torch.Tensor] = {}
     train_meta = meta.get("train_state")
     if train_meta is None:
@@ -313,5 +315,5 @@ def load_training_state(
             if "betas" in g and isinstance(g["betas"], list):
                 g["betas"] = tuple(g["betas"])
         optimizer.load_state_dict({"state": state_out, "param_groups": groups})
-    extra = {k[len("extra."):]: v for k, v in tensors.items() if k.startswith("extra.")}
+    extra = {k[len("extra.") :]: v for k, v in tensors.items() if k.startswith("extra.")}
     return meta, extra
