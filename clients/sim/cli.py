@@ -11,6 +11,7 @@ See docs/SIM.md for the export layout.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
 from collections import Counter
@@ -64,6 +65,10 @@ def _stream(args: argparse.Namespace) -> int:
 
     if args.rate < 0:
         raise ValueError(f"--rate {args.rate} must be >= 0 (0 = as fast as the node acks)")
+    if not re.fullmatch(r"(tcp|ipc|inproc)://\S+", args.ingest):
+        raise ValueError(f"--ingest {args.ingest!r} is not a ZeroMQ endpoint (e.g. tcp://127.0.0.1:5555)")
+    if args.window < 1 or args.timeout <= 0:
+        raise ValueError(f"--window {args.window} must be >= 1 and --timeout {args.timeout} > 0")
     cfg = _config(args, novel_views=0, previews=0)
     stream = SimStream.build(cfg)
     statuses: Counter[str] = Counter()
@@ -117,6 +122,14 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, TimeoutError) as exc:
         print(f"govnesf sim {args.command}: {exc}", file=sys.stderr)
         return 2
+    except Exception as exc:  # a bad endpoint string, an unreachable address: say so, no traceback
+        import zmq
+
+        if isinstance(exc, zmq.ZMQError):
+            print(f"govnesf sim {args.command}: ZeroMQ error for {getattr(args, 'ingest', '?')!r}: {exc}",
+                  file=sys.stderr)
+            return 2
+        raise
 
 
 if __name__ == "__main__":

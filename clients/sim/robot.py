@@ -231,7 +231,8 @@ def robot_trajectory(
         seed: randomness of start, direction, heights and gaze (the loop itself is the scene's).
         height_range_m: camera height above the floor (min, max), metres.
         clearance_m: minimum horizontal distance from the camera to any obstacle box or wall.
-        max_step_m: largest distance between consecutive camera centres.
+        max_step_m: largest horizontal distance between consecutive camera centres (the height
+            changes smoothly on top of it, a few millimetres a frame).
         max_turn_deg: largest yaw change between consecutive frames.
 
     Returns:

@@ -24,9 +24,10 @@ True
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
+from typing import TypeVar
 
 import numpy as np
 from scipy import ndimage
@@ -386,6 +387,9 @@ class _Object:
 # ----------------------------------------------------------------------------------------------
 
 
+_T = TypeVar("_T")
+
+
 class _Rand:
     def __init__(self, seed: int, style: SceneStyle) -> None:
         self.rng = np.random.default_rng(seed)
@@ -398,7 +402,7 @@ class _Rand:
         j = self.style.size_jitter
         return nominal * self.u(1.0 - j, 1.0 + j)
 
-    def pick(self, seq):  # noqa: ANN001, ANN201 - generic helper
+    def pick(self, seq: Sequence[_T]) -> _T:
         return seq[int(self.rng.integers(len(seq)))]
 
     def chance(self, p: float) -> bool:

@@ -138,3 +138,8 @@ def test_cli_stream_sends_frames_and_waits_for_acks() -> None:
     assert rc == 0
     assert [f.seq for f in received] == [0, 1, 2]
     assert all(f.depth_m is not None and f.ov is None for f in received)
+
+
+def test_cli_stream_rejects_bad_endpoint(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["stream", "--seed", "0", "--frames", "2", "--no-ov", "--ingest", "localhost:5555"]) == 2
+    assert "not a ZeroMQ endpoint" in capsys.readouterr().err
