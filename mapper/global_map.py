@@ -555,6 +555,7 @@ class GlobalSemanticMap:
         with self._lock:
             n = self._n
             arrays = {
+                f"{prefix}.keys": self._keys[:n].copy(),
                 f"{prefix}.xyz": self._xyz[:n].copy(),
                 f"{prefix}.weight": self._weight[:n].copy(),
                 f"{prefix}.feat_norm": self._feat_norm[:n].copy(),
@@ -589,6 +590,7 @@ class GlobalSemanticMap:
         if not isinstance(n, int) or n < 0 or not (dim is None or (isinstance(dim, int) and dim > 0)):
             raise ValueError("global map section: 'points' must be an int >= 0 and 'dim' an int > 0 or null")
         spec: dict[str, tuple[str, tuple[int, ...]]] = {
+            "keys": ("int64", (n,)),
             "xyz": ("float32", (n, 3)),
             "weight": ("float32", (n,)),
             "feat_norm": ("float32", (n,)),
@@ -609,9 +611,14 @@ class GlobalSemanticMap:
             got[name] = arrays[f"{prefix}.{name}"]
         if not np.isfinite(got["xyz"]).all() or not (got["weight"] >= 0).all():
             raise ValueError("global map section: xyz must be finite and weights >= 0")
-        keys, ok = voxel_keys(got["xyz"], self.config.voxel_size_m)
-        if not ok.all():
-            raise ValueError("global map section: points outside the voxel key range")
+        if manifest.get("voxel_size_m") == self.config.voxel_size_m:
+            keys = got["keys"]  # the voxel a mean lies in can differ by float32 rounding at its faces
+            if np.unique(keys).size != n:
+                raise ValueError("global map section: keys are not unique")
+        else:
+            keys, ok = voxel_keys(got["xyz"], self.config.voxel_size_m)
+            if not ok.all():
+                raise ValueError("global map section: points outside the voxel key range")
         # one row per key (re-keying can merge voxels): the most confident wins
         order = np.lexsort((-got["weight"], keys))
         first = np.ones(n, bool)

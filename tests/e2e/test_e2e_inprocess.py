@@ -6,6 +6,7 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from clients.client import MapperClient
@@ -179,3 +180,26 @@ def test_save_failure_on_the_node_is_internal_and_changes_nothing(tmp_path: Path
     finally:
         mapper.stop()
     assert not_a_dir.read_text().startswith("a file")
+
+
+def test_without_depth_semantic_requests_are_not_ready(node: MapperNode) -> None:
+    """Frames with ov but no depth count for the window, add no map points; semantic requests
+    then answer not_ready, except the depth-free averaging baseline."""
+    from clients.demo import sim_stream
+    from protocol.errors import RemoteError
+
+    stream = sim_stream(3, 30, 40, 30, depth=False)
+    with _client(node) as client:
+        for k in (0, 10, 20):
+            assert client.send_frame(stream.frame(k, stream.render(k))).status == "keyframe"
+        with pytest.raises(RemoteError, match="none carries an open-vocabulary feature") as info:
+            client.query_points(["chair"])
+        assert info.value.code == "not_ready"
+        with pytest.raises(RemoteError, match="needs keyframes with both depth and ov") as info:
+            client.segment_points(np.zeros((2, 3), np.float32), ["chair"], method="average_depth")
+        assert info.value.code == "not_ready"
+        far = np.array([[0.0, 0.0, -50.0], [1.0, 1.0, 1.0]], np.float32)
+        seg = client.segment_points(far, ["chair"], method="average", timeout_s=60.0)
+        assert seg.label.shape == (2,) and seg.label[0] == -1
+        status = client.status()
+        assert status.extra["global_points"] == 0 and status.keyframes == 3

@@ -247,7 +247,9 @@ def test_req_and_dealer_peers_are_answered(node: NodeProcess) -> None:
         ctx.destroy(linger=0)
 
 
-def test_unserved_queries_answer_not_ready(client: MapperClient) -> None:
+def test_queries_without_encoder_or_model_answer_not_ready(client: MapperClient) -> None:
+    """This node's frames carry 'demo-checker' features: no text encoder embeds queries in that
+    space, the learned model is not loaded and rendering is not served yet."""
     requests = [
         QueryPoints(texts=["chair"]),
         SegmentPoints(xyz=np.zeros((2, 3), np.float32), texts=["chair", "table"]),
@@ -259,8 +261,11 @@ def test_unserved_queries_answer_not_ready(client: MapperClient) -> None:
         reply = client.request(request)
         assert isinstance(reply, Error) and reply.code == "not_ready", reply
         assert request.TYPE in reply.message
-    with pytest.raises(RemoteError, match="not_ready"):
+    with pytest.raises(RemoteError, match="not_ready") as info:
         client.query_points(["chair"])
+    assert "no text encoder for ov_space 'demo-checker'" in info.value.message
+    with pytest.raises(RemoteError, match="learned model is not loaded"):
+        client.segment_points(np.zeros((1, 3), np.float32), ["chair"])
 
 
 def test_save_load_roundtrip_and_traversal_refused(node: NodeProcess, client: MapperClient) -> None:
