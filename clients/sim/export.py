@@ -40,6 +40,8 @@ from protocol.messages import Frame
 OV_SPACE = "minilm-l6-v2"
 RECORDING_NAME = "frames.govrec"
 RGB_ENCODINGS = ("rgb8", "png", "jpeg")
+MAX_GT_STREAM_BYTES = 2 * 2**30
+"""`record` keeps the per-frame ground truth (depth, label, instance) in memory until the end."""
 
 
 @dataclass(frozen=True)
@@ -310,6 +312,12 @@ def record(config: RecordConfig, out_dir: str | Path, *, progress: bool = True) 
     from protocol.recording import RecordingWriter
 
     config.validate()
+    gt_bytes = config.frames * config.width * config.height * 8  # depth f32 + label i16 + instance i16
+    if gt_bytes > MAX_GT_STREAM_BYTES:
+        raise ValueError(
+            f"frames x width x height = {config.frames} x {config.width} x {config.height} needs "
+            f"{gt_bytes / 2**30:.1f} GiB of ground-truth images (gt/stream.npz); the limit is "
+            f"{MAX_GT_STREAM_BYTES / 2**30:.0f} GiB: record fewer or smaller frames (or several runs)")
     out = Path(out_dir)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ValueError(f"output folder {str(out)!r} exists and is not empty; choose a new one")
