@@ -170,6 +170,13 @@ class ModelRuntimeConfig:
     min_opacity: float = 0.05
     """Pixels whose accumulated opacity is below this render no depth (0) and label -1. 0..1."""
 
+    max_render_pixels: int = 640 * 480
+    """Largest render (width x height) served; bigger requests are refused with a clear error (a
+    render occupies the query thread). 1..16777216."""
+
+    max_segment_points: int = 2_000_000
+    """Most points one ``segment_points`` (govnesf) request may carry. 1..10^8."""
+
     def validate(self, where: str = "model") -> None:
         """Raise ``mapper.config.ConfigError`` naming ``where``, the key, the value and the range."""
         from mapper.config import ConfigError  # lazy: mapper.config may import this module
@@ -207,6 +214,8 @@ class ModelRuntimeConfig:
         check("occupancy_threshold", self.occupancy_threshold, 0.0, 1e6)
         check("min_weight", self.min_weight, 0.0, 1.0)
         check("min_opacity", self.min_opacity, 0.0, 1.0)
+        check("max_render_pixels", self.max_render_pixels, 1, 4096 * 4096)
+        check("max_segment_points", self.max_segment_points, 1, 100_000_000)
 
 
 @dataclass
@@ -433,7 +442,7 @@ class ModelRuntime:
             new_entries = self._prepare_entries(model, [kf for _, kf in added])
             for (key, _), entry in zip(added, new_entries, strict=True):
                 self._entries[key] = entry
-            self._update_bounds([e for e in new_entries])
+            self._update_bounds(new_entries, evicted=bool(removed))
             assert self._volume is not None or not self._entries
             if self._volume is not None:
                 for (key, _), entry in zip(added, new_entries, strict=True):
@@ -453,7 +462,7 @@ class ModelRuntime:
         width, height = self.image_wh
         rgbs, Ks = [], []
         for kf in keyframes:
-            rgb = torch.from_numpy(np.ascontiguousarray(kf.rgb)).to(self.device)
+            rgb = torch.tensor(np.asarray(kf.rgb)).to(self.device)
             rgb = rgb.permute(2, 0, 1).float().div_(255.0)  # (3, H0, W0)
             h0, w0 = rgb.shape[-2:]
             if (w0, h0) != (width, height):
@@ -462,7 +471,7 @@ class ModelRuntime:
                     antialias=w0 > width or h0 > height,
                 ).squeeze(0).clamp_(0.0, 1.0)  # fmt: skip
             sx, sy = width / w0, height / h0
-            K0 = torch.as_tensor(np.asarray(kf.K, dtype=np.float64), device=self.device)
+            K0 = torch.tensor(np.array(kf.K, dtype=np.float64), device=self.device)
             Ks.append(torch.stack([K0[0] * sx, K0[1] * sy, K0[2] * sx, K0[3] * sy]).float())
             rgbs.append(rgb)
         features = []
@@ -473,12 +482,10 @@ class ModelRuntime:
         feats = torch.cat(features)
         entries = []
         for i, kf in enumerate(keyframes):
-            pose = torch.as_tensor(
-                np.asarray(kf.world_from_cam, dtype=np.float64), device=self.device
-            ).float()
+            pose = torch.tensor(np.array(kf.world_from_cam, dtype=np.float64), device=self.device).float()
             ov = None
             if kf.ov is not None:
-                ov_t = torch.from_numpy(np.ascontiguousarray(kf.ov)).to(self.device, torch.float32)
+                ov_t = torch.tensor(np.asarray(kf.ov)).to(self.device, torch.float32)
                 ov_t = ov_t.permute(2, 0, 1)  # (D, h, w)
                 ow, oh = self.ov_wh
                 if tuple(ov_t.shape[1:]) != (oh, ow):
@@ -489,7 +496,7 @@ class ModelRuntime:
                 ov = ov_t.to(torch.float16)
             depth = None
             if kf.depth_m is not None:
-                d = torch.from_numpy(np.ascontiguousarray(kf.depth_m)).to(self.device, torch.float32)
+                d = torch.tensor(np.asarray(kf.depth_m)).to(self.device, torch.float32)
                 d = torch.where(torch.isfinite(d) & (d > 0), d, torch.zeros_like(d))
                 if tuple(d.shape) != (height, width):
                     d = F.interpolate(d[None, None], size=(height, width), mode="nearest-exact")[0, 0]
@@ -542,8 +549,15 @@ class ModelRuntime:
             margin_m=self.config.bounds_margin_m,
         )
 
-    def _update_bounds(self, new_entries: Sequence[_ViewEntry]) -> None:
-        """Create the volume, or recentre/grow + rebuild it when new views observed outside it."""
+    def _update_bounds(self, new_entries: Sequence[_ViewEntry], evicted: bool) -> None:
+        """Create the volume, or move it (recentre / grow / shrink) + rebuild when the window's
+        observations no longer fit it.
+
+        Grow: a new view has more than ``rebuild_outside_fraction`` of its extent points outside
+        the current box. Shrink (only checked after evictions): the box the window needs now has at
+        most half the current box's volume (the robot left an area). Either way the new bounds are
+        ``bounds_from_points`` over the whole window and the volume is rebuilt from the stored views.
+        """
         model = self._require_model()
         if not self._entries:
             return
@@ -553,19 +567,28 @@ class ModelRuntime:
         bounds = self._volume.bounds
         lo = torch.tensor(bounds.origin_m, device=self.device)
         hi = torch.tensor(bounds.max_corner_m, device=self.device)
-        for entry in new_entries:
-            outside = ((entry.extent < lo) | (entry.extent > hi)).any(dim=-1).float().mean()
-            if float(outside) > self.config.rebuild_outside_fraction:
-                target = self._target_bounds()
-                if target != bounds:
-                    log.info(
-                        "cost volume moves: origin %s dims %s voxel %.3f m -> origin %s dims %s voxel %.3f m",
-                        tuple(round(o, 2) for o in bounds.origin_m), bounds.dims, bounds.voxel_size_m,
-                        tuple(round(o, 2) for o in target.origin_m), target.dims, target.voxel_size_m,
-                    )  # fmt: skip
-                    self._volume.rebuild(target)
-                    self.rebuilds += 1
-                return
+        grow = any(
+            float(((e.extent < lo) | (e.extent > hi)).any(dim=-1).float().mean())
+            > self.config.rebuild_outside_fraction
+            for e in new_entries
+        )
+        if not grow and not evicted:
+            return
+        target = self._target_bounds()
+        if target == bounds:
+            return
+
+        def box_volume(b: VolumeBounds) -> float:
+            return float(np.prod([n * b.voxel_size_m for n in b.dims]))
+
+        if grow or box_volume(target) <= 0.5 * box_volume(bounds):
+            log.info(
+                "cost volume moves: origin %s dims %s voxel %.3f m -> origin %s dims %s voxel %.3f m",
+                tuple(round(o, 2) for o in bounds.origin_m), bounds.dims, bounds.voxel_size_m,
+                tuple(round(o, 2) for o in target.origin_m), target.dims, target.voxel_size_m,
+            )  # fmt: skip
+            self._volume.rebuild(target)
+            self.rebuilds += 1
 
     # -- cached per version -------------------------------------------------------------------
 
@@ -807,15 +830,18 @@ class ModelRuntime:
             score: (N,) float32 cosine similarity of that label (0 where label is -1);
             timing_ms: stage timings.
         """
-        pts = torch.as_tensor(
-            np.asarray(points, dtype=np.float32) if not isinstance(points, Tensor) else points
-        )
+        pts = points if isinstance(points, Tensor) else torch.tensor(np.array(points, dtype=np.float32))
         if pts.ndim != 2 or pts.shape[-1] != 3:
             raise ValueError(f"points must have shape (N, 3), got {tuple(pts.shape)}")
         if not bool(torch.isfinite(pts).all()):
             raise ValueError("points must be finite (got NaN or Inf)")
         if not texts:
             raise ValueError("texts must hold at least one prompt, got none")
+        if pts.shape[0] > self.config.max_segment_points:
+            raise ValueError(
+                f"{pts.shape[0]} points exceed model.max_segment_points = {self.config.max_segment_points}; "
+                "split the request"
+            )
         pts = pts.to(self.device, torch.float32)
         model = self._require_model()
         timing: dict[str, float] = {}
@@ -881,11 +907,17 @@ class ModelRuntime:
             )
         if not (1 <= int(width) <= 4096 and 1 <= int(height) <= 4096):
             raise ValueError(f"image size {width}x{height} out of range 1..4096")
+        if int(width) * int(height) > self.config.max_render_pixels:
+            raise ValueError(
+                f"render size {width}x{height} = {int(width) * int(height)} pixels exceeds "
+                f"model.max_render_pixels = {self.config.max_render_pixels}; ask for a smaller image "
+                "(scale K with it)"
+            )
         semantic = "label" in outputs or "score" in outputs
         if semantic and not texts:
             raise ValueError("texts are required when outputs include 'label' or 'score'")
-        K_t = torch.as_tensor(np.asarray(K, dtype=np.float64)).reshape(-1)
-        pose = torch.as_tensor(np.asarray(world_from_cam, dtype=np.float64))
+        K_t = torch.tensor(np.array(K, dtype=np.float64)).reshape(-1)
+        pose = torch.tensor(np.array(world_from_cam, dtype=np.float64))
         if (
             K_t.shape != (4,)
             or pose.shape != (4, 4)
@@ -918,6 +950,7 @@ class ModelRuntime:
             rgb = torch.zeros(n_rays, 3, device=self.device)
             ray_depth = torch.zeros(n_rays, device=self.device)
             opacity = torch.zeros(n_rays, device=self.device)
+            covered = torch.zeros(n_rays, device=self.device)
             ov = (
                 torch.zeros(n_rays, prep.ov.shape[1], device=self.device)
                 if semantic and prep.ov is not None
@@ -929,7 +962,7 @@ class ModelRuntime:
                 part = self._render_rays(
                     model, prep, origins[sl], dirs[sl], occupancy, semantic, allowed, stats
                 )
-                rgb[sl], ray_depth[sl], opacity[sl] = part[0], part[1], part[2]
+                rgb[sl], ray_depth[sl], opacity[sl], covered[sl] = part[0], part[1], part[2], part[4]
                 if ov is not None and part[3] is not None:
                     ov[sl] = part[3]
             timing["render"] = (time.perf_counter() - t2) * 1e3
@@ -946,7 +979,9 @@ class ModelRuntime:
         if semantic:
             assert ov is not None and emb is not None
             cos = F.normalize(ov, dim=-1) @ emb.T  # (R, T)
-            has_feature = drawn & (ov.norm(dim=-1) > 1e-8)
+            # Only where the source views saw enough of what the ray hit (a cosine of a few tiny
+            # background contributions would be noise).
+            has_feature = (covered >= self.config.min_opacity) & (ov.norm(dim=-1) > 1e-8)
             cos = torch.where(has_feature[:, None], cos, torch.zeros_like(cos))
             if "score" in outputs:
                 frame.score = cos.reshape(*hw, -1).cpu().numpy().astype(np.float32)
@@ -969,8 +1004,9 @@ class ModelRuntime:
         need_ov: bool,
         allowed: Tensor,  # (M,) bool views usable as sources
         stats: dict[str, int],
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
-        """rgb (R, 3), ray distance (R,), opacity (R,), ov (R, D) | None for one chunk of rays.
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor]:
+        """rgb (R, 3), ray distance (R,), opacity (R,), ov (R, D) | None and covered (R,) (the
+        opacity of samples some source view sees) for one chunk of rays.
 
         Both modes sample ``samples_per_ray`` bins on ``[near, far]`` clipped to the volume box
         (density is exactly 0 outside it; rays that miss the box render nothing). Dense mode
@@ -1019,6 +1055,7 @@ class ModelRuntime:
         d_ov = prep.ov.shape[1] if (need_ov and prep.ov is not None) else 0
         rgb_s = torch.zeros(n * S, 3, device=flat.device)
         ov_s = torch.zeros(n * S, d_ov, device=flat.device) if d_ov else None
+        valid_s = torch.zeros(n * S, device=flat.device)
         if keep_idx.numel():
             sample_dirs = dirs[:, None, :].expand(n, S, 3).reshape(-1, 3)
             groups = self._view_groups(prep, flat[keep_idx], allowed)
@@ -1027,12 +1064,16 @@ class ModelRuntime:
                 views = self._source_views(prep, view_idx, need_ov=d_ov > 0, use_depth=False)
                 for j in range(0, local.numel(), cfg.chunk_points):
                     sub = keep_idx[local[j : j + cfg.chunk_points]]
-                    rgb_k, ov_k, _ = model.appearance(views, v_all[sub], flat[sub], sample_dirs[sub], False)
+                    rgb_k, ov_k, valid_k = model.appearance(
+                        views, v_all[sub], flat[sub], sample_dirs[sub], False
+                    )
                     rgb_s[sub] = rgb_k
+                    valid_s[sub] = valid_k.float()
                     if ov_s is not None:
                         ov_s[sub] = ov_k
         rgb = composite(weights, rgb_s.reshape(n, S, 3))
         ray_depth = expected_depth(weights, t)
         opacity = weights.sum(dim=-1)
         ov = composite(weights, ov_s.reshape(n, S, -1)) if ov_s is not None else None
-        return rgb, ray_depth, opacity, ov
+        covered = (weights * valid_s.reshape(n, S)).sum(dim=-1)
+        return rgb, ray_depth, opacity, ov, covered

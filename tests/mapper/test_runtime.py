@@ -1,0 +1,345 @@
+"""Tests for mapper.runtime: incremental volume through the window, renders, z-depth, empty-space
+skipping vs dense sampling, segmentation, not_ready paths. Tiny random-init model, tiny frames."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mapper.config import ConfigError, WindowConfig
+from mapper.cost_volume import build_cost_volume
+from mapper.model.config import EncoderConfig, FusionConfig, ModelConfig, RenderConfig, VolumeConfig
+from mapper.model.field import GovNeSF
+from mapper.runtime import ModelRuntime, ModelRuntimeConfig, RuntimeNotReady
+from mapper.window import Keyframe, KeyframeWindow
+
+TINY = ModelConfig(
+    name="tiny",
+    encoder=EncoderConfig(base_channels=8, blocks=(1, 1, 1), feature_dim=8),
+    volume=VolumeConfig(unet_channels=(4, 8, 8), group_norm_groups=4, volume_feature_dim=4, max_voxels=2048),
+    fusion=FusionConfig(hidden_dim=16, attention_dim=8, num_heads=2, ov_dim=6),
+    render=RenderConfig(n_samples=16, near_m=0.2, far_m=8.0),
+    num_source_views=3,
+    image_wh=(32, 24),
+)
+D = 6
+SPACE = "test-space"
+TEXT_EMB = np.eye(3, D, dtype=np.float32)  # "a" -> e0, "b" -> e1, "c" -> e2
+
+
+class FakeEncoder:
+    space = SPACE
+    dim = D
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        return np.stack([TEXT_EMB["abc".index(t[0])] for t in texts])
+
+
+def look_at(eye: Sequence[float], target: Sequence[float]) -> np.ndarray:
+    """(4, 4) world_from_cam of an OpenCV camera at ``eye`` looking at ``target`` (world +z up)."""
+    eye_a = np.asarray(eye, float)
+    forward = np.asarray(target, float) - eye_a
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, np.cross(forward, right), forward, eye_a
+    return pose
+
+
+def keyframe(
+    seq: int,
+    eye: Sequence[float],
+    target: Sequence[float] = (0.0, 0.0, 0.5),
+    *,
+    wh: tuple[int, int] = (40, 30),
+    ov: np.ndarray | None | str = "random",
+    depth_m: float | None = 2.0,
+) -> Keyframe:
+    w, h = wh
+    rng = np.random.default_rng(seq)
+    if isinstance(ov, str):
+        ov = rng.standard_normal((max(1, h // 6), max(1, w // 6), D)).astype(np.float16)
+    return Keyframe(
+        seq=seq,
+        stamp_ns=seq,
+        camera="cam0",
+        K=np.array([0.8 * w, 0.8 * w, w / 2, h / 2]),
+        world_from_cam=look_at(eye, target),
+        rgb=rng.integers(0, 256, (h, w, 3), dtype=np.uint8),
+        depth_m=None if depth_m is None else np.full((h, w), depth_m, np.float32),
+        ov=ov,
+        ov_space=SPACE if ov is not None else None,
+    )
+
+
+def orbit(i: int, radius: float = 2.0, centre: Sequence[float] = (0.0, 0.0)) -> tuple[float, float, float]:
+    a = 0.5 * i
+    return (centre[0] + radius * np.cos(a), centre[1] + radius * np.sin(a), 1.2)
+
+
+@pytest.fixture(scope="module")
+def model() -> GovNeSF:
+    torch.manual_seed(0)
+    return GovNeSF(TINY).eval()
+
+
+def make_runtime(model: GovNeSF, **overrides: object) -> ModelRuntime:
+    cfg = ModelRuntimeConfig(device="cpu", chunk_rays=512, **overrides)  # type: ignore[arg-type]
+    return ModelRuntime(cfg, model=model, text_encoder=lambda space: FakeEncoder())
+
+
+def test_incremental_volume_equals_batch_build_through_adds_and_evictions(model: GovNeSF) -> None:
+    runtime = make_runtime(model)
+    window = KeyframeWindow(WindowConfig(max_keyframes=4, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    for i in range(7):
+        window.consider(keyframe(i, orbit(i)))
+        if i % 2 == 0:  # sometimes several changes are applied at once
+            runtime.sync()
+    runtime.sync()
+    volume = runtime.cost_volume
+    assert volume is not None
+    assert sorted(volume.view_ids, key=id) == sorted(window.keyframes, key=id)  # exactly the window
+    entries = [runtime._entries[k] for k in volume.view_ids]
+    mean, var, count = build_cost_volume(
+        volume.bounds,
+        torch.stack([e.features for e in entries]),
+        torch.stack([e.K for e in entries]),
+        torch.stack([e.world_from_cam for e in entries]),
+        runtime.image_wh,
+    )
+    inc_mean, inc_var, inc_count = volume.statistics()
+    assert torch.equal(inc_count, count)
+    assert torch.allclose(inc_mean, mean, atol=1e-5) and torch.allclose(inc_var, var, atol=1e-5)
+    assert runtime.views_added - runtime.views_removed == len(runtime) == 4
+
+
+def test_callbacks_only_record_and_cancel_out(model: GovNeSF) -> None:
+    runtime = make_runtime(model)
+    window = KeyframeWindow(WindowConfig(max_keyframes=2, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    for i in range(5):
+        window.consider(keyframe(i, orbit(i)))
+    assert len(runtime) == 0 and runtime.version == 0  # nothing computed in the callbacks
+    assert runtime.pending == 2  # 3 keyframes came and went before anything was applied
+    assert runtime.sync() == 2 and len(runtime) == 2 and runtime.views_added == 2
+
+
+def test_bounds_follow_the_robot_and_rebuild_is_counted(model: GovNeSF) -> None:
+    runtime = make_runtime(model)
+    window = KeyframeWindow(WindowConfig(max_keyframes=3, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    for i in range(3):
+        window.consider(keyframe(i, orbit(i)))
+    runtime.sync()
+    first = runtime.bounds
+    assert first is not None and runtime.rebuilds == 0
+    for i in range(3, 6):  # the robot drives 10 m along x and looks around there
+        window.consider(keyframe(i, orbit(i, centre=(10.0, 0.0)), target=(10.0, 0.0, 0.5)))
+        runtime.sync()
+    moved = runtime.bounds
+    assert moved is not None and runtime.rebuilds >= 1
+    assert moved.origin_m[0] > first.max_corner_m[0]  # now covers the new place only (window of 3)
+    lo, hi = np.array(moved.origin_m), np.array(moved.max_corner_m)
+    assert np.all((lo <= [10.0, 0.0, 0.5]) & ([10.0, 0.0, 0.5] <= hi))
+
+
+def test_frames_of_any_size_and_without_ov_or_depth(model: GovNeSF) -> None:
+    runtime = make_runtime(model)
+    window = KeyframeWindow(WindowConfig(max_keyframes=8, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    window.consider(keyframe(0, orbit(0), wh=(64, 48)))
+    window.consider(keyframe(1, orbit(1), wh=(20, 15), ov=np.ones((1, 1, D), np.float32)))
+    window.consider(keyframe(2, orbit(2), wh=(33, 17), ov=None, depth_m=None))
+    runtime.sync()
+    assert len(runtime) == 3
+    for entry in runtime._entries.values():
+        assert tuple(entry.rgb.shape) == (3, 24, 32)
+        assert entry.ov is None or tuple(entry.ov.shape) == (D, 6, 8)
+    # K scaled with the image: the principal point stays at the image centre.
+    assert all(torch.allclose(e.K[2:], torch.tensor([16.0, 12.0])) for e in runtime._entries.values())
+    frame = runtime.render(
+        [20.0, 20.0, 8.0, 6.0], look_at((2.2, 0.3, 1.0), (0, 0, 0.5)), 16, 12, ["rgb", "label"], ["a"]
+    )
+    assert frame.rgb is not None and frame.label is not None
+
+
+def test_render_outputs_shapes_dtypes_ranges(model: GovNeSF) -> None:
+    runtime = make_runtime(model)
+    window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    for i in range(4):
+        window.consider(keyframe(i, orbit(i)))
+    pose = look_at((2.0, 0.5, 1.1), (0, 0, 0.5))
+    frame = runtime.render(
+        [20.0, 20.0, 10.0, 7.5], pose, 20, 15, ["rgb", "depth", "label", "score"], ["a", "b", "c"]
+    )
+    assert frame.rgb is not None and frame.rgb.shape == (15, 20, 3) and frame.rgb.dtype == np.uint8
+    assert frame.depth_m is not None and frame.depth_m.shape == (15, 20) and frame.depth_m.dtype == np.float32
+    assert frame.label is not None and frame.label.shape == (15, 20) and frame.label.dtype == np.int32
+    assert frame.score is not None and frame.score.shape == (15, 20, 3) and frame.score.dtype == np.float32
+    assert frame.opacity is not None and np.all((frame.opacity >= 0) & (frame.opacity <= 1 + 1e-5))
+    assert np.all(np.isfinite(frame.depth_m)) and np.all(frame.depth_m >= 0) and frame.depth_m.max() > 0
+    assert np.all((frame.label >= -1) & (frame.label < 3))
+    assert np.all(np.abs(frame.score) <= 1 + 1e-5)
+    drawn = frame.opacity >= runtime.config.min_opacity
+    assert np.all(frame.label[~drawn] == -1) and np.all(frame.depth_m[~drawn] == 0)
+    only_depth = runtime.render(
+        [20.0, 20.0, 10.0, 7.5], look_at((2.0, 0.5, 1.1), (0, 0, 0.5)), 20, 15, ["depth"]
+    )
+    assert only_depth.rgb is None and only_depth.label is None and only_depth.score is None
+    np.testing.assert_allclose(only_depth.depth_m, frame.depth_m, atol=1e-5)
+
+
+class SlabDensity:
+    """A density field replacing the network's: ``sigma_max`` inside a slab of x (world), a tiny
+    background elsewhere (so dense and skipping differ only by what skipping leaves out)."""
+
+    def __init__(self, model: GovNeSF, x0: float, x1: float, sigma_max: float, background: float) -> None:
+        self.model, self.x0, self.x1 = model, x0, x1
+        self.sigma_max, self.background = sigma_max, background
+
+    def __call__(
+        self, volume: torch.Tensor, bounds: object, points: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        x = points[:, 0]
+        inside = torch.sigmoid((x - self.x0) * 60) * torch.sigmoid((self.x1 - x) * 60)
+        sigma = self.background + self.sigma_max * inside
+        return sigma, torch.zeros(points.shape[0], volume.shape[0])
+
+
+@pytest.fixture()
+def slab_runtime(model: GovNeSF, monkeypatch: pytest.MonkeyPatch) -> ModelRuntime:
+    """Keyframes facing a wall at x = 2 m (volume x from about -0.3 to 4.3 m), the density replaced
+    by a slab x in [2.0, 2.2]."""
+    runtime = make_runtime(model, samples_per_ray=64, occupancy_threshold=0.05, min_weight=1e-4)
+    window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    for i, y in enumerate((-0.6, 0.0, 0.6)):  # the first one without depth: its frustum (to 4 m) counts
+        window.consider(keyframe(i, (0.0, y, 1.0), (2.0, y, 1.0), depth_m=2.0 if i else None))
+    runtime.sync()
+    monkeypatch.setattr(model, "density_at", SlabDensity(model, 2.0, 2.2, 50.0, 1e-3))
+    return runtime
+
+
+def test_depth_is_z_depth_along_the_optical_axis(slab_runtime: ModelRuntime) -> None:
+    # Camera at the origin looking along +x with a wide field of view: the wall at x = 2 m has
+    # z-depth 2 m at every pixel, while the ray distance grows to 2 / cos(angle) at the corners.
+    pose = look_at((0.0, 0.0, 1.0), (1.0, 0.0, 1.0))
+    frame = slab_runtime.render([12.0, 12.0, 8.0, 6.0], pose, 16, 12, ["depth"], empty_space_skipping=False)
+    assert frame.depth_m is not None and frame.opacity is not None
+    assert np.all(frame.opacity > 0.99)
+    # corner ray: |dir| / dir_z = sqrt(1 + (7.5/12)^2 + (5.5/12)^2) = 1.26, so its ray distance is
+    # ~2.5 m; the z-depth of every pixel is the wall's 2 m (the soft slab edge absorbs from ~1.95 m).
+    np.testing.assert_allclose(frame.depth_m, 2.0, atol=0.05)
+    assert frame.depth_m.std() < 0.01
+
+
+def test_empty_space_skipping_matches_dense_sampling(slab_runtime: ModelRuntime) -> None:
+    pose = look_at((0.3, 0.2, 1.1), (2.0, -0.1, 0.9))
+    K = [10.0, 10.0, 10.0, 7.5]
+    dense = slab_runtime.render(
+        K, pose, 20, 15, ["rgb", "depth", "score"], ["a", "b"], empty_space_skipping=False
+    )
+    skip = slab_runtime.render(
+        K, pose, 20, 15, ["rgb", "depth", "score"], ["a", "b"], empty_space_skipping=True
+    )
+    assert skip.stats["samples"] == dense.stats["samples"]
+    assert skip.stats["density_evals"] < 0.8 * dense.stats["density_evals"]
+    assert skip.stats["appearance_evals"] < 0.2 * dense.stats["appearance_evals"]
+    assert dense.rgb is not None and skip.rgb is not None and dense.depth_m is not None
+    assert np.abs(dense.rgb.astype(int) - skip.rgb.astype(int)).max() <= 3  # of 255
+    np.testing.assert_allclose(skip.depth_m, dense.depth_m, atol=0.02)
+    np.testing.assert_allclose(skip.opacity, dense.opacity, atol=0.01)
+    np.testing.assert_allclose(skip.score, dense.score, atol=0.02)
+
+
+def test_segment_labels_points_that_views_see_and_minus_one_elsewhere(model: GovNeSF) -> None:
+    runtime = make_runtime(model, source_views=2, view_cell_m=0.25)
+    window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    b_feature = np.broadcast_to(TEXT_EMB[1], (4, 5, D)).astype(np.float32)  # every view says "b"
+    for i in range(5):
+        window.consider(keyframe(i, orbit(i), ov=b_feature))
+    rng = np.random.default_rng(0)
+    seen = rng.uniform([-0.4, -0.4, 0.3], [0.4, 0.4, 0.7], (300, 3)).astype(np.float32)
+    unseen = np.array([[0.0, 0.0, 30.0], [50.0, 50.0, 0.0]], np.float32)  # above / far behind every camera
+    label, score, timing = runtime.segment(np.concatenate([seen, unseen]), ["a", "b", "c"])
+    assert label.dtype == np.int32 and score.dtype == np.float32 and label.shape == (302,)
+    assert np.all(label[:300] == 1) and np.allclose(
+        score[:300], 1.0, atol=1e-4
+    )  # blend of identical features
+    assert np.all(label[300:] == -1) and np.all(score[300:] == 0)
+    assert timing["total"] > 0
+    depth_label, _, _ = runtime.segment(seen, ["a", "b"], use_depth=True)
+    assert depth_label.shape == (300,) and np.all(depth_label >= -1)
+    empty_label, empty_score, _ = runtime.segment(np.zeros((0, 3), np.float32), ["a"])
+    assert empty_label.shape == (0,) and empty_score.shape == (0,)
+
+
+def test_view_groups_use_at_most_k_views_that_see_the_points(model: GovNeSF) -> None:
+    runtime = make_runtime(model, source_views=2, view_cell_m=0.3)
+    window = KeyframeWindow(WindowConfig(max_keyframes=8, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    for i in range(8):
+        window.consider(keyframe(i, orbit(i)))
+    prep = runtime._prepare()
+    points = torch.rand(500, 3) - torch.tensor([0.5, 0.5, 0.0])
+    groups = runtime._view_groups(prep, points, torch.ones(len(prep), dtype=torch.bool))
+    assert groups and sum(len(idx) for idx, _ in groups) <= 500
+    for idx, views in groups:
+        assert 1 <= len(views) <= 2
+        from mapper.geometry import in_view, invert_pose, project_points
+
+        uv, z = project_points(
+            points[idx].expand(len(views), -1, -1), prep.K[views], invert_pose(prep.world_from_cam[views])
+        )
+        assert bool(in_view(uv, z, *runtime.image_wh).any(dim=0).all())  # every point seen by its set
+
+
+def test_not_ready_without_checkpoint_keyframes_or_ov(model: GovNeSF, tmp_path: Path) -> None:
+    missing = tmp_path / "nowhere" / "model.safetensors"
+    no_model = ModelRuntime(ModelRuntimeConfig(checkpoint=str(missing), device="cpu"))
+    assert not no_model.ready and no_model.load_error and str(missing) in no_model.load_error
+    with pytest.raises(RuntimeNotReady, match="nowhere"):
+        no_model.render([10.0, 10.0, 5.0, 5.0], np.eye(4), 10, 10, ["rgb"])
+
+    runtime = make_runtime(model)
+    window = KeyframeWindow(WindowConfig(max_keyframes=4))
+    runtime.attach(window)
+    with pytest.raises(RuntimeNotReady, match="no keyframes"):
+        runtime.segment(np.zeros((3, 3), np.float32), ["a"])
+    window.consider(keyframe(0, orbit(0), ov=None))
+    window.consider(keyframe(1, orbit(1), ov=None))
+    frame = runtime.render(
+        [10.0, 10.0, 8.0, 6.0], look_at((2.0, 0.0, 1.0), (0, 0, 0.5)), 16, 12, ["rgb", "depth"]
+    )
+    assert frame.rgb is not None and frame.depth_m is not None  # geometry works without ov
+    with pytest.raises(RuntimeNotReady, match="OV features"):
+        runtime.render(
+            [10.0, 10.0, 8.0, 6.0], look_at((2.0, 0.0, 1.0), (0, 0, 0.5)), 16, 12, ["label"], ["a"]
+        )
+    with pytest.raises(RuntimeNotReady, match="OV features"):
+        runtime.segment(np.zeros((3, 3), np.float32), ["a"])
+
+
+def test_bad_requests_are_refused_with_the_value_and_range(model: GovNeSF) -> None:
+    runtime = make_runtime(model, max_render_pixels=100)
+    with pytest.raises(ValueError, match="max_render_pixels"):
+        runtime.render([10.0, 10.0, 5.0, 5.0], np.eye(4), 20, 20, ["rgb"])
+    with pytest.raises(ValueError, match="subset"):
+        runtime.render([10.0, 10.0, 5.0, 5.0], np.eye(4), 5, 5, ["normals"])
+    with pytest.raises(ValueError, match="texts"):
+        runtime.render([10.0, 10.0, 5.0, 5.0], np.eye(4), 5, 5, ["label"])
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        runtime.segment(np.zeros((4, 2), np.float32), ["a"])
+    with pytest.raises(ConfigError, match="model.view_selection"):
+        ModelRuntimeConfig(view_selection="random").validate("node.toml")
+    with pytest.raises(ConfigError, match=r"model.far_m = 0.1 must exceed"):
+        ModelRuntimeConfig(near_m=0.5, far_m=0.1).validate("node.toml")
+    ModelRuntimeConfig().validate("defaults")
