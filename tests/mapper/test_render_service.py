@@ -1,0 +1,214 @@
+"""Tests for mapper.render_service: handlers installed on an in-process node (bytes in, bytes out),
+govnesf vs fall-through segmentation, not_ready replies, and no model work under the state lock."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mapper.config import config_from_dict
+from mapper.model.config import EncoderConfig, FusionConfig, ModelConfig, RenderConfig, VolumeConfig
+from mapper.model.field import GovNeSF
+from mapper.render_service import install_learned_handlers
+from mapper.runtime import ModelRuntime, ModelRuntimeConfig
+from mapper.service import MapperNode
+from protocol.messages import (
+    Error,
+    Frame,
+    Message,
+    Render,
+    RenderResult,
+    Segmentation,
+    SegmentPoints,
+    Status,
+    StatusRequest,
+    decode,
+    encode,
+)
+
+TINY = ModelConfig(
+    name="tiny",
+    encoder=EncoderConfig(base_channels=8, blocks=(1, 1, 1), feature_dim=8),
+    volume=VolumeConfig(unet_channels=(4, 8, 8), group_norm_groups=4, volume_feature_dim=4, max_voxels=1024),
+    fusion=FusionConfig(hidden_dim=16, attention_dim=8, num_heads=2, ov_dim=4),
+    render=RenderConfig(n_samples=8, near_m=0.2, far_m=8.0),
+    num_source_views=3,
+    image_wh=(32, 24),
+)
+SPACE = "test-space"
+
+
+class FakeEncoder:
+    space = SPACE
+    dim = 4
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        return np.stack([np.eye(4, dtype=np.float32)[len(t) % 4] for t in texts])
+
+
+def look_at(eye: Sequence[float], target: Sequence[float]) -> np.ndarray:
+    eye_a = np.asarray(eye, float)
+    forward = np.asarray(target, float) - eye_a
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, np.cross(forward, right), forward, eye_a
+    return pose
+
+
+def frame(seq: int, with_ov: bool = True) -> Frame:
+    a = 0.6 * seq
+    rng = np.random.default_rng(seq)
+    return Frame(
+        seq=seq,
+        stamp_ns=seq,
+        width=40,
+        height=30,
+        K=np.array([32.0, 32.0, 20.0, 15.0]),
+        world_from_cam=look_at((2 * np.cos(a), 2 * np.sin(a), 1.2), (0.0, 0.0, 0.5)),
+        rgb=rng.integers(0, 256, (30, 40, 3), dtype=np.uint8),
+        depth_m=np.full((30, 40), 2.0, np.float32),
+        ov=rng.standard_normal((5, 6, 4)).astype(np.float32) if with_ov else None,
+        ov_space=SPACE if with_ov else None,
+    )
+
+
+@pytest.fixture()
+def node(tmp_path: Path) -> Iterator[MapperNode]:
+    config = config_from_dict(
+        {
+            "map_dir": str(tmp_path / "maps"),
+            "autosave_name": "",
+            "save_on_exit": False,
+            "window": {"max_keyframes": 4},
+        }
+    )
+    mapper = MapperNode(config)  # not started: handle_ingest / handle_query are called directly
+    yield mapper
+    mapper.stop()
+
+
+@pytest.fixture(scope="module")
+def model() -> GovNeSF:
+    torch.manual_seed(0)
+    return GovNeSF(TINY).eval()
+
+
+def runtime_for(model: GovNeSF) -> ModelRuntime:
+    return ModelRuntime(
+        ModelRuntimeConfig(device="cpu"), model=model, text_encoder=lambda space: FakeEncoder()
+    )
+
+
+def query(node: MapperNode, msg: Message) -> Message:
+    return decode(node.handle_query(encode(msg)), direction="reply")
+
+
+def test_previous_segment_handler_serves_other_methods(node: MapperNode, model: GovNeSF) -> None:
+    calls: list[str] = []
+
+    def average(msg: Message) -> Message:
+        assert isinstance(msg, SegmentPoints)
+        calls.append(msg.method)
+        n = msg.xyz.shape[0]
+        return Segmentation(label=np.zeros(n, np.int32), score=np.full(n, 0.5, np.float32))
+
+    node.register_query_handler(SegmentPoints, average)
+    install_learned_handlers(node, runtime_for(model))
+    for seq in range(3):
+        node.handle_ingest(encode(frame(seq)))
+    xyz = np.array([[0.0, 0.0, 0.5], [0.2, -0.1, 0.6], [0.0, 0.0, 40.0]], np.float32)
+    reply = query(node, SegmentPoints(xyz=xyz, texts=["a", "bb"], method="average", id=7))
+    assert isinstance(reply, Segmentation) and calls == ["average"] and np.all(reply.score == 0.5)
+    reply = query(node, SegmentPoints(xyz=xyz, texts=["a", "bb"], method="govnesf", id=8))
+    assert isinstance(reply, Segmentation) and reply.id == 8 and calls == ["average"]  # not the baseline
+    assert reply.label.shape == (3,) and reply.label[2] == -1 and set(reply.label[:2]) <= {0, 1}
+    assert "total" in reply.timing_ms
+
+
+def test_render_reply_over_the_wire(node: MapperNode, model: GovNeSF) -> None:
+    install_learned_handlers(node, runtime_for(model))
+    for seq in range(3):
+        node.handle_ingest(encode(frame(seq)))
+    request = Render(
+        width=12,
+        height=9,
+        K=np.array([10.0, 10.0, 6.0, 4.5]),
+        world_from_cam=look_at((2.2, 0.4, 1.1), (0.0, 0.0, 0.5)),
+        outputs=["rgb", "depth", "label", "score"],
+        texts=["a", "bb", "ccc"],
+        id="r1",
+    )
+    reply = query(node, request)
+    assert isinstance(reply, RenderResult) and reply.id == "r1"
+    assert reply.rgb is not None and reply.rgb.shape == (9, 12, 3)
+    assert reply.depth_m is not None and reply.depth_m.dtype == np.float32
+    assert reply.label is not None and reply.score is not None and reply.score.shape == (9, 12, 3)
+    status = query(node, StatusRequest())
+    assert isinstance(status, Status) and "render" in status.extra["serving"]
+    only_rgb = query(
+        node, Render(width=4, height=3, K=request.K, world_from_cam=request.world_from_cam, outputs=["rgb"])
+    )
+    assert isinstance(only_rgb, RenderResult) and only_rgb.depth_m is None and only_rgb.label is None
+
+
+def test_not_ready_replies_name_what_is_missing(node: MapperNode, model: GovNeSF, tmp_path: Path) -> None:
+    missing = tmp_path / "ckpt" / "cpu-small.safetensors"
+    install_learned_handlers(node, ModelRuntime(ModelRuntimeConfig(checkpoint=str(missing), device="cpu")))
+    node.handle_ingest(encode(frame(0)))
+    pose = look_at((2.0, 0.0, 1.0), (0.0, 0.0, 0.5))
+    reply = query(
+        node,
+        Render(width=4, height=3, K=np.array([4.0, 4.0, 2.0, 1.5]), world_from_cam=pose, outputs=["rgb"]),
+    )
+    assert isinstance(reply, Error) and reply.code == "not_ready" and str(missing) in reply.message
+    reply = query(node, SegmentPoints(xyz=np.zeros((2, 3), np.float32), texts=["a"]))
+    assert isinstance(reply, Error) and reply.code == "not_ready" and str(missing) in reply.message
+    status = query(node, StatusRequest())
+    assert isinstance(status, Status) and "render" not in status.extra["serving"]
+
+
+def test_semantic_request_without_ov_is_not_ready_but_colour_renders(
+    node: MapperNode, model: GovNeSF
+) -> None:
+    install_learned_handlers(node, runtime_for(model))
+    empty = query(node, SegmentPoints(xyz=np.zeros((2, 3), np.float32), texts=["a"]))
+    assert isinstance(empty, Error) and empty.code == "not_ready" and "no keyframes" in empty.message
+    for seq in range(2):
+        node.handle_ingest(encode(frame(seq, with_ov=False)))
+    pose = look_at((2.0, 0.0, 1.0), (0.0, 0.0, 0.5))
+    K = np.array([4.0, 4.0, 2.0, 1.5])
+    colour = query(node, Render(width=4, height=3, K=K, world_from_cam=pose, outputs=["rgb", "depth"]))
+    assert isinstance(colour, RenderResult) and colour.rgb is not None
+    semantic = query(
+        node, Render(width=4, height=3, K=K, world_from_cam=pose, outputs=["label"], texts=["a"])
+    )
+    assert isinstance(semantic, Error) and semantic.code == "not_ready" and "ov" in semantic.message
+
+
+def test_callbacks_do_no_model_work_under_the_state_lock(node: MapperNode, model: GovNeSF) -> None:
+    runtime = runtime_for(model)
+    install_learned_handlers(node, runtime)
+    for seq in range(6):
+        node.handle_ingest(encode(frame(seq)))
+    assert len(runtime) == 0 and runtime.pending == 4  # window of 4: recorded, nothing encoded yet
+    too_big = query(
+        node,
+        Render(
+            width=4096,
+            height=4096,
+            K=np.array([9.0, 9.0, 2.0, 2.0]),
+            world_from_cam=np.eye(4),
+            outputs=["rgb"],
+        ),
+    )
+    assert (
+        isinstance(too_big, Error)
+        and too_big.code == "bad_request"
+        and "max_render_pixels" in too_big.message
+    )
