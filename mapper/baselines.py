@@ -54,7 +54,7 @@ def average_features(
     depth_rel_tol: float = 0.25,
     chunk: int = 16384,
     distance_power: float = 0.0,
-    mask: np.ndarray | Tensor | None = None,
+    view_weights: np.ndarray | Tensor | None = None,
     device: str | torch.device = "cpu",
 ) -> tuple[Tensor, Tensor]:
     """Multi-view average of OV features at 3D points (OpenScene-2D baseline).
@@ -71,9 +71,9 @@ def average_features(
         chunk: points per chunk (bounds memory: about chunk x D x 8 bytes per view sample).
         distance_power: weight each view by z ** -distance_power (0 = plain mean); the
             "visible views weighted by distance" oracle of the reference numbers uses > 0.
-        mask: optional (V, N) bool, False excludes view v for point n on top of the other tests
-            (e.g. a ray-cast visibility oracle). Rows follow ``views`` (before views without
-            depth are dropped by ``use_depth``).
+        view_weights: optional (V, N) float >= 0 (or bool): multiplies view v's weight for point
+            n; 0 / False excludes it on top of the other tests (e.g. a ray-cast visibility
+            oracle, or an oracle weighting by known view quality). Rows follow ``views``.
         device: torch device for the computation.
 
     Returns:
@@ -104,14 +104,16 @@ def average_features(
     feats = torch.zeros(n_pts, dim, dtype=torch.float32, device=device)
     n_views = torch.zeros(n_pts, dtype=torch.int64, device=device)
     view_ids = [i for i, v in enumerate(parsed) if not use_depth or v.depth_m is not None]
-    mask_t = None
-    if mask is not None:
-        mask_t = _as_tensor(mask, torch.bool, device)
-        if tuple(mask_t.shape) != (len(parsed), n_pts):
+    vw = None
+    if view_weights is not None:
+        vw = _as_tensor(view_weights, torch.float32, device)
+        if tuple(vw.shape) != (len(parsed), n_pts):
             raise ValueError(
-                f"mask must have shape (V, N) = ({len(parsed)}, {n_pts}), got {tuple(mask_t.shape)}"
+                f"view_weights must have shape (V, N) = ({len(parsed)}, {n_pts}), got {tuple(vw.shape)}"
             )
-        mask_t = mask_t[view_ids]
+        if not bool((vw >= 0).all()):
+            raise ValueError("view_weights must be >= 0")
+        vw = vw[view_ids]
     parsed = [parsed[i] for i in view_ids]
     if not parsed or n_pts == 0:
         return feats, n_views
@@ -131,8 +133,8 @@ def average_features(
             width, height = int(v.image_wh[0]), int(v.image_wh[1])
             uv, z = uv_all[i], z_all[i]
             ok = in_view(uv, z, width, height, border_px=border_px)  # (n,)
-            if mask_t is not None:
-                ok &= mask_t[i, start:start + chunk]
+            if vw is not None:
+                ok &= vw[i, start:start + chunk] > 0
             if not bool(ok.any()):
                 continue
             idx = ok.nonzero().squeeze(1)
@@ -150,6 +152,8 @@ def average_features(
             fuv = scale_uv(uv_ok, (width, height), (ov.shape[2], ov.shape[1]))
             vals, _ = sample_bilinear(ov, fuv)  # (m, D)
             w = z_ok.clamp_min(1e-6) ** (-distance_power) if distance_power else torch.ones_like(z_ok)
+            if vw is not None:
+                w = w * vw[i, start:start + chunk][idx]
             acc.index_add_(0, idx, vals * w[:, None])
             wsum.index_add_(0, idx, w)
             count.index_add_(0, idx, torch.ones_like(idx))

@@ -58,9 +58,9 @@ class SimLSegConfig:
     """Text whose embedding fills pixels without a label (no hit)."""
     boundary_blur_cells: float = 0.6
     """Gaussian blur sigma (output cells) applied after area pooling: soft object boundaries."""
-    near_m: float = 1.5
+    near_m: float = 2.0
     """Distance along the ray (m) up to which distance does not lower quality."""
-    falloff_m: float = 2.5
+    falloff_m: float = 6.0
     """Quality decays as exp(-(distance - near_m) / falloff_m) beyond ``near_m``."""
     grazing_power: float = 0.7
     """Quality is multiplied by |cos(angle between ray and surface normal)| ** grazing_power."""
@@ -69,23 +69,27 @@ class SimLSegConfig:
     instance_confusion: float = 0.10
     """Probability that a whole instance is read as a confuser in a frame, at full quality
     (objects only: room structure without an instance id is confused by regions only)."""
-    instance_confusion_low_quality: float = 0.45
+    instance_confusion_low_quality: float = 0.3
     """Extra instance-confusion probability at zero quality (scaled by 1 - mean quality)."""
     region_confusion: float = 0.05
     """Fraction of pixels inside blob-shaped regions read as a confuser, at full quality."""
-    region_confusion_low_quality: float = 0.45
+    region_confusion_low_quality: float = 0.3
     """Extra region-confusion fraction at zero quality (scaled by 1 - pixel quality)."""
     region_scale_cells: float = 1.5
     """Correlation length (output cells) of the random field that shapes the confused regions."""
     confusion_mix: tuple[float, float] = (0.55, 1.0)
     """Range of the confuser's weight in a confused pixel's feature (the rest is the true class)."""
+    confuser_persistence: float = 0.8
+    """Probability that a confused frame uses the instance's favourite confuser (fixed per seed
+    and instance) rather than a fresh draw: real models err consistently on hard objects, so
+    averaging many views does not cancel every error (it still varies from frame to frame)."""
     confuser_top_k: int = 4
     """Confusers are drawn among the k classes whose names embed closest to the true class."""
     confuser_temperature: float = 0.05
     """Softmax temperature over cosine similarity for drawing a confuser among the top k."""
-    noise_std: float = 0.02
+    noise_std: float = 0.05
     """Per-dimension std of Gaussian feature noise (before L2 normalisation), at full quality."""
-    noise_std_low_quality: float = 0.05
+    noise_std_low_quality: float = 0.3
     """Extra per-dimension noise std at zero quality (scaled by 1 - pixel quality)."""
 
     def __post_init__(self) -> None:
@@ -101,6 +105,7 @@ class SimLSegConfig:
             ("region_confusion", self.region_confusion, 0.0, 1.0),
             ("region_confusion_low_quality", self.region_confusion_low_quality, 0.0, 1.0),
             ("region_scale_cells", self.region_scale_cells, 0.0, 100.0),
+            ("confuser_persistence", self.confuser_persistence, 0.0, 1.0),
             ("confuser_top_k", self.confuser_top_k, 1, 10_000),
             ("confuser_temperature", self.confuser_temperature, 1e-6, 100.0),
             ("noise_std", self.noise_std, 0.0, 10.0),
@@ -273,8 +278,14 @@ class SimLSeg:
                 1.0 - float(quality[mask].mean()))
             # Room structure (no instance id) is one huge unit: only blob regions confuse it.
             whole = inst_id >= 0 and rng.random() < p_inst
-            whole_cls, whole_mix = self.confuser_of(cls, rng), rng.uniform(*cfg.confusion_mix)
-            region_cls, region_mix = self.confuser_of(cls, rng), rng.uniform(*cfg.confusion_mix)
+            # Each instance has a favourite confuser (fixed by the seed, not the frame); a frame
+            # uses it with probability ``confuser_persistence``, else draws a fresh one.
+            favourite = self.confuser_of(cls, np.random.default_rng([self.seed, 2, inst_id + 1, cls]))
+            whole_cls, region_cls = (
+                favourite if rng.random() < cfg.confuser_persistence else self.confuser_of(cls, rng)
+                for _ in range(2)
+            )
+            whole_mix, region_mix = rng.uniform(*cfg.confusion_mix), rng.uniform(*cfg.confusion_mix)
             if n_cls == 1:
                 continue
             if whole:

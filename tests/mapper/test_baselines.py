@@ -120,11 +120,27 @@ def test_bad_input():
                                  (np.zeros((4, 4, 5)), K, np.eye(4), (W, H), None)], use_depth=False)
 
 
-def test_mask_excludes_views_per_point():
+def test_view_weights_exclude_and_weight_views_per_point():
     views = two_views(occluded_in_b=False)
-    mask = np.array([[True], [False]])
-    f, n = average_features(POINT, views, use_depth=False, mask=mask)
+    f, n = average_features(POINT, views, use_depth=False, view_weights=np.array([[True], [False]]))
     assert n.tolist() == [1]
     np.testing.assert_allclose(f.numpy(), [FEAT_A], atol=1e-6)
-    with pytest.raises(ValueError, match="mask must have shape"):
-        average_features(POINT, views, use_depth=False, mask=np.ones((3, 1), bool))
+    f, n = average_features(POINT, views, use_depth=False, view_weights=np.array([[3.0], [1.0]]))
+    assert n.tolist() == [2]
+    np.testing.assert_allclose(f.numpy(), [[3 / np.sqrt(10), 1 / np.sqrt(10), 0.0]], atol=1e-6)
+    with pytest.raises(ValueError, match="view_weights must have shape"):
+        average_features(POINT, views, use_depth=False, view_weights=np.ones((3, 1), bool))
+    with pytest.raises(ValueError, match=">= 0"):
+        average_features(POINT, views, use_depth=False, view_weights=-np.ones((2, 1)))
+
+
+def test_view_weights_follow_points_across_chunks():
+    rng = np.random.default_rng(1)
+    views = [(rng.standard_normal((12, 16, 4)).astype(np.float16), K,
+              look_from([-2.0 + 0.2 * i, 0.4 * i, 1.1], POINT[0]), (W, H), None) for i in range(3)]
+    pts = rng.uniform(-0.3, 0.3, size=(23, 3)) + POINT
+    weights = rng.uniform(0.0, 2.0, size=(3, 23)) * (rng.random((3, 23)) > 0.3)
+    f1, n1 = average_features(pts, views, use_depth=False, view_weights=weights, chunk=4)
+    f2, n2 = average_features(pts, views, use_depth=False, view_weights=weights, chunk=100)
+    torch.testing.assert_close(f1, f2)
+    assert torch.equal(n1, n2) and n1.max() <= 3

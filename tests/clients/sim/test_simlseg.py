@@ -98,7 +98,10 @@ def test_quality_falls_with_distance_and_grazing_angle(text_encoder, class_emb):
     assert q_front[H // 2, W // 2] == pytest.approx(1.0, abs=1e-3)
     assert q_graze[H // 2, W // 2] < 0.1
     assert q_front[0, 0] == cfg.min_quality  # no hit
-    assert view_quality(synthetic_view(4.0), cfg)[H // 2, W // 2] < 0.5
+    far = synthetic_view(4.0)
+    expected = np.exp(-(far.ray_dist_m[H // 2, W // 2] - cfg.near_m) / cfg.falloff_m)
+    assert view_quality(far, cfg)[H // 2, W // 2] == pytest.approx(expected, rel=1e-3)
+    assert view_quality(synthetic_view(8.0), cfg)[H // 2, W // 2] < expected
 
 
 def test_confusions_are_not_view_consistent(text_encoder, class_emb):
