@@ -19,6 +19,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "query": ("clients.client_cli", "query_main", "find points and objects matching texts"),
     "import": ("clients.importers.cli", "main", "convert a dataset folder to .govrec"),
     "sim": ("clients.sim.cli", "main", "simulated robot: record or stream procedural rooms"),
+    "render": ("clients.render_cli", "main", "render a view from a node"),
     "evaluate": ("mapper.cli_eval", "main", "evaluate the model against baselines"),
     "train": ("mapper.cli_train", "main", "train the GOV-NeSF model"),
 }
