@@ -60,6 +60,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="2D: samples per ray (default: the model's)")
     p.add_argument("--novel-views", type=_positive_int, default=None,
                    help="2D: at most this many novel views per scene (default all)")
+    p.add_argument("--no-clip", action="store_true",
+                   help="2D: sample rays over [near, far] instead of only inside the volume")
+    p.add_argument("--weight-threshold", type=float, default=0.0,
+                   help="2D: skip appearance for samples with a smaller weight (default 0 = exact)")
     p.add_argument("--no-2d", action="store_true", help="skip the 2D novel-view evaluation")
     p.add_argument("--no-3d", action="store_true", help="skip the 3D point evaluation")
     p.add_argument("--no-oracle", action="store_true", help="3D: skip the GT-visibility averaging row")
@@ -75,6 +79,10 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse exits 2 on errors, 0 on --help
         return int(exc.code or 0)
+    if not 0.0 <= args.weight_threshold < 1.0:
+        print(f"govnesf evaluate: --weight-threshold {args.weight_threshold} out of range [0, 1)",
+              file=sys.stderr)
+        return 2
     if args.no_2d and args.no_3d:
         print("govnesf evaluate: --no-2d and --no-3d together leave nothing to evaluate", file=sys.stderr)
         return 2
@@ -109,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     settings = ev.EvalSettings(
         max_points=args.max_points, views_per_point=args.views_per_point, num_source_views=args.source_views,
         n_samples=args.samples, max_novel_views=args.novel_views, do_2d=not args.no_2d, do_3d=not args.no_3d,
-        oracle=not args.no_oracle,
+        oracle=not args.no_oracle, clip_to_volume=not args.no_clip, weight_threshold=args.weight_threshold,
     )
 
     def log(msg: str) -> None:

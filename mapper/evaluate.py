@@ -44,7 +44,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from mapper.baselines import OVView, average_features
-from mapper.cost_volume import VolumeBounds, bounds_from_points, sample_volume
+from mapper.cost_volume import VolumeBounds, sample_volume
+from mapper.data import Scene, select_sources, source_batch
+from mapper.data import load_scene as load_data_scene
 from mapper.geometry import (
     camera_centers,
     in_view,
@@ -53,7 +55,6 @@ from mapper.geometry import (
     sample_bilinear,
     sample_nearest,
     scale_uv,
-    unproject_points,
 )
 from mapper.metrics import (
     NUM_SCANNET_CLASSES,
@@ -76,10 +77,10 @@ __all__ = [
     "find_scene_dirs",
     "gt_visibility",
     "load_scene",
-    "nearest_source_views",
+    "novel_view_sources",
     "nearest_view_selection",
     "psnr",
-    "scene_bounds",
+    "scene_sources",
     "ssim",
     "evaluate_scene",
     "summarise",
@@ -106,17 +107,12 @@ class NovelViews:
 
 @dataclass
 class EvalScene:
-    """One recorded scene, loaded for evaluation."""
+    """One recorded scene, loaded for evaluation: the training loader's ``mapper.data.Scene``
+    (frames, depth points for bounds and source selection) plus the ground truth."""
 
-    name: str
+    data: Scene
     style: str
     seed: int
-    class_names: list[str]
-    rgb: np.ndarray  # (F, H, W, 3) uint8 stream frames
-    depth_m: np.ndarray | None  # (F, H, W) float32 recorded z-depth (0 = none), None without
-    ov: np.ndarray  # (F, h, w, D) float16 SimLSeg features of the stream frames
-    K: np.ndarray  # (F, 4) float64
-    world_from_cam: np.ndarray  # (F, 4, 4) float64
     gt_depth_m: np.ndarray  # (F, H, W) float32 ground-truth depth of the stream frames (analysis)
     points_xyz: np.ndarray  # (P, 3) float32 ground-truth surface points
     points_label: np.ndarray  # (P,) int
@@ -124,11 +120,39 @@ class EvalScene:
     novel: NovelViews | None
 
     @property
+    def name(self) -> str:
+        return self.data.name
+
+    @property
+    def class_names(self) -> list[str]:
+        return self.data.class_names
+
+    @property
+    def rgb(self) -> np.ndarray:  # (F, H, W, 3) uint8
+        return self.data.rgb
+
+    @property
+    def depth_m(self) -> np.ndarray:  # (F, H, W) float32 recorded z-depth, 0 = none
+        return self.data.depth_m
+
+    @property
+    def ov(self) -> np.ndarray:  # (F, h, w, D) float16 SimLSeg features of the stream frames
+        return self.data.ov
+
+    @property
+    def K(self) -> np.ndarray:  # (F, 4)
+        return self.data.K
+
+    @property
+    def world_from_cam(self) -> np.ndarray:  # (F, 4, 4)
+        return self.data.world_from_cam
+
+    @property
     def image_wh(self) -> tuple[int, int]:
-        return int(self.rgb.shape[2]), int(self.rgb.shape[1])
+        return self.data.image_wh
 
     def __len__(self) -> int:
-        return int(self.rgb.shape[0])
+        return self.data.num_frames
 
 
 def find_scene_dirs(paths: Sequence[str | Path]) -> list[Path]:
@@ -149,36 +173,22 @@ def find_scene_dirs(paths: Sequence[str | Path]) -> list[Path]:
 
 
 def load_scene(path: str | Path) -> EvalScene:
-    """Read a ``govnesf sim record`` directory (docs/SIM.md layout) for evaluation."""
-    from protocol.recording import read_recording
-
+    """Read a ``govnesf sim record --depth`` directory (docs/SIM.md layout) for evaluation."""
     path = Path(path)
     gt = path / "gt"
     for need in ("points.npz", "stream.npz", "class_names.json"):
         if not (gt / need).is_file():
             raise FileNotFoundError(f"{path}: gt/{need} missing; record with `govnesf sim record`")
-    reader = read_recording(path / "frames.govrec")
-    meta = dict(reader.header.meta)
-    rgb, depth, ov, Ks, poses = [], [], [], [], []
-    for fr in reader.frames():
-        if fr.ov is None:
-            raise ValueError(f"{path}: frame {fr.seq} has no OV features; record without --no-ov")
-        rgb.append(fr.rgb)
-        depth.append(fr.depth_m)
-        ov.append(np.asarray(fr.ov, dtype=np.float16))
-        Ks.append(fr.K)
-        poses.append(fr.world_from_cam)
-    if reader.truncated:
-        raise ValueError(f"{path}/frames.govrec is truncated: {reader.error}")
-    if not rgb:
-        raise ValueError(f"{path}/frames.govrec holds no frames")
-    has_depth = all(d is not None for d in depth)
+    data = load_data_scene(path)
     pts = np.load(gt / "points.npz", allow_pickle=False)
     stream = np.load(gt / "stream.npz", allow_pickle=False)
     novel = None
     if (gt / "novel_views.npz").is_file():
         nv = np.load(gt / "novel_views.npz", allow_pickle=False)
         nov_ov = np.load(gt / "novel_ov.npy", allow_pickle=False) if (gt / "novel_ov.npy").is_file() else None
+        if nov_ov is not None and nov_ov.shape[0] != nv["K"].shape[0]:
+            raise ValueError(f"{path}: gt/novel_ov.npy has {nov_ov.shape[0]} views, gt/novel_views.npz "
+                             f"{nv['K'].shape[0]}; re-run scripts/novel_view_ov.py")
         novel = NovelViews(
             K=nv["K"].astype(np.float64), world_from_cam=nv["world_from_cam"].astype(np.float64),
             rgb=nv["rgb"], label=nv["label"].astype(np.int64), ov=nov_ov,
@@ -187,15 +197,9 @@ def load_scene(path: str | Path) -> EvalScene:
     if (gt / "scene.json").is_file():
         info = json.loads((gt / "scene.json").read_text())
     return EvalScene(
-        name=path.name,
-        style=str(info.get("style", meta.get("style", "unknown"))),
-        seed=int(info.get("seed", meta.get("seed", -1))),
-        class_names=list(json.loads((gt / "class_names.json").read_text())),
-        rgb=np.stack(rgb),
-        depth_m=np.stack(depth).astype(np.float32) if has_depth else None,  # type: ignore[arg-type]
-        ov=np.stack(ov),
-        K=np.stack(Ks).astype(np.float64),
-        world_from_cam=np.stack(poses).astype(np.float64),
+        data=data,
+        style=str(info.get("style", "unknown")),
+        seed=int(info.get("seed", -1)),
         gt_depth_m=stream["depth_m"].astype(np.float32),
         points_xyz=pts["xyz"].astype(np.float32),
         points_label=pts["label"].astype(np.int64),
@@ -204,60 +208,21 @@ def load_scene(path: str | Path) -> EvalScene:
     )
 
 
-def scene_bounds(scene: EvalScene, max_voxels: int, *, stride_px: int = 4) -> VolumeBounds:
-    """Volume over what the stream observed: ``bounds_from_points`` of its unprojected depth.
-
-    Uses the recorded depth when present, else the ground-truth stream depth (the bounds of
-    the scanned scene, like the official code's fixed box around a ScanNet scene).
-    """
-    depth = scene.depth_m if scene.depth_m is not None else scene.gt_depth_m
-    w, h = scene.image_wh
-    jj, ii = np.meshgrid(np.arange(0, h, stride_px), np.arange(0, w, stride_px), indexing="ij")
-    uv = torch.from_numpy(np.stack([ii + 0.5, jj + 0.5], -1).reshape(-1, 2)).double()  # (M, 2)
-    pts = []
-    for k in range(len(scene)):
-        z = torch.from_numpy(depth[k][jj, ii].reshape(-1)).double()
-        ok = z > 0
-        if ok.any():
-            pts.append(unproject_points(uv[ok], z[ok], torch.from_numpy(scene.K[k]),
-                                        torch.from_numpy(scene.world_from_cam[k])))
-    if not pts:
-        raise ValueError(f"scene {scene.name}: no depth to bound the volume")
-    return bounds_from_points(torch.cat(pts).float(), max_voxels=max_voxels)
-
-
-def nearest_source_views(world_from_cam: np.ndarray, target_from_cam: np.ndarray, n: int,
-                         *, metres_per_radian: float = 1.0) -> np.ndarray:
-    """Indices of the ``n`` poses nearest to a target pose, nearest first.
-
-    Distance: camera-centre distance (m) + ``metres_per_radian`` x the angle between optical axes.
-
-    Args:
-        world_from_cam: (F, 4, 4) candidate poses; target_from_cam: (4, 4) the target's
-            world_from_cam.
-
-    Returns:
-        (min(n, F),) int64.
-    """
-    if n < 1:
-        raise ValueError(f"n {n} out of range: must be >= 1")
-    d = np.linalg.norm(world_from_cam[:, :3, 3] - target_from_cam[:3, 3], axis=1)
-    cos = np.clip(world_from_cam[:, :3, 2] @ target_from_cam[:3, 2], -1.0, 1.0)
-    score = d + metres_per_radian * np.arccos(cos)
-    return np.argsort(score, kind="stable")[:n].astype(np.int64)
-
-
-def to_source_views(model: GovNeSF, scene: EvalScene, index: np.ndarray | None = None,
-                    *, device: torch.device | str = "cpu") -> SourceViews:
-    """Encode the stream frames ``index`` (all when None) as the model's source views."""
-    sel = np.arange(len(scene)) if index is None else np.asarray(index)
-    rgb = torch.from_numpy(scene.rgb[sel]).to(device).permute(0, 3, 1, 2).float() / 255.0
-    ov = torch.from_numpy(scene.ov[sel]).to(device).permute(0, 3, 1, 2).float()
-    depth = None if scene.depth_m is None else torch.from_numpy(scene.depth_m[sel]).to(device)
-    K = torch.from_numpy(scene.K[sel]).to(device).float()
-    poses = torch.from_numpy(scene.world_from_cam[sel]).to(device).float()
+def scene_sources(model: GovNeSF, scene: EvalScene, index: np.ndarray | None = None,
+                  *, device: torch.device | str = "cpu") -> tuple[SourceViews, VolumeBounds]:
+    """Source views (encoded) of the stream frames ``index`` (all when None) and the volume
+    bounds over their depth points: exactly what training builds (``mapper.data.source_batch``)."""
+    sel = np.arange(len(scene)) if index is None else np.asarray(index, dtype=np.int64)
+    src = source_batch(scene.data, sel, model.cfg).to(device)
     with torch.no_grad():
-        return model.make_source_views(rgb, ov, K, poses, depth)
+        views = model.make_source_views(src.rgb, src.ov, src.K, src.world_from_cam, src.depth_m)
+    return views, src.bounds
+
+
+def novel_view_sources(scene: EvalScene, view: int, n: int) -> np.ndarray:
+    """(n,) stream frames for novel view ``view``: best overlap first, as in training's validation."""
+    assert scene.novel is not None
+    return select_sources(scene.data, scene.novel.K[view], scene.novel.world_from_cam[view], n)
 
 
 # ---- point queries ------------------------------------------------------------------------------
@@ -512,7 +477,11 @@ class EvalSettings:
     n_samples: int | None = None
     """2D: samples per ray (None: the model's)."""
     max_novel_views: int | None = None
-    """2D: evaluate at most this many novel views per scene (None: all)."""
+    """2D: evaluate at most this many (evenly spaced) novel views per scene (None: all)."""
+    clip_to_volume: bool = True
+    """2D: sample rays only inside the volume (as ``launch/train_cpu_small.toml`` trains)."""
+    weight_threshold: float = 0.0
+    """2D: skip the appearance pass for samples with a smaller rendering weight (0 = exact)."""
     chunk_rays: int = 1024
     chunk_points: int = 2048
     do_2d: bool = True
@@ -544,7 +513,7 @@ def _subset(scene: EvalScene, settings: EvalSettings) -> np.ndarray:
 
 def _avg_views(scene: EvalScene) -> list[OVView]:
     return [OVView(scene.ov[k], scene.K[k], scene.world_from_cam[k], scene.image_wh,
-                   None if scene.depth_m is None else scene.depth_m[k]) for k in range(len(scene))]
+                   scene.depth_m[k]) for k in range(len(scene))]
 
 
 def evaluate_scene(
@@ -598,10 +567,8 @@ def _evaluate_3d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
         log(f"  3d {scene.name} {name:<34} mIoU {100 * s.miou:5.1f}  ({seconds:.1f} s)")
 
     avg_views = _avg_views(scene)
-    depth_t = None if scene.depth_m is None else torch.from_numpy(scene.depth_m)
+    depth_t = torch.from_numpy(scene.depth_m)
     for use_depth in (False, True):
-        if use_depth and depth_t is None:
-            continue
         t0 = time.perf_counter()
         vw = None
         if vpp is not None:
@@ -624,14 +591,11 @@ def _evaluate_3d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
 
     for mname, model in models.items():
         t0 = time.perf_counter()
-        views = to_source_views(model, scene, device=device)
-        bounds = scene_bounds(scene, model.cfg.volume.max_voxels)
+        views, bounds = scene_sources(model, scene, device=device)
         with torch.no_grad():
             volume = model.build_volume(views, bounds)
         t_vol = time.perf_counter() - t0
         for dgm in (False, True):
-            if dgm and views.depth_m is None:
-                continue
             t0 = time.perf_counter()
             pb = blend_points(model, views, volume, bounds, pts.to(device), depth_guided_masking=dgm,
                               views_per_point=vpp, chunk_size=settings.chunk_points)
@@ -663,9 +627,9 @@ def _evaluate_2d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
                  log: Callable[[str], None], device: torch.device | str) -> dict[str, MethodResult]:
     novel = scene.novel
     assert novel is not None
-    n_views = novel.K.shape[0]
-    if settings.max_novel_views is not None:
-        n_views = min(n_views, settings.max_novel_views)
+    keep = list(range(novel.K.shape[0]))
+    if settings.max_novel_views is not None and settings.max_novel_views < len(keep):
+        keep = np.linspace(0, len(keep) - 1, settings.max_novel_views).round().astype(int).tolist()
     wh = scene.image_wh
     res: dict[str, MethodResult] = {}
     cms: dict[str, np.ndarray] = {}
@@ -676,7 +640,7 @@ def _evaluate_2d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
         for k, v in extra.items():
             extras.setdefault(name, {}).setdefault(k, []).append(v)
 
-    for v in range(n_views):
+    for v in keep:
         gt = novel.label[v]
         target_rgb = torch.from_numpy(novel.rgb[v]).double() / 255.0
         if novel.ov is not None:
@@ -684,15 +648,15 @@ def _evaluate_2d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
         for mname, model in models.items():
             t0 = time.perf_counter()
             n_src = settings.num_source_views or model.cfg.num_source_views
-            idx = nearest_source_views(scene.world_from_cam, novel.world_from_cam[v], n_src)
-            views = to_source_views(model, scene, idx, device=device)
-            bounds = scene_bounds(scene, model.cfg.volume.max_voxels)
+            views, bounds = scene_sources(model, scene, novel_view_sources(scene, v, n_src), device=device)
             with torch.no_grad():
                 volume = model.build_volume(views, bounds)
                 out = render_image(model, views, volume, bounds,
                                    torch.from_numpy(novel.K[v]).float().to(device),
                                    torch.from_numpy(novel.world_from_cam[v]).float().to(device), wh,
-                                   chunk_rays=settings.chunk_rays, n_samples=settings.n_samples)
+                                   chunk_rays=settings.chunk_rays, n_samples=settings.n_samples,
+                                   clip_to_volume=settings.clip_to_volume,
+                                   weight_threshold=settings.weight_threshold)
             secs = time.perf_counter() - t0
             rgb = out.rgb.clamp(0, 1).cpu().double()
             add(mname, gt, _labels_2d(out.ov.cpu(), text_emb), psnr=psnr(rgb, target_rgb),
