@@ -91,14 +91,36 @@ def value_noise(p: np.ndarray) -> np.ndarray:
     return out
 
 
-def fbm(p: np.ndarray, octaves: int = 3) -> np.ndarray:
-    """Fractal sum of value noise, roughly in [0, 1]. p: (N, 3) -> (N,)."""
+def _fade(period: np.ndarray | float, footprint: np.ndarray | None) -> np.ndarray | float:
+    """Weight of a pattern detail of `period` seen through a pixel of `footprint` (same units):
+    1 while the pixel is at most half the period, falling to 0 when it covers a whole period
+    (the detail then averages out inside the pixel, as it does in a real camera)."""
+    if footprint is None:
+        return 1.0
+    return np.clip(2.0 - 2.0 * footprint / period, 0.0, 1.0)
+
+
+def fbm(p: np.ndarray, octaves: int = 3, footprint: np.ndarray | None = None) -> np.ndarray:
+    """Fractal sum of value noise, roughly in [0, 1], mean 0.5. p: (N, 3) -> (N,).
+
+    footprint: (N,) pixel size on the surface in the units of p; octaves finer than it fade to
+    their mean (a cheap pre-filter against aliasing).
+    """
     acc, amp, norm = np.zeros(p.shape[0]), 1.0, 0.0
     for o in range(octaves):
-        acc += amp * value_noise(p * (2.0**o) + 17.0 * o)
+        spacing = 0.5**o
+        acc += amp * (value_noise(p / spacing + 17.0 * o) - 0.5) * _fade(spacing, footprint)
         norm += amp
         amp *= 0.5
-    return acc / norm
+    return 0.5 + acc / norm
+
+
+def _soft_square(phase: np.ndarray, period_m: np.ndarray, footprint_m: np.ndarray | None) -> np.ndarray:
+    """Square wave sign(sin(2 pi phase)) box-filtered over the pixel footprint (approximately)."""
+    if footprint_m is None:
+        return np.sign(np.sin(2 * np.pi * phase))
+    gain = period_m / (np.pi * np.maximum(footprint_m, 1e-6))
+    return np.clip(np.sin(2 * np.pi * phase) * gain, -1.0, 1.0)
 
 
 def _plane_uv(p: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -109,9 +131,12 @@ def _plane_uv(p: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u, v
 
 
+_GRAIN_M = 0.015  # lattice spacing of the fine grain every surface carries
+
+
 def procedural_albedo(
     p: np.ndarray, n: np.ndarray, colour: np.ndarray, colour2: np.ndarray, kind: np.ndarray,
-    scale_m: np.ndarray,
+    scale_m: np.ndarray, footprint_m: np.ndarray | None = None,
 ) -> np.ndarray:
     """Albedo at world points.
 
@@ -121,45 +146,65 @@ def procedural_albedo(
         colour, colour2: (N, 3) the face's two colours.
         kind: (N,) Texture ids.
         scale_m: (N,) texture period.
+        footprint_m: (N,) size of the pixel on the surface, metres; details smaller than it are
+            averaged out (None: no filtering, the pattern at the exact point).
     Returns:
         (N, 3) float64 albedo in [0, 1].
     """
-    s = np.maximum(scale_m.astype(np.float64), 1e-3)[:, None]
+    s1 = np.maximum(scale_m.astype(np.float64), 1e-3)
+    s = s1[:, None]
     q = p / s                                   # lattice units
     u, v = _plane_uv(p, n)
-    us, vs = u / s[:, 0], v / s[:, 0]
-    fine = fbm(p / 0.015, 2)                    # grain every surface has (helps stereo matching)
+    us, vs = u / s1, v / s1
+    fp = None if footprint_m is None else np.asarray(footprint_m, dtype=np.float64)
+    fq = None if fp is None else fp / s1        # footprint in lattice units
+    fine = fbm(p / _GRAIN_M, 2, None if fp is None else fp / _GRAIN_M)  # stereo-matchable grain
     mix = np.zeros(p.shape[0])                  # 0 -> colour, 1 -> colour2
 
     def sel(k: Texture) -> np.ndarray:
         return kind == int(k)
 
+    def sub(x: np.ndarray | None, m: np.ndarray, factor: float = 1.0) -> np.ndarray | None:
+        return None if x is None else x[m] * factor
+
     m = sel(Texture.PLAIN)
-    mix[m] = 0.35 * fbm(q[m], 3)
+    mix[m] = 0.35 * fbm(q[m], 3, sub(fq, m))
     m = sel(Texture.CHECKER)
-    mix[m] = ((np.floor(us[m]) + np.floor(vs[m])) % 2 == 1) * 0.9 + 0.1 * fbm(q[m] * 3, 2)
+    sq = _soft_square(us[m] * 0.5, 2 * s1[m], sub(fp, m)) * _soft_square(vs[m] * 0.5, 2 * s1[m], sub(fp, m))
+    mix[m] = 0.45 - 0.45 * sq + 0.1 * fbm(q[m] * 3, 2, sub(fq, m, 3.0))
     m = sel(Texture.STRIPES)
-    mix[m] = 0.5 + 0.5 * np.sign(np.sin(2 * np.pi * us[m])) * 0.8 + 0.1 * fbm(q[m] * 4, 2)
+    grain = fbm(q[m] * 4, 2, sub(fq, m, 4.0)) - 0.5
+    mix[m] = 0.5 + 0.4 * _soft_square(us[m], s1[m], sub(fp, m)) + 0.1 * grain
     m = sel(Texture.WOOD)
-    warp = fbm(q[m] * np.array([0.3, 0.3, 0.3]), 3) * 3.0
-    mix[m] = 0.5 + 0.5 * np.sin(2 * np.pi * (vs[m] * 0.2 + us[m] + warp))
+    warp = fbm(q[m] * 0.3, 3, sub(fq, m, 0.3)) * 3.0
+    mix[m] = 0.5 + 0.5 * np.sin(2 * np.pi * (vs[m] * 0.2 + us[m] + warp)) * _fade(s1[m], sub(fp, m))
     m = sel(Texture.FABRIC)
-    mix[m] = 0.6 * fbm(q[m] * 2.0, 3) + 0.4 * (0.5 + 0.5 * np.sin(2 * np.pi * us[m] * 3) * np.sin(
-        2 * np.pi * vs[m] * 3))
+    weave = np.sin(2 * np.pi * us[m] * 3) * np.sin(2 * np.pi * vs[m] * 3) * _fade(s1[m] / 3, sub(fp, m))
+    mix[m] = 0.6 * fbm(q[m] * 2.0, 3, sub(fq, m, 2.0)) + 0.4 * (0.5 + 0.5 * weave)
     m = sel(Texture.TILES)
     fu, fv = us[m] - np.floor(us[m]), vs[m] - np.floor(vs[m])
-    grout = (np.minimum(fu, 1 - fu) < 0.03) | (np.minimum(fv, 1 - fv) < 0.03)
-    mix[m] = np.where(grout, 1.0, 0.3 * fbm(q[m] * 0.5 + np.floor(q[m]), 2))
+    d_line = np.minimum(np.minimum(fu, 1 - fu), np.minimum(fv, 1 - fv)) * s1[m]   # metres to a grout line
+    half_w = 0.03 * s1[m]
+    if fp is None:
+        grout = (d_line < half_w).astype(np.float64)
+    else:  # fraction of the pixel covered by the line, roughly
+        f = np.maximum(fp[m], 1e-6)
+        grout = np.clip((half_w - d_line) / f + 0.5, 0.0, 1.0) * np.minimum(1.0, 2 * half_w / f)
+        grout = np.maximum(grout, np.minimum(1.0, 4 * half_w / f) * 0.5 * (1 - _fade(s1[m], f)))
+    tile = 0.3 * fbm(q[m] * 0.5 + np.floor(q[m]), 2, sub(fq, m, 0.5))
+    mix[m] = grout + (1.0 - grout) * tile
     m = sel(Texture.MARBLE)
-    mix[m] = np.abs(np.sin(2 * np.pi * (us[m] * 0.3 + 2.5 * fbm(q[m], 4)))) ** 0.4
+    veins = np.abs(np.sin(2 * np.pi * (us[m] * 0.3 + 2.5 * fbm(q[m], 4, sub(fq, m))))) ** 0.4
+    mix[m] = 0.8 + (veins - 0.8) * _fade(s1[m] * 0.25, sub(fp, m))
     albedo = colour * (1.0 - mix[:, None]) + colour2 * mix[:, None]
 
     m = sel(Texture.PATCHES)  # each cell a random colour
     if m.any():
         cell_u, cell_v = np.floor(us[m]), np.floor(vs[m] * 0.35)
-        cell_w = np.floor(q[m].sum(1) * 0.0)
+        cell_w = np.zeros_like(cell_u)
         rnd = np.stack([_hash3(cell_u, cell_v, cell_w + k) for k in range(3)], 1)
-        albedo[m] = 0.55 * rnd + 0.45 * colour[m] * (0.6 + 0.4 * fbm(q[m] * 3, 2))[:, None]
+        rnd = 0.5 + (rnd - 0.5) * np.asarray(_fade(s1[m], sub(fp, m)))[..., None] if fp is not None else rnd
+        albedo[m] = 0.55 * rnd + 0.45 * colour[m] * (0.6 + 0.4 * fbm(q[m] * 3, 2, sub(fq, m, 3.0)))[:, None]
     m = sel(Texture.SKY)
     if m.any():
         t = np.clip((p[m, 2] - 0.8) / 1.6, 0.0, 1.0)[:, None]
@@ -171,6 +216,14 @@ def procedural_albedo(
 # ----------------------------------------------------------------------------------------------
 # Renderer
 # ----------------------------------------------------------------------------------------------
+
+
+def tone_map(x: np.ndarray, knee: float = 0.75) -> np.ndarray:
+    """Linear up to `knee`, then a smooth exponential shoulder towards 1 (slope continuous), so
+    brightly lit surfaces keep their texture instead of clipping to white. Any shape -> same."""
+    x = np.maximum(x, 0.0)
+    head = 1.0 - knee
+    return np.where(x <= knee, x, knee + head * (1.0 - np.exp(-(x - knee) / head)))
 
 
 class SceneRenderer:
@@ -232,12 +285,16 @@ class SceneRenderer:
             n_w[facing] *= -1.0                                     # towards the camera
             normal_cam[hit] = np.einsum("pk,kj->pj", n_w, R)   # R^T @ n
             p = c + th[:, None] * d_world[hit]
+            # pixel size on the surface (metres): distance x angular pixel size / obliquity
+            cos_inc = np.abs(np.sum(n_w * d_world[hit], axis=1))
+            pixel_rad = (d_cam[hit, 2] ** 2) / min(float(K[0]), float(K[1]))
+            footprint = th * pixel_rad / np.maximum(cos_inc, 0.2)
             albedo = procedural_albedo(p, scene.face_normal[f].astype(np.float64), scene.face_colour[f],
                                        scene.face_colour2[f], scene.face_texture[f],
-                                       scene.face_texture_scale[f])
+                                       scene.face_texture_scale[f], footprint)
             rgb[hit] = albedo * self._shade(p, n_w, self._emissive[f])
         return RenderedView(
-            rgb=(np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8).reshape(height, width, 3),
+            rgb=(tone_map(rgb) * 255.0 + 0.5).astype(np.uint8).reshape(height, width, 3),
             depth_m=depth.reshape(height, width), label=label.reshape(height, width),
             instance=inst.reshape(height, width), normal_cam=normal_cam.reshape(height, width, 3),
             ray_dist_m=dist.reshape(height, width))

@@ -7,7 +7,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from clients.sim.raycast import SceneRenderer, camera_rays
+from clients.sim.raycast import SceneRenderer, camera_rays, tone_map
 from clients.sim.robot import default_intrinsics, look_at, robot_trajectory
 from clients.sim.scenes import LABEL_OF, Light, Scene, Texture, generate_scene
 
@@ -143,3 +143,13 @@ def test_non_rotation_pose_raises(room: tuple[Scene, SceneRenderer, np.ndarray])
     bad[0, 0] = 2.0
     with pytest.raises(ValueError, match="rotation"):
         room[1].render(default_intrinsics(W, H), bad, W, H)
+
+
+def test_tone_map_is_monotone_and_never_clips() -> None:
+    x = np.linspace(0.0, 5.0, 2001)
+    y = tone_map(x)
+    np.testing.assert_allclose(y[x <= 0.75], x[x <= 0.75])   # linear below the knee
+    assert (np.diff(y) > 0).all() and y.max() < 1.0             # keeps contrast, never clips
+    assert abs((y[1] - y[0]) / (x[1] - x[0]) - 1.0) < 1e-9
+    k = np.searchsorted(x, 0.75)
+    assert abs((y[k + 1] - y[k]) / (x[k + 1] - x[k]) - 1.0) < 0.01  # slope continuous at the knee
