@@ -147,12 +147,12 @@ def label_with_texts(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Best text per point, its cosine, and whether it beats every negative:
     (label (N,) int64, score (N,) float32, beats_negatives (N,) bool)."""
-    sims = features @ text_emb.T  # (N, T)
-    label = np.argmax(sims, axis=1)
-    score = np.take_along_axis(sims, label[:, None], axis=1)[:, 0].astype(np.float32)
+    n_texts = text_emb.shape[0]
+    sims = features @ np.concatenate([text_emb, negative_emb]).T  # (N, T + Q): one product
+    label = np.argmax(sims[:, :n_texts], axis=1)
+    score = sims[np.arange(sims.shape[0]), label].astype(np.float32)
     if negative_emb.shape[0]:
-        neg = (features @ negative_emb.T).max(axis=1)
-        beats = score > neg
+        beats = score > sims[:, n_texts:].max(axis=1)
     else:
         beats = np.ones(score.shape[0], bool)
     return label, score, beats
