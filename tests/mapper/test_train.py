@@ -1,0 +1,160 @@
+"""mapper.train: data-parallel equivalence, exact resume, loss goes down, schedule, config errors.
+
+All runs use a tiny network on the synthetic wall scene of test_data.py (64 x 48 images).
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.multiprocessing as mp
+from test_data import tiny_model_config, write_text_embeddings, write_tiny_scene
+
+from mapper.checkpoint import load_model
+from mapper.data import RaySampler, load_scene
+from mapper.model.field import GovNeSF
+from mapper.train import TrainConfig, learning_rate, load_train_config, train, train_step
+
+
+@pytest.fixture(scope="module")
+def data_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("traindata")
+    write_tiny_scene(root / "train" / "tiny_s0", n_frames=6, seed=0)
+    write_tiny_scene(root / "train" / "tiny_s1", n_frames=5, seed=1)
+    write_tiny_scene(root / "val" / "tiny_s9", n_frames=5, seed=9)
+    write_text_embeddings(root / "val")
+    return root
+
+
+def _cfg(root: Path, out: Path, **kw: object) -> TrainConfig:
+    base: dict[str, object] = dict(
+        preset="tiny",
+        train_dir=str(root / "train"),
+        val_dir=str(root / "val"),
+        out_dir=str(out),
+        max_steps=4,
+        batch_views=2,
+        rays_per_view=24,
+        warmup_steps=1,
+        lr=3e-3,
+        threads=1,
+        checkpoint_every=2,
+        val_every=1000,
+        val_views_per_scene=1,
+        val_stride_px=8,
+        log_every=1,
+    )
+    base.update(kw)
+    return TrainConfig(**base)  # type: ignore[arg-type]
+
+
+def _params(path: Path) -> dict[str, torch.Tensor]:
+    model, _ = load_model(path)
+    return {k: v.clone() for k, v in model.state_dict().items()}
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _rank_main(rank: int, world: int, port: int, cfg: TrainConfig) -> None:
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1",
+        MASTER_PORT=str(port),
+        RANK=str(rank),
+        WORLD_SIZE=str(world),
+        LOCAL_RANK=str(rank),
+    )
+    train(cfg, model_cfg=tiny_model_config(), progress=False)
+
+
+def test_two_process_gloo_matches_one_process(data_root: Path, tmp_path: Path) -> None:
+    single = _cfg(data_root, tmp_path / "single", max_steps=3)
+    result = train(single, model_cfg=tiny_model_config(), progress=False)
+    assert result["step"] == 3 and np.isfinite(result["validation"]["miou_2d"])
+    multi = _cfg(data_root, tmp_path / "multi", max_steps=3)
+    mp.start_processes(_rank_main, args=(2, _free_port(), multi), nprocs=2, join=True, start_method="spawn")
+    a, b = _params(tmp_path / "single" / "last"), _params(tmp_path / "multi" / "last")
+    moved = 0
+    torch.manual_seed(0)  # train() seeds with cfg.seed = 0 before building the model
+    init = GovNeSF(tiny_model_config())
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], atol=2e-5, rtol=1e-4, msg=lambda m, k=k: f"{k}: {m}")
+        moved += int(not torch.equal(a[k], init.state_dict()[k]))
+    assert moved > len(a) // 2  # the runs actually trained
+    assert (tmp_path / "multi" / "log.jsonl").read_text().count('"world_size": 2') == 1
+
+
+def test_resume_equals_uninterrupted(data_root: Path, tmp_path: Path) -> None:
+    train(_cfg(data_root, tmp_path / "full"), model_cfg=tiny_model_config(), progress=False)
+    part = _cfg(data_root, tmp_path / "part")
+    first = train(part, model_cfg=tiny_model_config(), progress=False, until_step=2)
+    assert first["step"] == 2
+    second = train(
+        part, model_cfg=tiny_model_config(), progress=False, resume=tmp_path / "part" / "last.json"
+    )
+    assert second["step"] == 4
+    a, b = _params(tmp_path / "full" / "last"), _params(tmp_path / "part" / "last")
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], atol=1e-6, rtol=1e-6, msg=lambda m, k=k: f"{k}: {m}")
+
+
+def test_few_steps_lower_the_loss_on_a_fixed_batch(data_root: Path) -> None:
+    torch.set_num_threads(1)
+    cfg = _cfg(
+        data_root,
+        data_root / "unused",
+        max_steps=1000,
+        warmup_steps=0,
+        lr=1e-2,
+        rays_per_view=64,
+        batch_views=1,
+    )
+    sampler = RaySampler([load_scene(data_root / "train" / "tiny_s0")], tiny_model_config(), rays_per_view=64)
+    torch.manual_seed(0)
+    model = GovNeSF(tiny_model_config())
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    losses = [train_step(model, opt, sampler, cfg, 0, 0, 1, torch.device("cpu"))["loss"] for _ in range(25)]
+    assert np.mean(losses[-3:]) < 0.8 * np.mean(losses[:3]), losses
+
+
+def test_learning_rate_schedule() -> None:
+    cfg = TrainConfig(max_steps=110, warmup_steps=10, lr=1e-3, min_lr_ratio=0.1)
+    assert learning_rate(cfg, 0) == pytest.approx(1e-4)
+    assert learning_rate(cfg, 9) == pytest.approx(1e-3)
+    assert learning_rate(cfg, 60) == pytest.approx(1e-3 * (0.1 + 0.9 * 0.5))
+    assert learning_rate(cfg, 110) == pytest.approx(1e-4)
+    lrs = [learning_rate(cfg, s) for s in range(10, 111)]
+    assert all(a >= b for a, b in zip(lrs, lrs[1:], strict=False))
+
+
+def test_config_errors(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="batch_views"):
+        TrainConfig(batch_views=0)
+    with pytest.raises(ValueError, match="mode"):
+        TrainConfig(mode="average")
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[train]\npreset = "cpu-small"\nlearning_rate = 0.1\n')
+    with pytest.raises(ValueError, match="unknown"):
+        load_train_config(bad)
+    good = tmp_path / "good.toml"
+    good.write_text("[train]\nmax_steps = 7\n")
+    assert load_train_config(good, max_steps=None).max_steps == 7
+    assert load_train_config(good, max_steps=9).max_steps == 9
+    with pytest.raises(FileNotFoundError):
+        load_train_config(tmp_path / "missing.toml")
+
+
+def test_launch_configs_load() -> None:
+    root = Path(__file__).resolve().parents[2] / "launch"
+    for name in ("train_cpu_small.toml", "train_paper.toml"):
+        if (root / name).is_file():
+            cfg = load_train_config(root / name)
+            assert cfg.batch_views >= 1
