@@ -15,6 +15,7 @@ import re
 import sys
 import time
 from collections import Counter
+from typing import Any
 
 from clients.sim.export import RGB_ENCODINGS, RecordConfig, SimStream, record
 
@@ -37,12 +38,12 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rgb-encoding", default="rgb8", choices=RGB_ENCODINGS, help="colour encoding")
 
 
-def _config(args: argparse.Namespace, **extra: object) -> RecordConfig:
+def _config(args: argparse.Namespace, **extra: Any) -> RecordConfig:
     cfg = RecordConfig(seed=args.seed, style=args.style, frames=args.frames, width=args.width,
                        height=args.height, hfov_deg=args.hfov, depth=args.depth, ov=not args.no_ov,
                        trajectory_seed=args.trajectory_seed, fps=args.fps, rgb_encoding=args.rgb_encoding,
                        ov_stride=args.ov_stride,
-                       **extra)  # type: ignore[arg-type]
+                       **extra)
     cfg.validate()
     return cfg
 

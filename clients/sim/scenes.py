@@ -390,6 +390,10 @@ class _Object:
 _T = TypeVar("_T")
 
 
+def _scaled(c: Colour, factor: float) -> Colour:
+    return (c[0] * factor, c[1] * factor, c[2] * factor)
+
+
 class _Rand:
     def __init__(self, seed: int, style: SceneStyle) -> None:
         self.rng = np.random.default_rng(seed)
@@ -416,8 +420,8 @@ class _Rand:
     def mat(self, colour: Colour, texture: Texture, scale: float, colour2: Colour | None = None,
             contrast: float = 0.7) -> Material:
         c = self.jitter(colour)
-        c2 = colour2 if colour2 is not None else tuple(float(x) for x in np.asarray(c) * contrast)
-        return Material(c, c2, texture, scale * self.u(0.8, 1.25))  # type: ignore[arg-type]
+        c2 = colour2 if colour2 is not None else _scaled(c, contrast)
+        return Material(c, c2, texture, scale * self.u(0.8, 1.25))
 
     def wood(self) -> Material:
         return self.mat(self.pick(self.style.wood_colours), Texture.WOOD, 0.05, contrast=0.75)
@@ -1153,8 +1157,7 @@ def generate_scene(seed: int, style: str = "apartment") -> Scene:
     floor_c, floor_c2 = r.pick(st.floor_colours)
     floor_tex, floor_scale = r.pick(st.floor_textures)
     floor_mat = Material(r.jitter(floor_c), floor_c2, floor_tex, floor_scale)
-    ceil_mat = Material(st.ceiling_colour, tuple(0.9 * c for c in st.ceiling_colour),  # type: ignore[arg-type]
-                        Texture.PLAIN, 0.5)
+    ceil_mat = Material(st.ceiling_colour, _scaled(st.ceiling_colour, 0.9), Texture.PLAIN, 0.5)
     t = 0.1
     sx, sy, sz = size
     structure_parts: list[tuple[_Part, str]] = [
