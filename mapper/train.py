@@ -359,7 +359,9 @@ def validate(
             rgb_parts.append(out.rgb)
             ov_parts.append(out.ov)
         rgb = torch.cat(rgb_parts).clamp(0, 1).cpu().numpy()
-        pred = predict_labels(torch.cat(ov_parts), text).cpu().numpy()
+        pred_t = predict_labels(torch.cat(ov_parts), text)
+        assert isinstance(pred_t, torch.Tensor)
+        pred = pred_t.cpu().numpy()
         gt_rgb = v.rgb[off::stride_px, off::stride_px].reshape(-1, 3).astype(np.float64) / 255.0
         mse = float(np.mean((rgb - gt_rgb) ** 2))
         psnrs.append(10.0 * math.log10(1.0 / max(mse, 1e-10)))
