@@ -88,6 +88,7 @@ def test_count_views_depth_test() -> None:
     np.testing.assert_array_equal(counts, [1, 0, 0, 0])
 
 
+@pytest.mark.slow  # loads the real text encoder (a few seconds, more on a loaded machine)
 def test_cli_record_with_ov(tmp_path: Path) -> None:
     out = tmp_path / "ov"
     rc = main(["record", "--seed", "1", "--frames", "2", "--width", "32", "--height", "24", "--out", str(out),
