@@ -34,6 +34,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ov-stride", type=int, default=None,
                    help="SimLSeg output stride (feature map is H/stride x W/stride; default SimLSeg's)")
     p.add_argument("--trajectory-seed", type=int, default=None, help="robot path seed (default: --seed)")
+    p.add_argument("--max-step", type=float, default=0.08,
+                   help="largest horizontal camera move per frame, metres (default 0.08)")
     p.add_argument("--fps", type=float, default=10.0, help="nominal frame rate for stamps (default 10)")
     p.add_argument("--rgb-encoding", default="rgb8", choices=RGB_ENCODINGS, help="colour encoding")
 
@@ -42,7 +44,7 @@ def _config(args: argparse.Namespace, **extra: Any) -> RecordConfig:
     cfg = RecordConfig(seed=args.seed, style=args.style, frames=args.frames, width=args.width,
                        height=args.height, hfov_deg=args.hfov, depth=args.depth, ov=not args.no_ov,
                        trajectory_seed=args.trajectory_seed, fps=args.fps, rgb_encoding=args.rgb_encoding,
-                       ov_stride=args.ov_stride,
+                       ov_stride=args.ov_stride, max_step_m=args.max_step,
                        **extra)
     cfg.validate()
     return cfg

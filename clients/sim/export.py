@@ -66,6 +66,8 @@ class RecordConfig:
     """Put SimLSeg open-vocabulary features (minilm-l6-v2) into the recorded frames."""
     trajectory_seed: int | None = None
     """Seed of the robot's path (start, direction, gaze); defaults to `seed`."""
+    max_step_m: float = 0.08
+    """Largest horizontal camera move between frames (the robot covers min(loop, frames x step))."""
     fps: float = 10.0
     """Nominal frame rate: frame k is stamped k / fps seconds after the first."""
     rgb_encoding: str = "rgb8"
@@ -89,6 +91,7 @@ class RecordConfig:
             (1 <= self.height <= 4096, f"height {self.height} out of range 1..4096"),
             (10.0 <= self.hfov_deg <= 150.0, f"hfov_deg {self.hfov_deg} out of range 10..150"),
             (self.fps > 0 and math.isfinite(self.fps), f"fps {self.fps} must be > 0"),
+            (0.0 < self.max_step_m <= 1.0, f"max_step_m {self.max_step_m} out of range (0, 1]"),
             (self.rgb_encoding in RGB_ENCODINGS,
              f"rgb_encoding {self.rgb_encoding!r} unknown; choose one of {list(RGB_ENCODINGS)}"),
             (0 <= self.novel_views <= 1000, f"novel_views {self.novel_views} out of range 0..1000"),
@@ -119,7 +122,7 @@ class SimStream:
         config.validate()
         scene = generate_scene(config.seed, config.style)
         tseed = config.seed if config.trajectory_seed is None else config.trajectory_seed
-        poses = robot_trajectory(scene, config.frames, seed=tseed)
+        poses = robot_trajectory(scene, config.frames, seed=tseed, max_step_m=config.max_step_m)
         simlseg = None
         if config.ov:
             # lazy: pulls torch and the text encoder
