@@ -137,7 +137,7 @@ def write_points_ply(path: str | Path, xyz: np.ndarray, score: np.ndarray) -> Pa
     cloud = o3d.geometry.PointCloud()
     cloud.points = o3d.utility.Vector3dVector(np.asarray(xyz, np.float64).reshape(-1, 3))
     cloud.colors = o3d.utility.Vector3dVector(score_colours(score))
-    if not o3d.io.write_point_cloud(str(path), cloud, write_ascii=False):
+    if not o3d.io.write_point_cloud(path, cloud, write_ascii=False):
         raise OSError(f"Open3D could not write {path}")
     return path
 

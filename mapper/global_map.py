@@ -87,12 +87,18 @@ _FORMAT = "global-map-v1"
 class KeyframeLike(Protocol):
     """What :meth:`GlobalSemanticMap.integrate` reads from a keyframe (``mapper.window.Keyframe``)."""
 
-    stamp_ns: int
-    K: np.ndarray  # (4,) [fx, fy, cx, cy] for the image as sent
-    world_from_cam: np.ndarray  # (4, 4)
-    rgb: np.ndarray  # (H, W, 3)
-    depth_m: np.ndarray | None  # (H, W) z-depth, metres, 0 = none
-    ov: np.ndarray | None  # (h, w, D)
+    @property
+    def stamp_ns(self) -> int: ...
+    @property
+    def K(self) -> np.ndarray: ...  # noqa: N802 - (4,) [fx, fy, cx, cy] for the image as sent
+    @property
+    def world_from_cam(self) -> np.ndarray: ...  # (4, 4)
+    @property
+    def rgb(self) -> np.ndarray: ...  # (H, W, 3)
+    @property
+    def depth_m(self) -> np.ndarray | None: ...  # (H, W) z-depth, metres, 0 = none
+    @property
+    def ov(self) -> np.ndarray | None: ...  # (h, w, D)
 
 
 class FusionRule(Protocol):
@@ -337,8 +343,9 @@ class GlobalSemanticMap:
         stride = cfg.pixel_stride
         rows = np.arange(stride // 2, height, stride)
         cols = np.arange(stride // 2, width, stride)
-        jj, ii = np.meshgrid(rows, cols, indexing="ij")  # (h', w')
-        jj, ii = jj.ravel(), ii.ravel()
+        grid_j, grid_i = np.meshgrid(rows, cols, indexing="ij")  # (h', w')
+        jj: np.ndarray = grid_j.ravel()
+        ii: np.ndarray = grid_i.ravel()
         z = depth[jj, ii].astype(np.float64)
         ok = np.isfinite(z) & (z >= cfg.min_depth_m) & (z <= cfg.max_depth_m)
         if not ok.any():
@@ -554,7 +561,7 @@ class GlobalSemanticMap:
         (plain numeric arrays, no pickle). Taken under the lock: a consistent copy."""
         with self._lock:
             n = self._n
-            arrays = {
+            arrays: dict[str, np.ndarray] = {
                 f"{prefix}.keys": self._keys[:n].copy(),
                 f"{prefix}.xyz": self._xyz[:n].copy(),
                 f"{prefix}.weight": self._weight[:n].copy(),
@@ -566,7 +573,7 @@ class GlobalSemanticMap:
             }
             if self._feat is not None:
                 arrays[f"{prefix}.feat"] = self._feat[:n].copy()
-            manifest = {
+            manifest: dict[str, Any] = {
                 "format": _FORMAT,
                 "points": n,
                 "dim": self._dim,

@@ -762,7 +762,7 @@ class MapperNode:
         views = [
             (k.ov, k.K, k.world_from_cam, (k.width, k.height), k.depth_m)
             for k in with_ov
-            if not use_depth or k.depth_m is not None
+            if k.ov is not None and (not use_depth or k.depth_m is not None)
         ]
         if not with_ov:
             raise ProtocolError(
