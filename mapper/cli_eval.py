@@ -60,6 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="2D: samples per ray (default: the model's)")
     p.add_argument("--novel-views", type=_positive_int, default=None,
                    help="2D: at most this many novel views per scene (default all)")
+    p.add_argument("--pixel-stride", type=_positive_int, default=1,
+                   help="2D: evaluate every s-th pixel in rows and columns (default 1 = all)")
     p.add_argument("--no-clip", action="store_true",
                    help="2D: sample rays over [near, far] instead of only inside the volume")
     p.add_argument("--weight-threshold", type=float, default=0.0,
@@ -117,7 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     settings = ev.EvalSettings(
         max_points=args.max_points, views_per_point=args.views_per_point, num_source_views=args.source_views,
         n_samples=args.samples, max_novel_views=args.novel_views, do_2d=not args.no_2d, do_3d=not args.no_3d,
-        oracle=not args.no_oracle, clip_to_volume=not args.no_clip, weight_threshold=args.weight_threshold,
+        oracle=not args.no_oracle, clip_to_volume=not args.no_clip,
+        pixel_stride=args.pixel_stride, weight_threshold=args.weight_threshold,
     )
 
     def log(msg: str) -> None:

@@ -268,3 +268,17 @@ def test_cli_rejects_a_distill_model_as_the_main_checkpoint(tmp_path,
     (tmp_path / "scene" / "frames.govrec").write_bytes(b"")
     assert eval_main(["--checkpoint", str(path), "--data", str(tmp_path / "scene")]) == 2
     assert "--distill" in capsys.readouterr().err
+
+
+def test_render_view_stride_is_a_pixel_subgrid(scene: ev.EvalScene) -> None:
+    model = tiny_model()
+    views, bounds, volume = sources(model, scene)
+    args = (model, views, volume, bounds, scene.novel.K[0], scene.novel.world_from_cam[0], (W, H))
+    with torch.no_grad():
+        rgb1, ov1 = ev.render_view(*args, pixel_stride=1, chunk_rays=500)
+        rgb2, ov2 = ev.render_view(*args, pixel_stride=2, chunk_rays=500)
+    assert rgb1.shape == (H, W, 3) and ov2.shape == (H // 2, W // 2, D)
+    assert torch.allclose(rgb2, rgb1[1::2, 1::2], atol=1e-5)
+    assert torch.allclose(ov2, ov1[1::2, 1::2], atol=1e-5)
+    with pytest.raises(ValueError, match="pixel_stride 0"):
+        ev.render_view(*args, pixel_stride=0)
