@@ -1,0 +1,178 @@
+"""Error against run time: 3D mIoU vs source views per point, 2D mIoU vs samples per ray.
+
+For learned blending (GOV-NeSF) and for averaging, on held-out scenes (scripts/make_eval_data.sh):
+
+* 3D: ground-truth points seen by > 1 view, each blended from at most K views per point (the K
+  nearest of the views that see it; K = 4, 8, 16, all), without depth. Learned blending:
+  ``mapper.evaluate.blend_points``; averaging: ``mapper.baselines.average_features`` over the K
+  nearest views that pass its tests. Time: seconds per 100k points for the blend itself (the
+  cost volume is built once per map and reported separately).
+* 2D: novel views rendered with S samples per ray (16, 32, 64) from the model's source views.
+  Averaging here is the same renderer (same density and colour) with the OV blending weights
+  replaced by the plain mean over the views that see each sample (the last layer of MLP_s
+  zeroed: constant logits). Time: seconds per rendered frame (at ``--pixel-stride``).
+
+Timings are wall-clock on whatever machine runs this (the numbers in docs/EVALUATION.md say
+which); they are not pass/fail criteria.
+
+Usage:
+    python benchmarks/error_vs_runtime.py --checkpoint checkpoints/cpu-small.json \\
+        --data data/eval/apartment_s2000 data/eval/studio_s2000 [--max-points 10000] \\
+        [--views 4 8 16 all] [--samples 16 32 64] [--novel-views 2] [--pixel-stride 2] \\
+        [--out out/eval/error_vs_runtime.json] [--markdown out/eval/error_vs_runtime.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mapper import evaluate as ev
+from mapper.baselines import average_features
+from mapper.checkpoint import load_model
+from mapper.metrics import NUM_SCANNET_CLASSES, average_over_scenes, predict_labels, scores_from_labels
+from mapper.model.field import GovNeSF
+
+
+def averaging_model(model: GovNeSF) -> GovNeSF:
+    """A copy whose OV weights are uniform over the views that see a sample (plain averaging)."""
+    avg = copy.deepcopy(model)
+    last = avg.fusion.mlp_s[-1]
+    torch.nn.init.zeros_(last.weight)
+    torch.nn.init.zeros_(last.bias)
+    return avg.eval()
+
+
+def parse_views(values: list[str]) -> list[int | None]:
+    out: list[int | None] = []
+    for v in values:
+        if v == "all":
+            out.append(None)
+        elif v.isdigit() and int(v) > 0:
+            out.append(int(v))
+        else:
+            raise SystemExit(f"--views: expected positive integers or 'all', got {v!r}")
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--checkpoint", required=True, type=Path)
+    p.add_argument("--data", required=True, nargs="+", type=Path)
+    p.add_argument("--max-points", type=int, default=10000)
+    p.add_argument("--views", nargs="+", default=["4", "8", "16", "all"])
+    p.add_argument("--samples", nargs="+", type=int, default=[16, 32, 64])
+    p.add_argument("--novel-views", type=int, default=2)
+    p.add_argument("--pixel-stride", type=int, default=2)
+    p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--markdown", type=Path, default=None)
+    args = p.parse_args(argv)
+    if args.max_points < 1 or args.novel_views < 1 or args.pixel_stride < 1 or min(args.samples) < 1:
+        print("--max-points, --novel-views, --pixel-stride and --samples must be >= 1", file=sys.stderr)
+        return 2
+    views_list = parse_views(args.views)
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    from mapper.encoders import get_text_encoder
+
+    model, meta = load_model(args.checkpoint)
+    avg_model = averaging_model(model)
+    scenes = [ev.load_scene(d) for d in ev.find_scene_dirs(args.data)]
+    text = torch.from_numpy(get_text_encoder().encode(scenes[0].class_names[:NUM_SCANNET_CLASSES]))
+    settings = ev.EvalSettings(max_points=args.max_points)
+
+    rows3d: dict[tuple[str, str, str], list] = {}  # (style, method, K) -> [(scores, s/100k)]
+    rows2d: dict[tuple[str, str, int], list] = {}
+    for scene in scenes:
+        print(f"scene {scene.name} ({scene.style})", flush=True)
+        keep = ev._subset(scene, settings)
+        gt = scene.points_label[keep]
+        pts = torch.from_numpy(scene.points_xyz[keep])
+        views, bounds = ev.scene_sources(model, scene)
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            volume = model.build_volume(views, bounds)
+        vol_s = time.perf_counter() - t0
+        K = torch.from_numpy(scene.K).float()
+        poses = torch.from_numpy(scene.world_from_cam).float()
+        avg_views = ev._avg_views(scene)
+        for k in views_list:
+            kname = "all" if k is None else str(k)
+            t0 = time.perf_counter()
+            pb = ev.blend_points(model, views, volume, bounds, pts, views_per_point=k)
+            secs = time.perf_counter() - t0
+            s = scores_from_labels(gt, np.asarray(predict_labels(pb.ov, text)))
+            rows3d.setdefault((scene.style, "learned blending", kname), []).append((s, secs * 1e5 / len(gt)))
+            t0 = time.perf_counter()
+            vw = None if k is None else ev.nearest_view_selection(pts, K, poses, scene.image_wh, k)
+            feats, _ = average_features(pts, avg_views, use_depth=False, view_weights=vw)
+            secs_a = time.perf_counter() - t0
+            sa = scores_from_labels(gt, np.asarray(predict_labels(feats, text)))
+            rows3d.setdefault((scene.style, "averaging", kname), []).append((sa, secs_a * 1e5 / len(gt)))
+            print(f"  3d K={kname:>3}: blend mIoU {100 * s.miou:.1f} ({secs * 1e5 / len(gt):.1f} s/100k), "
+                  f"avg mIoU {100 * sa.miou:.1f} ({secs_a * 1e5 / len(gt):.1f} s/100k); volume {vol_s:.1f} s",
+                  flush=True)
+        assert scene.novel is not None
+        nv = scene.novel
+        n_nv = nv.K.shape[0]
+        idx_views = np.linspace(0, n_nv - 1, min(args.novel_views, n_nv)).round().astype(int)
+        st = args.pixel_stride
+        off = st // 2
+        for n_samples in args.samples:
+            for name, m in (("learned blending", model), ("averaging", avg_model)):
+                gts, preds, secs_list = [], [], []
+                for v in idx_views:
+                    t0 = time.perf_counter()
+                    chosen = ev.novel_view_sources(scene, int(v), m.cfg.num_source_views)
+                    src, b = ev.scene_sources(m, scene, chosen)
+                    with torch.no_grad():
+                        vol = m.build_volume(src, b)
+                        _, ov = ev.render_view(m, src, vol, b, nv.K[v], nv.world_from_cam[v], scene.image_wh,
+                                               pixel_stride=st, n_samples=n_samples, clip_to_volume=True)
+                    secs_list.append(time.perf_counter() - t0)
+                    preds.append(np.asarray(predict_labels(ov.reshape(-1, ov.shape[-1]), text)))
+                    gts.append(nv.label[v][off::st, off::st].reshape(-1))
+                s = scores_from_labels(np.concatenate(gts), np.concatenate(preds))
+                rows2d.setdefault((scene.style, name, n_samples), []).append((s, float(np.mean(secs_list))))
+                print(f"  2d S={n_samples}: {name} mIoU {100 * s.miou:.1f} "
+                      f"({np.mean(secs_list):.1f} s/frame)", flush=True)
+
+    def agg(items: list) -> tuple[float, float]:
+        return average_over_scenes([s for s, _ in items]).miou, float(np.mean([t for _, t in items]))
+
+    lines = [f"Checkpoint {args.checkpoint} (step {meta.get('step')}), {len(scenes)} scenes, "
+             f"{args.max_points} points per scene, 2D: {args.novel_views} novel views per scene at pixel "
+             f"stride {args.pixel_stride}.", "",
+             "| style | method | views per point | 3D mIoU | s / 100k points |", "|---|---|---|---|---|"]
+    out: dict = {"checkpoint": str(args.checkpoint), "step": meta.get("step"), "3d": [], "2d": []}
+    for (style, method, kname), items in sorted(rows3d.items()):
+        miou, t = agg(items)
+        lines.append(f"| {style} | {method} | {kname} | {100 * miou:.1f} | {t:.1f} |")
+        out["3d"].append({"style": style, "method": method, "views_per_point": kname, "miou": miou,
+                          "seconds_per_100k": t})
+    lines += ["", "| style | method | samples per ray | 2D mIoU | s / frame |", "|---|---|---|---|---|"]
+    for (style, method, n_samples), items in sorted(rows2d.items()):
+        miou, t = agg(items)
+        lines.append(f"| {style} | {method} | {n_samples} | {100 * miou:.1f} | {t:.1f} |")
+        out["2d"].append({"style": style, "method": method, "samples": n_samples, "miou": miou,
+                          "seconds_per_frame": t})
+    report = "\n".join(lines)
+    print(report)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(out, indent=1) + "\n")
+    if args.markdown:
+        args.markdown.parent.mkdir(parents=True, exist_ok=True)
+        args.markdown.write_text(report + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
