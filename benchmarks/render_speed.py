@@ -25,6 +25,7 @@ import json
 import platform
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +37,7 @@ from clients.sim.export import RecordConfig, SimStream  # noqa: E402
 from mapper.config import WindowConfig  # noqa: E402
 from mapper.model.config import get_preset  # noqa: E402
 from mapper.model.field import GovNeSF  # noqa: E402
-from mapper.runtime import ModelRuntime, ModelRuntimeConfig  # noqa: E402
+from mapper.runtime import ModelRuntime, ModelRuntimeConfig, RenderFrame  # noqa: E402
 from mapper.window import Keyframe, KeyframeWindow  # noqa: E402
 
 TEXTS = ["chair", "table", "sofa", "bed", "wall", "floor"]
@@ -62,6 +63,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--height", type=int, default=120)
     p.add_argument("--points", type=int, default=100_000)
     p.add_argument("--skip-dense", action="store_true", help="do not time the dense render")
+    p.add_argument(
+        "--thresholds", nargs="+", type=float, default=None, metavar="SIGMA",
+        help="occupancy thresholds (1/m) to time skipping with (default: the runtime's)",
+    )  # fmt: skip
+    p.add_argument("--min-weight", type=float, default=None, help="appearance pruning weight (runtime's)")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     p.add_argument("--json", metavar="FILE", help="also write the numbers as JSON")
     args = p.parse_args(argv)
@@ -132,35 +138,53 @@ def main(argv: list[str] | None = None) -> int:
     scale = args.width / 160
     K = np.array([stream.K[0] * scale, stream.K[1] * args.height / 120, args.width / 2, args.height / 2])
     outputs = ["rgb", "depth", "label", "score"]
-    frames = {}
-    for mode, skip in (("dense", False), ("skipping", True)):
-        if mode == "dense" and args.skip_dense:
-            continue
+
+    def render(skip: bool) -> tuple[RenderFrame, float]:
         t = time.perf_counter()
-        frames[mode] = runtime.render(
-            K, pose, args.width, args.height, outputs, TEXTS, empty_space_skipping=skip
+        frame = runtime.render(K, pose, args.width, args.height, outputs, TEXTS, empty_space_skipping=skip)
+        return frame, 1e3 * (time.perf_counter() - t)
+
+    dense = None
+    if not args.skip_dense:
+        dense, dense_ms = render(False)
+        results["render_dense_ms"], results["render_dense_stats"] = dense_ms, dense.stats
+        print(f"render {args.width}x{args.height} dense: {dense_ms / 1e3:.2f} s, {dense.stats}", flush=True)
+    runs = []
+    for threshold in args.thresholds or [runtime.config.occupancy_threshold]:
+        runtime.config = replace(
+            runtime.config,
+            occupancy_threshold=threshold,
+            min_weight=runtime.config.min_weight if args.min_weight is None else args.min_weight,
         )
-        elapsed = time.perf_counter() - t
-        results[f"render_{mode}_ms"] = 1e3 * elapsed
-        results[f"render_{mode}_stats"] = frames[mode].stats
-        print(f"render {args.width}x{args.height} {mode}: {elapsed:.2f} s, {frames[mode].stats}", flush=True)
-    if "dense" in frames:
-        dense, skip_frame = frames["dense"], frames["skipping"]
-        assert dense.rgb is not None and skip_frame.rgb is not None
-        assert dense.depth_m is not None and skip_frame.depth_m is not None
-        assert dense.label is not None and skip_frame.label is not None
-        assert dense.score is not None and skip_frame.score is not None
-        diff = {
-            "rgb_max_abs_of_255": int(np.abs(dense.rgb.astype(int) - skip_frame.rgb.astype(int)).max()),
-            "rgb_mean_abs_of_255": float(np.abs(dense.rgb.astype(int) - skip_frame.rgb.astype(int)).mean()),
-            "depth_max_abs_m": float(np.abs(dense.depth_m - skip_frame.depth_m).max()),
-            "depth_mean_abs_m": float(np.abs(dense.depth_m - skip_frame.depth_m).mean()),
-            "score_max_abs": float(np.abs(dense.score - skip_frame.score).max()),
-            "label_agreement": float((dense.label == skip_frame.label).mean()),
-        }
-        results["skipping_vs_dense"] = diff
-        results["speedup"] = results["render_dense_ms"] / results["render_skipping_ms"]  # type: ignore[operator]
-        print(f"skipping vs dense: {diff}; speed-up x{results['speedup']:.1f}", flush=True)
+        occupied = float(runtime.occupancy()[1].float().mean())
+        frame, ms = render(True)
+        run: dict[str, object] = {
+            "occupancy_threshold": threshold, "min_weight": runtime.config.min_weight,
+            "occupied_fraction": occupied, "render_ms": ms, "stats": frame.stats,
+        }  # fmt: skip
+        if dense is not None:
+            assert dense.rgb is not None and frame.rgb is not None
+            assert dense.depth_m is not None and frame.depth_m is not None
+            assert dense.label is not None and frame.label is not None
+            assert dense.score is not None and frame.score is not None
+            drawn = (dense.depth_m > 0) & (frame.depth_m > 0)
+            rgb_diff = np.abs(dense.rgb.astype(int) - frame.rgb.astype(int))
+            run["vs_dense"] = {
+                "rgb_max_abs_of_255": int(rgb_diff.max()),
+                "rgb_mean_abs_of_255": round(float(rgb_diff.mean()), 3),
+                "depth_mean_abs_m": round(float(np.abs(dense.depth_m - frame.depth_m)[drawn].mean()), 4)
+                if drawn.any()
+                else None,
+                "depth_median_abs_m": round(float(np.median(np.abs(dense.depth_m - frame.depth_m)[drawn])), 4)
+                if drawn.any()
+                else None,
+                "score_max_abs": round(float(np.abs(dense.score - frame.score).max()), 4),
+                "label_agreement": round(float((dense.label == frame.label).mean()), 4),
+            }
+            run["speedup"] = round(float(results["render_dense_ms"]) / ms, 2)  # type: ignore[arg-type]
+        runs.append(run)
+        print(f"render {args.width}x{args.height} skipping: {run}", flush=True)
+    results["render_skipping"] = runs
 
     pts = np.concatenate(surface)
     rng = np.random.default_rng(0)

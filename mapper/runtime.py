@@ -267,7 +267,7 @@ class _Prepared:
     K: Tensor  # (M, 4)
     world_from_cam: Tensor  # (M, 4, 4)
     ov_space: str | None
-    occupancy: Tensor | None = None  # (X, Y, Z) bool, computed on first use
+    max_density: Tensor | None = None  # (X, Y, Z) dilated max sub-voxel density (1/m), on first use
 
     def __len__(self) -> int:
         return int(self.rgb.shape[0])
@@ -695,8 +695,8 @@ class ModelRuntime:
             return prep.bounds, self._occupancy(prep)
 
     def _occupancy(self, prep: _Prepared) -> Tensor:
-        if prep.occupancy is not None:
-            return prep.occupancy
+        if prep.max_density is not None:
+            return prep.max_density >= self.config.occupancy_threshold
         model = self._require_model()
         b = prep.bounds
         axes = [
@@ -710,8 +710,8 @@ class ModelRuntime:
         fine = sigma.reshape(1, 1, 2 * b.dims[0], 2 * b.dims[1], 2 * b.dims[2])
         coarse = F.max_pool3d(fine, kernel_size=2, stride=2)
         dilated = F.max_pool3d(coarse, kernel_size=3, stride=1, padding=1)[0, 0]
-        prep.occupancy = dilated >= self.config.occupancy_threshold
-        return prep.occupancy
+        prep.max_density = dilated  # cached; the threshold is applied per call (config may change)
+        return prep.max_density >= self.config.occupancy_threshold
 
     # -- view selection -----------------------------------------------------------------------
 
