@@ -203,3 +203,52 @@ def test_without_depth_semantic_requests_are_not_ready(node: MapperNode) -> None
         assert seg.label.shape == (2,) and seg.label[0] == -1
         status = client.status()
         assert status.extra["global_points"] == 0 and status.keyframes == 3
+
+
+def _config(tmp_path: Path, **extra: object):  # noqa: ANN202
+    ingest, query = free_endpoints(2)
+    return config_from_dict(
+        {"ingest_endpoint": ingest, "query_endpoint": query, "events_endpoint": "",
+         "map_dir": str(tmp_path / "maps"), "poll_interval_s": 0.02, **extra}
+    )  # fmt: skip
+
+
+def test_unreadable_autosave_is_moved_aside_and_the_node_starts_empty(tmp_path: Path) -> None:
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    (maps / "auto.govmap").write_bytes(b"not a map")
+    mapper = MapperNode(_config(tmp_path, autosave_name="auto", save_on_exit=False))
+    mapper.start()
+    try:
+        with _client(mapper) as client:
+            assert client.status().keyframes == 0
+    finally:
+        mapper.stop()
+    assert (maps / "auto.govmap.unreadable").read_bytes() == b"not a map"
+    assert not (maps / "auto.govmap").exists()
+
+
+def test_map_without_a_global_section_gets_it_rebuilt_from_its_keyframes(tmp_path: Path) -> None:
+    """Maps saved before the global map existed load with their points rebuilt from keyframes."""
+    from mapper.store import MapStore
+    from mapper.window import keyframes_to_arrays
+
+    frames = [synthetic_frame(seq, 20, W, H) for seq in (0, 5, 10)]
+    keyframes = [
+        Keyframe(seq=f.seq, stamp_ns=f.stamp_ns, camera=f.camera, K=f.K, world_from_cam=f.world_from_cam,
+                 rgb=f.rgb, depth_m=f.depth_m, ov=f.ov, ov_space=f.ov_space)
+        for f in frames
+    ]  # fmt: skip
+    arrays, entries = keyframes_to_arrays(keyframes)
+    MapStore(tmp_path / "maps").save("old", arrays, {"map_version": 3, "ov_space": frames[0].ov_space,
+                                                    "ov_dim": 8, "keyframes": entries})  # fmt: skip
+    mapper = MapperNode(_config(tmp_path))
+    mapper.start()
+    try:
+        with _client(mapper) as client:
+            assert "3 keyframes" in (client.load("old").message or "")
+            status = client.status()
+            assert status.keyframes == 3 and status.map_version == 3
+            assert status.extra["global_points"] > 0 and status.extra["global_points_with_features"] > 0
+    finally:
+        mapper.stop()
