@@ -525,7 +525,8 @@ class MapperNode:
             version = state.map_version
             space = state.ov_space
         if update.added:
-            # outside the state lock, under the global map's own lock (status/save never wait on it)
+            # outside the state lock, under the global map's own lock: queries keep working on their
+            # snapshot; status and save wait for at most this one integrate
             stats = state.global_map.integrate(keyframe, map_version=version)
             log.debug("frame seq %d: %d points into the global map (%d new voxels) in %.1f ms%s",
                       frame.seq, stats.points, stats.voxels_new, 1e3 * stats.seconds,
