@@ -103,6 +103,9 @@ def main(argv: list[str] | None = None) -> int:
         K = torch.from_numpy(scene.K).float()
         poses = torch.from_numpy(scene.world_from_cam).float()
         avg_views = ev._avg_views(scene)
+        # Warm-up (first-call allocations and kernel selection would otherwise be billed to K = 4).
+        ev.blend_points(model, views, volume, bounds, pts[:512], views_per_point=views_list[0])
+        average_features(pts[:512], avg_views, use_depth=False)
         for k in views_list:
             kname = "all" if k is None else str(k)
             t0 = time.perf_counter()
