@@ -1,0 +1,90 @@
+"""Does the learned blending avoid occluded views? Evidence for docs/EVALUATION.md.
+
+For each held-out scene, at ground-truth points seen by > 1 view, without depth:
+
+* weight ratio: mean OV blending weight a truly OCCLUDED candidate view gets, divided by the mean
+  weight of a truly VISIBLE candidate of the same point (1.0 = no preference, as plain averaging;
+  0 = occluded views ignored). Visibility from the ground-truth depth (``gt_visibility``).
+* occluded share: fraction of the total weight on occluded views (model vs uniform averaging
+  over the same candidate views).
+* occlusion errors: points that averaging without depth gets wrong but averaging over the truly
+  visible views (oracle) gets right; the fraction of them the learned blending gets right. These
+  are the points where occlusion reasoning pays.
+
+Usage: python benchmarks/blending_diagnostics.py --checkpoint checkpoints/cpu-small.json \\
+           --data data/eval [--max-points 10000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mapper import evaluate as ev
+from mapper.baselines import average_features
+from mapper.checkpoint import load_model
+from mapper.metrics import NUM_SCANNET_CLASSES, predict_labels
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--checkpoint", required=True, type=Path)
+    p.add_argument("--data", required=True, nargs="+", type=Path)
+    p.add_argument("--max-points", type=int, default=10000)
+    args = p.parse_args(argv)
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    from mapper.encoders import get_text_encoder
+
+    model, meta = load_model(args.checkpoint)
+    scenes = ev.find_scene_dirs(args.data)
+    settings = ev.EvalSettings(max_points=args.max_points)
+    print(f"checkpoint {args.checkpoint} (step {meta.get('step')})")
+    print("| scene | candidate views / point | occluded candidates | model weight occluded/visible "
+          "| occluded share: model / uniform | occlusion-error points | fixed by model |")
+    print("|---|---|---|---|---|---|---|")
+    text = None
+    for d in scenes:
+        scene = ev.load_scene(d)
+        if text is None:
+            text = torch.from_numpy(get_text_encoder().encode(scene.class_names[:NUM_SCANNET_CLASSES]))
+        keep = ev._subset(scene, settings)
+        gt = scene.points_label[keep]
+        pts = torch.from_numpy(scene.points_xyz[keep])
+        K = torch.from_numpy(scene.K).float()
+        poses = torch.from_numpy(scene.world_from_cam).float()
+        _, visible = ev.gt_visibility(pts, K, poses, torch.from_numpy(scene.gt_depth_m))
+        views, bounds = ev.scene_sources(model, scene)
+        with torch.no_grad():
+            volume = model.build_volume(views, bounds)
+        pb = ev.blend_points(model, views, volume, bounds, pts)
+        vis_sel = visible.gather(1, pb.view_index) & pb.mask  # (P, k)
+        occ_sel = ~visible.gather(1, pb.view_index) & pb.mask
+        w = pb.weights
+        both = occ_sel.any(1) & vis_sel.any(1)
+        # per point: mean weight of occluded / mean weight of visible candidates, averaged
+        w_occ = (w * occ_sel).sum(1) / occ_sel.sum(1).clamp_min(1)
+        w_vis = (w * vis_sel).sum(1) / vis_sel.sum(1).clamp_min(1)
+        ratio = float((w_occ[both] / w_vis[both].clamp_min(1e-12)).mean())
+        share_model = float((w * occ_sel).sum(1)[pb.valid].mean())
+        share_uniform = float((occ_sel.sum(1) / pb.mask.sum(1).clamp_min(1))[pb.valid].mean())
+        avg_views = ev._avg_views(scene)
+        f_avg, _ = average_features(pts, avg_views, use_depth=False)
+        f_orc, _ = average_features(pts, avg_views, use_depth=False, view_weights=visible.T)
+        p_avg = np.asarray(predict_labels(f_avg, text))
+        p_orc = np.asarray(predict_labels(f_orc, text))
+        p_mod = np.asarray(predict_labels(pb.ov, text))
+        occl_err = (p_avg != gt) & (p_orc == gt)
+        fixed = float((p_mod[occl_err] == gt[occl_err]).mean()) if occl_err.any() else float("nan")
+        print(f"| {scene.name} | {float(pb.num_views.float().mean()):.1f} | "
+              f"{float(occ_sel.sum(1).float().mean()):.1f} | {ratio:.2f} | "
+              f"{100 * share_model:.1f}% / {100 * share_uniform:.1f}% | "
+              f"{100 * occl_err.mean():.1f}% | {100 * fixed:.1f}% |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
