@@ -343,3 +343,23 @@ def test_bad_requests_are_refused_with_the_value_and_range(model: GovNeSF) -> No
     with pytest.raises(ConfigError, match=r"model.far_m = 0.1 must exceed"):
         ModelRuntimeConfig(near_m=0.5, far_m=0.1).validate("node.toml")
     ModelRuntimeConfig().validate("defaults")
+
+
+@pytest.mark.skipif(
+    not (Path(__file__).resolve().parents[2] / "checkpoints" / "cpu-small.json").exists(),
+    reason="no trained checkpoint in checkpoints/",
+)
+def test_default_checkpoint_loads_and_serves_a_tiny_render() -> None:
+    runtime = ModelRuntime(
+        ModelRuntimeConfig(device="cpu", samples_per_ray=8), text_encoder=lambda s: FakeEncoder()
+    )
+    assert runtime.ready, runtime.load_error
+    assert runtime.image_wh == runtime.model.cfg.image_wh  # type: ignore[union-attr]
+    window = KeyframeWindow(WindowConfig(max_keyframes=3, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    for i in range(2):
+        window.consider(keyframe(i, orbit(i), ov=None))
+    frame = runtime.render(
+        [6.0, 6.0, 4.0, 3.0], look_at((2.2, 0.3, 1.1), (0, 0, 0.5)), 8, 6, ["rgb", "depth"]
+    )
+    assert frame.rgb is not None and frame.rgb.shape == (6, 8, 3) and frame.depth_m is not None
