@@ -77,6 +77,11 @@ def serve_main(argv: list[str] | None = None) -> int:
     from mapper.service import MapperNode  # after logging is set up
 
     node = MapperNode(config)
+    if config.serve_model:
+        from mapper.render_service import install_learned_handlers
+        from mapper.runtime import ModelRuntime
+
+        install_learned_handlers(node, ModelRuntime(config.model))
     node.install_signal_handlers()
     try:
         node.start()

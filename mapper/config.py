@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mapper.runtime import ModelRuntimeConfig
 from mapper.store import validate_map_name
 
 #: Where ``govnesf serve`` looks for its config when ``--config`` is not given (relative to the repo).
@@ -204,6 +205,13 @@ class NodeConfig:
     queries: QueryConfig = field(default_factory=QueryConfig)
     """Semantic query settings (TOML table ``[queries]``)."""
 
+    model: ModelRuntimeConfig = field(default_factory=ModelRuntimeConfig)
+    """Learned GOV-NeSF model runtime (TOML table ``[model]``): checkpoint, device, sampling."""
+
+    serve_model: bool = True
+    """Load the learned model at start-up and serve ``render`` and ``segment_points`` method
+    ``govnesf``. False = a node without torch model work (baselines and ``query_points`` only)."""
+
     def validate(self, where: str) -> None:
         """Check ranges and cross-field rules; raise :class:`ConfigError` naming ``where``."""
         for key in ("ingest_endpoint", "query_endpoint", "events_endpoint"):
@@ -231,6 +239,7 @@ class NodeConfig:
         self.window.validate(where)
         self.global_map.validate(where)
         self.queries.validate(where)
+        self.model.validate(where)
 
 
 # --------------------------------------------------------------------------------------------

@@ -99,6 +99,11 @@ def install_learned_handlers(node: MapperNode, runtime: ModelRuntime) -> None:
     if runtime.load_error:
         # The status reply's "serving" list leaves out handlers marked not_ready.
         render.not_ready = True  # type: ignore[attr-defined]
+        segment.not_ready = True  # type: ignore[attr-defined]
         log.warning("learned handlers installed without a model: %s", runtime.load_error)
     node.register_query_handler(SegmentPoints, segment)
+    # Listed in status' "segment_methods"; requests reach it through the wrapper above.
+    node.register_segment_method("govnesf", segment)  # type: ignore[arg-type]
     node.register_query_handler(Render, render)
+    node.memory_providers.append(runtime.memory_bytes)
+    node.status_providers["model"] = runtime.stats

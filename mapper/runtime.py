@@ -607,7 +607,7 @@ class ModelRuntime:
 
     def memory_bytes(self) -> int:
         """Bytes held: per-view caches, cost-volume sums, and the cached query tensors."""
-        total = sum(e.nbytes for e in self._entries.values())
+        total = sum(e.nbytes for e in list(self._entries.values()))  # may race with sync()
         if self._volume is not None:
             total += self._volume.bounds.num_voxels * (1 + 2 * self._volume.feature_dim) * 8
         prep = self._prepared

@@ -188,6 +188,10 @@ class MapperNode:
         self._last_warning: dict[str, float] = {}
         self._stopped = False
         self._last_autosave = time.monotonic()
+        self.memory_providers: list[Callable[[], int]] = []
+        """Extra holders of map memory (e.g. the learned-model runtime); summed into ``memory_bytes``."""
+        self.status_providers: dict[str, Callable[[], Any]] = {}
+        """Extra ``status`` keys computed on request (e.g. ``"model"``: the runtime's stats)."""
 
     # -- extension points ---------------------------------------------------------------------
 
@@ -578,13 +582,15 @@ class MapperNode:
                 "segment_methods": sorted(m for m, h in self.segment_methods.items() if not _is_not_ready(h)),
                 **state.global_map.stats(),
             }
+            for key, provider in self.status_providers.items():
+                extra[key] = provider()
             return Status(
                 map_version=state.map_version,
                 keyframes=len(state.window),
                 frames_received=state.frames_received,
                 frames_rejected=state.frames_rejected,
                 ov_space=state.ov_space,
-                memory_bytes=state.memory_bytes(),
+                memory_bytes=state.memory_bytes() + sum(f() for f in self.memory_providers),
                 uptime_s=time.monotonic() - state.started_monotonic,
                 extra=extra,
                 id=getattr(msg, "id", None),

@@ -49,7 +49,14 @@ def node(tmp_path_factory: pytest.TempPathFactory) -> Iterator[NodeProcess]:
     proc = NodeProcess(
         root / "maps",
         log_path=root / "node.log",
-        extra_args=["--set", f"max_message_bytes={MAX_MESSAGE_BYTES}", "--set", "window.max_keyframes=10"],
+        extra_args=[
+            "--set",
+            f"max_message_bytes={MAX_MESSAGE_BYTES}",
+            "--set",
+            "window.max_keyframes=10",
+            "--set",
+            "serve_model=false",  # the base node: no learned model (tests/e2e/test_e2e_semantic.py has it)
+        ],
     )
     with proc:
         proc.wait_ready()

@@ -19,7 +19,7 @@ import pytest
 
 from clients.client import MapperClient
 from clients.demo import REPO_ROOT, NodeProcess, chair_distance, mean_iou, sim_stream
-from protocol.messages import Error, Frame, Points, SegmentPoints
+from protocol.messages import Error, Frame, Points
 
 pytestmark = pytest.mark.slow
 
@@ -76,7 +76,8 @@ def test_status_reports_the_global_map(client: MapperClient) -> None:
     assert extra["global_map_bytes"] > extra["global_points"] * 384 * 2  # fp16 features at least
     assert status.memory_bytes >= extra["global_map_bytes"]
     assert {"query_points", "segment_points"} <= set(extra["serving"])
-    assert extra["segment_methods"] == ["average", "average_depth"]
+    assert extra["segment_methods"] == ["average", "average_depth", "govnesf"]
+    assert "render" in extra["serving"] and extra["model"]["ready"], extra.get("model")
 
 
 def test_find_the_chair_lies_within_half_a_metre_of_a_real_chair(client: MapperClient) -> None:
@@ -111,10 +112,34 @@ def test_segment_points_average_methods_against_ground_truth(client: MapperClien
     assert scores["average"] > 0.2 and scores["average_depth"] > scores["average"]
 
 
-def test_govnesf_segmentation_is_not_ready_until_the_model_is_loaded(client: MapperClient) -> None:
-    reply = client.request(SegmentPoints(xyz=np.zeros((3, 3), np.float32), texts=["chair"]))
-    assert isinstance(reply, Error) and reply.code == "not_ready"
-    assert "learned model is not loaded" in reply.message
+def test_govnesf_segmentation_and_render_with_the_committed_checkpoint(client: MapperClient) -> None:
+    """The node loads checkpoints/cpu-small and serves learned blending (with and without DGM)."""
+    from clients.sim.scenes import CLASS_NAMES
+
+    xyz, gt = gt_points(1500)
+    far = np.array([[100.0, 100.0, 100.0]], np.float32)
+    xyz = np.concatenate([xyz, far]).astype(np.float32)
+    texts = list(CLASS_NAMES)
+    for use_depth in (False, True):
+        seg = client.segment_points(xyz, texts, method="govnesf", use_depth=use_depth)
+        assert seg.label.shape == (xyz.shape[0],) and seg.label[-1] == -1
+        seen = seg.label[:-1] >= 0
+        assert seen.mean() > 0.5 and np.all(np.isfinite(seg.score))
+        miou, _ = mean_iou(seg.label[:-1][seen].astype(np.int64), gt[seen], len(texts))
+        assert miou > 0.2, (use_depth, miou)  # 32 classes: chance is ~3%
+    _, stream = sim_frames()
+    pose = stream.poses[N_PATH // 2]
+    reply = client.render(  # fmt: skip
+        width=W,
+        height=H,
+        K=stream.K,
+        world_from_cam=pose,
+        outputs=["rgb", "depth", "label"],
+        texts=["chair", "wall"],
+    )
+    assert reply.rgb is not None and reply.rgb.shape == (H, W, 3)
+    assert reply.depth_m is not None and np.isfinite(reply.depth_m).all() and reply.depth_m.max() > 0
+    assert reply.label is not None and set(np.unique(reply.label)) <= {-1, 0, 1}
 
 
 def test_govnesf_query_cli_prints_objects_and_writes_ply_and_json(node: NodeProcess, tmp_path: Path) -> None:
