@@ -155,7 +155,11 @@ def main(argv: list[str] | None = None) -> int:
              f"stride {args.pixel_stride}.", "",
              "| style | method | views per point | 3D mIoU | s / 100k points |", "|---|---|---|---|---|"]
     out: dict = {"checkpoint": str(args.checkpoint), "step": meta.get("step"), "3d": [], "2d": []}
-    for (style, method, kname), items in sorted(rows3d.items()):
+    def order3d(item: tuple) -> tuple:
+        (style, method, kname), _ = item
+        return style, method, float("inf") if kname == "all" else int(kname)
+
+    for (style, method, kname), items in sorted(rows3d.items(), key=order3d):
         miou, t = agg(items)
         lines.append(f"| {style} | {method} | {kname} | {100 * miou:.1f} | {t:.1f} |")
         out["3d"].append({"style": style, "method": method, "views_per_point": kname, "miou": miou,
