@@ -11,7 +11,8 @@ Steps, each printed as it happens:
 4. ask "find the chair", "a place to sleep" and "where is the table"; print the top objects with
    their positions, write a PLY (points coloured by score) and a JSON of the objects for each,
    and check that the top chair lies within 0.5 m of a real chair (ground-truth instances);
-5. 3D semantic segmentation against ground truth: ``segment_points`` (``average_depth`` and
+5. 3D semantic segmentation against ground truth: ``segment_points`` (``govnesf`` with and
+   without Depth Guided Masking when the node has its model, ``average_depth`` and
    ``average``) at ground-truth surface points with the class names as texts, plus the global
    map's own labels (``query_points`` with every class name), each as mIoU;
 6. save the map, stop the node with SIGINT and check that it exited cleanly (exit code 0).
@@ -434,8 +435,15 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {int(seen.sum())} of {n_gt} ground-truth surface points seen by the stream, "
                   f"{len(texts)} class names as texts")
             report: dict[str, Any] = {"gt_points": int(seen.sum()), "classes": texts}
-            for method in ("average_depth", "average"):
-                seg = client.segment_points(xyz, texts, method=method, timeout_s=300.0)
+            methods = [("govnesf", False), ("govnesf", True), ("average_depth", False), ("average", False)]
+            if "govnesf" not in extra.get("segment_methods", []):
+                print("  (the node serves no learned model: govnesf rows skipped; see the node log)")
+                methods = methods[2:]
+            for method_name, use_depth in methods:
+                method = method_name + ("+DGM" if use_depth else "")
+                seg = client.segment_points(
+                    xyz, texts, method=method_name, use_depth=use_depth, timeout_s=600.0
+                )
                 pred = seg.label.astype(np.int64)
                 covered = pred >= 0
                 miou, _ = mean_iou(pred, gt, len(texts))
@@ -454,6 +462,20 @@ def main(argv: list[str] | None = None) -> int:
             print("  hardest classes: " + ", ".join(f"{texts[c]} {100 * v:.0f}%" for c, v in worst))
             report["global_map"] = {"miou": miou, "per_class": {texts[c]: v for c, v in ious.items()}}
             (out / "segmentation.json").write_text(json.dumps(report, indent=1) + "\n")
+
+            if "render" in extra.get("serving", []):
+                from clients.render_cli import compose_panels
+
+                pose = stream.poses[args.frames // 3]
+                render_texts = ["chair", "table", "wall", "floor", "sofa", "bed"]
+                result = client.render(args.width, args.height, stream.K, pose, ["rgb", "depth", "label"],
+                                       render_texts, timeout_s=600.0)
+                from PIL import Image
+
+                panels = compose_panels(result, render_texts, scale=2)
+                Image.fromarray(panels["combined"]).save(out / "render.png")
+                print(f"  rendered a novel view (colour, depth, semantics): {out / 'render.png'} "
+                      f"in {result.timing_ms.get('handler', 0):.0f} ms on the node")
 
             _step(6, "save the map, then stop the node with SIGINT")
             ok_msg = client.save("demo")
