@@ -7,6 +7,10 @@ For each held-out scene, at ground-truth points seen by > 1 view, without depth:
   0 = occluded views ignored). Visibility from the ground-truth depth (``gt_visibility``).
 * occluded share: fraction of the total weight on occluded views (model vs uniform averaging
   over the same candidate views).
+* border: averaging cuts a 10 px image border (OpenScene-2D), the model does not, so a few
+  percent of the points have no averaging view (they get label 0). mIoU of averaging without
+  depth with the 10 px cut, with no cut, and of the model, on all points and on the points the
+  10 px cut keeps (same points for both).
 * occlusion errors: points that averaging without depth gets wrong but averaging over the truly
   visible views (oracle) gets right; the fraction of them the learned blending gets right. These
   are the points where occlusion reasoning pays.
@@ -27,7 +31,7 @@ import torch
 from mapper import evaluate as ev
 from mapper.baselines import average_features
 from mapper.checkpoint import load_model
-from mapper.metrics import NUM_SCANNET_CLASSES, predict_labels
+from mapper.metrics import NUM_SCANNET_CLASSES, predict_labels, scores_from_labels
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,8 +48,9 @@ def main(argv: list[str] | None = None) -> int:
     settings = ev.EvalSettings(max_points=args.max_points)
     print(f"checkpoint {args.checkpoint} (step {meta.get('step')})")
     print("| scene | candidate views / point | occluded candidates | model weight occluded/visible "
-          "| occluded share: model / uniform | occlusion-error points | fixed by model |")
-    print("|---|---|---|---|---|---|---|")
+          "| occluded share: model / uniform | occlusion-error points | fixed by model "
+          "| mIoU avg 10px / avg 0px / model | same on points with a 10px view |")
+    print("|---|---|---|---|---|---|---|---|---|")
     text = None
     for d in scenes:
         scene = ev.load_scene(d)
@@ -72,17 +77,26 @@ def main(argv: list[str] | None = None) -> int:
         share_model = float((w * occ_sel).sum(1)[pb.valid].mean())
         share_uniform = float((occ_sel.sum(1) / pb.mask.sum(1).clamp_min(1))[pb.valid].mean())
         avg_views = ev._avg_views(scene)
-        f_avg, _ = average_features(pts, avg_views, use_depth=False)
+        f_avg, n_avg = average_features(pts, avg_views, use_depth=False)
+        f_avg0, _ = average_features(pts, avg_views, use_depth=False, border_px=0.0)
         f_orc, _ = average_features(pts, avg_views, use_depth=False, view_weights=visible.T)
         p_avg = np.asarray(predict_labels(f_avg, text))
         p_orc = np.asarray(predict_labels(f_orc, text))
         p_mod = np.asarray(predict_labels(pb.ov, text))
         occl_err = (p_avg != gt) & (p_orc == gt)
         fixed = float((p_mod[occl_err] == gt[occl_err]).mean()) if occl_err.any() else float("nan")
+        p_avg0 = np.asarray(predict_labels(f_avg0, text))
+        ok = n_avg.numpy() > 0
+
+        def miou(pred: np.ndarray, sel: np.ndarray | slice = slice(None), gt: np.ndarray = gt) -> str:
+            return f"{100 * scores_from_labels(gt[sel], pred[sel]).miou:.1f}"
+
+        border = f"{miou(p_avg)} / {miou(p_avg0)} / {miou(p_mod)}"
+        border_ok = f"{miou(p_avg, ok)} / {miou(p_avg0, ok)} / {miou(p_mod, ok)}"
         print(f"| {scene.name} | {float(pb.num_views.float().mean()):.1f} | "
               f"{float(occ_sel.sum(1).float().mean()):.1f} | {ratio:.2f} | "
               f"{100 * share_model:.1f}% / {100 * share_uniform:.1f}% | "
-              f"{100 * occl_err.mean():.1f}% | {100 * fixed:.1f}% |", flush=True)
+              f"{100 * occl_err.mean():.1f}% | {100 * fixed:.1f}% | {border} | {border_ok} |", flush=True)
     return 0
 
 
