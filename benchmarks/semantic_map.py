@@ -172,6 +172,14 @@ def bench_stream(args: argparse.Namespace) -> None:
             t = time.perf_counter()
             client.query_points(["a place to sleep"], timeout_s=300.0)
             q_second = time.perf_counter() - t
+            learned = "govnesf" in status.extra.get("segment_methods", [])
+            if learned:  # the learned model syncs its cost volume to the window, then blends
+                pts = reply.xyz[:1] if reply.xyz.shape[0] else np.zeros((1, 3), np.float32)
+                xyz = (pts + np.random.default_rng(0).normal(0, 1.0, (20_000, 3))).astype(np.float32)
+                t = time.perf_counter()
+                client.segment_points(xyz, ["chair", "table", "wall", "floor"], timeout_s=600.0)
+                seg_s = time.perf_counter() - t
+                after = client.status()
     e = status.extra
     print(f"stream: {per_room * rooms} frames (160x120, depth + ov) from {rooms} rooms in {dt:.0f} s; "
           f"keyframes {e['frames_keyframe']}, window {status.keyframes}; "
@@ -182,6 +190,12 @@ def bench_stream(args: argparse.Namespace) -> None:
     print(f"query_points over the wire after the stream: first {1e3 * q_first:.0f} ms (builds the "
           f"per-version cache; node timing {reply.timing_ms.get('total', 0):.0f} ms), "
           f"next {1e3 * q_second:.0f} ms")
+    if learned:
+        m = after.extra.get("model", {})
+        print(f"segment_points govnesf, 20k points after the stream: {seg_s:.1f} s (includes syncing "
+              f"{m.get('views')} views); then memory_bytes {after.memory_bytes / 1e6:.0f} MB, "
+              f"node RSS {after.extra['rss_bytes'] / 1e6:.0f} MB, "
+              f"model {m.get('memory_bytes', 0) / 1e6:.0f} MB")
 
 
 def main() -> int:
