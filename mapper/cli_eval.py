@@ -68,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="2D: skip appearance for samples with a smaller weight (default 0 = exact)")
     p.add_argument("--no-2d", action="store_true", help="skip the 2D novel-view evaluation")
     p.add_argument("--no-3d", action="store_true", help="skip the 3D point evaluation")
+    p.add_argument("--averaging-border-px", type=float, nargs="+", default=[10.0], metavar="PX",
+                   help="3D: averaging rows for these image border cuts (default 10, OpenScene-2D; "
+                        "0 = the model's candidate views)")
     p.add_argument("--no-oracle", action="store_true", help="3D: skip the GT-visibility averaging row")
     p.add_argument("--training-style", default="apartment", help="style the model was trained on")
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
@@ -83,6 +86,10 @@ def main(argv: list[str] | None = None) -> int:
         return int(exc.code or 0)
     if not 0.0 <= args.weight_threshold < 1.0:
         print(f"govnesf evaluate: --weight-threshold {args.weight_threshold} out of range [0, 1)",
+              file=sys.stderr)
+        return 2
+    if any(not 0.0 <= b < 1000.0 for b in args.averaging_border_px):
+        print(f"govnesf evaluate: --averaging-border-px {args.averaging_border_px} out of range [0, 1000)",
               file=sys.stderr)
         return 2
     if args.no_2d and args.no_3d:
@@ -120,7 +127,8 @@ def main(argv: list[str] | None = None) -> int:
         max_points=args.max_points, views_per_point=args.views_per_point, num_source_views=args.source_views,
         n_samples=args.samples, max_novel_views=args.novel_views, do_2d=not args.no_2d, do_3d=not args.no_3d,
         oracle=not args.no_oracle, clip_to_volume=not args.no_clip,
-        pixel_stride=args.pixel_stride, weight_threshold=args.weight_threshold,
+        pixel_stride=args.pixel_stride, averaging_borders_px=tuple(args.averaging_border_px),
+        weight_threshold=args.weight_threshold,
     )
 
     def log(msg: str) -> None:

@@ -521,6 +521,9 @@ class EvalSettings:
     chunk_points: int = 2048
     do_2d: bool = True
     do_3d: bool = True
+    averaging_borders_px: tuple[float, ...] = (AVERAGING_BORDER_PX,)
+    """3D: image border cuts for the averaging rows (10 px: OpenScene-2D; 0 px: the same
+    candidate views as the model). Rows other than 10 px are named with their border."""
     oracle: bool = True
     """3D: also average over the ground-truth visible views (the headroom reference)."""
     seed: int = 0
@@ -603,21 +606,24 @@ def _evaluate_3d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
 
     avg_views = _avg_views(scene)
     depth_t = torch.from_numpy(scene.depth_m)
-    for use_depth in (False, True):
-        t0 = time.perf_counter()
-        vw = None
-        if vpp is not None:
-            vw = nearest_view_selection(pts, K, poses, scene.image_wh, vpp,
-                                        depth_m=depth_t if use_depth else None)
-        feats, nv = average_features(pts, avg_views, use_depth=use_depth, view_weights=vw, device=device)
-        secs = time.perf_counter() - t0
-        # Occluded share of the averaging weight (uniform over the views that counted).
-        counted = vw.T if vw is not None else _averaging_mask(pts, K, poses, scene.image_wh,
-                                                              depth_t if use_depth else None)
-        occ = (occluded & counted).sum(1).float() / counted.sum(1).clamp_min(1).float()
-        name = "Averaging + depth test" if use_depth else "Averaging (no depth)"
-        record(name, feats, secs, occluded_weight=float(occ[counted.any(1)].mean()),
-               invalid=float((nv == 0).float().mean()))
+    for border in settings.averaging_borders_px:
+        suffix = "" if border == AVERAGING_BORDER_PX else f", {border:g} px border"
+        for use_depth in (False, True):
+            t0 = time.perf_counter()
+            vw = None
+            if vpp is not None:
+                vw = nearest_view_selection(pts, K, poses, scene.image_wh, vpp, border_px=border,
+                                            depth_m=depth_t if use_depth else None)
+            feats, nv = average_features(pts, avg_views, use_depth=use_depth, view_weights=vw, device=device,
+                                         border_px=border)
+            secs = time.perf_counter() - t0
+            # Occluded share of the averaging weight (uniform over the views that counted).
+            counted = vw.T if vw is not None else _averaging_mask(pts, K, poses, scene.image_wh,
+                                                                  depth_t if use_depth else None, border)
+            occ = (occluded & counted).sum(1).float() / counted.sum(1).clamp_min(1).float()
+            name = ("Averaging + depth test" if use_depth else "Averaging (no depth)") + suffix
+            record(name, feats, secs, occluded_weight=float(occ[counted.any(1)].mean()),
+                   invalid=float((nv == 0).float().mean()))
     if settings.oracle:
         t0 = time.perf_counter()
         feats, nv = average_features(pts, avg_views, use_depth=False, view_weights=visible.T, device=device)
@@ -645,11 +651,11 @@ def _evaluate_3d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
 
 
 def _averaging_mask(pts: Tensor, K: Tensor, poses: Tensor, image_wh: tuple[int, int],
-                    depth_m: Tensor | None) -> Tensor:
+                    depth_m: Tensor | None, border_px: float = AVERAGING_BORDER_PX) -> Tensor:
     """(P, N) bool: the views ``average_features`` counts for each point."""
     n = K.shape[0]
     uv, z = project_points(pts.unsqueeze(0).expand(n, -1, -1), K, invert_pose(poses))
-    ok = in_view(uv, z, image_wh[0], image_wh[1], border_px=AVERAGING_BORDER_PX)
+    ok = in_view(uv, z, image_wh[0], image_wh[1], border_px=border_px)
     if depth_m is not None:
         d_wh = (depth_m.shape[-1], depth_m.shape[-2])
         d, _ = sample_nearest(depth_m.unsqueeze(1), scale_uv(uv, image_wh, d_wh))

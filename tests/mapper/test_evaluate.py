@@ -179,10 +179,10 @@ def test_views_per_point_keeps_the_nearest(scene: ev.EvalScene) -> None:
 
 
 def test_perfect_features_give_perfect_3d_scores(scene: ev.EvalScene) -> None:
-    settings = ev.EvalSettings(do_2d=False, max_points=None)
+    settings = ev.EvalSettings(do_2d=False, max_points=None, averaging_borders_px=(10.0, 0.0))
     res = ev.evaluate_scene(scene, {"uniform": tiny_model(uniform=True)}, text_embeddings(), settings)["3d"]
     for name in ("Averaging (no depth)", "Averaging + depth test", "Averaging, GT-visible views (oracle)",
-                 "uniform (no depth)", "uniform + DGM"):
+                 "Averaging (no depth), 0 px border", "uniform (no depth)", "uniform + DGM"):
         s = res[name].scores()
         assert s.miou == pytest.approx(1.0) and s.oacc == pytest.approx(1.0), name
         assert s.num_valid == len(scene.points_xyz)
@@ -243,6 +243,7 @@ def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> str:
         (["--checkpoint", "CKPT", "--data", "DATA", "--max-points", "-3"], "positive integer"),
         (["--checkpoint", "CKPT", "--data", "DATA", "--no-2d", "--no-3d"], "nothing to evaluate"),
         (["--checkpoint", "CKPT", "--data", "DATA", "--weight-threshold", "2"], "out of range"),
+        (["--checkpoint", "CKPT", "--data", "DATA", "--averaging-border-px", "-1"], "out of range"),
         (["--checkpoint", "CKPT", "--data", "MISSING"], "no such directory"),
         (["--checkpoint", "CKPT", "--data", "DATA"], "neither a recorded scene"),
         (["--checkpoint", "NOCKPT", "--data", "SCENE", "--no-2d"], "not found"),
