@@ -42,7 +42,8 @@ class OVView(NamedTuple):
 def _as_tensor(x: np.ndarray | Tensor, dtype: torch.dtype, device: torch.device) -> Tensor:
     if isinstance(x, Tensor):
         return x.to(device=device, dtype=dtype)
-    return torch.from_numpy(np.ascontiguousarray(x)).to(device=device, dtype=dtype)
+    # read-only arrays (e.g. the protocol's decoded frames) are copied: torch needs writable memory
+    return torch.from_numpy(np.require(x, requirements=["C", "W"])).to(device=device, dtype=dtype)
 
 
 def average_features(
