@@ -77,8 +77,12 @@ def masked_mean_var(values: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def blend(weights: Tensor, values: Tensor) -> Tensor:
-    """(P, N) weights, (P, N, C) values -> (P, C) ``sum_n w^n values^n``."""
-    return (weights.unsqueeze(-1).to(values.dtype) * values).sum(dim=1)
+    """(P, N) weights, (P, N, C) values -> (P, C) ``sum_n w^n values^n``.
+
+    A batched matrix product (no (P, N, C) temporary): 5x faster than broadcast-and-sum on the
+    CPU for 32768 x 8 x 384 (docs/EVALUATION.md).
+    """
+    return torch.einsum("pn,pnc->pc", weights.to(values.dtype), values)
 
 
 class CrossViewAttention(nn.Module):
