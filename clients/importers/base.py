@@ -270,6 +270,27 @@ def read_depth_png(path: Path, units_per_m: float, invalid_value: int | None = N
     return depth_m
 
 
+def read_depth_sized(
+    path: Path,
+    units_per_m: float,
+    size_wh: tuple[int, int],
+    *,
+    against: str,
+    invalid_value: int | None = None,
+) -> np.ndarray:
+    """:func:`read_depth_png`, then check the depth is ``size_wh`` (W, H): (H, W) float32 metres.
+
+    ``against`` names what the size must match in the error, e.g. ``"colour is"``.
+    """
+    depth_m = read_depth_png(path, units_per_m, invalid_value=invalid_value)
+    if (depth_m.shape[1], depth_m.shape[0]) != tuple(size_wh):
+        raise ImporterError(
+            f"depth image {str(path)!r} is {depth_m.shape[1]}x{depth_m.shape[0]}, "
+            f"{against} {size_wh[0]}x{size_wh[1]}"
+        )
+    return depth_m
+
+
 def read_matrix_txt(path: Path, what: str) -> np.ndarray:
     """A whitespace-separated numeric matrix (e.g. a 4x4 pose) as float64; 'inf'/'nan' allowed."""
     require_file(path, what)

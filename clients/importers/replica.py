@@ -36,7 +36,7 @@ from clients.importers.base import (
     half_pixel_K,
     natural_index,
     pose_problem,
-    read_depth_png,
+    read_depth_sized,
     read_rgb,
     require_dir,
     require_file,
@@ -159,12 +159,9 @@ class ReplicaReader(DatasetReader):
             )
         depth_m = None
         if self.options.load_depth:
-            depth_m = read_depth_png(self._depths[frame_id], self._depth_scale)
-            if depth_m.shape != rgb.shape[:2]:
-                raise ImporterError(
-                    f"depth image {str(self._depths[frame_id])!r} is {depth_m.shape[1]}x{depth_m.shape[0]}, "
-                    f"colour is {rgb.shape[1]}x{rgb.shape[0]}"
-                )
+            depth_m = read_depth_sized(
+                self._depths[frame_id], self._depth_scale, (rgb.shape[1], rgb.shape[0]), against="colour is"
+            )
         return ImportedFrame(
             rgb=rgb,
             depth_m=depth_m,

@@ -37,7 +37,7 @@ from clients.importers.base import (
     half_pixel_K,
     natural_index,
     pose_problem,
-    read_depth_png,
+    read_depth_sized,
     read_matrix_txt,
     read_rgb,
     require_dir,
@@ -159,12 +159,9 @@ class ScanNetReader(DatasetReader):
             rgb = cv2.resize(rgb, self._size, interpolation=cv2.INTER_AREA)
         depth_m = None
         if self.options.load_depth:
-            depth_m = read_depth_png(self._depths[frame_id], DEPTH_UNITS_PER_M)
-            if (depth_m.shape[1], depth_m.shape[0]) != self._size:
-                raise ImporterError(
-                    f"depth image {str(self._depths[frame_id])!r} is {depth_m.shape[1]}x{depth_m.shape[0]}, "
-                    f"the first one is {self._size[0]}x{self._size[1]}"
-                )
+            depth_m = read_depth_sized(
+                self._depths[frame_id], DEPTH_UNITS_PER_M, self._size, against="the first one is"
+            )
         return ImportedFrame(
             rgb=rgb,
             depth_m=depth_m,

@@ -33,7 +33,7 @@ from clients.importers.base import (
     describe_missing,
     half_pixel_K,
     pose_problem,
-    read_depth_png,
+    read_depth_sized,
     read_matrix_txt,
     read_rgb,
 )
@@ -99,12 +99,13 @@ class SevenScenesReader(DatasetReader):
         depth_m = None
         if self.options.load_depth:
             depth_path = stem.with_name(stem.name + ".depth.png")
-            depth_m = read_depth_png(depth_path, DEPTH_UNITS_PER_M, invalid_value=DEPTH_INVALID)
-            if depth_m.shape != rgb.shape[:2]:
-                raise ImporterError(
-                    f"depth image {str(depth_path)!r} is {depth_m.shape[1]}x{depth_m.shape[0]}, "
-                    f"colour is {rgb.shape[1]}x{rgb.shape[0]}"
-                )
+            depth_m = read_depth_sized(
+                depth_path,
+                DEPTH_UNITS_PER_M,
+                (rgb.shape[1], rgb.shape[0]),
+                against="colour is",
+                invalid_value=DEPTH_INVALID,
+            )
         return ImportedFrame(
             rgb=rgb,
             depth_m=depth_m,

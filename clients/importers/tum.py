@@ -37,7 +37,7 @@ from clients.importers.base import (
     SkippedFrame,
     half_pixel_K,
     pose_problem,
-    read_depth_png,
+    read_depth_sized,
     read_rgb,
     remap_depth,
     remap_rgb,
@@ -194,12 +194,9 @@ class TumReader(DatasetReader):
         depth_m = None
         if self.options.load_depth:
             depth_path = self._depth_paths[depth_index]
-            depth_m = read_depth_png(depth_path, DEPTH_UNITS_PER_M)
-            if depth_m.shape != rgb.shape[:2]:
-                raise ImporterError(
-                    f"depth image {str(depth_path)!r} is {depth_m.shape[1]}x{depth_m.shape[0]}, "
-                    f"colour {source} is {rgb.shape[1]}x{rgb.shape[0]}"
-                )
+            depth_m = read_depth_sized(
+                depth_path, DEPTH_UNITS_PER_M, (rgb.shape[1], rgb.shape[0]), against=f"colour {source} is"
+            )
         if any(self._distortion):
             maps = self._undistort_maps(rgb.shape[1], rgb.shape[0])
             rgb = remap_rgb(rgb, maps)
