@@ -1128,10 +1128,8 @@ def _check_map_name(value: Any) -> str:
 
 
 @dataclass(eq=False, repr=False)
-class Save(Message):
-    """Save the map under `name` in the mapper's map directory (wire type ``save``)."""
-
-    TYPE: ClassVar[str] = "save"
+class _MapNameRequest(Message):
+    """A request that names a map in the mapper's map directory (``save`` and ``load``)."""
 
     name: str
     """Map name, ``[A-Za-z0-9_.-]{1,64}``, not "." or ".."."""
@@ -1153,28 +1151,17 @@ class Save(Message):
 
 
 @dataclass(eq=False, repr=False)
-class Load(Message):
+class Save(_MapNameRequest):
+    """Save the map under `name` in the mapper's map directory (wire type ``save``)."""
+
+    TYPE: ClassVar[str] = "save"
+
+
+@dataclass(eq=False, repr=False)
+class Load(_MapNameRequest):
     """Load the map `name` from the mapper's map directory (wire type ``load``)."""
 
     TYPE: ClassVar[str] = "load"
-
-    name: str
-    """Map name, ``[A-Za-z0-9_.-]{1,64}``, not "." or ".."."""
-    id: RequestId = None
-
-    def __post_init__(self) -> None:
-        self.name = _check_map_name(self.name)
-        self.id = _check_id(self.id)
-
-    def to_wire(self) -> dict[str, Any]:
-        wire = self._head()
-        wire["name"] = self.name
-        return wire
-
-    @classmethod
-    def from_wire(cls, obj: dict[str, Any]) -> Self:
-        w = _Wire(obj, cls.TYPE)
-        return cls(name=w.req("name"), id=w.id())
 
 
 @dataclass(eq=False, repr=False)
