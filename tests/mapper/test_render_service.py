@@ -11,7 +11,6 @@ import pytest
 import torch
 
 from mapper.config import config_from_dict
-from mapper.model.config import EncoderConfig, FusionConfig, ModelConfig, RenderConfig, VolumeConfig
 from mapper.model.field import GovNeSF
 from mapper.render_service import install_learned_handlers
 from mapper.runtime import ModelRuntime, ModelRuntimeConfig
@@ -29,16 +28,9 @@ from protocol.messages import (
     decode,
     encode,
 )
+from tests.model_helpers import look_at, tiny_model_config
 
-TINY = ModelConfig(
-    name="tiny",
-    encoder=EncoderConfig(base_channels=8, blocks=(1, 1, 1), feature_dim=8),
-    volume=VolumeConfig(unet_channels=(4, 8, 8), group_norm_groups=4, volume_feature_dim=4, max_voxels=1024),
-    fusion=FusionConfig(hidden_dim=16, attention_dim=8, num_heads=2, ov_dim=4),
-    render=RenderConfig(n_samples=8, near_m=0.2, far_m=8.0),
-    num_source_views=3,
-    image_wh=(32, 24),
-)
+TINY = tiny_model_config()
 SPACE = "test-space"
 
 
@@ -48,17 +40,6 @@ class FakeEncoder:
 
     def encode(self, texts: Sequence[str]) -> np.ndarray:
         return np.stack([np.eye(4, dtype=np.float32)[len(t) % 4] for t in texts])
-
-
-def look_at(eye: Sequence[float], target: Sequence[float]) -> np.ndarray:
-    eye_a = np.asarray(eye, float)
-    forward = np.asarray(target, float) - eye_a
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, np.cross(forward, right), forward, eye_a
-    return pose
 
 
 def frame(seq: int, with_ov: bool = True) -> Frame:

@@ -12,20 +12,12 @@ import torch
 
 from mapper.config import ConfigError, WindowConfig
 from mapper.cost_volume import build_cost_volume
-from mapper.model.config import EncoderConfig, FusionConfig, ModelConfig, RenderConfig, VolumeConfig
 from mapper.model.field import GovNeSF
 from mapper.runtime import ModelRuntime, ModelRuntimeConfig, RuntimeNotReady
 from mapper.window import Keyframe, KeyframeWindow
+from tests.model_helpers import look_at, tiny_model_config
 
-TINY = ModelConfig(
-    name="tiny",
-    encoder=EncoderConfig(base_channels=8, blocks=(1, 1, 1), feature_dim=8),
-    volume=VolumeConfig(unet_channels=(4, 8, 8), group_norm_groups=4, volume_feature_dim=4, max_voxels=2048),
-    fusion=FusionConfig(hidden_dim=16, attention_dim=8, num_heads=2, ov_dim=6),
-    render=RenderConfig(n_samples=16, near_m=0.2, far_m=8.0),
-    num_source_views=3,
-    image_wh=(32, 24),
-)
+TINY = tiny_model_config(ov_dim=6, max_voxels=2048, n_samples=16)
 D = 6
 SPACE = "test-space"
 TEXT_EMB = np.eye(3, D, dtype=np.float32)  # "a" -> e0, "b" -> e1, "c" -> e2
@@ -37,18 +29,6 @@ class FakeEncoder:
 
     def encode(self, texts: Sequence[str]) -> np.ndarray:
         return np.stack([TEXT_EMB["abc".index(t[0])] for t in texts])
-
-
-def look_at(eye: Sequence[float], target: Sequence[float]) -> np.ndarray:
-    """(4, 4) world_from_cam of an OpenCV camera at ``eye`` looking at ``target`` (world +z up)."""
-    eye_a = np.asarray(eye, float)
-    forward = np.asarray(target, float) - eye_a
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, np.cross(forward, right), forward, eye_a
-    return pose
 
 
 def keyframe(
