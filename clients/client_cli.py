@@ -5,7 +5,8 @@ with an error.
 
 ``govnesf query "find the chair" --out chair.ply --json chair.json`` prints the object candidates
 (text, centroid, score, points), writes the matching points as a PLY (Open3D; coloured by score
-with the viridis colormap, dark = low, yellow = high) and the objects as JSON.
+with the viridis colormap, dark = low, yellow = high) and the objects as JSON; ``--rerun F.rrd``
+logs both for the Rerun viewer (``clients/rerun_log.py``, docs/RERUN.md).
 """
 
 from __future__ import annotations
@@ -187,11 +188,18 @@ def _report_points(points: Points, args: argparse.Namespace) -> int:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(objects_as_json(points), indent=1) + "\n")
         print(f"wrote {path}")
+    if args.rerun:
+        from clients.rerun_log import RerunLog
+
+        with RerunLog(args.rerun, recording_name="govnesf query " + " ".join(args.texts)) as rlog:
+            rlog.log_query(points, list(args.texts))
+        print(f"wrote {args.rerun} (view it with: rerun {args.rerun})")
     return 0
 
 
 def query_main(argv: list[str] | None = None) -> int:
-    """``govnesf query TEXT [TEXT...] [--negatives N...] [--min-score S] [--out F.ply] [--json F.json]``."""
+    """``govnesf query TEXT [TEXT...] [--negatives N...] [--min-score S] [--out F.ply] [--json F.json]
+    [--rerun F.rrd]``."""
     parser = _parser("govnesf query", "Find map points and objects matching texts (\"find the chair\").",
                      with_name=False)
     parser.add_argument("texts", nargs="+", metavar="TEXT",
@@ -205,10 +213,19 @@ def query_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", metavar="FILE.ply", help="write the matching points coloured by score")
     parser.add_argument("--json", metavar="FILE.json", help="write the object candidates as JSON")
     parser.add_argument("--top", type=int, default=10, metavar="K", help="objects to print (default 10)")
+    parser.add_argument("--rerun", metavar="FILE.rrd",
+                        help="also log the points (by score) and objects (boxes) for the Rerun viewer")
     parser.set_defaults(timeout=30.0)
     args = parser.parse_args(argv)
     if args.top < 0:
         parser.error(f"--top {args.top} must be >= 0")
+    if args.rerun:  # a bad path is an error before the query is sent
+        from clients.rerun_log import RerunLogError, check_rrd_path
+
+        try:
+            check_rrd_path(args.rerun)
+        except RerunLogError as exc:
+            parser.error(str(exc))
     return _run(
         args,
         lambda c: c.query_points(

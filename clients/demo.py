@@ -19,6 +19,8 @@ Steps, each printed as it happens:
 
 Outputs under ``out/demo/`` (override with ``--out``): ``*.ply`` / ``*.json`` per query,
 ``segmentation.json``, ``scene.ply`` (the ground-truth mesh), the node log and the map directory.
+``--rerun FILE.rrd`` (off by default) also logs the streamed frames, the queries, the map's labels
+and the render for the Rerun viewer (``clients/rerun_log.py``; ``--rerun-every N`` thins frames).
 The demo exits non-zero if the chair answer is wrong or the node misbehaves.
 
 This module also provides helpers the end-to-end tests and benchmarks share:
@@ -38,6 +40,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator, Sequence
+from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -327,6 +330,15 @@ def _step(n: int, text: str) -> None:
     print(f"\n[demo {n}/{N_STEPS}] {text}", flush=True)
 
 
+def _open_rerun(path: str | None, name: str) -> AbstractContextManager[Any]:
+    """A :class:`clients.rerun_log.RerunLog` on ``path`` (closed on exit), or ``None`` without one."""
+    if path is None:
+        return nullcontext(None)
+    from clients.rerun_log import RerunLog
+
+    return RerunLog(path, recording_name=name)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m clients.demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=str(REPO_ROOT / "out" / "demo"), help="output directory")
@@ -337,7 +349,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--window", type=int, default=160, help="node window.max_keyframes (default 160)")
     parser.add_argument("--gt-points-per-m2", type=float, default=150.0,
                         help="density of the ground-truth surface samples for the mIoU (default 150)")
+    parser.add_argument("--rerun", metavar="FILE.rrd", default=None,
+                        help="also log the streamed frames, the map, the queries and the render for the "
+                             "Rerun viewer (off by default)")
+    parser.add_argument("--rerun-every", type=int, default=1, metavar="N",
+                        help="with --rerun: log every Nth streamed frame (default 1: all)")
     args = parser.parse_args(argv)
+    if args.rerun_every < 1:
+        parser.error(f"--rerun-every {args.rerun_every} must be >= 1")
+    if args.rerun:  # a bad path is an error before any work
+        from clients.rerun_log import RerunLogError, check_rrd_path
+
+        try:
+            check_rrd_path(args.rerun)
+        except RerunLogError as exc:
+            parser.error(str(exc))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
@@ -371,7 +397,8 @@ def main(argv: list[str] | None = None) -> int:
                     "--set", "load_autosave_on_start=false"],
     )  # fmt: skip
     failures: list[str] = []
-    with node:  # starts the process, and kills it on the way out whatever happens
+    # the node: started here and killed on the way out whatever happens; the .rrd: closed (complete)
+    with node, _open_rerun(args.rerun, f"govnesf demo seed {args.seed}") as rlog:
         node.wait_ready()
         print(f"  pid {node.process.pid if node.process else '?'}; ingest {node.ingest}, query {node.query}")
         print(f"  node log: {node.log_path}")
@@ -382,6 +409,8 @@ def main(argv: list[str] | None = None) -> int:
         def frames() -> Iterator[Frame]:
             for k, (frame, view) in enumerate(stream.frames()):
                 count_views(gt_xyz, stream.K, stream.poses[k], view.depth_m, gt_views)
+                if rlog is not None and k % args.rerun_every == 0:
+                    rlog.log_frame(frame)
                 yield frame
 
         t_stream = time.monotonic()
@@ -414,6 +443,8 @@ def main(argv: list[str] | None = None) -> int:
                 write_points_ply(out / f"{stem}.ply", points.xyz, points.score)
                 (out / f"{stem}.json").write_text(json.dumps(objects_as_json(points), indent=1) + "\n")
                 print(f"  wrote {out / f'{stem}.ply'} and {out / f'{stem}.json'}")
+                if rlog is not None:
+                    rlog.log_query(points, [text], entity=f"world/queries/{stem}")
             chair_objects = answers["chair"].objects
             if not chair_objects:
                 failures.append('"find the chair" returned no object')
@@ -455,6 +486,8 @@ def main(argv: list[str] | None = None) -> int:
                                   "timing_ms": dict(seg.timing_ms)}
             full = client.query_points(texts, negatives=[], max_points=10_000_000, objects=False,
                                        timeout_s=300.0)
+            if rlog is not None:
+                rlog.log_map(full, texts)
             pred = label_by_nearest(xyz, full.xyz, full.label.astype(np.int64), 0.1)
             miou, ious = mean_iou(pred, gt, len(texts))
             print(f"  global map (fused features, nearest map point <= 0.1 m): mIoU {100 * miou:5.1f}%")
@@ -474,6 +507,8 @@ def main(argv: list[str] | None = None) -> int:
 
                 panels = compose_panels(result, render_texts, scale=2)
                 Image.fromarray(panels["combined"]).save(out / "render.png")
+                if rlog is not None:
+                    rlog.log_render(result, stream.K, pose, render_texts)
                 print(f"  rendered a novel view (colour, depth, semantics): {out / 'render.png'} "
                       f"in {result.timing_ms.get('handler', 0):.0f} ms on the node")
 
@@ -484,6 +519,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  node exited with code {code}")
         if code != 0:
             failures.append(f"node exit code {code} (see {node.log_path})")
+    if args.rerun:
+        print(f"\nwrote {args.rerun} (view it with: rerun {args.rerun})")
     elapsed = time.monotonic() - started
     if failures:
         print(f"\ndemo FAILED after {elapsed:.0f} s: " + "; ".join(failures), file=sys.stderr)

@@ -14,7 +14,8 @@ given with ``--K fx fy cx cy``.
 Output: one PNG with the panels side by side -- colour | depth (colormapped, near = yellow,
 far = dark, no depth = black) | semantic labels (one colour per text, black = nothing rendered,
 with a legend underneath) when ``--texts`` are given. ``--separate`` also writes
-``NAME_rgb.png``, ``NAME_depth.png`` and ``NAME_label.png``; ``--npz`` the raw arrays.
+``NAME_rgb.png``, ``NAME_depth.png`` and ``NAME_label.png``; ``--npz`` the raw arrays;
+``--rerun F.rrd`` logs the view (its camera, rgb, depth, labels) for the Rerun viewer.
 
 Exit codes: 0 success, 1 the node did not answer, 2 invalid arguments, 3 the node answered
 with an error.
@@ -177,6 +178,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--npz", metavar="FILE", help="also save the raw arrays (rgb, depth_m, label, score)")
     p.add_argument("--scale", type=int, default=1, help="upscale the PNGs by this integer factor (1)")
     p.add_argument(
+        "--rerun", metavar="FILE.rrd", help="also log the view and its camera for the Rerun viewer"
+    )
+    p.add_argument(
         "--query", default=DEFAULT_QUERY, metavar="EP", help=f"node query endpoint ({DEFAULT_QUERY})"
     )
     p.add_argument(
@@ -228,6 +232,14 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"{prog}: {exc}", file=sys.stderr)
         return 2
+    if args.rerun:  # a bad path is an error before the render is asked for
+        from clients.rerun_log import RerunLogError, check_rrd_path
+
+        try:
+            check_rrd_path(args.rerun)
+        except RerunLogError as exc:
+            print(f"{prog}: {exc}", file=sys.stderr)
+            return 2
     outputs = ["rgb", "depth"] + (["label", "score"] if args.texts else [])
     try:
         with MapperClient(query=args.query, timeout_s=args.timeout, retries=args.retries) as client:
@@ -256,6 +268,12 @@ def main(argv: list[str] | None = None) -> int:
                                      ("score", result.score)) if v is not None}  # fmt: skip
         np.savez_compressed(args.npz, **arrays)  # type: ignore[arg-type]
         written.append(args.npz)
+    if args.rerun:
+        from clients.rerun_log import RerunLog
+
+        with RerunLog(args.rerun, recording_name="govnesf render") as rlog:
+            rlog.log_render(result, K, world_from_cam, args.texts)
+        written.append(args.rerun)
     timing = result.timing_ms.get("handler", result.timing_ms.get("total"))
     print(f"rendered {args.width}x{args.height}" + (f" in {timing:.0f} ms" if timing is not None else ""))
     if result.depth_m is not None and (result.depth_m > 0).any():

@@ -2,7 +2,8 @@
 
 Frames are sent byte-for-byte as recorded, pipelined (``--window`` frames in flight), at most
 ``--rate`` frames per second (0 = as fast as the acks come back). A truncated or corrupt tail
-of the recording is reported; every complete frame before it is still sent.
+of the recording is reported; every complete frame before it is still sent. ``--rerun F.rrd``
+logs the frames (every ``--rerun-every``-th) for the Rerun viewer (``clients/rerun_log.py``).
 
 Exit codes: 0 done (whatever the node answered), 1 the node did not answer, 2 bad arguments or
 an unreadable recording.
@@ -11,18 +12,20 @@ an unreadable recording.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from tqdm import tqdm
 
 from clients.client import DEFAULT_INGEST, FrameResult, MapperClient
 from protocol.errors import ProtocolError
-from protocol.messages import Ack
+from protocol.messages import Ack, Frame, decode
 from protocol.recording import read_recording
 
 
@@ -80,8 +83,12 @@ def replay(
     window: int = 8,
     progress: bool = True,
     on_result: Callable[[FrameResult], None] | None = None,
+    on_frame: Callable[[int, bytes], None] | None = None,
 ) -> ReplaySummary:
     """Send every complete frame of recording ``path`` through ``client``.
+
+    ``on_frame(index, data)`` sees each frame's recorded bytes just before it is sent;
+    ``on_result`` each reply.
 
     Raises:
         FileNotFoundError, ProtocolError: the recording cannot be opened (bad header).
@@ -100,6 +107,8 @@ def replay(
     def frames() -> Iterator[bytes]:
         for index, data in enumerate(reader):
             sizes[index] = len(data)
+            if on_frame is not None:
+                on_frame(index, data)
             yield data
 
     started = time.monotonic()
@@ -151,20 +160,69 @@ def build_parser() -> argparse.ArgumentParser:
         "--retries", type=int, default=2, metavar="N", help="retries before giving up (default 2)"
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--rerun", metavar="FILE.rrd", help="also log the frames (camera, rgb, depth) for the Rerun viewer"
+    )
+    parser.add_argument(
+        "--rerun-every", type=int, default=1, metavar="N", help="log every Nth frame only (default 1: all)"
+    )
     return parser
+
+
+class FrameLogger:
+    """``on_frame`` for :func:`replay`: decodes every ``every``-th recorded frame and logs it to
+    ``rlog`` (a :class:`clients.rerun_log.RerunLog`). Frames that do not decode are counted in
+    ``skipped`` (the node answers them with an error; the replay goes on)."""
+
+    def __init__(self, rlog: Any, every: int = 1) -> None:
+        if every < 1:
+            raise ValueError(f"every {every} must be >= 1")
+        self.rlog = rlog
+        self.every = every
+        self.skipped = 0
+
+    def __call__(self, index: int, data: bytes) -> None:
+        if index % self.every:
+            return
+        try:
+            frame = decode(data, direction="request")
+        except ProtocolError:
+            self.skipped += 1
+            return
+        if isinstance(frame, Frame):
+            self.rlog.log_frame(frame)
+        else:
+            self.skipped += 1
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``govnesf replay``; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.rate < 0 or args.window < 1 or args.timeout <= 0 or args.retries < 0:
-        parser.error("need --rate >= 0, --window >= 1, --timeout > 0, --retries >= 0")
+    if args.rate < 0 or args.window < 1 or args.timeout <= 0 or args.retries < 0 or args.rerun_every < 1:
+        parser.error("need --rate >= 0, --window >= 1, --timeout > 0, --retries >= 0, --rerun-every >= 1")
+    rlog = None
+    if args.rerun:  # checked before anything is read or sent
+        from clients.rerun_log import RerunLog, RerunLogError, check_rrd_path
+
+        try:
+            check_rrd_path(args.rerun)
+        except RerunLogError as exc:
+            parser.error(str(exc))
     try:
-        with MapperClient(ingest=args.ingest, timeout_s=args.timeout, retries=args.retries) as client:
-            summary = replay(
-                args.recording, client, rate_hz=args.rate, window=args.window, progress=not args.no_progress
+        with contextlib.ExitStack() as stack:
+            read_recording(args.recording)  # an unreadable recording fails here: no .rrd is written
+            if args.rerun:
+                name = f"govnesf replay {Path(args.recording).name}"
+                rlog = stack.enter_context(RerunLog(args.rerun, recording_name=name))
+            logger = FrameLogger(rlog, args.rerun_every) if rlog is not None else None
+            client = stack.enter_context(
+                MapperClient(ingest=args.ingest, timeout_s=args.timeout, retries=args.retries)
             )
+            summary = replay(
+                args.recording, client, rate_hz=args.rate, window=args.window, progress=not args.no_progress,
+                on_frame=logger,
+            )  # fmt: skip
     except FileNotFoundError:
         print(f"govnesf replay: no such recording: {args.recording}", file=sys.stderr)
         return 2
@@ -172,6 +230,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"govnesf replay: cannot replay {args.recording}: {exc}", file=sys.stderr)
         return 2
     print("\n".join(summary.lines()))
+    if rlog is not None and logger is not None:
+        skipped = f", {logger.skipped} undecodable skipped" if logger.skipped else ""
+        print(f"wrote {args.rerun}: {rlog.frames_logged} frames logged (every {args.rerun_every}){skipped}")
     if summary.unreachable:
         print(f"govnesf replay: node unreachable: {summary.unreachable}", file=sys.stderr)
         return 1
