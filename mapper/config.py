@@ -104,7 +104,35 @@ class GlobalMapConfig:
     min_weight: float = 0.02
     """Observations whose weight falls below this are not fused. 0..1."""
 
+    rendered_depth: bool = True
+    """Keyframes without input depth add points from the learned model's rendered depth at their
+    pose (when the node serves the model; :mod:`mapper.depth_points`). Off: they add no points."""
+
+    rendered_depth_stride: int = 4
+    """The depth is rendered at the keyframe's size / this (K scaled with it), every pixel used. 1..64."""
+
+    rendered_min_opacity: float = 0.9
+    """Rendered pixels whose accumulated opacity is below this add no point (the ray found no
+    clear surface). 0..1."""
+
+    rendered_weight: float = 0.5
+    """Observation weights of rendered-depth points are multiplied by this times the opacity (input
+    depth outranks rendered depth in the fused confidence). 0..1."""
+
+    rendered_min_views: int = 4
+    """The model needs at least this many keyframes in its window before it renders depth
+    (keyframes that arrive earlier wait). 1..1000."""
+
+    rendered_max_pending: int = 256
+    """Most keyframes waiting for a rendered depth; beyond it the oldest is dropped (counted as
+    ``dropped`` in status). 1..100000."""
+
     def validate(self, where: str) -> None:
+        _check_range(where, "global_map.rendered_depth_stride", self.rendered_depth_stride, 1, 64)
+        _check_range(where, "global_map.rendered_min_opacity", self.rendered_min_opacity, 0.0, 1.0)
+        _check_range(where, "global_map.rendered_weight", self.rendered_weight, 0.0, 1.0)
+        _check_range(where, "global_map.rendered_min_views", self.rendered_min_views, 1, 1000)
+        _check_range(where, "global_map.rendered_max_pending", self.rendered_max_pending, 1, 100_000)
         _check_range(where, "global_map.voxel_size_m", self.voxel_size_m, 0.005, 1.0)
         _check_range(where, "global_map.pixel_stride", self.pixel_stride, 1, 64)
         _check_range(where, "global_map.max_points", self.max_points, 1, 100_000_000)

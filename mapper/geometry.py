@@ -31,6 +31,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = [
+    "frustum_points",
     "DEFAULT_EPS",
     "camera_centers",
     "in_view",
@@ -196,6 +197,36 @@ def pixel_rays(K: Tensor, world_from_cam: Tensor, width: int, height: int) -> tu
     dirs = dirs / dirs.norm(dim=-1, keepdim=True)
     origins = camera_centers(world_from_cam)[..., None, None, :].expand_as(dirs)
     return origins, dirs
+
+
+def frustum_points(
+    K: Tensor,  # (4,) [fx, fy, cx, cy]
+    world_from_cam: Tensor,  # (4, 4)
+    width: int,
+    height: int,
+    near_m: float,
+    far_m: float,
+    *,
+    n_uv: int = 5,
+    n_z: int = 8,
+) -> Tensor:
+    """(n_z * n_uv * n_uv, 3) world points filling a camera's viewing frustum: an ``n_uv`` x
+    ``n_uv`` grid over the image (corners included) at ``n_z`` z-depths from ``near_m`` to ``far_m``.
+
+    What a frame without depth "observed" (the node's volume bounds; training's bounds augmentation).
+    """
+    _check_K(K)
+    _check_pose(world_from_cam, "world_from_cam")
+    if not (0.0 <= near_m < far_m):
+        raise ValueError(f"frustum depths must satisfy 0 <= near_m < far_m, got {near_m}, {far_m}")
+    dev, dt = world_from_cam.device, world_from_cam.dtype
+    us = torch.linspace(0.0, float(width), n_uv, device=dev, dtype=dt)
+    vs = torch.linspace(0.0, float(height), n_uv, device=dev, dtype=dt)
+    zs = torch.linspace(float(near_m), float(far_m), n_z, device=dev, dtype=dt)
+    z, v, u = torch.meshgrid(zs, vs, us, indexing="ij")
+    Kd = K.to(dt)
+    cam = torch.stack([(u - Kd[2]) / Kd[0] * z, (v - Kd[3]) / Kd[1] * z, z], dim=-1).reshape(-1, 3)
+    return cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
 
 
 def scale_uv(uv: Tensor, from_wh: tuple[int, int], to_wh: tuple[int, int]) -> Tensor:

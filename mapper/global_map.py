@@ -21,7 +21,8 @@ image's neighbours; 0.5 where they are unknown). Observations below ``min_weight
 The fusion rule is the pure function :func:`weighted_mean_fusion`; the learned model can pass its
 own ``fusion=`` with the same signature (:class:`FusionRule`).
 
-Frames without depth add no points (the learned model will add points from rendered depth);
+Frames without depth add no points here; when the node serves the learned model,
+:mod:`mapper.depth_points` adds their points later from the model's rendered depth;
 frames without ``ov`` add geometry only (points without a feature). Points are kept when their
 keyframe leaves the window. Memory is bounded by ``max_points``: beyond it the voxels with the
 lowest priority ``weight * 0.5 ** (keyframes since last seen / stale_half_life_keyframes)`` are
@@ -333,14 +334,28 @@ class GlobalSemanticMap:
 
     # -- integration -------------------------------------------------------------------------
 
-    def observe(self, keyframe: KeyframeLike) -> Observations | str:
-        """The keyframe's weighted observations (pure; no lock), or the reason there are none."""
+    def observe(
+        self,
+        keyframe: KeyframeLike,
+        *,
+        pixel_stride: int | None = None,
+        confidence: np.ndarray | None = None,  # (H, W) in [0, 1], same size as the depth
+    ) -> Observations | str:
+        """The keyframe's weighted observations (pure; no lock), or the reason there are none.
+
+        ``pixel_stride`` overrides ``config.pixel_stride``; ``confidence`` multiplies each pixel's
+        quality weight (e.g. the opacity of a rendered depth, see :mod:`mapper.depth_points`).
+        """
         cfg = self.config
         depth = keyframe.depth_m
         if depth is None:
             return "no depth"
         height, width = depth.shape
-        stride = cfg.pixel_stride
+        if confidence is not None and confidence.shape != depth.shape:
+            raise ValueError(f"confidence {confidence.shape} must match the depth {depth.shape}")
+        stride = cfg.pixel_stride if pixel_stride is None else int(pixel_stride)
+        if stride < 1:
+            raise ValueError(f"pixel_stride {stride} out of range: must be >= 1")
         rows = np.arange(stride // 2, height, stride)
         cols = np.arange(stride // 2, width, stride)
         grid_j, grid_i = np.meshgrid(rows, cols, indexing="ij")  # (h', w')
@@ -377,6 +392,8 @@ class GlobalSemanticMap:
             cos = np.abs(np.einsum("md,md->m", normal, p_cam)) / np.maximum(n_norm * dist, 1e-12)
             cos = np.where(good & (n_norm > 0), np.clip(cos, 0.0, 1.0), _UNKNOWN_NORMAL_COS)
             weight = weight * cos**cfg.grazing_power
+        if confidence is not None:
+            weight = weight * np.clip(np.nan_to_num(confidence[jj, ii].astype(np.float64), nan=0.0), 0.0, 1.0)
         keep = weight >= cfg.min_weight
         if not keep.any():
             return "every observation below min_weight"
@@ -402,19 +419,32 @@ class GlobalSemanticMap:
             ov_flat = np.asarray(keyframe.ov, np.float32).reshape(h_ov * w_ov, dim)
         return Observations(p_world, weight.astype(np.float32), cells, bilinear, ov_flat)
 
-    def integrate(self, keyframe: KeyframeLike, map_version: int | None = None) -> IntegrateStats:
+    def integrate(
+        self,
+        keyframe: KeyframeLike,
+        map_version: int | None = None,
+        *,
+        pixel_stride: int | None = None,
+        confidence: np.ndarray | None = None,  # (H, W) weight multiplier in [0, 1]
+        count_keyframe: bool = True,
+    ) -> IntegrateStats:
         """Fuse one keyframe (see the module docstring); ``map_version`` is the node's version that
-        includes it (reported by snapshots). Touches only the voxels the keyframe sees."""
+        includes it (reported by snapshots). Touches only the voxels the keyframe sees.
+
+        ``pixel_stride`` and ``confidence``: see :meth:`observe`. ``count_keyframe=False`` adds
+        points to a keyframe already counted (rendered depth for a keyframe integrated earlier
+        without depth), so the staleness clock does not tick twice."""
         started = time.perf_counter()
         if keyframe.ov is not None and keyframe.ov.ndim != 3:
             raise ValueError(f"ov must be (h, w, D), got shape {keyframe.ov.shape}")
         if keyframe.depth_m is not None and keyframe.depth_m.shape != keyframe.rgb.shape[:2]:
             raise ValueError(f"depth {keyframe.depth_m.shape} must match the image {keyframe.rgb.shape[:2]}")
-        obs = self.observe(keyframe)  # outside the lock: pure
+        obs = self.observe(keyframe, pixel_stride=pixel_stride, confidence=confidence)  # outside the lock
         with self._lock:
             if keyframe.ov is not None:
                 self._set_dim(int(keyframe.ov.shape[2]))
-            self._kf_counter += 1
+            if count_keyframe:
+                self._kf_counter += 1
             self._version += 1
             if map_version is not None:
                 self._map_version = map_version

@@ -21,6 +21,7 @@ import logging
 import time
 from typing import TYPE_CHECKING
 
+from mapper.depth_points import RenderedDepthPoints
 from mapper.runtime import ModelRuntime, RuntimeNotReady
 from protocol.errors import ProtocolError
 from protocol.messages import Message, Render, RenderResult, Segmentation, SegmentPoints
@@ -85,11 +86,16 @@ def make_render_handler(runtime: ModelRuntime) -> QueryHandler:
     return handle_render
 
 
-def install_learned_handlers(node: MapperNode, runtime: ModelRuntime) -> None:
+def install_learned_handlers(node: MapperNode, runtime: ModelRuntime) -> RenderedDepthPoints | None:
     """Attach ``runtime`` to ``node``'s window and serve ``render`` and ``segment_points`` (govnesf).
 
-    Call once, after the node is constructed (before or after ``start()``); a map loaded earlier
-    is picked up (the runtime records the keyframes already in the window).
+    With a loaded model and ``global_map.rendered_depth`` (the default), keyframes without input
+    depth also add global-map points from the model's rendered depth
+    (:class:`mapper.depth_points.RenderedDepthPoints`, returned; None otherwise). Its worker thread
+    runs from ``node.start()``.
+
+    Call once, after the node is constructed (before ``start()`` for the rendered-depth worker); a
+    map loaded earlier is picked up (the runtime records the keyframes already in the window).
     """
     with node.state.lock:
         runtime.attach(node.state.window)
@@ -107,3 +113,8 @@ def install_learned_handlers(node: MapperNode, runtime: ModelRuntime) -> None:
     node.register_query_handler(Render, render)
     node.memory_providers.append(runtime.memory_bytes)
     node.status_providers["model"] = runtime.stats
+    if runtime.load_error or not node.config.global_map.rendered_depth:
+        return None
+    points = RenderedDepthPoints(node, runtime)
+    points.install()
+    return points

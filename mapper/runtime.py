@@ -56,10 +56,17 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mapper.cost_volume import CostVolume, VolumeBounds, bounds_from_points
+from mapper.cost_volume import (
+    CostVolume,
+    VolumeBounds,
+    bounds_from_points,
+    cost_volume_features,
+    sample_volume,
+)
 from mapper.encoders import TextEncoder, UnknownSpaceError, get_text_encoder
 from mapper.geometry import (
     camera_centers,
+    frustum_points,
     in_view,
     invert_pose,
     pixel_rays,
@@ -167,6 +174,10 @@ class ModelRuntimeConfig:
     min_weight: float = 1.0e-4
     """With skipping, samples whose rendering weight is below this skip the appearance pass. 0..1."""
 
+    min_view_support: int = 1
+    """Density is forced to 0 where fewer than this many keyframes see the cost-volume voxel (a
+    voxel seen by one view has zero feature variance, which reads as a surface). 1 = off. 1..1000."""
+
     min_opacity: float = 0.05
     """Pixels whose accumulated opacity is below this render no depth (0) and label -1. 0..1."""
 
@@ -213,6 +224,7 @@ class ModelRuntimeConfig:
         check("chunk_points", self.chunk_points, 1, 10_000_000)
         check("occupancy_threshold", self.occupancy_threshold, 0.0, 1e6)
         check("min_weight", self.min_weight, 0.0, 1.0)
+        check("min_view_support", self.min_view_support, 1, 1000)
         check("min_opacity", self.min_opacity, 0.0, 1.0)
         check("max_render_pixels", self.max_render_pixels, 1, 4096 * 4096)
         check("max_segment_points", self.max_segment_points, 1, 100_000_000)
@@ -267,6 +279,7 @@ class _Prepared:
     K: Tensor  # (M, 4)
     world_from_cam: Tensor  # (M, 4, 4)
     ov_space: str | None
+    support: Tensor | None = None  # (1, X, Y, Z) 1 where >= min_view_support views see the voxel
     max_density: Tensor | None = None  # (X, Y, Z) dilated max sub-voxel density (1/m), on first use
 
     def __len__(self) -> int:
@@ -531,12 +544,8 @@ class ModelRuntime:
                 u, v = cols.float() + 0.5, rows.float() + 0.5
                 cam = torch.stack([(u - K[2]) / K[0] * z, (v - K[3]) / K[1] * z, z], dim=-1)
                 return cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
-        us = torch.linspace(0.0, float(width), 5, device=self.device)
-        vs = torch.linspace(0.0, float(height), 5, device=self.device)
-        zs = torch.linspace(max(cfg.near_m, 0.05), cfg.max_range_m, 8, device=self.device)
-        z, v, u = torch.meshgrid(zs, vs, us, indexing="ij")
-        cam = torch.stack([(u - K[2]) / K[0] * z, (v - K[3]) / K[1] * z, z], dim=-1).reshape(-1, 3)
-        return cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
+        near = min(max(cfg.near_m, 0.05), 0.5 * cfg.max_range_m)
+        return frustum_points(K, world_from_cam, width, height, near, cfg.max_range_m)
 
     def _target_bounds(self) -> VolumeBounds:
         model = self._require_model()
@@ -670,7 +679,11 @@ class ModelRuntime:
                 ]
             )
         spaces = {e.ov_space for e in entries if e.ov is not None}
-        volume = model.volume_features(self._volume.network_input().to(self.device))
+        mean, var, count = self._volume.statistics()
+        volume = model.volume_features(cost_volume_features(mean, var, count).to(self.device))
+        support = None
+        if self.config.min_view_support > 1:
+            support = (count >= self.config.min_view_support).to(self.device, torch.float32)[None]
         self._prepared = _Prepared(
             version=self.version,
             bounds=self._volume.bounds,
@@ -683,8 +696,18 @@ class ModelRuntime:
             K=torch.stack([e.K for e in entries]),
             world_from_cam=torch.stack([e.world_from_cam for e in entries]),
             ov_space=spaces.pop() if len(spaces) == 1 else None,
+            support=support,
         )
         return self._prepared
+
+    def _density(self, model: GovNeSF, prep: _Prepared, points: Tensor) -> tuple[Tensor, Tensor]:
+        """sigma (P,) and volume feature (P, Dv) at (P, 3) points; sigma is 0 where fewer than
+        ``min_view_support`` views see the volume (trilinear in the support mask)."""
+        sigma, v = model.density_at(prep.volume, prep.bounds, points)
+        if prep.support is not None:
+            support, _ = sample_volume(prep.support, prep.bounds, points)
+            sigma = sigma * support[..., 0]
+        return sigma, v
 
     @torch.no_grad()
     def occupancy(self) -> tuple[VolumeBounds, Tensor]:
@@ -705,7 +728,7 @@ class ModelRuntime:
         ]
         grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
         sigma = torch.cat(
-            [model.density_at(prep.volume, b, grid[i : i + 65536])[0] for i in range(0, grid.shape[0], 65536)]
+            [self._density(model, prep, grid[i : i + 65536])[0] for i in range(0, grid.shape[0], 65536)]
         )
         fine = sigma.reshape(1, 1, 2 * b.dims[0], 2 * b.dims[1], 2 * b.dims[2])
         coarse = F.max_pool3d(fine, kernel_size=2, stride=2)
@@ -946,6 +969,7 @@ class ModelRuntime:
             dirs = dirs.reshape(-1, 3).to(self.device, torch.float32)
             axis = pose[:3, 2].to(self.device, torch.float32)
             allowed = prep.has_ov if semantic else torch.ones_like(prep.has_ov)
+            appearance = semantic or "rgb" in outputs  # depth alone needs only the density
             n_rays = origins.shape[0]
             rgb = torch.zeros(n_rays, 3, device=self.device)
             ray_depth = torch.zeros(n_rays, device=self.device)
@@ -960,7 +984,7 @@ class ModelRuntime:
             for i in range(0, n_rays, self.config.chunk_rays):
                 sl = slice(i, i + self.config.chunk_rays)
                 part = self._render_rays(
-                    model, prep, origins[sl], dirs[sl], occupancy, semantic, allowed, stats
+                    model, prep, origins[sl], dirs[sl], occupancy, semantic, allowed, stats, appearance
                 )
                 rgb[sl], ray_depth[sl], opacity[sl], covered[sl] = part[0], part[1], part[2], part[4]
                 if ov is not None and part[3] is not None:
@@ -1004,9 +1028,13 @@ class ModelRuntime:
         need_ov: bool,
         allowed: Tensor,  # (M,) bool views usable as sources
         stats: dict[str, int],
+        appearance: bool = True,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor]:
         """rgb (R, 3), ray distance (R,), opacity (R,), ov (R, D) | None and covered (R,) (the
         opacity of samples some source view sees) for one chunk of rays.
+
+        ``appearance=False`` (a depth-only render) skips the appearance pass: rgb and covered are 0;
+        depth and opacity are exactly those of a full render (they depend on the density only).
 
         Both modes sample ``samples_per_ray`` bins on ``[near, far]`` clipped to the volume box
         (density is exactly 0 outside it; rays that miss the box render nothing). Dense mode
@@ -1043,12 +1071,14 @@ class ModelRuntime:
         dv = model.cfg.volume.volume_feature_dim
         v_all = torch.zeros(n * S, dv, device=flat.device)
         if eval_idx.numel():
-            sig, v = model.density_at(prep.volume, b, flat[eval_idx])
+            sig, v = self._density(model, prep, flat[eval_idx])
             sigma[eval_idx] = sig
             v_all[eval_idx] = v
         weights, _ = render_weights(sigma.reshape(n, S), deltas)
         keep = evaluate
-        if occupancy is not None and cfg.min_weight > 0:
+        if not appearance:
+            keep = torch.zeros_like(keep)
+        elif occupancy is not None and cfg.min_weight > 0:
             keep = keep & (weights.reshape(-1) >= cfg.min_weight)
         keep_idx = keep.nonzero().squeeze(-1)
         stats["appearance_evals"] += int(keep_idx.numel())

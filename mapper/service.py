@@ -192,6 +192,13 @@ class MapperNode:
         """Extra holders of map memory (e.g. the learned-model runtime); summed into ``memory_bytes``."""
         self.status_providers: dict[str, Callable[[], Any]] = {}
         """Extra ``status`` keys computed on request (e.g. ``"model"``: the runtime's stats)."""
+        self.keyframe_listeners: list[Callable[[Keyframe, int], None]] = []
+        """Called on the ingest thread, outside the state lock, after a new keyframe went into the
+        window and the global map, with the keyframe and its map version. Must be quick (queue the
+        work) and must not raise."""
+        self.workers: list[tuple[str, Callable[[threading.Event], None]]] = []
+        """Background threads ``(name, target)`` started by :meth:`start` after the sockets are
+        bound; ``target(stop_event)`` runs until the event is set and must not raise."""
 
     # -- extension points ---------------------------------------------------------------------
 
@@ -230,6 +237,10 @@ class MapperNode:
             self._context.term()
             self._stopped = True
             raise RuntimeError("; ".join(self._bind_errors) or "socket threads did not start in 10 s")
+        for name, work in self.workers:
+            thread = threading.Thread(target=work, args=(self._stop,), name=f"mapper-{name}", daemon=True)
+            thread.start()
+            self._threads.append(thread)
         log.info(
             "serving: ingest %s, query %s, events %s, map_dir %s",
             self.config.ingest_endpoint,
@@ -537,6 +548,8 @@ class MapperNode:
                       f" ({stats.skipped})" if stats.skipped else "")
             if frame.ov is not None and space is not None:
                 self._warm_text_encoder(space)
+            for listener in self.keyframe_listeners:
+                listener(keyframe, version)
         log.debug(
             "frame seq %d (%s): %s, moved %.3f m, turned %.1f deg",
             frame.seq,
