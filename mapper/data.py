@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from mapper.cost_volume import VolumeBounds, bounds_from_points
-from mapper.geometry import pixel_rays, sample_bilinear, scale_uv
+from mapper.geometry import frustum_points, pixel_rays, sample_bilinear, scale_uv
 from mapper.model.config import ModelConfig
 from protocol.recording import read_recording
 
@@ -266,10 +266,31 @@ class SourceBatch:
         )
 
 
-def source_batch(scene: Scene, indices: np.ndarray, cfg: ModelConfig) -> SourceBatch:
-    """Tensors of the chosen source frames and bounds from their depth points (cfg.volume budget)."""
+def source_batch(
+    scene: Scene, indices: np.ndarray, cfg: ModelConfig, *, frustum_range_m: float | None = None
+) -> SourceBatch:
+    """Tensors of the chosen source frames and volume bounds (cfg.volume budget) from their depth
+    points, or, with ``frustum_range_m``, from their viewing frusta up to that range: what the node
+    does for frames without depth (``mapper.runtime``), so a model trained on both does not learn
+    that surfaces lie near the volume's faces."""
     idx = np.asarray(indices, dtype=np.int64)
-    pts = scene.points_m[idx].reshape(-1, 3)
+    if frustum_range_m is not None:
+        w, h = scene.image_wh
+        pts = torch.cat(
+            [
+                frustum_points(
+                    torch.from_numpy(scene.K[i]).double(),
+                    torch.from_numpy(scene.world_from_cam[i]).double(),
+                    w,
+                    h,
+                    min(0.2, 0.5 * frustum_range_m),
+                    frustum_range_m,
+                )
+                for i in idx
+            ]
+        ).float().numpy()
+    else:
+        pts = scene.points_m[idx].reshape(-1, 3)
     pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) == 0:  # no depth at all: a box around the cameras
         centres = scene.world_from_cam[idx, :3, 3]
@@ -335,11 +356,17 @@ class RaySampler:
         num_sources: int | None = None,
         pool_factor: float = 1.5,
         seed: int = 0,
+        frustum_bounds_prob: float = 0.0,
+        frustum_range_m: float = 4.0,
     ) -> None:
         if not scenes:
             raise ValueError("RaySampler needs at least one scene")
         if rays_per_view < 1:
             raise ValueError(f"rays_per_view {rays_per_view} out of range: must be >= 1")
+        if not 0.0 <= frustum_bounds_prob <= 1.0:
+            raise ValueError(f"frustum_bounds_prob {frustum_bounds_prob} out of range 0..1")
+        if not frustum_range_m > 0.0:
+            raise ValueError(f"frustum_range_m {frustum_range_m} out of range: must be > 0")
         for s in scenes:
             if s.num_frames < 2:
                 raise ValueError(f"scene {s.name} has {s.num_frames} frame(s); training needs >= 2")
@@ -354,6 +381,9 @@ class RaySampler:
         self.num_sources = num_sources or cfg.num_source_views
         self.pool_factor = pool_factor
         self.seed = seed
+        self.frustum_bounds_prob = frustum_bounds_prob
+        """Fraction of examples whose volume bounds come from the sources' frusta, not their depth."""
+        self.frustum_range_m = frustum_range_m
 
     def rng(self, step: int, item: int) -> np.random.Generator:
         return np.random.default_rng(np.random.SeedSequence([self.seed, step, item]))
@@ -367,7 +397,9 @@ class RaySampler:
         src = select_sources(
             scene, K, pose, self.num_sources, exclude=target, pool_factor=self.pool_factor, rng=rng
         )
-        sources = source_batch(scene, src, self.cfg)
+        frustum = self.frustum_bounds_prob > 0 and bool(rng.random() < self.frustum_bounds_prob)
+        range_m = self.frustum_range_m if frustum else None
+        sources = source_batch(scene, src, self.cfg, frustum_range_m=range_m)
         w, h = scene.image_wh
         pix = rng.choice(w * h, size=min(self.rays_per_view, w * h), replace=False)
         rows, cols = pix // w, pix % w

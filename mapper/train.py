@@ -86,6 +86,13 @@ class TrainConfig:
     """Source views per target (0: the preset's ``num_source_views``)."""
     pool_factor: float = 1.5
     """Sources drawn from the ceil(N * pool_factor) best-overlapping frames (augmentation)."""
+    frustum_bounds_prob: float = 0.0
+    """Fraction of examples whose cost-volume bounds come from the source frusta (up to
+    ``frustum_range_m``) instead of their depth points, as the node does for frames without depth.
+    Without it the model learns that surfaces lie ~``margin_m`` inside the volume's faces and
+    renders depth at the far face when the bounds are frusta (docs/TRAINING.md)."""
+    frustum_range_m: float = 4.0
+    """Frustum depth of that augmentation (the node's ``model.max_range_m``)."""
     n_samples: int = 0
     """Samples per ray (0: the preset's)."""
     lr: float = 1e-3
@@ -118,6 +125,8 @@ class TrainConfig:
             (self.rays_per_view >= 1, "rays_per_view", ">= 1"),
             (self.num_sources >= 0, "num_sources", ">= 0"),
             (self.pool_factor >= 1.0, "pool_factor", ">= 1"),
+            (0.0 <= self.frustum_bounds_prob <= 1.0, "frustum_bounds_prob", "in [0, 1]"),
+            (self.frustum_range_m > 0, "frustum_range_m", "> 0"),
             (self.n_samples >= 0, "n_samples", ">= 0"),
             (self.lr > 0, "lr", "> 0"),
             (self.weight_decay >= 0, "weight_decay", ">= 0"),
@@ -450,6 +459,8 @@ def _train(
         num_sources=cfg.num_sources or None,
         pool_factor=cfg.pool_factor,
         seed=cfg.seed,
+        frustum_bounds_prob=cfg.frustum_bounds_prob,
+        frustum_range_m=cfg.frustum_range_m,
     )
     val_views: list[ValidationView] = []
     text_emb = np.zeros((0, ov_dim), np.float32)

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from mapper.cost_volume import VolumeBounds
-from mapper.data import RaySampler, find_scenes, load_scene, select_sources, validation_views
+from mapper.data import RaySampler, find_scenes, load_scene, select_sources, source_batch, validation_views
 from mapper.model.config import EncoderConfig, FusionConfig, ModelConfig, RenderConfig, VolumeConfig
 from protocol.messages import Frame
 from protocol.recording import RecordingWriter
@@ -195,3 +195,23 @@ def test_validation_views_pick_overlapping_sources(scene_dir: Path) -> None:
     assert len(views) == 1 and len(views[0].source_indices) == 3
     with pytest.raises(ValueError, match="novel views"):
         validation_views([load_scene(scene_dir)], 3)
+
+
+def test_frustum_bounds_augmentation_covers_the_source_frusta(scene_dir: Path) -> None:
+    s = load_scene(scene_dir)
+    cfg = tiny_model_config()
+    idx = np.array([1, 3])
+    depth_b = source_batch(s, idx, cfg).bounds
+    frustum_b = source_batch(s, idx, cfg, frustum_range_m=3.0).bounds
+    centres = s.world_from_cam[idx, :3, 3]
+    far = centres + 3.0 * s.world_from_cam[idx, :3, 2]  # 3 m along each optical axis
+    for p in np.concatenate([centres, far]):
+        assert np.all(np.asarray(frustum_b.origin_m) - 1e-6 <= p)
+        assert np.all(p <= np.asarray(frustum_b.max_corner_m) + 1e-6)
+    assert depth_b != frustum_b
+    always = RaySampler([s], cfg, rays_per_view=8, frustum_bounds_prob=1.0, frustum_range_m=3.0)
+    never = RaySampler([s], cfg, rays_per_view=8)
+    a, b = always.sample(0, 0), never.sample(0, 0)
+    assert a.sources.bounds != b.sources.bounds
+    with pytest.raises(ValueError, match="frustum_bounds_prob"):
+        RaySampler([s], cfg, rays_per_view=8, frustum_bounds_prob=1.5)
