@@ -12,7 +12,8 @@ then come from :mod:`mapper.depth_points`), and reports for each:
 
 Usage::
 
-    python benchmarks/rendered_depth_points.py [--frames 240] [--seed 3] [--checkpoint checkpoints/cpu-small.json]
+    python benchmarks/rendered_depth_points.py [--frames 240] [--seed 3] \
+        [--checkpoint checkpoints/cpu-small.json]
 """
 
 from __future__ import annotations
@@ -47,7 +48,9 @@ def backproject(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, stride: int 
 
 def run(args: argparse.Namespace, with_depth: bool) -> dict[str, Any]:
     stream = sim_stream(args.seed, args.frames, depth=with_depth)
-    config = config_from_dict({"map_dir": "/tmp/govnesf-bench-maps", "autosave_name": "", "save_on_exit": False})
+    config = config_from_dict(
+        {"map_dir": "/tmp/govnesf-bench-maps", "autosave_name": "", "save_on_exit": False}
+    )
     node = MapperNode(config)
     runtime = ModelRuntime(ModelRuntimeConfig(checkpoint=str(args.checkpoint), device="cpu"))
     if not runtime.ready:

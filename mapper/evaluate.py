@@ -30,6 +30,7 @@ evaluation can measure how much weight lands on occluded views.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -65,7 +66,7 @@ from mapper.metrics import (
     predict_labels,
     segmentation_scores,
 )
-from mapper.model.field import GovNeSF, SourceViews, render_rays
+from mapper.model.field import GovNeSF, SourceViews, render_depth_maps, render_rays
 from mapper.model.fusion import blend
 from mapper.rendering import Rays
 
@@ -212,11 +213,14 @@ def load_scene(path: str | Path) -> EvalScene:
 
 
 def scene_sources(model: GovNeSF, scene: EvalScene, index: np.ndarray | None = None,
-                  *, device: torch.device | str = "cpu") -> tuple[SourceViews, VolumeBounds]:
+                  *, device: torch.device | str = "cpu",
+                  frustum_range_m: float | None = None) -> tuple[SourceViews, VolumeBounds]:
     """Source views (encoded) of the stream frames ``index`` (all when None) and the volume
-    bounds over their depth points: exactly what training builds (``mapper.data.source_batch``)."""
+    bounds over their depth points: exactly what training builds (``mapper.data.source_batch``).
+    With ``frustum_range_m`` the bounds come from the frames' frusta instead (no depth used), as
+    the node builds them for frames without depth."""
     sel = np.arange(len(scene)) if index is None else np.asarray(index, dtype=np.int64)
-    src = source_batch(scene.data, sel, model.cfg).to(device)
+    src = source_batch(scene.data, sel, model.cfg, frustum_range_m=frustum_range_m).to(device)
     with torch.no_grad():
         views = model.make_source_views(src.rgb, src.ov, src.K, src.world_from_cam, src.depth_m)
     return views, src.bounds
@@ -526,6 +530,13 @@ class EvalSettings:
     candidate views as the model). Rows other than 10 px are named with their border."""
     oracle: bool = True
     """3D: also average over the ground-truth visible views (the headroom reference)."""
+    no_depth_input: bool = True
+    """3D: also the rows that use no input depth anywhere (as the node with an RGB-only robot):
+    volume bounds from the stream frames' frusta up to ``frustum_range_m``, and the model's own
+    rendered depth (at 1 / ``rendered_depth_stride`` of the image) in place of the measured depth
+    for Depth Guided Masking and for the averaging depth test."""
+    frustum_range_m: float = 4.0
+    rendered_depth_stride: int = 4
     seed: int = 0
 
 
@@ -647,7 +658,62 @@ def _evaluate_3d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
             record(f"{mname} + DGM" if dgm else f"{mname} (no depth)", pb.ov, secs,
                    occluded_weight=float(occ_w[ok].mean()) if bool(ok.any()) else float("nan"),
                    invalid=float((~pb.valid).float().mean()), volume_seconds=t_vol)
+        if settings.no_depth_input:
+            _no_depth_input_rows(scene, model, mname, pts, K, poses, occluded, settings, record, device)
     return res
+
+
+def _no_depth_input_rows(scene: EvalScene, model: GovNeSF, mname: str, pts: Tensor, K: Tensor, poses: Tensor,
+                         occluded: Tensor, settings: EvalSettings, record: Callable[..., None],
+                         device: torch.device | str) -> None:
+    """Rows without any input depth: frustum bounds; DGM and the averaging depth test with the
+    model's rendered depth of the stream frames (see ``EvalSettings.no_depth_input``)."""
+    t0 = time.perf_counter()
+    views, bounds = scene_sources(model, scene, device=device, frustum_range_m=settings.frustum_range_m)
+    views = dataclasses.replace(views, depth_m=None)
+    with torch.no_grad():
+        volume = model.build_volume(views, bounds)
+    t_vol = time.perf_counter() - t0
+    w, h = scene.image_wh
+    s = settings.rendered_depth_stride
+    rw, rh = max(1, w // s), max(1, h // s)
+    scale = K.new_tensor([rw / w, rh / h, rw / w, rh / h])
+    t0 = time.perf_counter()
+    rendered, _ = render_depth_maps(model, volume, bounds, (K * scale).to(device), poses.to(device), rw, rh)
+    t_depth = time.perf_counter() - t0
+    gt_small = F.interpolate(torch.from_numpy(scene.gt_depth_m)[:, None], size=(rh, rw),
+                             mode="nearest")[:, 0]
+    gt_small = gt_small.to(rendered.device)
+    has = (rendered > 0) & (gt_small > 0)
+    rel = ((rendered - gt_small).abs() / gt_small.clamp_min(1e-6))[has]
+    depth_stats = {"rendered_depth_seconds": t_depth, "volume_seconds": t_vol,
+                   "rendered_depth_coverage": float(has.float().mean()),
+                   "rendered_depth_median_rel_err": float(rel.median()) if rel.numel() else float("nan"),
+                   "rendered_depth_within_25pct": float((rel <= DEPTH_REL_TOL).float().mean()) if rel.numel()
+                   else float("nan")}
+    for dgm in (False, True):
+        t0 = time.perf_counter()
+        v = dataclasses.replace(views, depth_m=rendered) if dgm else views
+        pb = blend_points(model, v, volume, bounds, pts.to(device), depth_guided_masking=dgm,
+                          views_per_point=settings.views_per_point, chunk_size=settings.chunk_points)
+        secs = time.perf_counter() - t0
+        occ_sel = occluded.to(pb.view_index.device).gather(1, pb.view_index) & pb.mask
+        occ_w = (pb.weights * occ_sel).sum(1)
+        ok = pb.valid
+        name = (f"{mname} + rendered-depth DGM (no depth input)" if dgm
+                else f"{mname} (no depth, frustum bounds)")
+        record(name, pb.ov, secs, occluded_weight=float(occ_w[ok].mean()) if bool(ok.any()) else float("nan"),
+               invalid=float((~pb.valid).float().mean()), **depth_stats)
+    t0 = time.perf_counter()
+    rd = rendered.cpu().numpy()
+    views_avg = [OVView(scene.ov[k], scene.K[k], scene.world_from_cam[k], scene.image_wh, rd[k])
+                 for k in range(len(scene))]
+    feats, nv = average_features(pts, views_avg, use_depth=True, device=device)
+    counted = _averaging_mask(pts, K, poses, scene.image_wh, rendered.cpu())
+    occ = (occluded & counted).sum(1).float() / counted.sum(1).clamp_min(1).float()
+    record(f"Averaging + {mname} rendered-depth test (no depth input)", feats, time.perf_counter() - t0,
+           occluded_weight=float(occ[counted.any(1)].mean()), invalid=float((nv == 0).float().mean()),
+           **depth_stats)
 
 
 def _averaging_mask(pts: Tensor, K: Tensor, poses: Tensor, image_wh: tuple[int, int],

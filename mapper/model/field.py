@@ -57,6 +57,7 @@ __all__ = [
     "SourceViews",
     "default_device",
     "render_image",
+    "render_depth_maps",
     "render_rays",
 ]
 
@@ -420,6 +421,64 @@ def render_rays(
         t=t,
         valid_fraction=valid.float().mean(dim=-1),
     )
+
+
+@torch.no_grad()
+def render_depth_maps(
+    model: GovNeSF,
+    volume: Tensor,
+    bounds: VolumeBounds,
+    K: Tensor,
+    world_from_cam: Tensor,
+    width: int,
+    height: int,
+    *,
+    n_samples: int | None = None,
+    min_opacity: float = 0.5,
+    chunk_rays: int = 16384,
+) -> tuple[Tensor, Tensor]:
+    """The model's z-depth seen from N cameras: density only (no source views needed).
+
+    Args:
+        volume: (Dv, X, Y, Z) over ``bounds``; K: (N, 4) for (width, height); world_from_cam: (N, 4, 4).
+        n_samples: samples per ray inside the volume (default ``model.cfg.render.n_samples``).
+        min_opacity: pixels whose accumulated opacity is below this get depth 0 (no surface).
+
+    Returns:
+        depth_m: (N, height, width) z-depth along each optical axis (0 = none); opacity: same shape.
+    """
+    rc = model.cfg.render
+    n = K.shape[0]
+    depth = torch.zeros(n, height, width, device=volume.device)
+    opacity = torch.zeros(n, height, width, device=volume.device)
+    box_min = volume.new_tensor(bounds.origin_m)
+    box_max = volume.new_tensor(bounds.max_corner_m)
+    S = rc.n_samples if n_samples is None else n_samples
+    for i in range(n):
+        origins, dirs = pixel_rays(K[i].to(volume.dtype), world_from_cam[i].to(volume.dtype), width, height)
+        origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+        axis = world_from_cam[i, :3, 2].to(volume.dtype)
+        z_all, op_all = [], []
+        for j in range(0, origins.shape[0], chunk_rays):
+            o, d = origins[j : j + chunk_rays], dirs[j : j + chunk_rays]
+            t_in, t_out, hit = intersect_aabb(o, d, box_min, box_max)
+            near = torch.clamp(t_in, min=rc.near_m)
+            far = torch.minimum(t_out, torch.full_like(t_out, rc.far_m))
+            use = hit & (far > near + 1e-6)
+            near = torch.where(use, near, torch.full_like(near, rc.near_m))
+            far = torch.where(use, far, torch.full_like(far, rc.near_m + 1e-3))
+            t, deltas = sample_along_rays(o, d, near, far, S, stratified=False)
+            pts = o[:, None, :] + t[..., None] * d[:, None, :]
+            sigma, _ = model.density_at(volume, bounds, pts.reshape(-1, 3))
+            sigma = sigma.reshape(-1, S) * use[:, None].to(sigma.dtype)
+            w, _ = render_weights(sigma, deltas.to(sigma.dtype))
+            op = w.sum(-1)
+            z = expected_depth(w, t.to(w.dtype)) * (d @ axis)
+            z_all.append(torch.where(op >= min_opacity, z, torch.zeros_like(z)))
+            op_all.append(op)
+        depth[i] = torch.cat(z_all).reshape(height, width)
+        opacity[i] = torch.cat(op_all).reshape(height, width)
+    return depth, opacity
 
 
 def render_image(

@@ -17,7 +17,7 @@ from mapper.model.config import (
     get_preset,
 )
 from mapper.model.encoder2d import ImageEncoder
-from mapper.model.field import GovNeSF, SourceViews, render_image, render_rays
+from mapper.model.field import GovNeSF, SourceViews, render_depth_maps, render_image, render_rays
 from mapper.model.fusion import CrossViewAttention, masked_softmax
 from mapper.model.losses import govnesf_loss, ov_cosine_loss
 from mapper.model.unet3d import VolumeUNet
@@ -319,3 +319,23 @@ def test_tiny_model_overfits_a_view() -> None:
         losses.append(loss.total.item())
     assert all(torch.isfinite(torch.tensor(losses)))
     assert min(losses[-3:]) < 0.6 * losses[0]
+
+
+def test_render_depth_maps_equal_the_depth_of_full_renders(model: GovNeSF) -> None:
+    views = make_views(model)
+    volume = model.build_volume(views, BOUNDS)
+    depth, opacity = render_depth_maps(model, volume, BOUNDS, views.K[:2], views.world_from_cam[:2], W, H,
+                                       min_opacity=0.0)
+    assert depth.shape == (2, H, W) and opacity.shape == (2, H, W)
+    for i in range(2):
+        origins, dirs = pixel_rays(views.K[i], views.world_from_cam[i], W, H)
+        rays = Rays(origins.reshape(-1, 3), dirs.reshape(-1, 3))
+        full = render_rays(model, views, volume, BOUNDS, rays, clip_to_volume=True)
+        hit = full.t[:, -1] > full.t[:, 0] + 1e-4  # rays that cross the volume
+        z = full.depth_m * (rays.directions @ views.world_from_cam[i, :3, 2])
+        torch.testing.assert_close(depth[i].reshape(-1)[hit], z[hit], atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(opacity[i].reshape(-1)[hit], full.opacity[hit], atol=1e-6, rtol=1e-5)
+        assert bool((opacity[i].reshape(-1)[~hit] == 0).all())
+    strict, _ = render_depth_maps(model, volume, BOUNDS, views.K[:1], views.world_from_cam[:1], W, H,
+                                  min_opacity=1.1)
+    assert not strict.any()  # no pixel reaches an opacity above 1: all "no surface"
