@@ -82,6 +82,10 @@ def serve_main(argv: list[str] | None = None) -> int:
         from mapper.runtime import ModelRuntime
 
         install_learned_handlers(node, ModelRuntime(config.model))
+    if config.ov_backend.kind:
+        from mapper.ov_backend import install_ov_backend
+
+        install_ov_backend(node)  # after the learned handlers: it adds its notes to their not_ready
     node.install_signal_handlers()
     try:
         node.start()

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mapper.clip_backend import ClipBackendConfig
 from mapper.runtime import ModelRuntimeConfig
 from mapper.store import validate_map_name
 
@@ -174,6 +175,105 @@ class QueryConfig:
         _check_range(where, "queries.max_objects", self.max_objects, 1, 10_000)
 
 
+_CLIP_DEFAULTS: dict[str, Any] = {f.name: f.default for f in dataclasses.fields(ClipBackendConfig)}
+"""Defaults of :class:`mapper.clip_backend.ClipBackendConfig`, reused by :class:`OvBackendConfig`."""
+
+OV_BACKEND_KINDS = ("", "clip")
+"""``ov_backend.kind`` values: "" (none) and "clip" (:class:`mapper.clip_backend.ClipDenseBackend`)."""
+
+
+@dataclass(frozen=True)
+class OvBackendConfig:
+    """The in-process open-vocabulary backend (:mod:`mapper.ov_backend`): dense features for
+    keyframes that arrive without ``ov``, and the text encoder of its space. Off by default.
+
+    The CLIP fields are those of :class:`mapper.clip_backend.ClipBackendConfig` (same meaning and
+    defaults; TOML has no null, so "native" / "width // 64" are written as 0). Missing or invalid
+    weight files do not stop the node: it serves everything else, and semantic requests that would
+    need the backend answer ``not_ready`` naming the path and the reason (also in ``status``)."""
+
+    kind: str = ""
+    """"" = no in-process backend (features only from frames' ``ov``); "clip" = MaskCLIP dense
+    features from local CLIP ViT weights, in the space ``openclip:<model_name>``."""
+
+    weights_path: str = ""
+    """Local CLIP ViT checkpoint (a plain state dict, ``.pt`` / ``.pth`` / ``.bin`` or
+    ``.safetensors``; docs/OV_BACKENDS.md). Required when kind = "clip". Relative to the node's
+    working directory. Nothing is ever downloaded."""
+
+    bpe_path: str = ""
+    """Local ``bpe_simple_vocab_16e6.txt.gz`` (CLIP's BPE merges). Required when kind = "clip"."""
+
+    model_name: str = _CLIP_DEFAULTS["model_name"]
+    """Names the embedding space only: ``ov_space = "openclip:<model_name>"``. 1..64 characters
+    from ``A-Za-z0-9_.@/+-``. A pinned ``ov_space`` must equal that space."""
+
+    device: str = _CLIP_DEFAULTS["device"]
+    """"auto" (cuda if available, else cpu), "cpu", "cuda" or "cuda:N"."""
+
+    dtype: str = _CLIP_DEFAULTS["dtype"]
+    """"float32", "float16" (cuda only) or "bfloat16"."""
+
+    input_size: int = 0
+    """Short side (pixels) images are resized to for dense features; 0 = the model's native image
+    size (224 for ViT-B/16). 0 or 16..4096."""
+
+    activation: str = _CLIP_DEFAULTS["activation"]
+    """"quick_gelu" (OpenAI weights) or "gelu" (open_clip LAION / DataComp weights)."""
+
+    vision_heads: int = 0
+    """Attention heads of the image tower; 0 = width // 64 (ViT-B, ViT-L). 0..1024."""
+
+    text_heads: int = 0
+    """Attention heads of the text tower; 0 = width // 64. 0..1024."""
+
+    max_pending: int = 32
+    """Most keyframes waiting for features; beyond it the oldest is dropped (``dropped`` in
+    status). 1..100000."""
+
+    @property
+    def space(self) -> str:
+        """The embedding space the backend produces (``openclip:<model_name>``)."""
+        return f"openclip:{self.model_name}"
+
+    def clip_config(self) -> ClipBackendConfig:
+        """The :class:`ClipBackendConfig` these fields describe (raises ``ValueError`` if invalid)."""
+        return ClipBackendConfig(
+            weights_path=self.weights_path,
+            bpe_path=self.bpe_path,
+            model_name=self.model_name,
+            device=self.device,
+            dtype=self.dtype,
+            input_size=self.input_size or None,
+            activation=self.activation,
+            vision_heads=self.vision_heads or None,
+            text_heads=self.text_heads or None,
+        )
+
+    def validate(self, where: str) -> None:
+        if self.kind not in OV_BACKEND_KINDS:
+            raise ConfigError(
+                f"{where}: ov_backend.kind {self.kind!r} is not one of "
+                f"{', '.join(repr(k) for k in OV_BACKEND_KINDS)} (\"\" = none)"
+            )
+        if self.input_size != 0:
+            _check_range(where, "ov_backend.input_size", self.input_size, 16, 4096)
+        _check_range(where, "ov_backend.vision_heads", self.vision_heads, 0, 1024)
+        _check_range(where, "ov_backend.text_heads", self.text_heads, 0, 1024)
+        _check_range(where, "ov_backend.max_pending", self.max_pending, 1, 100_000)
+        if self.kind == "clip":
+            for key in ("weights_path", "bpe_path"):
+                if not getattr(self, key):
+                    raise ConfigError(
+                        f"{where}: ov_backend.{key} must name a local file when ov_backend.kind = 'clip' "
+                        "(see docs/OV_BACKENDS.md; nothing is downloaded)"
+                    )
+        try:
+            self.clip_config()
+        except ValueError as exc:
+            raise ConfigError(f"{where}: ov_backend: {exc}") from None
+
+
 @dataclass(frozen=True)
 class NodeConfig:
     """Everything ``govnesf serve`` needs. Sub-configs are nested dataclasses (TOML tables)."""
@@ -240,6 +340,10 @@ class NodeConfig:
     """Load the learned model at start-up and serve ``render`` and ``segment_points`` method
     ``govnesf``. False = a node without torch model work (baselines and ``query_points`` only)."""
 
+    ov_backend: OvBackendConfig = field(default_factory=OvBackendConfig)
+    """In-process open-vocabulary backend (TOML table ``[ov_backend]``): features for keyframes
+    without ``ov`` and the text encoder of its space. Off (kind = "") by default."""
+
     def validate(self, where: str) -> None:
         """Check ranges and cross-field rules; raise :class:`ConfigError` naming ``where``."""
         for key in ("ingest_endpoint", "query_endpoint", "events_endpoint"):
@@ -268,6 +372,13 @@ class NodeConfig:
         self.global_map.validate(where)
         self.queries.validate(where)
         self.model.validate(where)
+        self.ov_backend.validate(where)
+        if self.ov_backend.kind and self.ov_space is not None and self.ov_space != self.ov_backend.space:
+            raise ConfigError(
+                f"{where}: ov_space = {self.ov_space!r} is pinned, but ov_backend.kind = "
+                f"{self.ov_backend.kind!r} produces features in {self.ov_backend.space!r}; set ov_space to "
+                f"{self.ov_backend.space!r} or \"\", or turn the backend off (ov_backend.kind = \"\")"
+            )
 
 
 # --------------------------------------------------------------------------------------------

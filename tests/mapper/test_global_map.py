@@ -286,3 +286,64 @@ def test_concurrent_integrate_and_snapshots_are_consistent() -> None:
         stop.set()
         thread.join()
     assert not errors and gmap.keyframes_integrated == 12
+
+
+def _geometry(snap) -> tuple[np.ndarray, ...]:  # noqa: ANN001
+    return snap.xyz, snap.weight, snap.hits, snap.last_seen_ns
+
+
+def test_integrate_features_adds_features_without_geometry_weight() -> None:
+    """Geometry-only integrates followed by integrate_features give the combined integrate's map:
+    the same geometry (weight, hits, positions: nothing counted twice) and the same features."""
+    cfg = GlobalMapConfig(voxel_size_m=0.1, pixel_stride=2, min_weight=0.0)
+    rng = np.random.default_rng(3)
+    poses = [rot_z(0.0), rot_z(12.0), rot_z(-8.0)]
+    for i, pose in enumerate(poses):
+        pose[:3, 3] = [0.1 * i, -0.05 * i, 0.0]
+    depths = [tilted_plane_depth(unit(np.array([0.1 * i, -0.2, 1.0])), 2.0 + 0.2 * i) for i in range(3)]
+    ovs = [rng.standard_normal((6, 8, 5)).astype(np.float16) for _ in range(3)]
+    with_ov = [make_kf(d, world_from_cam=p, ov=o, stamp_ns=i)
+               for i, (d, p, o) in enumerate(zip(depths, poses, ovs, strict=True))]  # fmt: skip
+    combined = GlobalSemanticMap(cfg)
+    for kf in with_ov:
+        combined.integrate(kf)
+    late = GlobalSemanticMap(cfg)
+    late.integrate(with_ov[0])  # the first frame carried ov, the other two did not
+    for kf in with_ov[1:]:
+        late.integrate(dataclasses.replace(kf, ov=None, ov_space=None))
+    geometry_only = late.snapshot()
+    assert geometry_only.n_with_features < len(geometry_only)
+    for kf in with_ov[1:]:
+        stats = late.integrate_features(kf, map_version=7)
+        assert stats.points > 0 and stats.voxels_new == 0 and stats.with_features and stats.skipped is None
+    got, ref = late.snapshot(), combined.snapshot()
+    for a, b, c in zip(_geometry(got), _geometry(geometry_only), _geometry(ref), strict=True):
+        np.testing.assert_array_equal(a, b)  # features-only: geometry untouched
+        np.testing.assert_array_equal(a, c)  # and the same as the combined integrate
+    assert got.feat is not None and ref.feat is not None
+    np.testing.assert_array_equal(got.feat, ref.feat)
+    np.testing.assert_array_equal(got.feat_weight, ref.feat_weight)
+    assert got.map_version == 7 and late.keyframes_integrated == 3 and late._kf_counter == 3
+
+
+def test_integrate_features_skips_voxels_not_in_the_map_and_refuses_bad_input() -> None:
+    cfg = GlobalMapConfig(voxel_size_m=0.1, pixel_stride=2, min_weight=0.0)
+    ov = np.ones((3, 4, 4), np.float32)
+    gmap = GlobalSemanticMap(cfg)
+    gmap.integrate(make_kf(plane_depth(2.0)))
+    moved = np.eye(4)
+    moved[:3, 3] = [50.0, 0.0, 0.0]
+    far = make_kf(plane_depth(2.0), world_from_cam=moved, ov=ov)  # its voxels are not in the map
+    stats = gmap.integrate_features(far)
+    assert stats.points == 0 and stats.skipped == "none of its voxels is in the map any more"
+    assert gmap.snapshot().n_with_features == 0 and len(gmap) > 0
+    before = gmap.snapshot()
+    with pytest.raises(ValueError, match="needs ov"):
+        gmap.integrate_features(make_kf(plane_depth(2.0)))
+    gmap.integrate_features(make_kf(plane_depth(2.0), ov=ov))
+    with pytest.raises(ValueError, match="dimension 6 differs"):
+        gmap.integrate_features(make_kf(plane_depth(2.0), ov=np.ones((3, 4, 6), np.float32)))
+    after = gmap.snapshot()
+    np.testing.assert_array_equal(after.weight, before.weight)
+    assert after.n_with_features == len(after) and after.feat is not None and after.feat.shape[1] == 4
+    assert gmap.integrate_features(make_kf(None, ov=ov)).skipped == "no depth"
