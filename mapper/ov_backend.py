@@ -122,12 +122,22 @@ def _is_semantic(msg: Message) -> bool:
     return isinstance(msg, Render) and bool(msg.texts)
 
 
+def _check_pinned(node: MapperNode, space: str) -> None:
+    pinned = node.config.ov_space
+    if pinned is not None and pinned != space:
+        raise ConfigError(
+            f"ov_space = {pinned!r} is pinned, but the in-process OV backend produces {space!r}"
+        )
+
+
 def _swap_keyframe(window: KeyframeWindow, old: Keyframe, new: Keyframe) -> bool:
     """Replace ``old`` by ``new`` in ``window`` (state lock held); False if ``old`` left it.
 
     Goes through ``KeyframeWindow.replace`` so the window's callbacks see the change: every
     unchanged keyframe is evicted and re-added (the learned runtime cancels such pairs, O(1) each),
-    ``old`` is evicted and ``new`` added."""
+    ``old`` is evicted and ``new`` added. ``replace`` also rebuilds each camera's latest keyframe
+    from the window; that differs only for a camera whose latest keyframe was evicted already (its
+    next frame then becomes a keyframe)."""
     keyframes = list(window.keyframes)
     for i, keyframe in enumerate(keyframes):
         if keyframe is old:
@@ -190,11 +200,7 @@ class OvFeatureWorker:
         keyframe listener, the worker thread (started by ``node.start()``), ``status["ov_backend"]``,
         and the ``not_ready`` notes of semantic requests. Call after the learned handlers are
         installed (it wraps the query handlers present now)."""
-        pinned = self.node.config.ov_space
-        if pinned is not None and pinned != self.space:
-            raise ConfigError(
-                f"ov_space = {pinned!r} is pinned, but the in-process OV backend produces {self.space!r}"
-            )
+        _check_pinned(self.node, self.space)
         if self.backend is not None:
             from mapper.encoders import register_text_encoder
 
@@ -436,6 +442,7 @@ def install_ov_backend(node: MapperNode, config: OvBackendConfig | None = None) 
     config = config or node.config.ov_backend
     if not config.kind:
         return None
+    _check_pinned(node, config.space)  # before loading any weights
     backend, error = load_backend(config)
     if error is not None:
         log.error("%s; semantic requests will answer not_ready (everything else is served)", error)

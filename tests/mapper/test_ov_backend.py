@@ -146,6 +146,19 @@ def test_config_defaults_parse_and_errors(tmp_path: Path, clip_files: dict[str, 
     assert config_from_dict({"ov_space": "minilm-l6-v2"}).ov_backend.kind == ""  # backend off: no conflict
 
 
+def test_install_refuses_a_node_pinned_to_another_space(tmp_path: Path, clip_files: dict[str, Path]) -> None:
+    config = apply_overrides(_config(tmp_path, clip_files), {"ov_space": SPACE})
+    node = MapperNode(config)
+    try:
+        other = OvBackendConfig(**{**config.ov_backend.__dict__, "model_name": "other"})
+        with pytest.raises(ConfigError, match="'openclip:tiny-test' is pinned.*'openclip:other'"):
+            install_ov_backend(node, other)
+        assert not node.keyframe_listeners and not node.workers and "ov_backend" not in node.status_providers
+    finally:
+        node.stop()
+        unregister_text_encoder(SPACE)
+
+
 # ---- the node with the backend -----------------------------------------------------------------
 def test_frames_without_ov_become_queryable_in_the_backend_space(make_node: MakeNode) -> None:
     node = make_node()
