@@ -188,6 +188,8 @@ class RenderedDepthPoints:
             self.stale += 1  # a map load replaced the map this keyframe belonged to
             return 0
         started = time.perf_counter()
+        if keyframe.ov is None:
+            keyframe = self._with_current_features(keyframe)
         try:
             rendered = render_keyframe_depth(self.runtime, keyframe, self.config)
             stats = target.integrate(
@@ -211,6 +213,17 @@ class RenderedDepthPoints:
         log.debug("rendered depth: %d points for keyframe at stamp %d in %.0f ms (%s)",
                   stats.points, keyframe.stamp_ns, 1e3 * seconds, stats.skipped or "ok")
         return 1
+
+    def _with_current_features(self, keyframe: Any) -> Any:
+        """The window's current copy of ``keyframe`` when it has gained OV features since it was
+        queued (the in-process OV backend, :mod:`mapper.ov_backend`, swaps in a featured copy)."""
+        with self.node.state.lock:
+            for current in self.node.state.window.keyframes:
+                if (current.camera, current.seq, current.stamp_ns) == (
+                    keyframe.camera, keyframe.seq, keyframe.stamp_ns
+                ) and current.ov is not None:
+                    return current
+        return keyframe
 
     def run(self, stop: threading.Event) -> None:
         """Worker loop: process the pending keyframes whenever new ones arrive, until ``stop``."""

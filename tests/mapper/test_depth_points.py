@@ -203,3 +203,22 @@ def test_render_keyframe_depth_scales_K_with_the_stride(model: GovNeSF) -> None:
     assert rendered.depth_m.shape == (7, 10) and rendered.rgb.shape == (7, 10, 3)
     np.testing.assert_allclose(rendered.K, np.asarray(kf.K) * np.array([10 / 40, 7 / 30, 10 / 40, 7 / 30]))
     assert float(rendered.confidence.max()) <= 0.5 + 1e-6 and rendered.ov is kf.ov
+
+
+def test_features_swapped_in_after_queueing_are_used(node: MapperNode, model: GovNeSF) -> None:
+    """A keyframe queued without ov whose window copy later gains features (the in-process OV
+    backend swaps in a featured copy) is fused with those features."""
+    import dataclasses
+
+    points = _install(node, model)
+    for seq in range(3):
+        f = _frame(seq)
+        node.handle_ingest(encode(dataclasses.replace(f, ov=None, ov_space=None)))
+    assert points.pending == 3
+    with node.state.lock:
+        window = node.state.window
+        featured = [dataclasses.replace(k, ov=np.ones((5, 6, 6), np.float32), ov_space="test-space")
+                    for k in window.keyframes]
+        window.replace(featured)
+    assert points.process_pending() == 3
+    assert node.state.global_map.snapshot().has_feature.any()
