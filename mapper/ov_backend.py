@@ -133,18 +133,9 @@ def _check_pinned(node: MapperNode, space: str) -> None:
 def _swap_keyframe(window: KeyframeWindow, old: Keyframe, new: Keyframe) -> bool:
     """Replace ``old`` by ``new`` in ``window`` (state lock held); False if ``old`` left it.
 
-    Goes through ``KeyframeWindow.replace`` so the window's callbacks see the change: every
-    unchanged keyframe is evicted and re-added (the learned runtime cancels such pairs, O(1) each),
-    ``old`` is evicted and ``new`` added. ``replace`` also rebuilds each camera's latest keyframe
-    from the window; that differs only for a camera whose latest keyframe was evicted already (its
-    next frame then becomes a keyframe)."""
-    keyframes = list(window.keyframes)
-    for i, keyframe in enumerate(keyframes):
-        if keyframe is old:
-            keyframes[i] = new
-            window.replace(keyframes)
-            return True
-    return False
+    ``KeyframeWindow.swap``: same position, ``on_evict(old)`` then ``on_add(new)`` fire (the learned
+    runtime swaps that one view), every other keyframe and each camera's latest keyframe stay."""
+    return window.swap(old, new)
 
 
 class OvFeatureWorker:

@@ -168,6 +168,22 @@ class KeyframeWindow:
             self._append(keyframe)
         return removed, tuple(new)
 
+    def swap(self, old: Keyframe, new: Keyframe) -> bool:
+        """Put ``new`` in ``old``'s place (same position; e.g. ``old`` with features added later).
+        ``on_evict(old)`` then ``on_add(new)`` fire; nothing else changes. Returns False (and does
+        nothing) when ``old`` is no longer in the window."""
+        for i, keyframe in enumerate(self._keyframes):
+            if keyframe is old:
+                self._keyframes[i] = new
+                if self._last_by_camera.get(old.camera) is old:
+                    self._last_by_camera[old.camera] = new
+                for callback in self.on_evict:
+                    callback(old)
+                for callback in self.on_add:
+                    callback(new)
+                return True
+        return False
+
     def clear(self) -> tuple[Keyframe, ...]:
         """Remove every keyframe (``on_evict`` fires for each); returns them."""
         removed = tuple(self._keyframes)

@@ -149,3 +149,22 @@ def test_deserialisation_rejects_damaged_content() -> None:
         keyframes_from_arrays(bad, entries)
     with pytest.raises(ValueError, match="seq"):
         keyframes_from_arrays(arrays, [{"seq": "0", "stamp_ns": 0, "camera": "c"}])
+
+
+def test_swap_keeps_position_and_latest_keyframe_and_fires_callbacks() -> None:
+    import dataclasses
+
+    window = KeyframeWindow(CFG)
+    events: list[tuple[str, int, bool]] = []
+    window.on_add.append(lambda k: events.append(("add", k.seq, k.ov is not None)))
+    window.on_evict.append(lambda k: events.append(("evict", k.seq, k.ov is not None)))
+    for i in range(3):
+        window.consider(_kf(i, x_m=i * 1.0))
+    events.clear()
+    old = window.keyframes[2]  # the camera's latest keyframe
+    new = dataclasses.replace(old, ov=np.zeros((2, 2, 4), np.float32), ov_space="s")
+    assert window.swap(old, new)
+    assert [k.seq for k in window.keyframes] == [0, 1, 2] and window.keyframes[2] is new
+    assert events == [("evict", 2, False), ("add", 2, True)]
+    assert not window.consider(_kf(3, x_m=2.0 + 0.01)).added  # selection still relative to seq 2
+    assert not window.swap(old, new) and events == [("evict", 2, False), ("add", 2, True)]
