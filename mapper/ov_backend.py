@@ -20,7 +20,7 @@ Wiring (:func:`install_ov_backend`, called once after the node is built and afte
   2 s per frame for ViT-B/16 on a CPU), then:
 
   a. under the node's state lock, if the keyframe is still in the window: replaces it there by a
-     copy carrying the features (``KeyframeWindow.replace``, so the window's ``on_evict`` /
+     copy carrying the features (``KeyframeWindow.swap``, so the window's ``on_evict`` /
      ``on_add`` callbacks record "old keyframe out, new keyframe in"; the learned runtime applies
      that incrementally on its next sync, and the averaging baselines and saved maps see the
      features too). The map's ``ov_space`` / ``ov_dim`` are set by the first keyframe with
