@@ -38,9 +38,9 @@ Bounds and failures: beyond ``max_pending`` queued keyframes the oldest is dropp
 keyframes queued before a map load are dropped (``stale``); a keyframe that left the window and has
 no depth is skipped (nothing would use its features). A failed encode or integrate is logged (rate
 limited) and counted in ``failed``; the worker never dies. Keyframes without input depth get their
-features into the window, but the global-map points that :mod:`mapper.depth_points` adds for them
-from rendered depth carry features only if the rendered-depth worker picks the keyframe up after
-the swap (it holds the keyframe it queued).
+features into the window; the global-map points that :mod:`mapper.depth_points` adds for them
+from rendered depth carry those features when the rendered-depth worker runs after the swap (it
+looks up the window's current copy of the keyframe it queued).
 
 Example (in-process; ``node`` a :class:`mapper.service.MapperNode` whose config has
 ``ov_backend.kind = "clip"``)::
