@@ -76,6 +76,7 @@ __all__ = [
     "PointBlend",
     "EvalSettings",
     "blend_points",
+    "view_transmittance",
     "candidate_views",
     "find_scene_dirs",
     "gt_visibility",
@@ -245,6 +246,31 @@ class PointBlend:
     weights: Tensor  # (P, k) OV blending weights (distill mode: uniform over the slots)
 
 
+@torch.no_grad()
+def view_transmittance(model: GovNeSF, volume: Tensor, bounds: VolumeBounds, points: Tensor,
+                       centres: Tensor, *, n_samples: int = 16, stop_m: float | None = None) -> Tensor:
+    """Transmittance of the model's density from each camera centre to each point: ``exp(-sum
+    sigma delta)`` over ``n_samples`` midpoints of the segment, stopping ``stop_m`` short of the
+    point (default 1.5 voxels, so the point's own surface does not occlude it).
+
+    Args:
+        points: (P, 3); centres: (P, k, 3) camera centre of each (point, view) pair.
+
+    Returns:
+        (P, k) in (0, 1]; 1 where the segment is shorter than ``stop_m``.
+    """
+    stop = 1.5 * bounds.voxel_size_m if stop_m is None else stop_m
+    seg = points.to(centres.dtype)[:, None, :] - centres  # (P, k, 3)
+    length = seg.norm(dim=-1)
+    direction = seg / length.clamp_min(1e-9)[..., None]
+    end = (length - stop).clamp_min(0.0)  # (P, k)
+    frac = (torch.arange(n_samples, device=centres.device, dtype=centres.dtype) + 0.5) / n_samples
+    samples = centres[..., None, :] + direction[..., None, :] * (end[..., None] * frac)[..., None]
+    sigma, _ = model.density_at(volume, bounds, samples.reshape(-1, 3).to(volume.dtype))
+    optical = sigma.reshape(*end.shape, n_samples).sum(-1) * (end / n_samples).to(sigma.dtype)
+    return torch.exp(-optical)
+
+
 def candidate_views(views: SourceViews, points: Tensor, *, depth_guided_masking: bool,
                     depth_mask_ratio: float = DEPTH_REL_TOL) -> tuple[Tensor, Tensor, Tensor]:
     """The model's visibility test (``GovNeSF.sample_views``): in front and inside the image and,
@@ -293,6 +319,7 @@ def blend_points(
     depth_guided_masking: bool = False,
     views_per_point: int | None = None,
     chunk_size: int = 2048,
+    view_weight_fn: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None,
 ) -> PointBlend:
     """Point-mode OV features (``GovNeSF.query_points``) blended from at most ``views_per_point``
     views per point: the nearest (camera-centre distance) of the views that see it.
@@ -302,6 +329,9 @@ def blend_points(
 
     Args:
         views: N source views; volume: (Dv, X, Y, Z) over ``bounds``; points: (P, 3) world (m).
+        view_weight_fn: optional ``(points (P, 3), view_index (P, k), mask (P, k)) -> (P, k)``
+            multiplier >= 0 of the learned OV weights (renormalised over the views; analysis,
+            e.g. :func:`view_transmittance`); a point whose multipliers are all 0 keeps its weights.
 
     Returns:
         PointBlend (k = the most views any point of a chunk used; pad slots have mask False).
@@ -312,11 +342,12 @@ def blend_points(
         raise ValueError(f"chunk_size {chunk_size} out of range: must be >= 1")
     parts = [
         _blend_chunk(model, views, volume, bounds, points[i : i + chunk_size], depth_guided_masking,
-                     views_per_point)
+                     views_per_point, view_weight_fn)
         for i in range(0, points.shape[0], chunk_size)
     ]
     if not parts:
-        parts = [_blend_chunk(model, views, volume, bounds, points, depth_guided_masking, views_per_point)]
+        parts = [_blend_chunk(model, views, volume, bounds, points, depth_guided_masking, views_per_point,
+                              view_weight_fn)]
     k = max(p.mask.shape[1] for p in parts)
 
     def pad(t: Tensor, value: float | bool) -> Tensor:
@@ -334,7 +365,8 @@ def blend_points(
 
 @torch.no_grad()
 def _blend_chunk(model: GovNeSF, views: SourceViews, volume: Tensor, bounds: VolumeBounds, points: Tensor,
-                 depth_guided_masking: bool, views_per_point: int | None) -> PointBlend:
+                 depth_guided_masking: bool, views_per_point: int | None,
+                 view_weight_fn: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None) -> PointBlend:
     wh = views.image_wh
     uv, z, mask = candidate_views(views, points, depth_guided_masking=depth_guided_masking,
                                   depth_mask_ratio=model.cfg.render.depth_mask_ratio)
@@ -362,8 +394,13 @@ def _blend_chunk(model: GovNeSF, views: SourceViews, volume: Tensor, bounds: Vol
         out = model.distill(fused.x_att, sel, v) * fused.valid.unsqueeze(-1)
         weights = sel.float() / sel.sum(dim=1, keepdim=True).clamp_min(1)
     else:
-        out = blend(fused.ov_weights, ov)
         weights = fused.ov_weights
+        if view_weight_fn is not None:
+            mult = view_weight_fn(points, idx, sel).to(weights.dtype) * sel.to(weights.dtype)
+            reweighted = weights * mult
+            total = reweighted.sum(dim=1, keepdim=True)
+            weights = torch.where(total > 1e-12, reweighted / total.clamp_min(1e-12), weights)
+        out = blend(weights, ov)
     return PointBlend(ov=out, valid=fused.valid, num_views=sel.sum(dim=1), view_index=idx, mask=sel,
                       weights=weights)
 

@@ -283,3 +283,42 @@ def test_render_view_stride_is_a_pixel_subgrid(scene: ev.EvalScene) -> None:
     assert torch.allclose(ov2, ov1[1::2, 1::2], atol=1e-5)
     with pytest.raises(ValueError, match="pixel_stride 0"):
         ev.render_view(*args, pixel_stride=0)
+
+
+def test_view_weight_fn_reweights_and_ones_change_nothing(scene: ev.EvalScene) -> None:
+    model = tiny_model()
+    views, bounds, volume = sources(model, scene)
+    pts = random_points(200, seed=5)
+    base = ev.blend_points(model, views, volume, bounds, pts)
+    same = ev.blend_points(model, views, volume, bounds, pts,
+                           view_weight_fn=lambda p, i, s: torch.ones(i.shape))
+    assert torch.allclose(same.ov, base.ov, atol=1e-6)
+    assert torch.allclose(same.weights, base.weights, atol=1e-6)
+
+    def first_only(p: torch.Tensor, idx: torch.Tensor, sel: torch.Tensor) -> torch.Tensor:
+        out = torch.zeros(idx.shape)
+        out[:, 0] = 1.0
+        return out
+
+    one = ev.blend_points(model, views, volume, bounds, pts, view_weight_fn=first_only)
+    ok = one.valid
+    assert torch.allclose(one.weights[ok, 0], torch.ones(int(ok.sum())), atol=1e-6)
+    assert bool((one.weights[ok, 1:] == 0).all())
+    zero = ev.blend_points(model, views, volume, bounds, pts,
+                           view_weight_fn=lambda p, i, s: torch.zeros(i.shape))
+    assert torch.allclose(zero.weights, base.weights)  # all-zero multipliers keep the learned weights
+
+
+def test_view_transmittance_is_a_non_increasing_probability_along_a_ray(scene: ev.EvalScene) -> None:
+    model = tiny_model()
+    views, bounds, volume = sources(model, scene)
+    centre = torch.tensor([0.0, 0.0, 3.0])
+    direction = torch.nn.functional.normalize(torch.tensor([0.3, -0.2, -1.0]), dim=0)
+    pts = centre + direction * torch.linspace(0.05, 5.0, 40)[:, None]  # (40, 3) along one ray
+    T = ev.view_transmittance(model, volume, bounds, pts, centre.expand(40, 1, 3), n_samples=512)
+    assert T.shape == (40, 1) and bool(((T > 0) & (T <= 1)).all())
+    # farther points see through at least as much density (up to the midpoint rule's error)
+    assert bool((T[:, 0].diff() <= 2e-3).all()), T[:, 0].diff().max()
+    stop = 1.5 * bounds.voxel_size_m
+    near = (pts - centre).norm(dim=1) <= stop
+    assert bool(near.any()) and bool((T[near, 0] == 1).all())  # shorter than the stop: nothing in between
