@@ -55,7 +55,7 @@ from mapper.geometry import pixel_rays
 from mapper.metrics import NUM_SCANNET_CLASSES, average_over_scenes, predict_labels, scores_from_labels
 from mapper.model.config import ModelConfig, get_preset
 from mapper.model.field import GovNeSF, render_rays
-from mapper.model.losses import govnesf_loss
+from mapper.model.losses import distortion_loss, govnesf_loss
 from mapper.rendering import Rays
 
 __all__ = ["TrainConfig", "learning_rate", "load_train_config", "train", "validate"]
@@ -102,6 +102,9 @@ class TrainConfig:
     min_lr_ratio: float = 0.02
     ov_weight: float = 1.0
     """alpha of the loss."""
+    distortion_weight: float = 0.0
+    """Weight of mip-NeRF 360's distortion loss on the rendering weights (0 = off, the paper's
+    loss). Pushes the density towards sharp surfaces (an experiment; docs/TRAINING.md)."""
     depth_guided_masking: bool = False
     clip_to_volume: bool = True
     """Spend the ray samples inside the volume bounds (density is 0 outside; ``render_rays``)."""
@@ -134,6 +137,7 @@ class TrainConfig:
             (self.warmup_steps >= 0, "warmup_steps", ">= 0"),
             (0.0 <= self.min_lr_ratio <= 1.0, "min_lr_ratio", "in [0, 1]"),
             (self.ov_weight >= 0, "ov_weight", ">= 0"),
+            (self.distortion_weight >= 0, "distortion_weight", ">= 0"),
             (self.log_every >= 1, "log_every", ">= 1"),
             (self.checkpoint_every >= 1, "checkpoint_every", ">= 1"),
             (self.val_every >= 1, "val_every", ">= 1"),
@@ -257,7 +261,10 @@ def _loss_for_sample(
         clip_to_volume=cfg.clip_to_volume,
     )
     loss = govnesf_loss(out.rgb, s.target_rgb, out.ov, s.target_ov, ov_weight=cfg.ov_weight)
-    return loss.total, loss.color.detach(), loss.ov.detach()
+    total = loss.total
+    if cfg.distortion_weight > 0:
+        total = total + cfg.distortion_weight * distortion_loss(out.weights, out.t)
+    return total, loss.color.detach(), loss.ov.detach()
 
 
 def train_step(

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["LossOutputs", "color_loss", "govnesf_loss", "ov_cosine_loss"]
+__all__ = [
+    "LossOutputs", "color_loss", "distortion_loss", "govnesf_loss", "ov_cosine_loss"]
 
 
 @dataclass
@@ -72,3 +74,26 @@ def govnesf_loss(
     color = color_loss(pred_rgb, target_rgb, rgb_mask)
     ov = ov_cosine_loss(pred_ov, target_ov, ov_mask)
     return LossOutputs(total=color + ov_weight * ov, color=color, ov=ov)
+
+
+def distortion_loss(weights: Tensor, t: Tensor) -> Tensor:
+    """mip-NeRF 360's distortion loss, mean over rays: small when each ray's weight sits in one
+    short interval (a sharp surface), large when it is spread along the ray.
+
+    ``sum_ij w_i w_j |s_i - s_j| + 1/3 sum_i w_i^2 d_i`` with ``s`` the sample distances rescaled
+    to [0, 1] per ray (first to last sample) and ``d`` their spacing.
+
+    Args:
+        weights: (R, S) rendering weights; t: (R, S) sample distances along each ray (increasing).
+    """
+    if weights.shape != t.shape or weights.ndim != 2:
+        raise ValueError(f"weights {tuple(weights.shape)} and t {tuple(t.shape)} must be the same (R, S)")
+    w = weights.float()
+    tt = t.float()
+    span = (tt[:, -1:] - tt[:, :1]).clamp_min(1e-9)
+    s = (tt - tt[:, :1]) / span  # (R, S) in [0, 1]
+    d = torch.diff(s, dim=-1)
+    d = torch.cat([d, d[:, -1:]], dim=-1) if d.shape[-1] else torch.ones_like(s)
+    pairwise = (w[:, :, None] * w[:, None, :] * (s[:, :, None] - s[:, None, :]).abs()).sum(dim=(1, 2))
+    return (pairwise + (w * w * d).sum(dim=-1) / 3.0).mean()
+

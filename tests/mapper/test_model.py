@@ -19,7 +19,7 @@ from mapper.model.config import (
 from mapper.model.encoder2d import ImageEncoder
 from mapper.model.field import GovNeSF, SourceViews, render_depth_maps, render_image, render_rays
 from mapper.model.fusion import CrossViewAttention, masked_softmax
-from mapper.model.losses import govnesf_loss, ov_cosine_loss
+from mapper.model.losses import distortion_loss, govnesf_loss, ov_cosine_loss
 from mapper.model.unet3d import VolumeUNet
 from mapper.rendering import Rays
 
@@ -339,3 +339,25 @@ def test_render_depth_maps_equal_the_depth_of_full_renders(model: GovNeSF) -> No
     strict, _ = render_depth_maps(model, volume, BOUNDS, views.K[:1], views.world_from_cam[:1], W, H,
                                   min_opacity=1.1)
     assert not strict.any()  # no pixel reaches an opacity above 1: all "no surface"
+
+
+def test_distortion_loss_prefers_one_sharp_interval_and_matches_a_float64_reference() -> None:
+    t = torch.linspace(1.0, 5.0, 9).expand(3, 9).clone()
+    sharp = torch.zeros(3, 9)
+    sharp[:, 4] = 1.0
+    two = torch.zeros(3, 9)
+    two[:, 1] = two[:, 7] = 0.5
+    flat = torch.full((3, 9), 1.0 / 9)
+    ls, lt, lf = distortion_loss(sharp, t), distortion_loss(two, t), distortion_loss(flat, t)
+    assert 0 < ls < lf < lt  # one surface < spread < two separated surfaces
+    # float64 reference of sum_ij w_i w_j |s_i - s_j| + 1/3 sum_i w_i^2 d_i for one ray
+    w = two[0].double()
+    s = (t[0].double() - 1.0) / 4.0
+    d = torch.full((9,), 0.125, dtype=torch.float64)
+    ref = (w[:, None] * w[None, :] * (s[:, None] - s[None, :]).abs()).sum() + (w * w * d).sum() / 3
+    assert abs(float(lt) - float(ref)) < 1e-6
+    w_req = flat.clone().requires_grad_(True)
+    distortion_loss(w_req, t).backward()
+    assert w_req.grad is not None and bool(torch.isfinite(w_req.grad).all())
+    with pytest.raises(ValueError, match="same"):
+        distortion_loss(flat, t[:, :5])
