@@ -361,3 +361,27 @@ def test_distortion_loss_prefers_one_sharp_interval_and_matches_a_float64_refere
     assert w_req.grad is not None and bool(torch.isfinite(w_req.grad).all())
     with pytest.raises(ValueError, match="same"):
         distortion_loss(flat, t[:, :5])
+
+
+@pytest.mark.parametrize("layout", ["pnc", "ncp"])
+def test_blend_matches_a_float64_reference_in_both_memory_layouts(layout: str) -> None:
+    from mapper.model.fusion import blend
+
+    g = torch.Generator().manual_seed(0)
+    P, N, C = 37, 5, 11
+    w = torch.rand(P, N, generator=g, dtype=torch.float64)
+    base = torch.rand(P, N, C, generator=g, dtype=torch.float64)
+    values = base if layout == "pnc" else base.permute(1, 2, 0).contiguous().permute(2, 0, 1)
+    assert (values.stride(0) == 1) == (layout == "ncp")
+    ref = (w[..., None] * base).sum(1)
+    torch.testing.assert_close(blend(w, values), ref)
+    torch.testing.assert_close(blend(w.float(), values.float()), ref.float())
+    w_req = w.clone().requires_grad_(True)
+    v_req = values.detach().clone().requires_grad_(True) if layout == "pnc" else \
+        base.permute(1, 2, 0).contiguous().requires_grad_(True)
+    v_in = v_req if layout == "pnc" else v_req.permute(2, 0, 1)
+    assert torch.autograd.gradcheck(lambda a, b: blend(a, b if layout == "pnc" else b.permute(2, 0, 1)),
+                                    (w_req, v_req))
+    assert blend(w_req, v_in).shape == (P, C)
+    with torch.no_grad():  # the fast path (inference) and the autograd path agree
+        torch.testing.assert_close(blend(w_req, v_in), ref)
