@@ -36,13 +36,13 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from mapper.config import GlobalMapConfig
+from mapper.keyframe_queue import KeyframeQueue, LimitedLog, run_worker
 from mapper.runtime import ModelRuntime, RuntimeNotReady
 
 if TYPE_CHECKING:
@@ -52,10 +52,6 @@ if TYPE_CHECKING:
 __all__ = ["RenderedDepthPoints", "RenderedKeyframe"]
 
 log = logging.getLogger("mapper.depth_points")
-
-_IDLE_WAIT_S = 0.5
-"""The worker wakes at least this often to check for the stop event."""
-
 
 @dataclass(frozen=True)
 class RenderedKeyframe:
@@ -116,17 +112,16 @@ class RenderedDepthPoints:
         self.runtime = runtime
         self.config = config or node.config.global_map
         self._lock = threading.Lock()
-        self._pending: deque[tuple[Any, int, GlobalSemanticMap]] = deque()
-        self._wake = threading.Event()
+        self._queue: KeyframeQueue[tuple[Any, GlobalSemanticMap]] = KeyframeQueue(
+            self.config.rendered_max_pending
+        )
         self._busy = False
-        self.queued = 0
         self.integrated = 0
         self.points = 0
-        self.dropped = 0
         self.stale = 0
         self.failed = 0
         self.seconds_total = 0.0
-        self._last_error_log = 0.0
+        self._log = LimitedLog(log)
 
     # -- wiring -------------------------------------------------------------------------------
 
@@ -141,20 +136,21 @@ class RenderedDepthPoints:
         """Queue ``keyframe`` if it has no input depth (ingest thread; O(1), never raises)."""
         if keyframe.depth_m is not None or not self.config.rendered_depth:
             return
-        with self._lock:
-            self._pending.append((keyframe, map_version, self.node.state.global_map))
-            self.queued += 1
-            while len(self._pending) > self.config.rendered_max_pending:
-                self._pending.popleft()
-                self.dropped += 1
-        self._wake.set()
+        self._queue.put((keyframe, self.node.state.global_map))
 
     # -- work -----------------------------------------------------------------------------------
 
     @property
     def pending(self) -> int:
-        with self._lock:
-            return len(self._pending)
+        return len(self._queue)
+
+    @property
+    def queued(self) -> int:
+        return self._queue.queued
+
+    @property
+    def dropped(self) -> int:
+        return self._queue.dropped
 
     def process_pending(self) -> int:
         """Render and integrate every keyframe pending now (if the model's window is large enough).
@@ -162,7 +158,7 @@ class RenderedDepthPoints:
         if not self.runtime.ready:
             return 0
         with self._lock:
-            if not self._pending or self._busy:
+            if not len(self._queue) or self._busy:
                 return 0
             self._busy = True
         try:
@@ -172,13 +168,7 @@ class RenderedDepthPoints:
                 return 0
             if len(self.runtime) < self.config.rendered_min_views:
                 return 0  # wait for more keyframes; the pending ones stay queued
-            with self._lock:
-                batch = list(self._pending)
-                self._pending.clear()
-            done = 0
-            for keyframe, _version, target in batch:
-                done += self._integrate_one(keyframe, target)
-            return done
+            return sum(self._integrate_one(keyframe, target) for keyframe, target in self._queue.drain())
         finally:
             with self._lock:
                 self._busy = False
@@ -201,10 +191,8 @@ class RenderedDepthPoints:
             )
         except (RuntimeNotReady, ValueError, RuntimeError) as exc:
             self.failed += 1
-            now = time.monotonic()
-            if now - self._last_error_log > 10.0:
-                self._last_error_log = now
-                log.warning("rendered depth for keyframe at stamp %d failed: %s", keyframe.stamp_ns, exc)
+            self._log.warning("failed", "rendered depth for keyframe at stamp %d failed: %s",
+                              keyframe.stamp_ns, exc)
             return 0
         seconds = time.perf_counter() - started
         self.integrated += 1
@@ -227,16 +215,11 @@ class RenderedDepthPoints:
 
     def run(self, stop: threading.Event) -> None:
         """Worker loop: process the pending keyframes whenever new ones arrive, until ``stop``."""
-        while not stop.is_set():
-            self._wake.wait(timeout=_IDLE_WAIT_S)
-            self._wake.clear()
-            if stop.is_set():
-                break
-            try:
-                self.process_pending()
-            except Exception:  # never let the worker die: the node shuts down on a dead thread
-                self.failed += 1
-                log.exception("rendered-depth worker: unexpected error (continuing)")
+        run_worker(stop, self._queue.wake, self.process_pending, self._unexpected)
+
+    def _unexpected(self, exc: BaseException) -> None:
+        self.failed += 1
+        log.error("rendered-depth worker: unexpected error (continuing)", exc_info=exc)
 
     def stats(self) -> dict[str, Any]:
         """Counters for the node's status reply."""

@@ -56,13 +56,13 @@ import dataclasses
 import logging
 import threading
 import time
-from collections import deque
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from mapper.config import ConfigError, OvBackendConfig
+from mapper.keyframe_queue import KeyframeQueue, LimitedLog, run_worker
 from protocol.errors import ProtocolError
 from protocol.messages import Message, QueryPoints, Render, SegmentPoints
 
@@ -75,8 +75,6 @@ __all__ = ["DenseOvBackend", "OvFeatureWorker", "install_ov_backend", "load_back
 
 log = logging.getLogger("mapper.ov_backend")
 
-_IDLE_WAIT_S = 0.5
-"""The worker wakes at least this often to check for the stop event."""
 _ERROR_LOG_INTERVAL_S = 10.0
 """Failures and skips are logged as warnings at most this often per kind."""
 
@@ -162,12 +160,11 @@ class OvFeatureWorker:
         self.space = backend.space if backend is not None else self.config.space
         self.load_error = load_error
         self._lock = threading.Lock()
-        self._pending: deque[tuple[Keyframe, GlobalSemanticMap]] = deque()
-        self._wake = threading.Event()
+        self._queue: KeyframeQueue[tuple[Keyframe, GlobalSemanticMap]] = KeyframeQueue(
+            self.config.max_pending
+        )
         self._busy = False
         self._in_flight = 0
-        self.queued = 0
-        """Keyframes without ov queued for features."""
         self.with_ov = 0
         """Keyframes that arrived with ov (never re-encoded)."""
         self.encoded = 0
@@ -176,13 +173,12 @@ class OvFeatureWorker:
         """Of those, keyframes still in the window, replaced there by a copy with features."""
         self.map_points = 0
         """Global-map observations that received features."""
-        self.dropped = 0
         self.stale = 0
         self.skipped_space = 0
         self.skipped_evicted = 0
         self.failed = 0
         self.seconds_total = 0.0
-        self._last_log: dict[str, float] = {}
+        self._log = LimitedLog(log, _ERROR_LOG_INTERVAL_S)
 
     # -- wiring -------------------------------------------------------------------------------
 
@@ -249,13 +245,7 @@ class OvFeatureWorker:
             return
         if self.backend is None:
             return
-        with self._lock:
-            self._pending.append((keyframe, self.node.state.global_map))
-            self.queued += 1
-            while len(self._pending) > self.config.max_pending:
-                self._pending.popleft()
-                self.dropped += 1
-        self._wake.set()
+        self._queue.put((keyframe, self.node.state.global_map))
 
     # -- work -----------------------------------------------------------------------------------
 
@@ -263,7 +253,17 @@ class OvFeatureWorker:
     def pending(self) -> int:
         """Keyframes queued or being encoded."""
         with self._lock:
-            return len(self._pending) + self._in_flight
+            return len(self._queue) + self._in_flight
+
+    @property
+    def queued(self) -> int:
+        """Keyframes without ov queued for features."""
+        return self._queue.queued
+
+    @property
+    def dropped(self) -> int:
+        """Keyframes dropped because the queue was full."""
+        return self._queue.dropped
 
     def process_pending(self, stop: threading.Event | None = None) -> int:
         """Encode and attach every keyframe queued now, oldest first (until ``stop`` is set).
@@ -279,9 +279,10 @@ class OvFeatureWorker:
         try:
             while stop is None or not stop.is_set():
                 with self._lock:
-                    if not self._pending:
+                    item = self._queue.pop()
+                    if item is None:
                         break
-                    keyframe, target = self._pending.popleft()
+                    keyframe, target = item
                     self._in_flight = 1
                 try:
                     done += self._process_one(keyframe, target)
@@ -314,7 +315,7 @@ class OvFeatureWorker:
             in_window = any(k is keyframe for k in state.window.keyframes)
         if conflict is not None:
             self.skipped_space += 1
-            self._log_limited("space", "ov backend: keyframe seq %d not encoded: %s", keyframe.seq, conflict)
+            self._log.warning("space", "ov backend: keyframe seq %d not encoded: %s", keyframe.seq, conflict)
             return 0
         if not in_window and keyframe.depth_m is None:
             self.skipped_evicted += 1  # left the window, no depth: nothing would use its features
@@ -347,7 +348,7 @@ class OvFeatureWorker:
             version = state.map_version
         if conflict is not None:  # a frame of another space claimed the map while we encoded
             self.skipped_space += 1
-            self._log_limited("space", "ov backend: keyframe seq %d not attached: %s", keyframe.seq, conflict)
+            self._log.warning("space", "ov backend: keyframe seq %d not attached: %s", keyframe.seq, conflict)
             return 0
         if not swapped and keyframe.depth_m is None:
             self.skipped_evicted += 1  # left the window while it was encoded
@@ -371,31 +372,18 @@ class OvFeatureWorker:
     def _failed(self, keyframe: Keyframe, what: str, exc: Exception) -> int:
         with self._lock:
             self.failed += 1
-        self._log_limited("failed", "ov backend: %s failed for keyframe seq %d: %s: %s", what, keyframe.seq,
+        self._log.warning("failed", "ov backend: %s failed for keyframe seq %d: %s: %s", what, keyframe.seq,
                           type(exc).__name__, exc)
         return 0
 
-    def _log_limited(self, kind: str, fmt: str, *args: object) -> None:
-        now = time.monotonic()
-        if now - self._last_log.get(kind, -_ERROR_LOG_INTERVAL_S) >= _ERROR_LOG_INTERVAL_S:
-            self._last_log[kind] = now
-            log.warning(fmt, *args)
-        else:
-            log.debug(fmt, *args)
-
     def run(self, stop: threading.Event) -> None:
         """Worker loop: process the queued keyframes whenever new ones arrive, until ``stop``."""
-        while not stop.is_set():
-            self._wake.wait(timeout=_IDLE_WAIT_S)
-            self._wake.clear()
-            if stop.is_set():
-                break
-            try:
-                self.process_pending(stop)
-            except Exception:  # never let the worker die: the node shuts down on a dead thread
-                with self._lock:
-                    self.failed += 1
-                log.exception("ov backend worker: unexpected error (continuing)")
+        run_worker(stop, self._queue.wake, lambda: self.process_pending(stop), self._unexpected)
+
+    def _unexpected(self, exc: BaseException) -> None:
+        with self._lock:
+            self.failed += 1
+        log.error("ov backend worker: unexpected error (continuing)", exc_info=exc)
 
     def stats(self) -> dict[str, Any]:
         """Counters for the node's status reply (called under the node's state lock)."""
@@ -408,7 +396,7 @@ class OvFeatureWorker:
                 "weights_path": self.config.weights_path,
                 "dim": self.backend.dim if self.backend is not None else None,
                 "device": str(getattr(self.backend, "device", self.config.device)),
-                "pending": len(self._pending) + self._in_flight,
+                "pending": len(self._queue) + self._in_flight,
                 "queued": self.queued,
                 "with_ov": self.with_ov,
                 "encoded": self.encoded,
