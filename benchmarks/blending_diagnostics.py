@@ -56,12 +56,8 @@ def main(argv: list[str] | None = None) -> int:
         scene = ev.load_scene(d)
         if text is None:
             text = torch.from_numpy(get_text_encoder().encode(scene.class_names[:NUM_SCANNET_CLASSES]))
-        keep = ev._subset(scene, settings)
-        gt = scene.points_label[keep]
-        pts = torch.from_numpy(scene.points_xyz[keep])
-        K = torch.from_numpy(scene.K).float()
-        poses = torch.from_numpy(scene.world_from_cam).float()
-        _, visible = ev.gt_visibility(pts, K, poses, torch.from_numpy(scene.gt_depth_m))
+        sp = ev.scene_points(scene, settings)
+        gt, pts, visible = sp.gt, sp.xyz, sp.visible
         views, bounds = ev.scene_sources(model, scene)
         with torch.no_grad():
             volume = model.build_volume(views, bounds)

@@ -55,13 +55,9 @@ def main(argv: list[str] | None = None) -> int:
         scene = ev.load_scene(d)
         if text is None:
             text = torch.from_numpy(get_text_encoder().encode(scene.class_names[:NUM_SCANNET_CLASSES]))
-        keep = ev._subset(scene, settings)
-        gt = scene.points_label[keep]
-        pts = torch.from_numpy(scene.points_xyz[keep])
-        K = torch.from_numpy(scene.K).float()
-        poses = torch.from_numpy(scene.world_from_cam).float()
-        in_image, visible = ev.gt_visibility(pts, K, poses, torch.from_numpy(scene.gt_depth_m))
-        occluded = in_image & ~visible
+        sp = ev.scene_points(scene, settings)
+        gt, pts, K, poses = sp.gt, sp.xyz, sp.K, sp.world_from_cam
+        visible, occluded = sp.visible, sp.occluded
 
         def miou(feats: torch.Tensor, gt: np.ndarray = gt, text: torch.Tensor = text) -> float:
             pred = np.asarray(predict_labels(feats.float(), text))
@@ -98,14 +94,10 @@ def main(argv: list[str] | None = None) -> int:
                                         view_weights=(T * cand).T.contiguous())
             t_vis = float(T[visible & cand].mean())
             t_occ = float(T[occluded & cand].mean())
-
-            def occ_share(pb: ev.PointBlend, occluded: torch.Tensor = occluded) -> float:
-                occ_sel = occluded.gather(1, pb.view_index) & pb.mask
-                return float((pb.weights * occ_sel).sum(1)[pb.valid].mean())
-
+            share, share_t = ev.occluded_share(base, occluded), ev.occluded_share(vis, occluded)
             print(f"| {scene.name} | {bounds_name} | {t_vis:.2f} / {t_occ:.2f} | {miou(base.ov):.1f} "
                   f"| {miou(vis.ov):.1f} | {miou(avg):.1f} | {miou(avg_t):.1f} "
-                  f"| {100 * occ_share(base):.1f}% / {100 * occ_share(vis):.1f}% "
+                  f"| {100 * share:.1f}% / {100 * share_t:.1f}% "
                   f"| {time.perf_counter() - t0:.0f} |", flush=True)
     return 0
 

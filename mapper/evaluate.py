@@ -76,6 +76,9 @@ __all__ = [
     "PointBlend",
     "EvalSettings",
     "blend_points",
+    "occluded_share",
+    "scene_points",
+    "ScenePoints",
     "view_transmittance",
     "candidate_views",
     "find_scene_dirs",
@@ -421,18 +424,11 @@ def nearest_view_selection(points: Tensor, K: Tensor, world_from_cam: Tensor, im
     if k < 1:
         raise ValueError(f"k {k} out of range: must be >= 1")
     out = torch.zeros(K.shape[0], points.shape[0], dtype=torch.bool)
-    cam_from_world = invert_pose(world_from_cam)
     centres = camera_centers(world_from_cam)
     for s in range(0, points.shape[0], chunk):
         p = points[s : s + chunk].to(K.dtype)
-        uv, z = project_points(p.unsqueeze(0).expand(K.shape[0], -1, -1), K, cam_from_world)  # (N, m, .)
-        ok = in_view(uv, z, image_wh[0], image_wh[1], border_px=border_px)
-        if depth_m is not None:
-            d_wh = (depth_m.shape[-1], depth_m.shape[-2])
-            d, _ = sample_nearest(depth_m.unsqueeze(1), scale_uv(uv, image_wh, d_wh))
-            d = d.squeeze(-1)
-            ok &= (d > 0) & ((d - z).abs() <= depth_rel_tol * d)
-        idx, sel = _select(ok.T, torch.cdist(p, centres), k)  # (m, k)
+        ok = _averaging_mask(p, K, world_from_cam, image_wh, depth_m, border_px, depth_rel_tol)  # (m, N)
+        idx, sel = _select(ok, torch.cdist(p, centres), k)  # (m, k)
         rows = torch.arange(p.shape[0]).unsqueeze(1).expand_as(idx)
         chosen = torch.zeros(p.shape[0], K.shape[0], dtype=torch.bool)
         chosen[rows[sel], idx[sel]] = True
@@ -588,6 +584,47 @@ class MethodResult:
         return segmentation_scores(self.cm)
 
 
+@dataclass
+class ScenePoints:
+    """The evaluated ground-truth points of a scene with their true visibility in each stream frame."""
+
+    gt: np.ndarray  # (P,) int labels
+    xyz: Tensor  # (P, 3) float32 world points
+    K: Tensor  # (N, 4) float32
+    world_from_cam: Tensor  # (N, 4, 4) float32
+    in_image: Tensor  # (P, N) bool: projects into the frame
+    visible: Tensor  # (P, N) bool: the frame truly sees it (ground-truth depth)
+
+    @property
+    def occluded(self) -> Tensor:
+        """(P, N) bool: projects into the frame but is hidden there."""
+        return self.in_image & ~self.visible
+
+
+def scene_points(scene: EvalScene, settings: EvalSettings) -> ScenePoints:
+    """The 3D protocol's points (``_subset``: labelled, seen by > 1 frame, up to ``max_points``)."""
+    keep = _subset(scene, settings)
+    pts = torch.from_numpy(scene.points_xyz[keep])
+    K = torch.from_numpy(scene.K).float()
+    poses = torch.from_numpy(scene.world_from_cam).float()
+    in_image, visible = gt_visibility(pts, K, poses, torch.from_numpy(scene.gt_depth_m))
+    return ScenePoints(scene.points_label[keep], pts, K, poses, in_image, visible)
+
+
+def occluded_share(pb: PointBlend, occluded: Tensor) -> float:
+    """Mean share of a point's blending weight on views that do not truly see it (over the points
+    some view took part in; nan when there are none). ``occluded``: (P, N) bool."""
+    occ_sel = occluded.to(pb.view_index.device).gather(1, pb.view_index) & pb.mask
+    share = (pb.weights * occ_sel).sum(1)[pb.valid]
+    return float(share.mean()) if share.numel() else float("nan")
+
+
+def _uniform_occluded_share(counted: Tensor, occluded: Tensor) -> float:
+    """The same for a uniform average over the ``counted`` (P, N) views."""
+    occ = (occluded & counted).sum(1).float() / counted.sum(1).clamp_min(1).float()
+    return float(occ[counted.any(1)].mean())
+
+
 def _subset(scene: EvalScene, settings: EvalSettings) -> np.ndarray:
     keep = np.flatnonzero((scene.points_n_views > 1) & (scene.points_label >= 0)
                           & (scene.points_label < NUM_SCANNET_CLASSES))
@@ -634,13 +671,8 @@ def evaluate_scene(
 
 def _evaluate_3d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor, settings: EvalSettings,
                  log: Callable[[str], None], device: torch.device | str) -> dict[str, MethodResult]:
-    keep = _subset(scene, settings)
-    gt = scene.points_label[keep]
-    pts = torch.from_numpy(scene.points_xyz[keep])
-    K = torch.from_numpy(scene.K).float()
-    poses = torch.from_numpy(scene.world_from_cam).float()
-    in_image, visible = gt_visibility(pts, K, poses, torch.from_numpy(scene.gt_depth_m))
-    occluded = in_image & ~visible  # (P, N)
+    sp = scene_points(scene, settings)
+    gt, pts, K, poses, visible, occluded = sp.gt, sp.xyz, sp.K, sp.world_from_cam, sp.visible, sp.occluded
     res: dict[str, MethodResult] = {}
     vpp = settings.views_per_point
 
@@ -668,9 +700,8 @@ def _evaluate_3d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
             # Occluded share of the averaging weight (uniform over the views that counted).
             counted = vw.T if vw is not None else _averaging_mask(pts, K, poses, scene.image_wh,
                                                                   depth_t if use_depth else None, border)
-            occ = (occluded & counted).sum(1).float() / counted.sum(1).clamp_min(1).float()
             name = ("Averaging + depth test" if use_depth else "Averaging (no depth)") + suffix
-            record(name, feats, secs, occluded_weight=float(occ[counted.any(1)].mean()),
+            record(name, feats, secs, occluded_weight=_uniform_occluded_share(counted, occluded),
                    invalid=float((nv == 0).float().mean()))
     if settings.oracle:
         t0 = time.perf_counter()
@@ -689,22 +720,20 @@ def _evaluate_3d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
             pb = blend_points(model, views, volume, bounds, pts.to(device), depth_guided_masking=dgm,
                               views_per_point=vpp, chunk_size=settings.chunk_points)
             secs = time.perf_counter() - t0
-            occ_sel = occluded.to(pb.view_index.device).gather(1, pb.view_index) & pb.mask
-            occ_w = (pb.weights * occ_sel).sum(1)
-            ok = pb.valid
             record(f"{mname} + DGM" if dgm else f"{mname} (no depth)", pb.ov, secs,
-                   occluded_weight=float(occ_w[ok].mean()) if bool(ok.any()) else float("nan"),
+                   occluded_weight=occluded_share(pb, occluded),
                    invalid=float((~pb.valid).float().mean()), volume_seconds=t_vol)
         if settings.no_depth_input:
-            _no_depth_input_rows(scene, model, mname, pts, K, poses, occluded, settings, record, device)
+            _no_depth_input_rows(scene, model, mname, sp, settings, record, device)
     return res
 
 
-def _no_depth_input_rows(scene: EvalScene, model: GovNeSF, mname: str, pts: Tensor, K: Tensor, poses: Tensor,
-                         occluded: Tensor, settings: EvalSettings, record: Callable[..., None],
+def _no_depth_input_rows(scene: EvalScene, model: GovNeSF, mname: str, sp: ScenePoints,
+                         settings: EvalSettings, record: Callable[..., None],
                          device: torch.device | str) -> None:
     """Rows without any input depth: frustum bounds; DGM and the averaging depth test with the
     model's rendered depth of the stream frames (see ``EvalSettings.no_depth_input``)."""
+    pts, K, poses, occluded = sp.xyz, sp.K, sp.world_from_cam, sp.occluded
     t0 = time.perf_counter()
     views, bounds = scene_sources(model, scene, device=device, frustum_range_m=settings.frustum_range_m)
     views = dataclasses.replace(views, depth_m=None)
@@ -734,12 +763,9 @@ def _no_depth_input_rows(scene: EvalScene, model: GovNeSF, mname: str, pts: Tens
         pb = blend_points(model, v, volume, bounds, pts.to(device), depth_guided_masking=dgm,
                           views_per_point=settings.views_per_point, chunk_size=settings.chunk_points)
         secs = time.perf_counter() - t0
-        occ_sel = occluded.to(pb.view_index.device).gather(1, pb.view_index) & pb.mask
-        occ_w = (pb.weights * occ_sel).sum(1)
-        ok = pb.valid
         name = (f"{mname} + rendered-depth DGM (no depth input)" if dgm
                 else f"{mname} (no depth, frustum bounds)")
-        record(name, pb.ov, secs, occluded_weight=float(occ_w[ok].mean()) if bool(ok.any()) else float("nan"),
+        record(name, pb.ov, secs, occluded_weight=occluded_share(pb, occluded),
                invalid=float((~pb.valid).float().mean()), **depth_stats)
     t0 = time.perf_counter()
     rd = rendered.cpu().numpy()
@@ -747,14 +773,14 @@ def _no_depth_input_rows(scene: EvalScene, model: GovNeSF, mname: str, pts: Tens
                  for k in range(len(scene))]
     feats, nv = average_features(pts, views_avg, use_depth=True, device=device)
     counted = _averaging_mask(pts, K, poses, scene.image_wh, rendered.cpu())
-    occ = (occluded & counted).sum(1).float() / counted.sum(1).clamp_min(1).float()
     record(f"Averaging + {mname} rendered-depth test (no depth input)", feats, time.perf_counter() - t0,
-           occluded_weight=float(occ[counted.any(1)].mean()), invalid=float((nv == 0).float().mean()),
-           **depth_stats)
+           occluded_weight=_uniform_occluded_share(counted, occluded),
+           invalid=float((nv == 0).float().mean()), **depth_stats)
 
 
 def _averaging_mask(pts: Tensor, K: Tensor, poses: Tensor, image_wh: tuple[int, int],
-                    depth_m: Tensor | None, border_px: float = AVERAGING_BORDER_PX) -> Tensor:
+                    depth_m: Tensor | None, border_px: float = AVERAGING_BORDER_PX,
+                    depth_rel_tol: float = DEPTH_REL_TOL) -> Tensor:
     """(P, N) bool: the views ``average_features`` counts for each point."""
     n = K.shape[0]
     uv, z = project_points(pts.unsqueeze(0).expand(n, -1, -1), K, invert_pose(poses))
@@ -763,7 +789,7 @@ def _averaging_mask(pts: Tensor, K: Tensor, poses: Tensor, image_wh: tuple[int, 
         d_wh = (depth_m.shape[-1], depth_m.shape[-2])
         d, _ = sample_nearest(depth_m.unsqueeze(1), scale_uv(uv, image_wh, d_wh))
         d = d.squeeze(-1)
-        ok &= (d > 0) & ((d - z).abs() <= DEPTH_REL_TOL * d)
+        ok &= (d > 0) & ((d - z).abs() <= depth_rel_tol * d)
     return ok.T
 
 
