@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -43,8 +44,12 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     from mapper.encoders import get_text_encoder
 
-    model, meta = load_model(args.checkpoint)
-    scenes = ev.find_scene_dirs(args.data)
+    try:
+        model, meta = load_model(args.checkpoint)
+        scenes = ev.find_scene_dirs(args.data)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"{Path(__file__).name}: {exc}", file=sys.stderr)
+        return 2
     settings = ev.EvalSettings(max_points=args.max_points)
     print(f"checkpoint {args.checkpoint} (step {meta.get('step')})")
     print("| scene | candidate views / point | occluded candidates | model weight occluded/visible "

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -43,7 +44,12 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     from mapper.encoders import get_text_encoder
 
-    model, meta = load_model(args.checkpoint)
+    try:
+        model, meta = load_model(args.checkpoint)
+        scenes = ev.find_scene_dirs(args.data)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"{Path(__file__).name}: {exc}", file=sys.stderr)
+        return 2
     settings = ev.EvalSettings(max_points=args.max_points)
     print(f"checkpoint {args.checkpoint} (step {meta.get('step')}), {args.max_points} points a scene, "
           f"{args.samples} samples a segment")
@@ -51,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
           "| avg 0px x T | occluded weight: model / model x T | s |")
     print("|---|---|---|---|---|---|---|---|---|")
     text = None
-    for d in ev.find_scene_dirs(args.data):
+    for d in scenes:
         scene = ev.load_scene(d)
         if text is None:
             text = torch.from_numpy(get_text_encoder().encode(scene.class_names[:NUM_SCANNET_CLASSES]))
