@@ -1,6 +1,6 @@
 """Plain averaging with NO border cut at the points `govnesf evaluate` scores (docs/EVALUATION.md).
 
-`mapper.baselines.average_features` cuts a 10 px image border (OpenScene-2D); the model blends
+`mapper.model.baselines.average_features` cuts a 10 px image border (OpenScene-2D); the model blends
 every view the point projects into. This prints averaging over the same candidate views as the
 model (0 px border), without depth and with the 25% depth test, per style, on the same point
 subsets as `govnesf evaluate --max-points 20000` (same seed).
@@ -13,10 +13,10 @@ import sys
 import numpy as np
 import torch
 
-from mapper import evaluate as ev
-from mapper.baselines import average_features
-from mapper.encoders import get_text_encoder
-from mapper.metrics import average_over_scenes, predict_labels, scores_from_labels
+from mapper.model.baselines import average_features
+from mapper.ov.encoders import get_text_encoder
+from mapper.training import evaluate as ev
+from mapper.training.metrics import average_over_scenes, predict_labels, scores_from_labels
 
 settings = ev.EvalSettings(max_points=20000)
 res = {}

@@ -29,10 +29,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mapper import evaluate as ev
-from mapper.baselines import average_features
-from mapper.checkpoint import load_model
-from mapper.metrics import NUM_SCANNET_CLASSES, predict_labels, scores_from_labels
+from mapper.model.baselines import average_features
+from mapper.model.checkpoint import load_model
+from mapper.training import evaluate as ev
+from mapper.training.metrics import NUM_SCANNET_CLASSES, predict_labels, scores_from_labels
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-points", type=int, default=10000)
     args = p.parse_args(argv)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
-    from mapper.encoders import get_text_encoder
+    from mapper.ov.encoders import get_text_encoder
 
     try:
         model, meta = load_model(args.checkpoint)

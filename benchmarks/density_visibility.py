@@ -3,7 +3,7 @@
 The learned OV weights ignore occlusion (``blending_diagnostics.py``). This asks whether the
 density field could supply it: for each evaluation point and each candidate view, the
 transmittance T of the model's density on the segment from the camera centre to the point
-(``mapper.evaluate.view_transmittance``, stopping 1.5 voxels short of the point), then
+(``mapper.training.evaluate.view_transmittance``, stopping 1.5 voxels short of the point), then
 
 * T on truly visible vs truly occluded candidates (ground-truth visibility, as the diagnostics);
 * 3D mIoU without depth when the learned OV weights are multiplied by T (renormalised), and when
@@ -27,11 +27,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mapper import evaluate as ev
-from mapper.baselines import average_features
-from mapper.checkpoint import load_model
-from mapper.geometry import camera_centers
-from mapper.metrics import NUM_SCANNET_CLASSES, predict_labels, scores_from_labels
+from mapper.model.baselines import average_features
+from mapper.model.checkpoint import load_model
+from mapper.model.ops.geometry import camera_centers
+from mapper.training import evaluate as ev
+from mapper.training.metrics import NUM_SCANNET_CLASSES, predict_labels, scores_from_labels
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--samples", type=int, default=16, help="density samples per camera-point segment")
     args = p.parse_args(argv)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
-    from mapper.encoders import get_text_encoder
+    from mapper.ov.encoders import get_text_encoder
 
     try:
         model, meta = load_model(args.checkpoint)

@@ -4,7 +4,7 @@ For learned blending (GOV-NeSF) and for averaging, on held-out scenes (scripts/m
 
 * 3D: ground-truth points seen by > 1 view, each blended from at most K views per point (the K
   nearest of the views that see it; K = 4, 8, 16, all), without depth. Learned blending:
-  ``mapper.evaluate.blend_points``; averaging: ``mapper.baselines.average_features`` over the K
+  ``mapper.training.evaluate.blend_points``; averaging: ``mapper.model.baselines.average_features`` over the K
   nearest views that pass its tests. Time: seconds per 100k points for the blend itself (the
   cost volume is built once per map and reported separately).
 * 2D: novel views rendered with S samples per ray (16, 32, 64) from the model's source views.
@@ -35,11 +35,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mapper import evaluate as ev
-from mapper.baselines import average_features
-from mapper.checkpoint import load_model
-from mapper.metrics import NUM_SCANNET_CLASSES, average_over_scenes, predict_labels, scores_from_labels
+from mapper.model.baselines import average_features
+from mapper.model.checkpoint import load_model
 from mapper.model.field import GovNeSF
+from mapper.training import evaluate as ev
+from mapper.training.metrics import (
+    NUM_SCANNET_CLASSES,
+    average_over_scenes,
+    predict_labels,
+    scores_from_labels,
+)
 
 
 def averaging_model(model: GovNeSF) -> GovNeSF:
@@ -80,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     views_list = parse_views(args.views)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
-    from mapper.encoders import get_text_encoder
+    from mapper.ov.encoders import get_text_encoder
 
     model, meta = load_model(args.checkpoint)
     avg_model = averaging_model(model)

@@ -39,9 +39,9 @@ from clients.sim.robot import default_intrinsics, robot_trajectory  # noqa: E402
 from clients.sim.scenes import CLASS_NAMES, SCANNET20, generate_scene  # noqa: E402
 from clients.sim.simlseg import SimLSeg, SimLSegConfig, view_quality  # noqa: E402
 from clients.sim.text import get_text_encoder  # noqa: E402
-from mapper.baselines import OVView, average_features  # noqa: E402
-from mapper.geometry import in_view, invert_pose, project_points  # noqa: E402
-from mapper.metrics import (  # noqa: E402
+from mapper.model.baselines import OVView, average_features  # noqa: E402
+from mapper.model.ops.geometry import in_view, invert_pose, project_points  # noqa: E402
+from mapper.training.metrics import (  # noqa: E402
     average_over_scenes,
     format_scores_table,
     predict_labels,

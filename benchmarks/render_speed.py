@@ -1,7 +1,7 @@
 """Render and segment latency of the learned runtime, dense sampling vs empty-space skipping.
 
 A simulated robot (``clients.sim``, SimLSeg OV features, depth) streams keyframes into a
-``KeyframeWindow`` followed by a :class:`mapper.runtime.ModelRuntime`; then:
+``KeyframeWindow`` followed by a :class:`mapper.runtime.model_runtime.ModelRuntime`; then:
 
 * ``sync``: the first query applies the window changes (encode each keyframe once, add it to the
   cost volume) -- timed separately, as is the per-version 3D U-Net + occupancy grid;
@@ -34,11 +34,11 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from clients.sim.export import RecordConfig, SimStream  # noqa: E402
-from mapper.config import WindowConfig  # noqa: E402
 from mapper.model.config import get_preset  # noqa: E402
 from mapper.model.field import GovNeSF  # noqa: E402
-from mapper.runtime import ModelRuntime, ModelRuntimeConfig, RenderFrame  # noqa: E402
-from mapper.window import Keyframe, KeyframeWindow  # noqa: E402
+from mapper.node.config import WindowConfig  # noqa: E402
+from mapper.node.window import Keyframe, KeyframeWindow  # noqa: E402
+from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig, RenderFrame  # noqa: E402
 
 TEXTS = ["chair", "table", "sofa", "bed", "wall", "floor"]
 

@@ -2,7 +2,7 @@
 
 Streams a simulated room (the demo's scene by default) into an in-process node that serves the
 learned model, once WITH input depth and once WITHOUT (RGB + SimLSeg features only; the map's points
-then come from :mod:`mapper.depth_points`), and reports for each:
+then come from :mod:`mapper.node.plugins.depth_points`), and reports for each:
 
 * global-map points and the time the rendered-depth worker spent per keyframe;
 * geometric error of the map points: distance to the nearest ground-truth surface point
@@ -29,10 +29,10 @@ import torch
 from scipy.spatial import cKDTree
 
 from clients.demo import chair_distance, sim_stream
-from mapper.config import config_from_dict
-from mapper.render_service import install_learned_handlers
-from mapper.runtime import ModelRuntime, ModelRuntimeConfig
-from mapper.service import MapperNode
+from mapper.node.config import config_from_dict
+from mapper.node.plugins.learned import install_learned_handlers
+from mapper.node.service import MapperNode
+from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
 from protocol.messages import Points, QueryPoints, decode, encode
 
 

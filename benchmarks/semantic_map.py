@@ -26,7 +26,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 def _keyframes(seed: int, frames: int, width: int, height: int, offset_m: float = 0.0) -> list:
     from clients.demo import sim_stream
-    from mapper.window import Keyframe
+    from mapper.node.window import Keyframe
 
     stream = sim_stream(seed, frames, width, height)
     out = []
@@ -45,8 +45,8 @@ def _ms(values: list[float]) -> str:
 
 
 def bench_integrate(args: argparse.Namespace) -> None:
-    from mapper.config import GlobalMapConfig
-    from mapper.global_map import GlobalSemanticMap
+    from mapper.node.config import GlobalMapConfig
+    from mapper.node.global_map import GlobalSemanticMap
 
     kfs = _keyframes(args.seed, args.frames, 160, 120)
     gmap = GlobalSemanticMap(GlobalMapConfig())
@@ -56,8 +56,8 @@ def bench_integrate(args: argparse.Namespace) -> None:
 
 
 def _large_snapshot(n: int, dim: int = 384):
-    from mapper.encoders import get_text_encoder
-    from mapper.global_map import GlobalMapSnapshot
+    from mapper.node.global_map import GlobalMapSnapshot
+    from mapper.ov.encoders import get_text_encoder
 
     rng = np.random.default_rng(0)
     names = ["chair", "table", "bed", "sofa", "wall", "floor", "cabinet", "door", "window", "lamp"]
@@ -74,9 +74,9 @@ def _large_snapshot(n: int, dim: int = 384):
 
 
 def _time_queries(snapshot, label: str, repeats: int) -> None:  # noqa: ANN001
-    from mapper.config import QueryConfig
-    from mapper.encoders import get_text_encoder
-    from mapper.queries import query_points
+    from mapper.node.config import QueryConfig
+    from mapper.node.queries import query_points
+    from mapper.ov.encoders import get_text_encoder
 
     enc = get_text_encoder()
     t = time.perf_counter()
@@ -98,8 +98,8 @@ def _time_queries(snapshot, label: str, repeats: int) -> None:  # noqa: ANN001
 
 
 def bench_query(args: argparse.Namespace) -> None:
-    from mapper.config import GlobalMapConfig
-    from mapper.global_map import GlobalSemanticMap
+    from mapper.node.config import GlobalMapConfig
+    from mapper.node.global_map import GlobalSemanticMap
 
     gmap = GlobalSemanticMap(GlobalMapConfig())
     for kf in _keyframes(args.seed, args.frames, 160, 120):
@@ -110,8 +110,8 @@ def bench_query(args: argparse.Namespace) -> None:
 
 def bench_segment(args: argparse.Namespace) -> None:
     from clients.sim.scenes import CLASS_NAMES, LABEL_OF
-    from mapper.encoders import get_text_encoder
-    from mapper.queries import segment_average
+    from mapper.node.queries import segment_average
+    from mapper.ov.encoders import get_text_encoder
 
     kfs = _keyframes(args.seed, args.frames, 160, 120)
     window = kfs[:: max(1, len(kfs) // args.views)][: args.views]

@@ -4,7 +4,7 @@ Renders held-out scenes of both styles along robot trajectories, runs SimLSeg on
 scores its single-view 2D segmentation: features upsampled to the image (nearest or bilinear),
 argmax cosine over the 20 ScanNet class-name embeddings, compared with the ground-truth label
 image (other labels ignored). Confusion matrices are accumulated per scene; mIoU is over the
-classes present in the scene, averaged over scenes (``mapper.metrics``). A near / far split by
+classes present in the scene, averaged over scenes (``mapper.training.metrics``). A near / far split by
 distance along the ray shows how quality falls with distance.
 
 Target (docs/SIMLSEG.md): single-view mIoU 45-60% on both styles (LSeg on ScanNet: 55.9).
@@ -36,7 +36,7 @@ from clients.sim.robot import default_intrinsics, robot_trajectory  # noqa: E402
 from clients.sim.scenes import CLASS_NAMES, SCANNET20, generate_scene  # noqa: E402
 from clients.sim.simlseg import SimLSeg, SimLSegConfig  # noqa: E402
 from clients.sim.text import get_text_encoder  # noqa: E402
-from mapper.metrics import (  # noqa: E402
+from mapper.training.metrics import (  # noqa: E402
     average_over_scenes,
     confusion_matrix,
     format_scores_table,

@@ -370,7 +370,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from tqdm import tqdm
 
-    from clients.client_cli import format_objects, objects_as_json, write_points_ply
+    from clients.cli.query import format_objects, objects_as_json, write_points_ply
     from clients.sim.export import count_views, write_ply
     from clients.sim.scenes import CLASS_NAMES, LABEL_OF
     from protocol.messages import Error
@@ -497,7 +497,7 @@ def main(argv: list[str] | None = None) -> int:
             (out / "segmentation.json").write_text(json.dumps(report, indent=1) + "\n")
 
             if "render" in extra.get("serving", []):
-                from clients.render_cli import compose_panels
+                from clients.cli.render import compose_panels
 
                 pose = stream.poses[args.frames // 3]
                 render_texts = ["chair", "table", "wall", "floor", "sofa", "bed"]

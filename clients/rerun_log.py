@@ -39,8 +39,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from clients.client_cli import score_colours
-from clients.render_cli import LABEL_COLORS
+from clients.colors import LABEL_COLORS, score_colours
 from protocol.messages import Frame, ObjectCandidate, Points, RenderResult
 
 if TYPE_CHECKING:  # for the annotations only; never imported at run time here

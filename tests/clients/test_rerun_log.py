@@ -26,7 +26,9 @@ import pyarrow as pa
 import pytest
 import zmq
 
-from clients import client_cli, render_cli, replay
+from clients import replay
+from clients.cli import query as client_cli
+from clients.cli import render as render_cli
 from clients.demo import (
     DEMO_OV_DIM,
     DEMO_OV_SPACE,
@@ -273,7 +275,7 @@ def test_rerun_env_off_is_a_clear_error(monkeypatch: pytest.MonkeyPatch, tmp_pat
 
 
 def test_no_module_imports_rerun_at_import_time() -> None:
-    code = ("import sys, clients.cli, clients.client_cli, clients.render_cli, clients.replay, "
+    code = ("import sys, clients.cli, clients.cli.query, clients.cli.render, clients.replay, "
             "clients.demo, clients.rerun_log; "
             "print(sorted(m for m in sys.modules if m.split('.')[0] == 'rerun'))")  # fmt: skip
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, capture_output=True, text=True,
@@ -288,7 +290,7 @@ def test_no_module_imports_rerun_at_import_time() -> None:
 NODE_MAIN = f"""
 import sys
 import numpy as np
-from mapper.encoders import register_text_encoder
+from mapper.ov.encoders import register_text_encoder
 
 class CheckerTextEncoder:
     '''Texts of the {DEMO_OV_SPACE!r} space: sky, dark, light -> its one-hot feature axes; any

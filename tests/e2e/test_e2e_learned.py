@@ -17,11 +17,11 @@ from PIL import Image
 from clients.cli import main as govnesf
 from clients.client import MapperClient
 from clients.demo import free_endpoints
-from mapper.config import config_from_dict
 from mapper.model.field import GovNeSF
-from mapper.render_service import install_learned_handlers
-from mapper.runtime import ModelRuntime, ModelRuntimeConfig
-from mapper.service import MapperNode
+from mapper.node.config import config_from_dict
+from mapper.node.plugins.learned import install_learned_handlers
+from mapper.node.service import MapperNode
+from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
 from protocol.errors import RemoteError
 from protocol.messages import Frame
 from tests.model_helpers import look_at, tiny_model_config

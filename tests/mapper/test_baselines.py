@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from mapper.baselines import OVView, average_features
+from mapper.model.baselines import OVView, average_features
 
 W, H = 64, 48
 K = np.array([50.0, 50.0, 32.0, 24.0])

@@ -1,4 +1,4 @@
-"""mapper.checkpoint: safetensors + JSON round trips, no pickle, integrity checks."""
+"""mapper.model.checkpoint: safetensors + JSON round trips, no pickle, integrity checks."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from mapper.checkpoint import (
+from mapper.model.checkpoint import (
     checkpoint_paths,
     config_from_dict,
     config_to_dict,

@@ -16,7 +16,7 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from mapper.clip_backend import (
+from mapper.ov.clip import (
     ClipBackendConfig,
     ClipDenseBackend,
     ClipWeightsError,
@@ -24,7 +24,7 @@ from mapper.clip_backend import (
     infer_architecture,
     read_state_dict,
 )
-from mapper.clip_tokenizer import ClipTokenizer, clean_text
+from mapper.ov.clip_tokenizer import ClipTokenizer, clean_text
 
 # Tiny architecture: image tower width 128 (2 heads of 64), text width 64 (2 heads of 32, set in the
 # config), 2 layers each, patch 16 on a 64 px image (4 x 4 grid), joint embedding 32, context 16.

@@ -1,4 +1,4 @@
-"""Tests for mapper.cost_volume: incremental vs batch, visibility counting, bounds, sampling."""
+"""Tests for mapper.model.ops.cost_volume: incremental vs batch, visibility counting, bounds, sampling."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from mapper.cost_volume import (
+from mapper.model.ops.cost_volume import (
     CostVolume,
     VolumeBounds,
     bounds_from_points,

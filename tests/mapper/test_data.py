@@ -1,4 +1,4 @@
-"""mapper.data: scenes from recordings, source selection, deterministic ray batches.
+"""mapper.training.data: scenes from recordings, source selection, deterministic ray batches.
 
 ``write_tiny_scene`` (also used by test_train.py) writes a small synthetic recording: cameras
 side by side looking at a textured wall 3 m away, with depth, 8-d OV maps and novel views.
@@ -13,9 +13,16 @@ import numpy as np
 import pytest
 import torch
 
-from mapper.cost_volume import VolumeBounds
-from mapper.data import RaySampler, find_scenes, load_scene, select_sources, source_batch, validation_views
 from mapper.model.config import EncoderConfig, FusionConfig, ModelConfig, RenderConfig, VolumeConfig
+from mapper.model.ops.cost_volume import VolumeBounds
+from mapper.training.data import (
+    RaySampler,
+    find_scenes,
+    load_scene,
+    select_sources,
+    source_batch,
+    validation_views,
+)
 from protocol.messages import Frame
 from protocol.recording import RecordingWriter
 

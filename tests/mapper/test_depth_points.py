@@ -1,4 +1,4 @@
-"""Tests for global-map points from rendered depth (mapper.depth_points) and the pieces it uses:
+"""Tests for global-map points from rendered depth (mapper.node.plugins.depth_points) and the pieces it uses:
 depth-only renders, the support mask, confidence-weighted integration, the node's keyframe
 listeners and workers, frustum bounds (geometry.frustum_points, data.source_batch)."""
 
@@ -13,15 +13,15 @@ import numpy as np
 import pytest
 import torch
 
-from mapper.config import ConfigError, GlobalMapConfig, WindowConfig, config_from_dict
-from mapper.depth_points import RenderedDepthPoints, render_keyframe_depth
-from mapper.geometry import frustum_points, invert_pose, project_points
-from mapper.global_map import GlobalSemanticMap
 from mapper.model.field import GovNeSF
-from mapper.render_service import install_learned_handlers
-from mapper.runtime import ModelRuntimeConfig
-from mapper.service import MapperNode
-from mapper.window import Keyframe, KeyframeWindow
+from mapper.model.ops.geometry import frustum_points, invert_pose, project_points
+from mapper.node.config import ConfigError, GlobalMapConfig, WindowConfig, config_from_dict
+from mapper.node.global_map import GlobalSemanticMap
+from mapper.node.plugins.depth_points import RenderedDepthPoints, render_keyframe_depth
+from mapper.node.plugins.learned import install_learned_handlers
+from mapper.node.service import MapperNode
+from mapper.node.window import Keyframe, KeyframeWindow
+from mapper.runtime.model_runtime import ModelRuntimeConfig
 from protocol.messages import Frame, Status, StatusRequest, decode, encode
 from tests.mapper.test_runtime import TINY, keyframe, make_runtime, orbit
 from tests.model_helpers import look_at

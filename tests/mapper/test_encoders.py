@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from mapper import encoders
-from mapper.encoders import SPACE, UnknownSpaceError, get_text_encoder, register_text_encoder
+from mapper.ov import encoders
+from mapper.ov.encoders import SPACE, UnknownSpaceError, get_text_encoder, register_text_encoder
 
 
 @pytest.fixture(scope="session")

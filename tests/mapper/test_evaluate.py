@@ -1,4 +1,4 @@
-"""Tests for mapper.evaluate and `govnesf evaluate` on a tiny synthetic scene with known answers.
+"""Tests for mapper.training.evaluate and `govnesf evaluate` on a tiny synthetic scene with known answers.
 
 The scene: a labelled floor (z = 0) seen by four cameras 2 m above it looking straight down; the
 OV maps are the exact text embedding of the label under each pixel, so a correct pipeline
@@ -13,15 +13,15 @@ import numpy as np
 import pytest
 import torch
 
-from mapper import evaluate as ev
-from mapper.baselines import average_features
-from mapper.checkpoint import save_checkpoint
-from mapper.cli_eval import main as eval_main
-from mapper.cost_volume import VolumeBounds
-from mapper.data import Scene
-from mapper.metrics import NUM_SCANNET_CLASSES
+from mapper.model.baselines import average_features
+from mapper.model.checkpoint import save_checkpoint
 from mapper.model.config import EncoderConfig, FusionConfig, ModelConfig, RenderConfig, VolumeConfig
 from mapper.model.field import GovNeSF, SourceViews
+from mapper.model.ops.cost_volume import VolumeBounds
+from mapper.training import evaluate as ev
+from mapper.training.cli_eval import main as eval_main
+from mapper.training.data import Scene
+from mapper.training.metrics import NUM_SCANNET_CLASSES
 
 W, H = 64, 48
 K = np.array([40.0, 40.0, 32.0, 24.0])  # a pixel is 5 cm on the floor from 2 m
@@ -90,7 +90,7 @@ def make_scene(ov_stride: int = 2) -> ev.EvalScene:
     far = (np.abs(px) >= 0.3) & ((px < 0) | (np.abs(py) >= 0.3))
     px, py = px[far], py[far]
     xyz = np.stack([px, py, np.zeros_like(px)], -1).astype(np.float32)
-    # (F, M, 3) depth points as mapper.data back-projects them (bounds, source selection).
+    # (F, M, 3) depth points as mapper.training.data back-projects them (bounds, source selection).
     grid = np.stack([np.stack([*pixel_floor(p, W // 8, H // 8, 8), np.zeros((H // 8, W // 8))], -1)
                      .reshape(-1, 3) for p in poses]).astype(np.float32)
     data = Scene(name="floor", rgb=rgb, depth_m=depth, ov=ov, K=np.tile(K, (n, 1)), world_from_cam=poses,

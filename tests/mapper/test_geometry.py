@@ -1,4 +1,4 @@
-"""Property tests for mapper.geometry: poses, projection, pixel convention, sampling."""
+"""Property tests for mapper.model.ops.geometry: poses, projection, pixel convention, sampling."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapper.geometry import (
+from mapper.model.ops.geometry import (
     camera_centers,
     in_view,
     invert_pose,

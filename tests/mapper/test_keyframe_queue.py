@@ -1,4 +1,4 @@
-"""Tests for mapper.keyframe_queue: the bounded queue, the worker loop, the rate-limited log."""
+"""Tests for mapper.node.keyframe_queue: the bounded queue, the worker loop, the rate-limited log."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from mapper.keyframe_queue import KeyframeQueue, LimitedLog, run_worker
+from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker
 
 
 def test_queue_is_fifo_bounded_and_counts_drops() -> None:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from mapper.metrics import (
+from mapper.training.metrics import (
     average_over_scenes,
     confusion_matrix,
     predict_labels,

@@ -5,8 +5,6 @@ from __future__ import annotations
 import pytest
 import torch
 
-from mapper.cost_volume import CostVolume, VolumeBounds, build_cost_volume, cost_volume_features
-from mapper.geometry import pixel_rays, sample_bilinear, scale_uv
 from mapper.model.config import (
     PRESETS,
     EncoderConfig,
@@ -20,8 +18,10 @@ from mapper.model.encoder2d import ImageEncoder
 from mapper.model.field import GovNeSF, SourceViews, render_depth_maps, render_image, render_rays
 from mapper.model.fusion import CrossViewAttention, masked_softmax
 from mapper.model.losses import distortion_loss, govnesf_loss, ov_cosine_loss
+from mapper.model.ops.cost_volume import CostVolume, VolumeBounds, build_cost_volume, cost_volume_features
+from mapper.model.ops.geometry import pixel_rays, sample_bilinear, scale_uv
+from mapper.model.ops.rendering import Rays
 from mapper.model.unet3d import VolumeUNet
-from mapper.rendering import Rays
 
 TINY = ModelConfig(
     name="tiny",

@@ -1,4 +1,4 @@
-"""The in-process OV backend in the node (mapper.ov_backend): config, text encoder registration,
+"""The in-process OV backend in the node (mapper.node.plugins.ov_features): config, text encoder registration,
 features for keyframes without ov (window swap seen by the learned runtime, global map features
 without extra geometry), missing weights, frames with ov, queue bound, stale keyframes after a load.
 
@@ -16,15 +16,15 @@ import numpy as np
 import pytest
 import torch
 
-from mapper.clip_tokenizer import ClipTokenizer
-from mapper.config import ConfigError, OvBackendConfig, apply_overrides, config_from_dict
-from mapper.encoders import available_spaces, get_text_encoder, unregister_text_encoder
-from mapper.global_map import GlobalSemanticMap
 from mapper.model.field import GovNeSF
-from mapper.ov_backend import OvFeatureWorker, install_ov_backend
-from mapper.render_service import install_learned_handlers
-from mapper.runtime import ModelRuntime, ModelRuntimeConfig
-from mapper.service import MapperNode
+from mapper.node.config import ConfigError, OvBackendConfig, apply_overrides, config_from_dict
+from mapper.node.global_map import GlobalSemanticMap
+from mapper.node.plugins.learned import install_learned_handlers
+from mapper.node.plugins.ov_features import OvFeatureWorker, install_ov_backend
+from mapper.node.service import MapperNode
+from mapper.ov.clip_tokenizer import ClipTokenizer
+from mapper.ov.encoders import available_spaces, get_text_encoder, unregister_text_encoder
+from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
 from protocol.messages import (
     Ack,
     Error,

@@ -7,16 +7,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapper.config import QueryConfig
-from mapper.encoders import get_text_encoder
-from mapper.global_map import GlobalMapSnapshot
-from mapper.queries import (
+from mapper.node.config import QueryConfig
+from mapper.node.global_map import GlobalMapSnapshot
+from mapper.node.queries import (
     DEFAULT_NEGATIVES,
     cluster_points,
     normalise_query,
     query_points,
     segment_average,
 )
+from mapper.ov.encoders import get_text_encoder
 from protocol.errors import ProtocolError
 
 CONFIG = QueryConfig(cluster_radius_m=0.12, min_object_points=10)

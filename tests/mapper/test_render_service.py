@@ -1,4 +1,4 @@
-"""Tests for mapper.render_service: handlers installed on an in-process node (bytes in, bytes out),
+"""Tests for mapper.node.plugins.learned: handlers installed on an in-process node (bytes in, bytes out),
 govnesf vs fall-through segmentation, not_ready replies, and no model work under the state lock."""
 
 from __future__ import annotations
@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from mapper.config import config_from_dict
 from mapper.model.field import GovNeSF
-from mapper.render_service import install_learned_handlers
-from mapper.runtime import ModelRuntime, ModelRuntimeConfig
-from mapper.service import MapperNode
+from mapper.node.config import config_from_dict
+from mapper.node.plugins.learned import install_learned_handlers
+from mapper.node.service import MapperNode
+from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
 from protocol.messages import (
     Error,
     Frame,

@@ -1,4 +1,4 @@
-"""Property tests for mapper.rendering (volume rendering maths)."""
+"""Property tests for mapper.model.ops.rendering (volume rendering maths)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapper.rendering import (
+from mapper.model.ops.rendering import (
     Rays,
     RaySamples,
     accumulated_opacity,

@@ -1,5 +1,5 @@
-"""Tests for mapper.runtime: incremental volume through the window, renders, z-depth, empty-space
-skipping vs dense sampling, segmentation, not_ready paths. Tiny random-init model, tiny frames."""
+"""Tests for mapper.runtime.model_runtime: incremental volume through the window, renders, z-depth,
+empty-space skipping vs dense sampling, segmentation, not_ready paths. Tiny random-init model, tiny frames."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from mapper.config import ConfigError, WindowConfig
-from mapper.cost_volume import build_cost_volume
 from mapper.model.field import GovNeSF
-from mapper.runtime import ModelRuntime, ModelRuntimeConfig, RuntimeNotReady
-from mapper.window import Keyframe, KeyframeWindow
+from mapper.model.ops.cost_volume import build_cost_volume
+from mapper.node.config import ConfigError, WindowConfig
+from mapper.node.window import Keyframe, KeyframeWindow
+from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig, RuntimeNotReady
 from tests.model_helpers import look_at, tiny_model_config
 
 TINY = tiny_model_config(ov_dim=6, max_voxels=2048, n_samples=16)
@@ -274,7 +274,7 @@ def test_view_groups_use_at_most_k_views_that_see_the_points(model: GovNeSF) -> 
     assert groups and sum(len(idx) for idx, _ in groups) <= 500
     for idx, views in groups:
         assert 1 <= len(views) <= 2
-        from mapper.geometry import in_view, invert_pose, project_points
+        from mapper.model.ops.geometry import in_view, invert_pose, project_points
 
         uv, z = project_points(
             points[idx].expand(len(views), -1, -1), prep.K[views], invert_pose(prep.world_from_cam[views])

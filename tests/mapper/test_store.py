@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from mapper.store import MapStore, StoreError, validate_map_name
+from mapper.node.store import MapStore, StoreError, validate_map_name
 
 
 def test_roundtrip_and_names(tmp_path: Path) -> None:

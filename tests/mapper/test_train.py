@@ -1,4 +1,4 @@
-"""mapper.train: data-parallel equivalence, exact resume, loss goes down, schedule, config errors.
+"""mapper.training.train: data-parallel equivalence, exact resume, loss goes down, schedule, config errors.
 
 All runs use a tiny network on the synthetic wall scene of test_data.py (64 x 48 images).
 """
@@ -15,10 +15,10 @@ import torch
 import torch.multiprocessing as mp
 from test_data import tiny_model_config, write_text_embeddings, write_tiny_scene
 
-from mapper.checkpoint import load_model
-from mapper.data import RaySampler, load_scene
+from mapper.model.checkpoint import load_model
 from mapper.model.field import GovNeSF
-from mapper.train import TrainConfig, learning_rate, load_train_config, train, train_step
+from mapper.training.data import RaySampler, load_scene
+from mapper.training.train import TrainConfig, learning_rate, load_train_config, train, train_step
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from mapper.config import WindowConfig
-from mapper.window import (
+from mapper.node.config import WindowConfig
+from mapper.node.window import (
     Keyframe,
     KeyframeWindow,
     keyframes_from_arrays,

@@ -9,8 +9,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from mapper.cost_volume import VolumeBounds, sample_volume
-from mapper.geometry import in_view, project_points, sample_bilinear
+from mapper.model.ops.cost_volume import VolumeBounds, sample_volume
+from mapper.model.ops.geometry import in_view, project_points, sample_bilinear
 
 HALF_DTYPES = [torch.float16, torch.bfloat16]
 ALL_DTYPES = [torch.float64, torch.float32, *HALF_DTYPES]

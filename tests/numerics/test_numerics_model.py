@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import torch
 
-from mapper.cost_volume import VolumeBounds
 from mapper.model.config import EncoderConfig, FusionConfig, ModelConfig, RenderConfig, VolumeConfig
 from mapper.model.field import GovNeSF, SourceViews
 from mapper.model.fusion import FusionNet
+from mapper.model.ops.cost_volume import VolumeBounds
 
 CFG = ModelConfig(
     name="numerics",

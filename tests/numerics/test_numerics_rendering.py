@@ -11,7 +11,7 @@ import itertools
 import pytest
 import torch
 
-from mapper.rendering import accumulated_opacity, composite, expected_depth, render_weights
+from mapper.model.ops.rendering import accumulated_opacity, composite, expected_depth, render_weights
 
 DENSITIES = [0.0, 1e-3, 1e6]
 SPACINGS = [1e-6, 1e-3, 1.0, 1e3]

@@ -1,0 +1,217 @@
+"""``govnesf status | save | load | query``: one-shot requests to a node's query endpoint.
+
+Exit codes: 0 success, 1 the node did not answer, 2 invalid arguments, 3 the node answered
+with an error.
+
+``govnesf query "find the chair" --out chair.ply --json chair.json`` prints the object candidates
+(text, centroid, score, points), writes the matching points as a PLY (Open3D; coloured by score
+with the viridis colormap, dark = low, yellow = high) and the objects as JSON; ``--rerun F.rrd``
+logs both for the Rerun viewer (``clients/rerun_log.py``, docs/RERUN.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from clients.client import DEFAULT_QUERY, MapperClient
+from clients.colors import score_colours
+from protocol.errors import ProtocolError, RemoteError
+from protocol.messages import Message, Ok, Points, Status
+
+
+def _parser(prog: str, description: str, with_name: bool) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    if with_name:
+        parser.add_argument("name", help="map name, [A-Za-z0-9_.-]{1,64}, inside the node's map directory")
+    parser.add_argument(
+        "--query", default=DEFAULT_QUERY, metavar="EP", help=f"node query endpoint ({DEFAULT_QUERY})"
+    )
+    parser.add_argument(
+        "--timeout", type=float, default=5.0, metavar="S", help="seconds to wait for the reply"
+    )
+    parser.add_argument(
+        "--retries", type=int, default=1, metavar="N", help="retries before giving up (default 1)"
+    )
+    return parser
+
+
+def _run(args: argparse.Namespace, call: Callable[[MapperClient], Message], prog: str) -> int:
+    try:
+        with MapperClient(query=args.query, timeout_s=args.timeout, retries=args.retries) as client:
+            reply = call(client)
+    except TimeoutError as exc:
+        print(f"{prog}: node unreachable: {exc}", file=sys.stderr)
+        return 1
+    except RemoteError as exc:
+        print(f"{prog}: the node refused: {exc.code}: {exc.message}", file=sys.stderr)
+        return 3
+    except ProtocolError as exc:  # invalid request built locally (e.g. a bad map name)
+        print(f"{prog}: {exc.message}", file=sys.stderr)
+        return 2
+    if isinstance(reply, Points):
+        return _report_points(reply, args)
+    if isinstance(reply, Status):
+        print(format_status(reply, as_json=getattr(args, "json", False)))
+    elif isinstance(reply, Ok):
+        print(reply.message or "ok")
+    return 0
+
+
+def format_status(status: Status, as_json: bool = False) -> str:
+    """The status as aligned ``key: value`` lines (or one JSON object)."""
+    fields = {
+        "map_version": status.map_version,
+        "keyframes": status.keyframes,
+        "frames_received": status.frames_received,
+        "frames_rejected": status.frames_rejected,
+        "ov_space": status.ov_space,
+        "memory_bytes": status.memory_bytes,
+        "uptime_s": round(status.uptime_s, 3),
+        **status.extra,
+    }
+    if as_json:
+        return json.dumps(fields, indent=2, sort_keys=False, default=str)
+    width = max(len(k) for k in fields)
+    return "\n".join(
+        f"{k:<{width}}  {json.dumps(v, default=str) if isinstance(v, dict | list) else v}"
+        for k, v in fields.items()
+    )
+
+
+def status_main(argv: list[str] | None = None) -> int:
+    """``govnesf status [--query EP] [--json]``."""
+    parser = _parser("govnesf status", "Print a mapper node's status.", with_name=False)
+    parser.add_argument("--json", action="store_true", help="print JSON")
+    args = parser.parse_args(argv)
+    return _run(args, lambda c: c.status(), "govnesf status")
+
+
+def save_main(argv: list[str] | None = None) -> int:
+    """``govnesf save NAME [--query EP]``."""
+    args = _parser("govnesf save", "Save the node's map in its map directory.", with_name=True).parse_args(
+        argv
+    )
+    return _run(args, lambda c: c.save(args.name), "govnesf save")
+
+
+def load_main(argv: list[str] | None = None) -> int:
+    """``govnesf load NAME [--query EP]``."""
+    args = _parser("govnesf load", "Load a saved map into the node.", with_name=True).parse_args(argv)
+    return _run(args, lambda c: c.load(args.name), "govnesf load")
+
+
+# ---------------------------------------------------------------------------------------------
+# govnesf query
+
+def write_points_ply(path: str | Path, xyz: np.ndarray, score: np.ndarray) -> Path:
+    """Write points (N, 3) coloured by score (N,) as a PLY file with Open3D; returns the path."""
+    import open3d as o3d  # heavy import, only when a PLY is asked for
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cloud = o3d.geometry.PointCloud()
+    cloud.points = o3d.utility.Vector3dVector(np.asarray(xyz, np.float64).reshape(-1, 3))
+    cloud.colors = o3d.utility.Vector3dVector(score_colours(score))
+    if not o3d.io.write_point_cloud(path, cloud, write_ascii=False):
+        raise OSError(f"Open3D could not write {path}")
+    return path
+
+
+def objects_as_json(points: Points) -> dict[str, Any]:
+    """The reply's objects (and a summary) as a JSON-able dict."""
+    return {
+        "map_version": points.map_version,
+        "n_points": int(points.xyz.shape[0]),
+        "timing_ms": {k: round(float(v), 3) for k, v in points.timing_ms.items()},
+        "objects": [
+            {
+                "text": o.text,
+                "centroid": [round(float(v), 4) for v in o.centroid],
+                "aabb_min": [round(float(v), 4) for v in o.aabb_min],
+                "aabb_max": [round(float(v), 4) for v in o.aabb_max],
+                "score": round(float(o.score), 5),
+                "n_points": int(o.n_points),
+            }
+            for o in points.objects
+        ],
+    }
+
+
+def format_objects(points: Points, limit: int = 10) -> str:
+    """Object candidates as aligned lines: rank, text, centroid (m), score, points."""
+    if not points.objects:
+        return f"no object candidates ({points.xyz.shape[0]} matching points)"
+    lines = [f"{'#':>3}  {'text':<24} {'centroid x, y, z (m)':<24} {'score':>6} {'points':>7}"]
+    for i, o in enumerate(points.objects[:limit]):
+        c = ", ".join(f"{v:.2f}" for v in o.centroid)
+        lines.append(f"{i + 1:>3}  {o.text[:24]:<24} {c:<24} {o.score:>6.3f} {o.n_points:>7d}")
+    if len(points.objects) > limit:
+        lines.append(f"     ... and {len(points.objects) - limit} more")
+    return "\n".join(lines)
+
+
+def _report_points(points: Points, args: argparse.Namespace) -> int:
+    print(format_objects(points, limit=args.top))
+    total = points.timing_ms.get("total")
+    print(f"{points.xyz.shape[0]} points matched, map version {points.map_version}"
+          + (f", {total:.1f} ms on the node" if total is not None else ""))
+    if args.out:
+        print(f"wrote {write_points_ply(args.out, points.xyz, points.score)}")
+    if args.json:
+        path = Path(args.json)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(objects_as_json(points), indent=1) + "\n")
+        print(f"wrote {path}")
+    if args.rerun:
+        from clients.rerun_log import RerunLog
+
+        with RerunLog(args.rerun, recording_name="govnesf query " + " ".join(args.texts)) as rlog:
+            rlog.log_query(points, list(args.texts))
+        print(f"wrote {args.rerun} (view it with: rerun {args.rerun})")
+    return 0
+
+
+def query_main(argv: list[str] | None = None) -> int:
+    """``govnesf query TEXT [TEXT...] [--negatives N...] [--min-score S] [--out F.ply] [--json F.json]
+    [--rerun F.rrd]``."""
+    parser = _parser("govnesf query", "Find map points and objects matching texts (\"find the chair\").",
+                     with_name=False)
+    parser.add_argument("texts", nargs="+", metavar="TEXT",
+                        help='what to find, e.g. "chair" or "find the chair"')
+    parser.add_argument("--negatives", nargs="*", metavar="NEG", default=None,
+                        help="background prompts (default: the node's set; give none for no negatives)")
+    parser.add_argument("--min-score", type=float, default=None, metavar="S",
+                        help="drop points whose cosine is below S")
+    parser.add_argument("--max-points", type=int, default=None, metavar="N", help="return at most N points")
+    parser.add_argument("--no-objects", action="store_true", help="skip the object clustering")
+    parser.add_argument("--out", metavar="FILE.ply", help="write the matching points coloured by score")
+    parser.add_argument("--json", metavar="FILE.json", help="write the object candidates as JSON")
+    parser.add_argument("--top", type=int, default=10, metavar="K", help="objects to print (default 10)")
+    parser.add_argument("--rerun", metavar="FILE.rrd",
+                        help="also log the points (by score) and objects (boxes) for the Rerun viewer")
+    parser.set_defaults(timeout=30.0)
+    args = parser.parse_args(argv)
+    if args.top < 0:
+        parser.error(f"--top {args.top} must be >= 0")
+    if args.rerun:  # a bad path is an error before the query is sent
+        from clients.rerun_log import RerunLogError, check_rrd_path
+
+        try:
+            check_rrd_path(args.rerun)
+        except RerunLogError as exc:
+            parser.error(str(exc))
+    return _run(
+        args,
+        lambda c: c.query_points(
+            list(args.texts), negatives=args.negatives, min_score=args.min_score, max_points=args.max_points,
+            objects=not args.no_objects,
+        ),
+        "govnesf query",
+    )

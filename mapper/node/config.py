@@ -1,0 +1,545 @@
+"""Typed configuration of the mapper node, loaded from TOML (``launch/node.toml``).
+
+Every setting is a field of a frozen dataclass with a comment saying what it means and in which
+unit. A TOML file mirrors the dataclasses: top-level keys set :class:`NodeConfig` fields, and a
+table (``[window]``) sets the sub-config of the same name. Unknown keys and values of the wrong
+type are errors that name the key and the file, so a typo never silently falls back to a default.
+
+Later pipeline stages add their own sub-config (e.g. ``model: ModelConfig``, ``cost_volume:
+CostVolumeConfig``, ``global_map: GlobalMapConfig``) as one more field of :class:`NodeConfig`
+with a default factory; the loader, the overrides and the error messages need no change.
+
+TOML has no null, so an optional string (``str | None``) is disabled with an empty string::
+
+    events_endpoint = ""   # no PUB socket
+
+Example::
+
+    >>> cfg = config_from_dict({"map_dir": "maps", "window": {"max_keyframes": 8}})
+    >>> cfg.window.max_keyframes
+    8
+    >>> apply_overrides(cfg, {"window.min_translation_m": 0.5}).window.min_translation_m
+    0.5
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import ipaddress
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mapper.errors import ConfigError
+from mapper.node.store import validate_map_name
+from mapper.ov.config import ClipBackendConfig
+from mapper.runtime.config import ModelRuntimeConfig
+
+#: Where ``govnesf serve`` looks for its config when ``--config`` is not given (relative to the repo).
+DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[2] / "launch" / "node.toml"
+
+
+@dataclass(frozen=True)
+class WindowConfig:
+    """The bounded window of keyframes (see :mod:`mapper.node.window`)."""
+
+    max_keyframes: int = 30
+    """Most keyframes kept; adding one more evicts the oldest. 1..10000."""
+
+    min_translation_m: float = 0.10
+    """A frame becomes a keyframe when its camera centre moved at least this far (metres) from the
+    most recent keyframe of the same camera. >= 0."""
+
+    min_rotation_deg: float = 10.0
+    """... or when its viewing direction turned by at least this angle (degrees, the angle of the
+    relative rotation) from that keyframe. 0..180."""
+
+    def validate(self, where: str) -> None:
+        _check_range(where, "window.max_keyframes", self.max_keyframes, 1, 10_000)
+        _check_range(where, "window.min_translation_m", self.min_translation_m, 0.0, 1e6)
+        _check_range(where, "window.min_rotation_deg", self.min_rotation_deg, 0.0, 180.0)
+
+
+@dataclass(frozen=True)
+class GlobalMapConfig:
+    """The global semantic point map (see :mod:`mapper.node.global_map`): voxel-hashed surface points
+    with fused OV features, kept when keyframes leave the window."""
+
+    voxel_size_m: float = 0.05
+    """Edge of a map voxel (metres); one fused point per occupied voxel. 0.005..1."""
+
+    pixel_stride: int = 2
+    """Back-project every ``pixel_stride``-th pixel of each keyframe's depth (both axes). 1..64."""
+
+    max_points: int = 250_000
+    """Most voxels kept; beyond this the lowest-priority voxels are dropped (confidence halved per
+    ``stale_half_life_keyframes`` keyframes since last seen) down to ``prune_to_fraction``. 1..1e8."""
+
+    prune_to_fraction: float = 0.9
+    """After a prune, keep this fraction of ``max_points`` (hysteresis: not every frame prunes). 0.1..1."""
+
+    stale_half_life_keyframes: float = 200.0
+    """Keyframes after which an unseen voxel's pruning priority halves. > 0."""
+
+    min_depth_m: float = 0.1
+    """Depths below this (metres) are ignored (sensor minimum range). >= 0."""
+
+    max_depth_m: float = 8.0
+    """Depths beyond this (metres) are ignored (noisy far returns). > min_depth_m."""
+
+    near_m: float = 2.0
+    """Observation weight is 1 up to this distance along the ray (metres) ..."""
+
+    falloff_m: float = 3.0
+    """... and decays as exp(-(distance - near_m) / falloff_m) beyond it (metres). > 0."""
+
+    grazing_power: float = 1.0
+    """Weight is also multiplied by |cos(ray, surface normal)| ** grazing_power (0 disables). 0..10."""
+
+    min_weight: float = 0.02
+    """Observations whose weight falls below this are not fused. 0..1."""
+
+    rendered_depth: bool = True
+    """Keyframes without input depth add points from the learned model's rendered depth at their
+    pose (when the node serves the model; :mod:`mapper.node.plugins.depth_points`).
+    Off: they add no points."""
+
+    rendered_depth_stride: int = 4
+    """The depth is rendered at the keyframe's size / this (K scaled with it), every pixel used. 1..64."""
+
+    rendered_min_opacity: float = 0.9
+    """Rendered pixels whose accumulated opacity is below this add no point (the ray found no
+    clear surface). 0..1."""
+
+    rendered_weight: float = 0.5
+    """Observation weights of rendered-depth points are multiplied by this times the opacity (input
+    depth outranks rendered depth in the fused confidence). 0..1."""
+
+    rendered_min_views: int = 4
+    """The model needs at least this many keyframes in its window before it renders depth
+    (keyframes that arrive earlier wait). 1..1000."""
+
+    rendered_max_pending: int = 256
+    """Most keyframes waiting for a rendered depth; beyond it the oldest is dropped (counted as
+    ``dropped`` in status). 1..100000."""
+
+    def validate(self, where: str) -> None:
+        _check_range(where, "global_map.rendered_depth_stride", self.rendered_depth_stride, 1, 64)
+        _check_range(where, "global_map.rendered_min_opacity", self.rendered_min_opacity, 0.0, 1.0)
+        _check_range(where, "global_map.rendered_weight", self.rendered_weight, 0.0, 1.0)
+        _check_range(where, "global_map.rendered_min_views", self.rendered_min_views, 1, 1000)
+        _check_range(where, "global_map.rendered_max_pending", self.rendered_max_pending, 1, 100_000)
+        _check_range(where, "global_map.voxel_size_m", self.voxel_size_m, 0.005, 1.0)
+        _check_range(where, "global_map.pixel_stride", self.pixel_stride, 1, 64)
+        _check_range(where, "global_map.max_points", self.max_points, 1, 100_000_000)
+        _check_range(where, "global_map.prune_to_fraction", self.prune_to_fraction, 0.1, 1.0)
+        _check_range(where, "global_map.stale_half_life_keyframes", self.stale_half_life_keyframes, 1e-3, 1e9)
+        _check_range(where, "global_map.min_depth_m", self.min_depth_m, 0.0, 1e3)
+        _check_range(where, "global_map.max_depth_m", self.max_depth_m, 1e-3, 1e4)
+        if self.max_depth_m <= self.min_depth_m:
+            raise ConfigError(
+                f"{where}: global_map.max_depth_m = {self.max_depth_m} must exceed "
+                f"global_map.min_depth_m = {self.min_depth_m}"
+            )
+        _check_range(where, "global_map.near_m", self.near_m, 0.0, 1e3)
+        _check_range(where, "global_map.falloff_m", self.falloff_m, 1e-3, 1e3)
+        _check_range(where, "global_map.grazing_power", self.grazing_power, 0.0, 10.0)
+        _check_range(where, "global_map.min_weight", self.min_weight, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class QueryConfig:
+    """Semantic queries (see :mod:`mapper.node.queries`)."""
+
+    default_max_points: int = 200_000
+    """``query_points`` returns at most this many points when the request gives no ``max_points``."""
+
+    cluster_radius_m: float = 0.12
+    """Points of one text closer than this (metres) join the same object candidate. > 0."""
+
+    min_object_points: int = 15
+    """Clusters with fewer points are not reported as objects. >= 1."""
+
+    max_objects: int = 32
+    """Most object candidates per reply (best first). >= 1."""
+
+    def validate(self, where: str) -> None:
+        _check_range(where, "queries.default_max_points", self.default_max_points, 1, 100_000_000)
+        _check_range(where, "queries.cluster_radius_m", self.cluster_radius_m, 1e-3, 10.0)
+        _check_range(where, "queries.min_object_points", self.min_object_points, 1, 1_000_000)
+        _check_range(where, "queries.max_objects", self.max_objects, 1, 10_000)
+
+
+_CLIP_DEFAULTS: dict[str, Any] = {f.name: f.default for f in dataclasses.fields(ClipBackendConfig)}
+"""Defaults of :class:`mapper.ov.clip.ClipBackendConfig`, reused by :class:`OvBackendConfig`."""
+
+OV_BACKEND_KINDS = ("", "clip")
+"""``ov_backend.kind`` values: "" (none) and "clip" (:class:`mapper.ov.clip.ClipDenseBackend`)."""
+
+
+@dataclass(frozen=True)
+class OvBackendConfig:
+    """The in-process open-vocabulary backend (:mod:`mapper.node.plugins.ov_features`): dense features for
+    keyframes that arrive without ``ov``, and the text encoder of its space. Off by default.
+
+    The CLIP fields are those of :class:`mapper.ov.clip.ClipBackendConfig` (same meaning and
+    defaults; TOML has no null, so "native" / "width // 64" are written as 0). Missing or invalid
+    weight files do not stop the node: it serves everything else, and semantic requests that would
+    need the backend answer ``not_ready`` naming the path and the reason (also in ``status``)."""
+
+    kind: str = ""
+    """"" = no in-process backend (features only from frames' ``ov``); "clip" = MaskCLIP dense
+    features from local CLIP ViT weights, in the space ``openclip:<model_name>``."""
+
+    weights_path: str = ""
+    """Local CLIP ViT checkpoint (a plain state dict, ``.pt`` / ``.pth`` / ``.bin`` or
+    ``.safetensors``; docs/OV_BACKENDS.md). Required when kind = "clip". Relative to the node's
+    working directory. Nothing is ever downloaded."""
+
+    bpe_path: str = ""
+    """Local ``bpe_simple_vocab_16e6.txt.gz`` (CLIP's BPE merges). Required when kind = "clip"."""
+
+    model_name: str = _CLIP_DEFAULTS["model_name"]
+    """Names the embedding space only: ``ov_space = "openclip:<model_name>"``. 1..64 characters
+    from ``A-Za-z0-9_.@/+-``. A pinned ``ov_space`` must equal that space."""
+
+    device: str = _CLIP_DEFAULTS["device"]
+    """"auto" (cuda if available, else cpu), "cpu", "cuda" or "cuda:N"."""
+
+    dtype: str = _CLIP_DEFAULTS["dtype"]
+    """"float32", "float16" (cuda only) or "bfloat16"."""
+
+    input_size: int = 0
+    """Short side (pixels) images are resized to for dense features; 0 = the model's native image
+    size (224 for ViT-B/16). 0 or 16..4096."""
+
+    activation: str = _CLIP_DEFAULTS["activation"]
+    """"quick_gelu" (OpenAI weights) or "gelu" (open_clip LAION / DataComp weights)."""
+
+    vision_heads: int = 0
+    """Attention heads of the image tower; 0 = width // 64 (ViT-B, ViT-L). 0..1024."""
+
+    text_heads: int = 0
+    """Attention heads of the text tower; 0 = width // 64. 0..1024."""
+
+    max_pending: int = 32
+    """Most keyframes waiting for features; beyond it the oldest is dropped (``dropped`` in
+    status). 1..100000."""
+
+    @property
+    def space(self) -> str:
+        """The embedding space the backend produces (``openclip:<model_name>``)."""
+        return f"openclip:{self.model_name}"
+
+    def clip_config(self) -> ClipBackendConfig:
+        """The :class:`ClipBackendConfig` these fields describe (raises ``ValueError`` if invalid)."""
+        return ClipBackendConfig(
+            weights_path=self.weights_path,
+            bpe_path=self.bpe_path,
+            model_name=self.model_name,
+            device=self.device,
+            dtype=self.dtype,
+            input_size=self.input_size or None,
+            activation=self.activation,
+            vision_heads=self.vision_heads or None,
+            text_heads=self.text_heads or None,
+        )
+
+    def validate(self, where: str) -> None:
+        if self.kind not in OV_BACKEND_KINDS:
+            raise ConfigError(
+                f"{where}: ov_backend.kind {self.kind!r} is not one of "
+                f"{', '.join(repr(k) for k in OV_BACKEND_KINDS)} (\"\" = none)"
+            )
+        if self.input_size != 0:
+            _check_range(where, "ov_backend.input_size", self.input_size, 16, 4096)
+        _check_range(where, "ov_backend.vision_heads", self.vision_heads, 0, 1024)
+        _check_range(where, "ov_backend.text_heads", self.text_heads, 0, 1024)
+        _check_range(where, "ov_backend.max_pending", self.max_pending, 1, 100_000)
+        if self.kind == "clip":
+            for key in ("weights_path", "bpe_path"):
+                if not getattr(self, key):
+                    raise ConfigError(
+                        f"{where}: ov_backend.{key} must name a local file when ov_backend.kind = 'clip' "
+                        "(see docs/OV_BACKENDS.md; nothing is downloaded)"
+                    )
+        try:
+            self.clip_config()
+        except ValueError as exc:
+            raise ConfigError(f"{where}: ov_backend: {exc}") from None
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    """Everything ``govnesf serve`` needs. Sub-configs are nested dataclasses (TOML tables)."""
+
+    ingest_endpoint: str = "tcp://127.0.0.1:5555"
+    """ZeroMQ endpoint the node binds a ROUTER on for ``frame`` messages."""
+
+    query_endpoint: str = "tcp://127.0.0.1:5556"
+    """ZeroMQ endpoint the node binds a ROUTER on for queries (status, save, load, ...)."""
+
+    events_endpoint: str | None = "tcp://127.0.0.1:5557"
+    """ZeroMQ endpoint the node binds a PUB on for ``map_updated`` notices; "" (None) disables it."""
+
+    allow_remote: bool = False
+    """Binding to a non-loopback address (``tcp://*:5555``, ``tcp://0.0.0.0:...``, a LAN address)
+    is refused unless this is true: exposing the node is an explicit choice."""
+
+    map_dir: str = "maps"
+    """Directory for saved maps; save/load never read or write outside it. A relative path is
+    relative to the working directory of the node. Created on first save."""
+
+    max_message_bytes: int = 64 * 1024 * 1024
+    """Largest accepted message (bytes); larger ones get a ``too_large`` error. Messages above
+    four times this are dropped by ZeroMQ itself (the peer is disconnected) to bound memory."""
+
+    ov_space: str | None = None
+    """Pin the open-vocabulary embedding space (e.g. "minilm-l6-v2"); "" (None) means the first
+    keyframe carrying ``ov`` sets it. Frames with another space get ``ov_space_mismatch``."""
+
+    autosave_name: str | None = None
+    """Map name for periodic and final saves ("" / None: no automatic saves)."""
+
+    autosave_interval_s: float = 0.0
+    """Seconds between automatic saves of a changed map to ``autosave_name``; 0 disables periodic
+    saves (a final save on shutdown still happens when ``save_on_exit`` and ``autosave_name``)."""
+
+    save_on_exit: bool = True
+    """On SIGINT/SIGTERM, save the map to ``autosave_name`` (if set) before exiting."""
+
+    load_autosave_on_start: bool = True
+    """At start, load ``autosave_name`` from ``map_dir`` when that file exists (so a node restarted
+    after a crash serves the last saved map). A file that cannot be loaded is renamed aside
+    (``NAME.govmap.unreadable``) and the node starts empty."""
+
+    poll_interval_s: float = 0.1
+    """How often the socket threads wake up to check for shutdown (seconds). 0.001..5."""
+
+    log_level: str = "INFO"
+    """Python logging level: DEBUG, INFO, WARNING, ERROR."""
+
+    window: WindowConfig = field(default_factory=WindowConfig)
+    """Keyframe window settings (TOML table ``[window]``)."""
+
+    global_map: GlobalMapConfig = field(default_factory=GlobalMapConfig)
+    """Global semantic point map settings (TOML table ``[global_map]``)."""
+
+    queries: QueryConfig = field(default_factory=QueryConfig)
+    """Semantic query settings (TOML table ``[queries]``)."""
+
+    model: ModelRuntimeConfig = field(default_factory=ModelRuntimeConfig)
+    """Learned GOV-NeSF model runtime (TOML table ``[model]``): checkpoint, device, sampling."""
+
+    serve_model: bool = True
+    """Load the learned model at start-up and serve ``render`` and ``segment_points`` method
+    ``govnesf``. False = a node without torch model work (baselines and ``query_points`` only)."""
+
+    ov_backend: OvBackendConfig = field(default_factory=OvBackendConfig)
+    """In-process open-vocabulary backend (TOML table ``[ov_backend]``): features for keyframes
+    without ``ov`` and the text encoder of its space. Off (kind = "") by default."""
+
+    def validate(self, where: str) -> None:
+        """Check ranges and cross-field rules; raise :class:`ConfigError` naming ``where``."""
+        for key in ("ingest_endpoint", "query_endpoint", "events_endpoint"):
+            endpoint = getattr(self, key)
+            if endpoint is None:
+                continue
+            _check_endpoint(where, key, endpoint, self.allow_remote)
+        endpoints = [e for e in (self.ingest_endpoint, self.query_endpoint, self.events_endpoint) if e]
+        if len(set(endpoints)) != len(endpoints):
+            raise ConfigError(f"{where}: ingest, query and events endpoints must differ, got {endpoints}")
+        if not self.map_dir:
+            raise ConfigError(f"{where}: map_dir must not be empty")
+        _check_range(where, "max_message_bytes", self.max_message_bytes, 1024, 2**31 - 1)
+        _check_range(where, "autosave_interval_s", self.autosave_interval_s, 0.0, 1e9)
+        _check_range(where, "poll_interval_s", self.poll_interval_s, 0.001, 5.0)
+        if self.log_level.upper() not in ("DEBUG", "INFO", "WARNING", "ERROR"):
+            raise ConfigError(
+                f"{where}: log_level {self.log_level!r} is not one of DEBUG, INFO, WARNING, ERROR"
+            )
+        if self.autosave_name is not None:
+            try:
+                validate_map_name(self.autosave_name)
+            except ValueError as exc:
+                raise ConfigError(f"{where}: autosave_name: {exc}") from None
+        self.window.validate(where)
+        self.global_map.validate(where)
+        self.queries.validate(where)
+        self.model.validate(where)
+        self.ov_backend.validate(where)
+        if self.ov_backend.kind and self.ov_space is not None and self.ov_space != self.ov_backend.space:
+            raise ConfigError(
+                f"{where}: ov_space = {self.ov_space!r} is pinned, but ov_backend.kind = "
+                f"{self.ov_backend.kind!r} produces features in {self.ov_backend.space!r}; set ov_space to "
+                f"{self.ov_backend.space!r} or \"\", or turn the backend off (ov_backend.kind = \"\")"
+            )
+
+
+# --------------------------------------------------------------------------------------------
+# loading
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> NodeConfig:
+    """Read a TOML file into a validated :class:`NodeConfig`, then apply ``overrides``.
+
+    ``path=None`` uses :data:`DEFAULT_CONFIG_PATH` when it exists and the built-in defaults
+    otherwise (an installed package without the repo's ``launch/`` directory still runs).
+    ``overrides`` maps dotted keys (``"window.max_keyframes"``) to values; ``None`` values are
+    skipped so that unset command-line options can be passed straight through.
+    """
+    if path is None:
+        cfg = config_from_dict({}, where="defaults")
+        if DEFAULT_CONFIG_PATH.is_file():
+            cfg = _load_file(DEFAULT_CONFIG_PATH)
+    else:
+        cfg = _load_file(Path(path))
+    return apply_overrides(cfg, overrides or {})
+
+
+def _load_file(path: Path) -> NodeConfig:
+    try:
+        with path.open("rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"config file {str(path)!r} not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    return config_from_dict(data, where=str(path))
+
+
+def config_from_dict(data: dict[str, Any], where: str = "<dict>") -> NodeConfig:
+    """Build and validate a :class:`NodeConfig` from a TOML-shaped dict; ``where`` names the source."""
+    cfg = _build(NodeConfig, data, where, prefix="")
+    cfg.validate(where)
+    return cfg
+
+
+def apply_overrides(cfg: NodeConfig, overrides: dict[str, Any], where: str = "command line") -> NodeConfig:
+    """Return a copy of ``cfg`` with dotted keys replaced (``{"window.max_keyframes": 5}``).
+
+    Values are type-checked like TOML values; ``None`` values are ignored.
+    """
+    data = to_dict(cfg)
+    for dotted, value in overrides.items():
+        if value is None:
+            continue
+        parts = dotted.split(".")
+        node: dict[str, Any] = data
+        for part in parts[:-1]:
+            child = node.get(part)
+            if not isinstance(child, dict):
+                raise ConfigError(f"{where}: unknown config key {dotted!r}")
+            node = child
+        if parts[-1] not in node or isinstance(node[parts[-1]], dict):
+            raise ConfigError(f"{where}: unknown config key {dotted!r}")
+        node[parts[-1]] = value
+    new = _build(NodeConfig, data, where, prefix="")
+    new.validate(where)
+    return new
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """The config as a TOML-shaped dict (None written as ""), e.g. for logging or a status reply."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value):
+            out[f.name] = to_dict(value)
+        else:
+            out[f.name] = "" if value is None else value
+    return out
+
+
+def _build(cls: type, data: dict[str, Any], where: str, prefix: str) -> Any:
+    """Construct dataclass ``cls`` from ``data``, checking keys and types against its annotations."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: {prefix.rstrip('.') or 'config'} must be a table, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    for key in data:
+        if key not in names:
+            allowed = ", ".join(sorted(names))
+            raise ConfigError(f"{where}: unknown config key {prefix + key!r} (allowed here: {allowed})")
+    kwargs: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        hint = hints[f.name]
+        key = prefix + f.name
+        value = data[f.name]
+        if dataclasses.is_dataclass(hint):
+            kwargs[f.name] = _build(typing.cast(type, hint), value, where, prefix=key + ".")
+        else:
+            kwargs[f.name] = _coerce(hint, value, where, key)
+    return cls(**kwargs)
+
+
+def _coerce(hint: Any, value: Any, where: str, key: str) -> Any:
+    """Check ``value`` against a scalar annotation (str, int, float, bool, ``X | None``)."""
+    optional = False
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if len(args) != 1:
+            raise ConfigError(f"{where}: {key}: unsupported annotation {hint!r}")
+        hint, optional = args[0], True
+    if optional and (value is None or value == ""):
+        return None
+    ok: bool
+    if hint is bool:
+        ok = isinstance(value, bool)
+    elif hint is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif hint is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if ok:
+            value = float(value)
+    elif hint is str:
+        ok = isinstance(value, str)
+    else:
+        raise ConfigError(f"{where}: {key}: unsupported annotation {hint!r}")
+    if not ok:
+        name = getattr(hint, "__name__", str(hint))
+        raise ConfigError(
+            f"{where}: {key} must be {'a' if name != 'int' else 'an'} {name}"
+            f"{' or empty string' if optional else ''}, got {type(value).__name__} {value!r}"
+        )
+    return value
+
+
+def _check_range(where: str, key: str, value: float, lo: float, hi: float) -> None:
+    if not lo <= value <= hi:
+        raise ConfigError(f"{where}: {key} = {value!r} out of range {lo}..{hi}")
+
+
+_LOOPBACK_HOSTS = {"localhost", "127.0.0.1", "::1", "[::1]"}
+
+
+def _check_endpoint(where: str, key: str, endpoint: str, allow_remote: bool) -> None:
+    """Accept ``tcp://HOST:PORT``, ``ipc://PATH``, ``inproc://NAME``; refuse remote binds unless allowed."""
+    scheme, sep, rest = endpoint.partition("://")
+    if not sep or scheme not in ("tcp", "ipc", "inproc") or not rest:
+        raise ConfigError(
+            f"{where}: {key} {endpoint!r} is not a ZeroMQ endpoint like tcp://127.0.0.1:5555, "
+            "ipc:///tmp/mapper.sock or inproc://name"
+        )
+    if scheme != "tcp":
+        return
+    host, colon, port = rest.rpartition(":")
+    if not colon or not host or not (port == "*" or (port.isdigit() and 0 < int(port) < 65536)):
+        raise ConfigError(f"{where}: {key} {endpoint!r} needs a host and a port 1..65535 (tcp://HOST:PORT)")
+    if allow_remote or host in _LOOPBACK_HOSTS:
+        return
+    try:
+        if ipaddress.ip_address(host.strip("[]")).is_loopback:
+            return
+    except ValueError:
+        pass
+    raise ConfigError(
+        f"{where}: {key} {endpoint!r} binds a non-loopback address; "
+        "set allow_remote = true to expose the node"
+    )

@@ -1,0 +1,774 @@
+"""The global semantic point map: voxel-hashed surface points with fused open-vocabulary features.
+
+Every keyframe with input depth adds its surface points: a subsampled grid of its depth pixels
+(``pixel_stride``) is back-projected with the protocol conventions (pixel centres at +0.5, ``K``
+for the image as sent, depth is z-depth), the keyframe's OV map is sampled bilinearly at those
+pixels (the OV map may be coarser than the image; it covers the whole image), each observation
+gets a quality weight and the observations are fused into the voxel (``voxel_size_m``) they fall
+in. One voxel holds:
+
+- ``xyz``: weighted mean of the points that fell in it (float32, metres, world frame);
+- ``feat``: the fused OV feature, served as an fp16 unit vector; ``feat_norm`` keeps the norm of
+  the weighted mean so that fusion stays an exact running weighted mean (float32 while fusing);
+- ``weight`` (the confidence: sum of observation weights), ``feat_weight`` (the part of it that
+  carried features), ``hits`` (observations) and ``last_seen_ns`` / ``last_seen_kf``.
+
+Quality weight of an observation (the same shape as the simulated 2D model's quality, and what a
+real 2D model's reliability looks like): 1 up to ``near_m`` along the ray, ``exp(-(d - near_m) /
+falloff_m)`` beyond, times ``|cos(ray, surface normal)| ** grazing_power`` (normals from the depth
+image's neighbours; 0.5 where they are unknown). Observations below ``min_weight`` are skipped.
+
+The fusion rule is the pure function :func:`weighted_mean_fusion`; the learned model can pass its
+own ``fusion=`` with the same signature (:class:`FusionRule`).
+
+Frames without depth add no points here; when the node serves the learned model,
+:mod:`mapper.node.plugins.depth_points` adds their points later from the model's rendered depth;
+frames without ``ov`` add geometry only (points without a feature); when the node runs an
+in-process OV backend (:mod:`mapper.node.plugins.ov_features`) their features arrive later through
+:meth:`GlobalSemanticMap.integrate_features`, which fuses features into the voxels the keyframe's
+points fell in without adding geometry weight a second time. Points are kept when their
+keyframe leaves the window. Memory is bounded by ``max_points``: beyond it the voxels with the
+lowest priority ``weight * 0.5 ** (keyframes since last seen / stale_half_life_keyframes)`` are
+dropped until ``prune_to_fraction * max_points`` remain (rarely seen, long unseen voxels go first).
+
+Threads: :meth:`GlobalSemanticMap.integrate` runs under the map's own lock. Readers call
+:meth:`GlobalSemanticMap.snapshot`, which returns an immutable copy per map version (cached, so
+many queries of one version share it; the copy is the only time a reader holds the lock), and
+compute on it without any lock, so a query never waits on an integrate beyond that copy and an
+integrate never waits on a query.
+
+Example::
+
+    >>> import numpy as np
+    >>> from mapper.node.config import GlobalMapConfig
+    >>> from mapper.node.window import Keyframe
+    >>> gmap = GlobalSemanticMap(GlobalMapConfig(voxel_size_m=0.1, pixel_stride=4))
+    >>> depth = np.full((24, 32), 2.0, np.float32)                     # a wall 2 m ahead
+    >>> kf = Keyframe(seq=0, stamp_ns=0, camera="cam0", K=np.array([30.0, 30.0, 16.0, 12.0]),
+    ...               world_from_cam=np.eye(4), rgb=np.zeros((24, 32, 3), np.uint8), depth_m=depth)
+    >>> stats = gmap.integrate(kf)
+    >>> snap = gmap.snapshot()
+    >>> bool(np.allclose(snap.xyz[:, 2], 2.0)), snap.has_feature.any()
+    (True, np.False_)
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from scipy.sparse import csr_matrix
+
+from mapper.node.config import GlobalMapConfig
+
+log = logging.getLogger("mapper.node.global_map")
+
+__all__ = [
+    "FusionRule",
+    "GlobalMapSnapshot",
+    "GlobalSemanticMap",
+    "IntegrateStats",
+    "KeyframeLike",
+    "Observations",
+    "voxel_keys",
+    "weighted_mean_fusion",
+]
+
+_KEY_BITS = 21
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+"""Voxel indices are packed into one int64 key, 21 bits per axis: |index| < 2**20 voxels per axis
+(about +-52 km at 5 cm voxels). Points outside are dropped."""
+_UNKNOWN_NORMAL_COS = 0.5
+_NORMAL_REL_JUMP = 0.1
+"""Depth neighbours differing by more than this fraction of the depth are across an edge: no normal."""
+_FORMAT = "global-map-v1"
+
+
+class KeyframeLike(Protocol):
+    """What :meth:`GlobalSemanticMap.integrate` reads from a keyframe (``mapper.node.window.Keyframe``)."""
+
+    @property
+    def stamp_ns(self) -> int: ...
+    @property
+    def K(self) -> np.ndarray: ...  # noqa: N802 - (4,) [fx, fy, cx, cy] for the image as sent
+    @property
+    def world_from_cam(self) -> np.ndarray: ...  # (4, 4)
+    @property
+    def rgb(self) -> np.ndarray: ...  # (H, W, 3)
+    @property
+    def depth_m(self) -> np.ndarray | None: ...  # (H, W) z-depth, metres, 0 = none
+    @property
+    def ov(self) -> np.ndarray | None: ...  # (h, w, D)
+
+
+class FusionRule(Protocol):
+    """Fuses new observations into voxels (the learned model may supply its own).
+
+    Args:
+        old_unit: (U, D) float16 current fused unit features (zeros where none yet).
+        old_norm: (U,) float32 norm of the current weighted-mean feature.
+        old_weight: (U,) float32 current feature weight (0 = no feature yet).
+        add_sum: (U, D) float32 weighted sum of the new observations' features.
+        add_weight: (U,) float32 sum of the new observations' weights (> 0).
+
+    Returns:
+        (unit (U, D) float16, norm (U,) float32, weight (U,) float32).
+    """
+
+    def __call__(
+        self,
+        old_unit: np.ndarray,
+        old_norm: np.ndarray,
+        old_weight: np.ndarray,
+        add_sum: np.ndarray,
+        add_weight: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+
+def weighted_mean_fusion(
+    old_unit: np.ndarray,  # (U, D) float16
+    old_norm: np.ndarray,  # (U,) float32
+    old_weight: np.ndarray,  # (U,) float32
+    add_sum: np.ndarray,  # (U, D) float32
+    add_weight: np.ndarray,  # (U,) float32
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Running weighted mean of features (float32 while fusing), returned as an fp16 unit vector,
+    the mean's norm and the new total weight. Exact up to the fp16 rounding of the direction:
+    ``unit * norm * weight`` is the weighted sum of everything fused so far."""
+    # numpy, not torch: for these small arrays torch's thread pool costs more than the arithmetic
+    mean = old_unit.astype(np.float32)
+    mean *= (old_norm * old_weight).astype(np.float32)[:, None]
+    mean += add_sum
+    weight = (old_weight + add_weight).astype(np.float32)
+    mean /= np.maximum(weight, 1e-12)[:, None]
+    norm = np.sqrt(np.einsum("ud,ud->u", mean, mean)).astype(np.float32)
+    mean /= np.maximum(norm, 1e-12)[:, None]
+    return mean.astype(np.float16), norm, weight
+
+
+def voxel_keys(
+    xyz: np.ndarray,  # (N, 3) world metres
+    voxel_size_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Packed int64 voxel keys of points, and a (N,) bool mask of the points inside the key range."""
+    idx = np.floor(np.asarray(xyz, np.float64) / voxel_size_m)
+    ok = np.all(np.abs(idx) < _KEY_OFFSET - 1, axis=1) & np.all(np.isfinite(idx), axis=1)
+    idx = np.where(ok[:, None], idx, 0).astype(np.int64) + _KEY_OFFSET
+    keys = (idx[:, 0] << (2 * _KEY_BITS)) | (idx[:, 1] << _KEY_BITS) | idx[:, 2]
+    return keys, ok
+
+
+@dataclass(frozen=True)
+class Observations:
+    """One keyframe's observations, ready to fuse (from :meth:`GlobalSemanticMap.observe`)."""
+
+    xyz: np.ndarray  # (M, 3) float64 world points, metres
+    weight: np.ndarray  # (M,) float32 quality weights
+    cells: np.ndarray | None  # (M, 4) int64 bilinear taps: flat indices into ov_flat
+    bilinear: np.ndarray | None  # (M, 4) float64 bilinear weights of those taps (sum 1)
+    ov_flat: np.ndarray | None  # (h * w, D) float32 the keyframe's OV map, None without ov
+
+
+@dataclass(frozen=True)
+class IntegrateStats:
+    """What one :meth:`GlobalSemanticMap.integrate` did."""
+
+    points: int
+    """Observations fused (valid depth pixels at the stride, above ``min_weight``)."""
+    voxels_touched: int
+    voxels_new: int
+    voxels_pruned: int
+    with_features: bool
+    seconds: float
+    skipped: str | None = None
+    """Why no points were added (e.g. no depth), else None."""
+
+
+@dataclass(frozen=True, eq=False)
+class GlobalMapSnapshot:
+    """An immutable copy of the map at one version; safe to read from any thread without a lock.
+    Arrays are read-only. Derived matrices (normalised fp32 features) are computed once and cached."""
+
+    version: int
+    """Internal version of the global map (changes with every integrate, prune, restore)."""
+    map_version: int
+    """The node's map version this snapshot includes (as given to ``integrate`` / ``restore``)."""
+    voxel_size_m: float
+    xyz: np.ndarray  # (N, 3) float32
+    feat: np.ndarray | None  # (N, D) float16 unit rows (zero rows where no feature), None if D unknown
+    weight: np.ndarray  # (N,) float32 confidence
+    feat_weight: np.ndarray  # (N,) float32
+    hits: np.ndarray  # (N,) int32
+    last_seen_ns: np.ndarray  # (N,) int64
+    _cache: dict[str, Any] = field(default_factory=dict, repr=False)
+    _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+    @property
+    def has_feature(self) -> np.ndarray:
+        """(N,) bool: the voxel has a fused OV feature."""
+        return self.feat_weight > 0
+
+    @property
+    def n_with_features(self) -> int:
+        return int(np.count_nonzero(self.feat_weight > 0))
+
+    def unit_features_f32(self) -> np.ndarray:
+        """(N, D) float32 L2-normalised features (zero rows where none), computed once per snapshot
+        (i.e. per map version): a text query is then one matrix product."""
+        with self._cache_lock:
+            cached = self._cache.get("unit_f32")
+            if cached is None:
+                if self.feat is None:
+                    cached = np.zeros((len(self), 0), np.float32)
+                else:
+                    cached = self.feat.astype(np.float32)
+                    norms = np.sqrt(np.einsum("nd,nd->n", cached, cached))
+                    cached /= np.maximum(norms, 1e-12)[:, None]
+                cached.setflags(write=False)
+                self._cache["unit_f32"] = cached
+            return cached
+
+
+class GlobalSemanticMap:
+    """Voxel-hashed surface points with fused OV features; see the module docstring."""
+
+    def __init__(self, config: GlobalMapConfig, fusion: FusionRule = weighted_mean_fusion) -> None:
+        self.config = config
+        self.fusion: FusionRule = fusion
+        """The feature fusion rule (replaceable by the learned model)."""
+        self._lock = threading.Lock()
+        self._snapshot: GlobalMapSnapshot | None = None
+        self._version = 0
+        self._reset(dim=None)
+
+    # -- state -------------------------------------------------------------------------------
+
+    def _reset(self, dim: int | None) -> None:
+        cap = 1024
+        self._n = 0
+        self._dim = dim
+        self._keys = np.zeros(cap, np.int64)
+        self._xyz = np.zeros((cap, 3), np.float32)
+        self._weight = np.zeros(cap, np.float32)
+        self._feat = np.zeros((cap, dim), np.float16) if dim else None
+        self._feat_norm = np.zeros(cap, np.float32)
+        self._feat_weight = np.zeros(cap, np.float32)
+        self._hits = np.zeros(cap, np.int32)
+        self._last_seen_ns = np.zeros(cap, np.int64)
+        self._last_seen_kf = np.zeros(cap, np.int64)
+        self._sorted_keys = np.zeros(0, np.int64)
+        self._sorted_rows = np.zeros(0, np.int64)
+        self._kf_counter = 0
+        self._map_version = 0
+        self.points_pruned = 0
+        """Voxels dropped by the ``max_points`` bound since start (or the last restore)."""
+        self.keyframes_integrated = 0
+        self.integrate_seconds_total = 0.0
+
+    _ROW_FIELDS = ("_keys", "_xyz", "_weight", "_feat", "_feat_norm", "_feat_weight", "_hits",
+                   "_last_seen_ns", "_last_seen_kf")  # fmt: skip
+
+    def _grow(self, need: int) -> None:
+        cap = self._keys.shape[0]
+        if need <= cap:
+            return
+        new_cap = max(need, int(cap * 1.5) + 1024)
+        for name in self._ROW_FIELDS:
+            old = getattr(self, name)
+            if old is None:
+                continue
+            new = np.zeros((new_cap, *old.shape[1:]), old.dtype)
+            new[: self._n] = old[: self._n]
+            setattr(self, name, new)
+
+    def _set_dim(self, dim: int) -> None:
+        if self._dim is None:
+            self._dim = dim
+            self._feat = np.zeros((self._keys.shape[0], dim), np.float16)
+        elif dim != self._dim:
+            raise ValueError(f"ov feature dimension {dim} differs from the global map's {self._dim}")
+
+    @property
+    def dim(self) -> int | None:
+        """OV feature dimension (None until a keyframe with ``ov`` arrived)."""
+        return self._dim
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of map data held: the used rows of every per-voxel array plus the sorted index
+        (the arrays grow by 1.5x, so up to a third more may be allocated: :attr:`allocated_bytes`)."""
+        row = sum(getattr(self, n)[:1].nbytes for n in self._ROW_FIELDS if getattr(self, n) is not None)
+        return int(self._n * row + self._sorted_keys.nbytes + self._sorted_rows.nbytes)
+
+    @property
+    def allocated_bytes(self) -> int:
+        """Bytes allocated by the map's arrays (capacity, not only the used rows)."""
+        total = sum(getattr(self, n).nbytes for n in self._ROW_FIELDS if getattr(self, n) is not None)
+        return int(total + self._sorted_keys.nbytes + self._sorted_rows.nbytes)
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for the node's status reply."""
+        with self._lock:
+            n = self._n
+            with_feat = int(np.count_nonzero(self._feat_weight[:n] > 0))
+            return {
+                "global_points": n,
+                "global_points_with_features": with_feat,
+                "global_max_points": self.config.max_points,
+                "global_points_pruned": self.points_pruned,
+                "global_map_bytes": self.nbytes,
+                "global_map_allocated_bytes": self.allocated_bytes,
+                "global_voxel_size_m": self.config.voxel_size_m,
+                "global_keyframes_integrated": self.keyframes_integrated,
+                "global_integrate_ms_mean": round(
+                    1e3 * self.integrate_seconds_total / max(self.keyframes_integrated, 1), 3
+                ),
+            }
+
+    # -- integration -------------------------------------------------------------------------
+
+    def observe(
+        self,
+        keyframe: KeyframeLike,
+        *,
+        pixel_stride: int | None = None,
+        confidence: np.ndarray | None = None,  # (H, W) in [0, 1], same size as the depth
+    ) -> Observations | str:
+        """The keyframe's weighted observations (pure; no lock), or the reason there are none.
+
+        ``pixel_stride`` overrides ``config.pixel_stride``; ``confidence`` multiplies each pixel's
+        quality weight (e.g. the opacity of a rendered depth, see :mod:`mapper.node.plugins.depth_points`).
+        """
+        cfg = self.config
+        depth = keyframe.depth_m
+        if depth is None:
+            return "no depth"
+        height, width = depth.shape
+        if confidence is not None and confidence.shape != depth.shape:
+            raise ValueError(f"confidence {confidence.shape} must match the depth {depth.shape}")
+        stride = cfg.pixel_stride if pixel_stride is None else int(pixel_stride)
+        if stride < 1:
+            raise ValueError(f"pixel_stride {stride} out of range: must be >= 1")
+        rows = np.arange(stride // 2, height, stride)
+        cols = np.arange(stride // 2, width, stride)
+        grid_j, grid_i = np.meshgrid(rows, cols, indexing="ij")  # (h', w')
+        jj: np.ndarray = grid_j.ravel()
+        ii: np.ndarray = grid_i.ravel()
+        z = depth[jj, ii].astype(np.float64)
+        ok = np.isfinite(z) & (z >= cfg.min_depth_m) & (z <= cfg.max_depth_m)
+        if not ok.any():
+            return "no valid depth in range"
+        jj, ii, z = jj[ok], ii[ok], z[ok]
+        fx, fy, cx, cy = (float(v) for v in keyframe.K)
+
+        def cam_points(j: np.ndarray, i: np.ndarray, zz: np.ndarray) -> np.ndarray:
+            # pixel centres at (i + 0.5, j + 0.5); depth is z along the optical axis
+            return np.stack([(i + 0.5 - cx) / fx * zz, (j + 0.5 - cy) / fy * zz, zz], axis=1)
+
+        p_cam = cam_points(jj, ii, z)  # (M, 3)
+        dist = np.linalg.norm(p_cam, axis=1)
+        weight = np.exp(-np.maximum(dist - cfg.near_m, 0.0) / cfg.falloff_m)
+        if cfg.grazing_power > 0:
+            il, ir = np.maximum(ii - 1, 0), np.minimum(ii + 1, width - 1)
+            ju, jd = np.maximum(jj - 1, 0), np.minimum(jj + 1, height - 1)
+            zl, zr = depth[jj, il].astype(np.float64), depth[jj, ir].astype(np.float64)
+            zu, zd = depth[ju, ii].astype(np.float64), depth[jd, ii].astype(np.float64)
+            neigh = np.nan_to_num(np.stack([zl, zr, zu, zd], axis=1), nan=0.0, posinf=0.0, neginf=0.0)
+            good = (
+                np.all(neigh > 0, axis=1)
+                & np.all(np.abs(neigh - z[:, None]) <= _NORMAL_REL_JUMP * z[:, None], axis=1)
+                & (il != ir) & (ju != jd)
+            )  # fmt: skip
+            normal = np.cross(cam_points(jj, ir, zr) - cam_points(jj, il, zl),
+                              cam_points(jd, ii, zd) - cam_points(ju, ii, zu))  # fmt: skip
+            n_norm = np.linalg.norm(normal, axis=1)
+            cos = np.abs(np.einsum("md,md->m", normal, p_cam)) / np.maximum(n_norm * dist, 1e-12)
+            cos = np.where(good & (n_norm > 0), np.clip(cos, 0.0, 1.0), _UNKNOWN_NORMAL_COS)
+            weight = weight * cos**cfg.grazing_power
+        if confidence is not None:
+            weight = weight * np.clip(np.nan_to_num(confidence[jj, ii].astype(np.float64), nan=0.0), 0.0, 1.0)
+        keep = weight >= cfg.min_weight
+        if not keep.any():
+            return "every observation below min_weight"
+        jj, ii, p_cam, weight = jj[keep], ii[keep], p_cam[keep], weight[keep]
+        rot = np.asarray(keyframe.world_from_cam[:3, :3], np.float64)
+        trans = np.asarray(keyframe.world_from_cam[:3, 3], np.float64)
+        p_world = p_cam @ rot.T + trans
+        cells = bilinear = ov_flat = None
+        if keyframe.ov is not None:
+            h_ov, w_ov, dim = keyframe.ov.shape
+            # bilinear taps on the coarse map: pixel centre (i + 0.5) in image pixels -> ov cells,
+            # cell centres at +0.5, edge cells replicated (as mapper.model.ops.geometry.sample_bilinear)
+            x = (ii + 0.5) * (w_ov / width) - 0.5
+            y = (jj + 0.5) * (h_ov / height) - 0.5
+            x0, y0 = np.floor(x), np.floor(y)
+            ax, ay = x - x0, y - y0
+            x0i = np.clip(x0, 0, w_ov - 1).astype(np.int64)
+            x1i = np.clip(x0 + 1, 0, w_ov - 1).astype(np.int64)
+            y0i = np.clip(y0, 0, h_ov - 1).astype(np.int64)
+            y1i = np.clip(y0 + 1, 0, h_ov - 1).astype(np.int64)
+            cells = np.stack([y0i * w_ov + x0i, y0i * w_ov + x1i, y1i * w_ov + x0i, y1i * w_ov + x1i], axis=1)
+            bilinear = np.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], axis=1)
+            ov_flat = np.asarray(keyframe.ov, np.float32).reshape(h_ov * w_ov, dim)
+        return Observations(p_world, weight.astype(np.float32), cells, bilinear, ov_flat)
+
+    def integrate(
+        self,
+        keyframe: KeyframeLike,
+        map_version: int | None = None,
+        *,
+        pixel_stride: int | None = None,
+        confidence: np.ndarray | None = None,  # (H, W) weight multiplier in [0, 1]
+        count_keyframe: bool = True,
+    ) -> IntegrateStats:
+        """Fuse one keyframe (see the module docstring); ``map_version`` is the node's version that
+        includes it (reported by snapshots). Touches only the voxels the keyframe sees.
+
+        ``pixel_stride`` and ``confidence``: see :meth:`observe`. ``count_keyframe=False`` adds
+        points to a keyframe already counted (rendered depth for a keyframe integrated earlier
+        without depth), so the staleness clock does not tick twice."""
+        started = time.perf_counter()
+        if keyframe.ov is not None and keyframe.ov.ndim != 3:
+            raise ValueError(f"ov must be (h, w, D), got shape {keyframe.ov.shape}")
+        if keyframe.depth_m is not None and keyframe.depth_m.shape != keyframe.rgb.shape[:2]:
+            raise ValueError(f"depth {keyframe.depth_m.shape} must match the image {keyframe.rgb.shape[:2]}")
+        obs = self.observe(keyframe, pixel_stride=pixel_stride, confidence=confidence)  # outside the lock
+        with self._lock:
+            if keyframe.ov is not None:
+                self._set_dim(int(keyframe.ov.shape[2]))
+            if count_keyframe:
+                self._kf_counter += 1
+            self._version += 1
+            if map_version is not None:
+                self._map_version = map_version
+            if isinstance(obs, str):
+                return IntegrateStats(0, 0, 0, 0, keyframe.ov is not None, time.perf_counter() - started, obs)
+            touched, new, pruned = self._fuse(obs, int(keyframe.stamp_ns))
+            seconds = time.perf_counter() - started
+            self.keyframes_integrated += 1
+            self.integrate_seconds_total += seconds
+        return IntegrateStats(len(obs.weight), touched, new, pruned, obs.ov_flat is not None, seconds)
+
+    def integrate_features(
+        self,
+        keyframe: KeyframeLike,
+        map_version: int | None = None,
+        *,
+        pixel_stride: int | None = None,
+        confidence: np.ndarray | None = None,  # (H, W) weight multiplier in [0, 1]
+    ) -> IntegrateStats:
+        """Fuse only the OV features of a keyframe whose geometry was integrated before without
+        ``ov`` (the in-process OV backend, :mod:`mapper.node.plugins.ov_features`, computes them later).
+
+        The observations are those :meth:`integrate` made for the keyframe (same depth, stride,
+        confidence, quality weights), so each voxel they fall in receives exactly the feature sum and
+        weight a combined integrate would have fused. Geometry is untouched: positions, confidence,
+        hits and last-seen stamps stay as they are, and no voxel is created (observations whose
+        voxel was pruned since are dropped). ``stats.points`` counts the observations fused,
+        ``voxels_touched`` their voxels. Raises ``ValueError`` (nothing changed) without ``ov``, on a
+        bad ``ov`` shape or a feature dimension other than the map's."""
+        started = time.perf_counter()
+        if keyframe.ov is None or keyframe.ov.ndim != 3:
+            shape = None if keyframe.ov is None else keyframe.ov.shape
+            raise ValueError(f"integrate_features needs ov of shape (h, w, D), got {shape}")
+        if keyframe.depth_m is not None and keyframe.depth_m.shape != keyframe.rgb.shape[:2]:
+            raise ValueError(f"depth {keyframe.depth_m.shape} must match the image {keyframe.rgb.shape[:2]}")
+        obs = self.observe(keyframe, pixel_stride=pixel_stride, confidence=confidence)  # outside the lock
+        with self._lock:
+            self._set_dim(int(keyframe.ov.shape[2]))
+            if isinstance(obs, str):
+                return IntegrateStats(0, 0, 0, 0, True, time.perf_counter() - started, obs)
+            points, touched = self._fuse_features(obs)
+            self._version += 1
+            if map_version is not None:
+                self._map_version = map_version
+        if points == 0:
+            return IntegrateStats(0, 0, 0, 0, True, time.perf_counter() - started,
+                                  "none of its voxels is in the map any more")
+        return IntegrateStats(points, touched, 0, 0, True, time.perf_counter() - started)
+
+    def _fuse_features(self, obs: Observations) -> tuple[int, int]:
+        """Fuse the features of ``obs`` into the voxels that exist (lock held); the same sums as
+        :meth:`_fuse`. Returns (observations fused, voxels touched)."""
+        assert obs.cells is not None and obs.bilinear is not None and obs.ov_flat is not None
+        keys, ok = voxel_keys(obs.xyz, self.config.voxel_size_m)
+        n_sorted = self._sorted_keys.shape[0]
+        pos = np.searchsorted(self._sorted_keys, keys)
+        inside = pos < n_sorted
+        found = np.zeros(keys.shape[0], bool)
+        found[inside] = self._sorted_keys[pos[inside]] == keys[inside]
+        keep = ok & found
+        if not keep.any():
+            return 0, 0
+        keys, weight = keys[keep], obs.weight[keep]
+        cells, bilinear = obs.cells[keep], obs.bilinear[keep]
+        ukeys, inverse = np.unique(keys, return_inverse=True)
+        inverse = inverse.ravel()
+        n_u = ukeys.shape[0]
+        sum_w = np.bincount(inverse, weights=weight.astype(np.float64), minlength=n_u)
+        taps = csr_matrix(
+            ((weight[:, None] * bilinear).ravel().astype(np.float32), (np.repeat(inverse, 4), cells.ravel())),
+            shape=(n_u, obs.ov_flat.shape[0]),
+        )
+        sum_wfeat = np.asarray(taps @ obs.ov_flat, np.float32)  # (U, D)
+        rows = self._sorted_rows[np.searchsorted(self._sorted_keys, ukeys)]
+        assert self._feat is not None
+        unit, norm, fw = self.fusion(
+            self._feat[rows], self._feat_norm[rows], self._feat_weight[rows], sum_wfeat,
+            sum_w.astype(np.float32),
+        )
+        self._feat[rows], self._feat_norm[rows], self._feat_weight[rows] = unit, norm, fw
+        return int(keys.shape[0]), n_u
+
+    def _fuse(self, obs: Observations, stamp_ns: int) -> tuple[int, int, int]:
+        """Fuse observations (called with the lock held). Returns (touched, new, pruned)."""
+        keys, ok = voxel_keys(obs.xyz, self.config.voxel_size_m)
+        p_world, weight, cells, bilinear = obs.xyz, obs.weight, obs.cells, obs.bilinear
+        if not ok.all():
+            keys, p_world, weight = keys[ok], p_world[ok], weight[ok]
+            if cells is not None and bilinear is not None:
+                cells, bilinear = cells[ok], bilinear[ok]
+        if keys.size == 0:
+            return 0, 0, 0
+        ukeys, inverse = np.unique(keys, return_inverse=True)  # sorted unique keys
+        inverse = inverse.ravel()
+        n_u = ukeys.shape[0]
+        w64 = weight.astype(np.float64)
+        sum_w = np.bincount(inverse, weights=w64, minlength=n_u)
+        sum_wxyz = np.stack(
+            [np.bincount(inverse, weights=w64 * p_world[:, axis], minlength=n_u) for axis in range(3)], axis=1
+        )
+        count = np.bincount(inverse, minlength=n_u).astype(np.int32)
+        sum_wfeat = None
+        if cells is not None and bilinear is not None and obs.ov_flat is not None:
+            # sum over observations of weight * bilinear(ov) = (U x cells) sparse matrix @ ov cells
+            taps = csr_matrix(
+                ((weight[:, None] * bilinear).ravel().astype(np.float32),
+                 (np.repeat(inverse, 4), cells.ravel())),
+                shape=(n_u, obs.ov_flat.shape[0]),
+            )
+            sum_wfeat = np.asarray(taps @ obs.ov_flat, np.float32)  # (U, D)
+
+        # look the voxels up; append the new ones and insert them into the sorted index
+        n_sorted = self._sorted_keys.shape[0]
+        pos = np.searchsorted(self._sorted_keys, ukeys)
+        found = np.zeros(n_u, bool)
+        inside = pos < n_sorted
+        found[inside] = self._sorted_keys[pos[inside]] == ukeys[inside]
+        rows = np.empty(n_u, np.int64)
+        rows[found] = self._sorted_rows[pos[found]]
+        n_new = int(np.count_nonzero(~found))
+        if n_new:
+            start = self._n
+            self._grow(start + n_new)
+            new_rows = np.arange(start, start + n_new, dtype=np.int64)
+            rows[~found] = new_rows
+            self._keys[new_rows] = ukeys[~found]
+            self._n = start + n_new
+            self._sorted_keys = np.insert(self._sorted_keys, pos[~found], ukeys[~found])
+            self._sorted_rows = np.insert(self._sorted_rows, pos[~found], new_rows)
+
+        old_w = self._weight[rows].astype(np.float64)
+        new_w = old_w + sum_w
+        self._xyz[rows] = ((self._xyz[rows] * old_w[:, None] + sum_wxyz) / new_w[:, None]).astype(np.float32)
+        self._weight[rows] = new_w
+        self._hits[rows] += count
+        self._last_seen_ns[rows] = stamp_ns
+        self._last_seen_kf[rows] = self._kf_counter
+        if sum_wfeat is not None:
+            assert self._feat is not None
+            unit, norm, fw = self.fusion(
+                self._feat[rows], self._feat_norm[rows], self._feat_weight[rows], sum_wfeat,
+                sum_w.astype(np.float32),
+            )
+            self._feat[rows], self._feat_norm[rows], self._feat_weight[rows] = unit, norm, fw
+        pruned = self._prune_if_needed()
+        return n_u, n_new, pruned
+
+    def _prune_if_needed(self) -> int:
+        """Apply the ``max_points`` bound (lock held). Returns the number of voxels dropped."""
+        cfg = self.config
+        if self._n <= cfg.max_points:
+            return 0
+        n = self._n
+        keep_n = max(1, int(cfg.max_points * cfg.prune_to_fraction))
+        age = (self._kf_counter - self._last_seen_kf[:n]).astype(np.float64)
+        priority = self._weight[:n] * np.exp2(-age / cfg.stale_half_life_keyframes)
+        keep = np.sort(np.argpartition(-priority, keep_n - 1)[:keep_n])
+        self._compact(keep)
+        dropped = n - keep_n
+        self.points_pruned += dropped
+        log.debug("global map: dropped %d voxels (max_points %d)", dropped, cfg.max_points)
+        return dropped
+
+    def _compact(self, keep: np.ndarray) -> None:
+        """Keep only rows ``keep`` (ascending), rebuild the sorted index (lock held)."""
+        for name in self._ROW_FIELDS:
+            arr = getattr(self, name)
+            if arr is None:
+                continue
+            kept = arr[keep]
+            arr[: kept.shape[0]] = kept
+            arr[kept.shape[0]:] = 0
+        self._n = int(keep.shape[0])
+        order = np.argsort(self._keys[: self._n], kind="stable")
+        self._sorted_keys = self._keys[: self._n][order].copy()
+        self._sorted_rows = order.astype(np.int64)
+
+    # -- readers -----------------------------------------------------------------------------
+
+    @property
+    def version(self) -> int:
+        return self._version
+
+    def snapshot(self) -> GlobalMapSnapshot:
+        """The immutable snapshot of the current version (copied once per version, then cached)."""
+        with self._lock:
+            snap = self._snapshot
+            if snap is not None and snap.version == self._version:
+                return snap
+            n = self._n
+
+            def frozen(a: np.ndarray) -> np.ndarray:
+                out = a[:n].copy()
+                out.setflags(write=False)
+                return out
+
+            snap = GlobalMapSnapshot(
+                version=self._version,
+                map_version=self._map_version,
+                voxel_size_m=self.config.voxel_size_m,
+                xyz=frozen(self._xyz),
+                feat=frozen(self._feat) if self._feat is not None else None,
+                weight=frozen(self._weight),
+                feat_weight=frozen(self._feat_weight),
+                hits=frozen(self._hits),
+                last_seen_ns=frozen(self._last_seen_ns),
+            )
+            self._snapshot = snap
+            return snap
+
+    # -- persistence -------------------------------------------------------------------------
+
+    def to_arrays(self, prefix: str = "global") -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """``({"global.<field>": array}, manifest section)`` for :class:`mapper.node.store.MapStore`
+        (plain numeric arrays, no pickle). Taken under the lock: a consistent copy."""
+        with self._lock:
+            n = self._n
+            arrays: dict[str, np.ndarray] = {
+                f"{prefix}.keys": self._keys[:n].copy(),
+                f"{prefix}.xyz": self._xyz[:n].copy(),
+                f"{prefix}.weight": self._weight[:n].copy(),
+                f"{prefix}.feat_norm": self._feat_norm[:n].copy(),
+                f"{prefix}.feat_weight": self._feat_weight[:n].copy(),
+                f"{prefix}.hits": self._hits[:n].copy(),
+                f"{prefix}.last_seen_ns": self._last_seen_ns[:n].copy(),
+                f"{prefix}.age_kf": (self._kf_counter - self._last_seen_kf[:n]).astype(np.int64),
+            }
+            if self._feat is not None:
+                arrays[f"{prefix}.feat"] = self._feat[:n].copy()
+            manifest: dict[str, Any] = {
+                "format": _FORMAT,
+                "points": n,
+                "dim": self._dim,
+                "voxel_size_m": self.config.voxel_size_m,
+                "map_version": self._map_version,
+                "points_pruned": self.points_pruned,
+                "keyframes_integrated": self.keyframes_integrated,
+            }
+        return arrays, manifest
+
+    def restore(
+        self, arrays: dict[str, np.ndarray], manifest: object, map_version: int, prefix: str = "global"
+    ) -> None:
+        """Replace the content with a saved one (inverse of :meth:`to_arrays`). Checks every array
+        and raises ``ValueError`` naming the field; the map is unchanged on error. A map saved with
+        another voxel size is re-keyed (voxels that now coincide keep the most confident one)."""
+        if not isinstance(manifest, dict) or manifest.get("format") != _FORMAT:
+            raise ValueError(f"global map section: unknown format {manifest!r:.80}")
+        n = manifest.get("points")
+        dim = manifest.get("dim")
+        if not isinstance(n, int) or n < 0 or not (dim is None or (isinstance(dim, int) and dim > 0)):
+            raise ValueError("global map section: 'points' must be an int >= 0 and 'dim' an int > 0 or null")
+        spec: dict[str, tuple[str, tuple[int, ...]]] = {
+            "keys": ("int64", (n,)),
+            "xyz": ("float32", (n, 3)),
+            "weight": ("float32", (n,)),
+            "feat_norm": ("float32", (n,)),
+            "feat_weight": ("float32", (n,)),
+            "hits": ("int32", (n,)),
+            "last_seen_ns": ("int64", (n,)),
+            "age_kf": ("int64", (n,)),
+        }
+        if dim is not None:
+            spec["feat"] = ("float16", (n, dim))
+        got: dict[str, np.ndarray] = {}
+        for name, (dtype, shape) in spec.items():
+            arr = arrays.get(f"{prefix}.{name}")
+            if arr is None or arr.dtype != np.dtype(dtype) or arr.shape != shape:
+                desc = "missing" if arr is None else f"{arr.dtype} {arr.shape}"
+                raise ValueError(f"global map section: {name} must be {dtype} {shape}, got {desc}")
+        for name in spec:
+            got[name] = arrays[f"{prefix}.{name}"]
+        if not np.isfinite(got["xyz"]).all() or not (got["weight"] >= 0).all():
+            raise ValueError("global map section: xyz must be finite and weights >= 0")
+        if manifest.get("voxel_size_m") == self.config.voxel_size_m:
+            keys = got["keys"]  # the voxel a mean lies in can differ by float32 rounding at its faces
+            if np.unique(keys).size != n:
+                raise ValueError("global map section: keys are not unique")
+        else:
+            keys, ok = voxel_keys(got["xyz"], self.config.voxel_size_m)
+            if not ok.all():
+                raise ValueError("global map section: points outside the voxel key range")
+        # one row per key (re-keying can merge voxels): the most confident wins
+        order = np.lexsort((-got["weight"], keys))
+        first = np.ones(n, bool)
+        first[1:] = keys[order][1:] != keys[order][:-1]
+        rows = np.sort(order[first])
+        with self._lock:
+            self._reset(dim)
+            m = rows.shape[0]
+            self._grow(m)
+            self._n = m
+            self._keys[:m] = keys[rows]
+            self._xyz[:m] = got["xyz"][rows]
+            self._weight[:m] = got["weight"][rows]
+            self._feat_norm[:m] = got["feat_norm"][rows]
+            self._feat_weight[:m] = got["feat_weight"][rows]
+            self._hits[:m] = got["hits"][rows]
+            self._last_seen_ns[:m] = got["last_seen_ns"][rows]
+            self._last_seen_kf[:m] = -got["age_kf"][rows]
+            if self._feat is not None:
+                self._feat[:m] = got["feat"][rows]
+            srt = np.argsort(self._keys[:m], kind="stable")
+            self._sorted_keys = self._keys[:m][srt].copy()
+            self._sorted_rows = srt.astype(np.int64)
+            pruned = manifest.get("points_pruned")
+            self.points_pruned = pruned if isinstance(pruned, int) else 0
+            self._map_version = map_version
+            self._version += 1
+            self._prune_if_needed()
+
+    def retag(self, map_version: int) -> None:
+        """Set the node map version that the current content corresponds to (e.g. after a load)."""
+        with self._lock:
+            self._map_version = map_version
+            self._version += 1
+
+    def clear(self, map_version: int | None = None) -> None:
+        """Drop every point (the feature dimension is forgotten too)."""
+        with self._lock:
+            self._reset(None)
+            if map_version is not None:
+                self._map_version = map_version
+            self._version += 1

@@ -1,0 +1,109 @@
+"""The plumbing the node's per-keyframe background workers share.
+
+A worker (``mapper.node.plugins.depth_points``: points from rendered depth;
+``mapper.node.plugins.ov_features``: OV features from the in-process encoder) is handed
+keyframes on the ingest thread and does the slow work on its own thread (``node.workers``). What they share lives here:
+
+* :class:`KeyframeQueue`: a bounded FIFO; ``put`` is O(1) and never blocks ingest; beyond
+  ``max_len`` items the oldest is dropped and counted; ``wake`` is set on every put;
+* :func:`run_worker`: the worker loop (wake on new items or every ``idle_wait_s``, stop on the
+  node's stop event, never die on an exception: the node shuts down when a thread dies);
+* :class:`LimitedLog`: warnings at most once per interval per kind (the rest at debug level).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Generic, TypeVar
+
+__all__ = ["KeyframeQueue", "LimitedLog", "run_worker"]
+
+T = TypeVar("T")
+
+IDLE_WAIT_S = 0.5
+"""A worker wakes at least this often to check for the stop event."""
+
+
+class KeyframeQueue(Generic[T]):
+    """Bounded FIFO between the ingest thread and one worker (thread-safe)."""
+
+    def __init__(self, max_len: int) -> None:
+        if max_len < 1:
+            raise ValueError(f"max_len {max_len} out of range: must be >= 1")
+        self.max_len = max_len
+        self._items: deque[T] = deque()
+        self._lock = threading.Lock()
+        self.wake = threading.Event()
+        """Set by every :meth:`put`; the worker waits on it."""
+        self.queued = 0
+        """Items ever put."""
+        self.dropped = 0
+        """Items dropped (oldest first) because the queue was full."""
+
+    def put(self, item: T) -> None:
+        """Append ``item`` (O(1)); drop the oldest beyond ``max_len``; wake the worker."""
+        with self._lock:
+            self._items.append(item)
+            self.queued += 1
+            while len(self._items) > self.max_len:
+                self._items.popleft()
+                self.dropped += 1
+        self.wake.set()
+
+    def pop(self) -> T | None:
+        """The oldest item, or None when empty."""
+        with self._lock:
+            return self._items.popleft() if self._items else None
+
+    def drain(self) -> list[T]:
+        """Every item, oldest first; the queue is empty afterwards."""
+        with self._lock:
+            items = list(self._items)
+            self._items.clear()
+            return items
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._items)
+
+
+def run_worker(
+    stop: threading.Event,
+    wake: threading.Event,
+    work: Callable[[], object],
+    on_error: Callable[[BaseException], None],
+    *,
+    idle_wait_s: float = IDLE_WAIT_S,
+) -> None:
+    """Call ``work()`` whenever ``wake`` is set (and at least every ``idle_wait_s``) until ``stop``
+    is set. An exception from ``work`` goes to ``on_error`` and the loop goes on."""
+    while not stop.is_set():
+        wake.wait(timeout=idle_wait_s)
+        wake.clear()
+        if stop.is_set():
+            break
+        try:
+            work()
+        except Exception as exc:  # never let the worker die: the node shuts down on a dead thread
+            on_error(exc)
+
+
+class LimitedLog:
+    """``warning`` at most once per ``interval_s`` per kind; repeats within it go to ``debug``."""
+
+    def __init__(self, logger: logging.Logger, interval_s: float = 10.0) -> None:
+        self.logger = logger
+        self.interval_s = interval_s
+        self._last: dict[str, float] = {}
+
+    def warning(self, kind: str, fmt: str, *args: object) -> None:
+        now = time.monotonic()
+        if now - self._last.get(kind, -self.interval_s) >= self.interval_s:
+            self._last[kind] = now
+            self.logger.warning(fmt, *args)
+        else:
+            self.logger.debug(fmt, *args)

@@ -1,0 +1,274 @@
+"""Semantic queries on the map: ``query_points`` ("find the chair") and the averaging baselines of
+``segment_points``. See docs/QUERIES.md for the behaviour in words.
+
+``query_points`` works on an immutable :class:`mapper.node.global_map.GlobalMapSnapshot`:
+
+1. each text is normalised (:func:`normalise_query`: "find the chair" -> "chair", "where is a
+   place to sit?" -> "place to sit") and embedded with the map's ``ov_space`` text encoder;
+   negatives (default :data:`DEFAULT_NEGATIVES`) are embedded the same way, minus any negative
+   that is (nearly) one of the texts, so that asking for "wall" still works;
+2. score = cosine of each point's fused feature to its best text; a point is labelled with that
+   text only if the score beats every negative's cosine and ``min_score``; the snapshot caches
+   the normalised fp32 feature matrix, so this is one matrix product per query;
+3. ``max_points`` keeps the best scores; object candidates are the connected components (points
+   closer than ``cluster_radius_m``) of each text's points with at least ``min_object_points``
+   points, scored by the mean of their top half scores, sorted best first.
+
+``segment_points`` methods ``average`` / ``average_depth`` average the window keyframes' OV
+features at the points (:func:`mapper.model.baselines.average_features`) and pick the best text.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from mapper.node.config import QueryConfig
+from mapper.node.global_map import GlobalMapSnapshot
+from mapper.ov.encoders import TextEncoder
+from protocol.errors import ProtocolError
+from protocol.messages import ObjectCandidate, Points
+
+__all__ = [
+    "DEFAULT_NEGATIVES",
+    "NEGATIVE_DROP_SIMILARITY",
+    "Cluster",
+    "cluster_points",
+    "label_with_texts",
+    "normalise_query",
+    "query_points",
+    "segment_average",
+]
+
+DEFAULT_NEGATIVES: tuple[str, ...] = ("wall", "floor", "ceiling", "object", "thing", "background")
+"""Background prompts used when a request has no ``negatives``: the room structure that covers
+most of any indoor map, plus generic words ("object", "thing", "background") that absorb points
+whose feature is vague. A point must match its text better than all of these."""
+
+NEGATIVE_DROP_SIMILARITY = 0.8
+"""A negative whose embedding has at least this cosine with one of the texts is dropped (asking for
+"wall" or "walls" must not be vetoed by the negative "wall")."""
+
+_COMMAND_PREFIXES = (
+    "please", "hey", "ok", "okay", "robot", "can you", "could you", "would you", "will you", "help me",
+    "i want to", "i need to", "i would like to", "i'd like to", "i want", "i need", "find me", "find",
+    "show me", "show", "where is", "where's", "where are", "where can i", "locate", "look for",
+    "search for", "go to", "take me to", "navigate to", "bring me to", "drive to", "point to",
+    "point me to", "highlight", "get", "is there", "are there", "there is", "there are",
+)  # fmt: skip
+_DETERMINERS = ("the", "a", "an", "my", "some", "any", "this", "that", "these", "those", "our")
+_PREFIX_RE = re.compile(
+    r"^(?:" + "|".join(re.escape(p) for p in sorted(_COMMAND_PREFIXES, key=len, reverse=True)) + r")\b\s*"
+)
+_DET_RE = re.compile(r"^(?:" + "|".join(_DETERMINERS) + r")\s+")
+_TRAILING_RE = re.compile(r"(?:\s*\b(?:please|for me)\b)?[\s?!.,;:]*$")
+
+
+def normalise_query(text: str) -> str:
+    """Strip command words and a leading determiner from a natural phrasing, keep the noun phrase.
+
+    >>> [normalise_query(t) for t in ["find the chair", "Where is a place to sit?", "show me the table",
+    ...                              "chair", "Can you find my keys, please?", "the"]]
+    ['chair', 'place to sit', 'table', 'chair', 'keys', 'the']
+
+    Case is folded and whitespace collapsed; if nothing would remain, the folded text is kept.
+    """
+    folded = " ".join(text.lower().split())
+    out = folded
+    for _ in range(4):  # "please can you show me the ..." peels several layers
+        stripped = _PREFIX_RE.sub("", out, count=1).lstrip(" ,;:")
+        if stripped == out:
+            break
+        out = stripped
+    out = _TRAILING_RE.sub("", out)
+    out = _DET_RE.sub("", out, count=1)
+    out = out.strip(" ,")
+    return out or folded
+
+
+@dataclass(frozen=True)
+class Cluster:
+    """One connected group of points of one text."""
+
+    label: int
+    indices: np.ndarray  # (n,) int64 into the points the clustering was given
+    centroid: np.ndarray  # (3,) float64
+    aabb_min: np.ndarray  # (3,) float64
+    aabb_max: np.ndarray  # (3,) float64
+    score: float
+
+
+def cluster_points(
+    xyz: np.ndarray,  # (N, 3) float32 world metres
+    score: np.ndarray,  # (N,) float32
+    label: np.ndarray,  # (N,) int labels (>= 0)
+    radius_m: float,
+    min_points: int,
+) -> list[Cluster]:
+    """Connected components per label (points closer than ``radius_m`` are linked), keeping the
+    components with at least ``min_points`` points; each scored by the mean of its top half of
+    scores. Sorted by score, best first."""
+    out: list[Cluster] = []
+    for lab in np.unique(label):
+        idx = np.flatnonzero(label == lab)
+        if idx.size < min_points:
+            continue
+        pts = xyz[idx].astype(np.float64)
+        pairs = cKDTree(pts).query_pairs(radius_m, output_type="ndarray")  # (P, 2)
+        graph = coo_matrix(
+            (np.ones(pairs.shape[0], np.int8), (pairs[:, 0], pairs[:, 1])), shape=(idx.size, idx.size)
+        )
+        n_comp, comp = connected_components(graph, directed=False)
+        sizes = np.bincount(comp, minlength=n_comp)
+        for c in np.flatnonzero(sizes >= min_points):
+            members = np.flatnonzero(comp == c)
+            p = pts[members]
+            s = np.sort(score[idx[members]])[::-1]
+            top = s[: max(1, (s.size + 1) // 2)]
+            cluster = Cluster(
+                int(lab), idx[members], p.mean(axis=0), p.min(axis=0), p.max(axis=0), float(top.mean())
+            )
+            out.append(cluster)
+    out.sort(key=lambda c: (-c.score, -c.indices.size))
+    return out
+
+
+def label_with_texts(
+    features: np.ndarray,  # (N, D) float32 unit rows (zero rows = no feature)
+    text_emb: np.ndarray,  # (T, D) float32 unit rows
+    negative_emb: np.ndarray,  # (Q, D) float32 unit rows (Q may be 0)
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Best text per point, its cosine, and whether it beats every negative:
+    (label (N,) int64, score (N,) float32, beats_negatives (N,) bool)."""
+    n_texts = text_emb.shape[0]
+    sims = features @ np.concatenate([text_emb, negative_emb]).T  # (N, T + Q): one product
+    label = np.argmax(sims[:, :n_texts], axis=1)
+    score = sims[np.arange(sims.shape[0]), label].astype(np.float32)
+    if negative_emb.shape[0]:
+        beats = score > sims[:, n_texts:].max(axis=1)
+    else:
+        beats = np.ones(score.shape[0], bool)
+    return label, score, beats
+
+
+def query_points(
+    snapshot: GlobalMapSnapshot,
+    encoder: TextEncoder,
+    texts: Sequence[str],
+    *,
+    negatives: Sequence[str] | None,
+    min_score: float | None,
+    max_points: int | None,
+    objects: bool,
+    config: QueryConfig,
+) -> Points:
+    """Answer a ``query_points`` request on a map snapshot (see the module docstring).
+
+    Raises:
+        ProtocolError("not_ready"): the map has no points with OV features yet.
+    """
+    t0 = time.perf_counter()
+    if snapshot.feat is None or snapshot.n_with_features == 0:
+        raise ProtocolError(
+            "not_ready",
+            f"the global map has {len(snapshot)} points and none carries an open-vocabulary feature: "
+            "send frames with depth and ov (features in the map's ov_space) before semantic queries",
+        )
+    if snapshot.feat.shape[1] != encoder.dim:
+        raise ProtocolError(
+            "not_ready",
+            f"the map's features have dimension {snapshot.feat.shape[1]} but the text encoder of "
+            f"{encoder.space!r} produces {encoder.dim}; queries cannot be embedded in this map's space",
+        )
+    clean = [normalise_query(t) for t in texts]
+    text_emb = encoder.encode(clean)  # (T, D)
+    negs = list(DEFAULT_NEGATIVES if negatives is None else negatives)
+    negs = [normalise_query(n) for n in negs]
+    neg_emb = encoder.encode(negs) if negs else np.zeros((0, text_emb.shape[1]), np.float32)
+    if neg_emb.shape[0]:
+        keep_neg = (neg_emb @ text_emb.T).max(axis=1) < NEGATIVE_DROP_SIMILARITY
+        neg_emb = neg_emb[keep_neg]
+    t1 = time.perf_counter()
+
+    feats = snapshot.unit_features_f32()  # cached per map version
+    t2 = time.perf_counter()
+    label, score, beats = label_with_texts(feats, text_emb, neg_emb)
+    ok = beats & snapshot.has_feature
+    if min_score is not None:
+        ok &= score >= min_score
+    sel = np.flatnonzero(ok)
+    t3 = time.perf_counter()
+
+    candidates: list[ObjectCandidate] = []
+    if objects and sel.size:
+        clusters = cluster_points(
+            snapshot.xyz[sel], score[sel], label[sel], config.cluster_radius_m, config.min_object_points
+        )
+        for c in clusters[: config.max_objects]:
+            candidates.append(
+                ObjectCandidate(
+                    text=texts[c.label],
+                    centroid=c.centroid,
+                    aabb_min=c.aabb_min,
+                    aabb_max=c.aabb_max,
+                    score=c.score,
+                    n_points=int(c.indices.size),
+                )
+            )
+    t4 = time.perf_counter()
+
+    limit = max_points if max_points is not None else config.default_max_points
+    if sel.size > limit:
+        top = np.argpartition(-score[sel], limit - 1)[:limit]
+        sel = sel[top]
+    sel = sel[np.argsort(-score[sel], kind="stable")]
+    t5 = time.perf_counter()
+    return Points(
+        map_version=snapshot.map_version,
+        xyz=snapshot.xyz[sel].astype(np.float32),
+        score=score[sel],
+        label=label[sel].astype(np.int32),
+        objects=candidates,
+        timing_ms={
+            "encode_text": 1e3 * (t1 - t0),
+            "features": 1e3 * (t2 - t1),
+            "score": 1e3 * (t3 - t2),
+            "cluster": 1e3 * (t4 - t3),
+            "select": 1e3 * (t5 - t4),
+            "total": 1e3 * (t5 - t0),
+            "map_points": float(len(snapshot)),
+        },
+    )
+
+
+def segment_average(
+    xyz: np.ndarray,  # (N, 3) float32 world metres
+    views: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int], np.ndarray | None]],
+    text_emb: np.ndarray,  # (T, D) float32 unit rows
+    *,
+    use_depth: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """OpenScene-2D averaging baseline: (label (N,) int32, -1 where no view counts; score (N,)
+    float32 cosine of the chosen label, 0 where -1; n_views (N,) int64). ``views`` are
+    ``(ov (h, w, D), K (4,), world_from_cam (4, 4), (W, H), depth_m (H, W) | None)``."""
+    from mapper.model.baselines import average_features  # torch-heavy; imported when first used
+
+    feats, n_views = average_features(xyz, list(views), use_depth=use_depth)
+    f = feats.numpy()
+    n = n_views.numpy()
+    if f.shape[0] == 0:
+        return np.zeros(0, np.int32), np.zeros(0, np.float32), n
+    sims = f @ text_emb.T  # (N, T)
+    label = np.argmax(sims, axis=1).astype(np.int32)
+    score = np.take_along_axis(sims, label[:, None].astype(np.int64), axis=1)[:, 0].astype(np.float32)
+    seen = n > 0
+    label[~seen] = -1
+    score[~seen] = 0.0
+    return label, score, n

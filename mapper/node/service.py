@@ -1,0 +1,877 @@
+"""The long-running mapper node: sockets, threads, shared map state, and the request dispatch.
+
+Threads and sockets (a ZeroMQ socket is only ever used by the thread that created it):
+
+- **ingest thread**: ROUTER bound on ``ingest_endpoint``; decodes each ``frame``, updates the
+  keyframe window and replies with exactly one ``ack`` or ``error``.
+- **query thread**: ROUTER bound on ``query_endpoint``; dispatches each request through
+  :attr:`MapperNode.query_handlers` (message class -> handler) and replies exactly once.
+- **events thread** (optional): PUB bound on ``events_endpoint``; publishes ``map_updated``
+  notices handed to it through a queue by whichever thread changed the map.
+- **main thread**: :meth:`MapperNode.run` waits for SIGINT/SIGTERM, does periodic autosaves and,
+  on shutdown, stops the threads, does the final save and returns exit code 0.
+
+Ingest and queries never wait on each other's sockets; they share :class:`MapState` behind one
+lock, held only for the short state updates (decoding, file I/O and replies happen outside it).
+
+Replies on a ROUTER reuse the request's envelope: every frame but the last is routing
+(identities, and the empty delimiter REQ peers add), the last frame is the message. So DEALER
+peers (with or without an empty delimiter) and REQ peers all get their reply. Replies to one
+connection leave in the order its requests arrived (each socket is served by one thread).
+
+Robustness: every message is handled inside a catch-all; a ``ProtocolError`` becomes its wire
+error, anything else an ``internal`` error (logged with traceback), and the node keeps serving.
+A rejected message changes nothing but the counters.
+
+The global semantic point map (:mod:`mapper.node.global_map`) is fed by the ingest thread: after a
+frame became a keyframe (state lock released), it is integrated under the map's own lock. Queries
+(:mod:`mapper.node.queries`) read the map's immutable per-version snapshot, so a query never waits on an
+integrate (beyond the one copy per map version) and an integrate never waits on a query.
+
+Extension points: ``register_query_handler(MsgClass, handler)`` replaces a request type's
+handler (``render`` still answers ``not_ready``); ``register_segment_method(name, handler)``
+serves a ``segment_points`` method (``"govnesf"`` answers ``not_ready`` until the learned model
+registers it); ``GlobalSemanticMap.fusion`` is the feature fusion rule the learned model may
+replace; the cost volume and OV cache hook :attr:`MapState.window`'s ``on_add`` / ``on_evict``
+callbacks (called under the state lock); saving more state goes through ``MapState.snapshot`` /
+``restore`` and the ``global.*`` arrays of the map file.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import queue
+import signal
+import threading
+import time
+import traceback
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import FrameType
+from typing import Any
+
+import numpy as np
+import zmq
+
+from mapper.node.config import NodeConfig, to_dict
+from mapper.node.global_map import GlobalSemanticMap
+from mapper.node.store import MapStore, StoreError, StoreWriteError
+from mapper.node.window import Keyframe, KeyframeWindow, keyframes_from_arrays, keyframes_to_arrays
+from protocol.errors import ProtocolError
+from protocol.messages import (
+    Ack,
+    AckStatus,
+    Error,
+    Frame,
+    Load,
+    MapUpdated,
+    Message,
+    Ok,
+    QueryPoints,
+    Render,
+    Save,
+    Segmentation,
+    SegmentPoints,
+    Status,
+    StatusRequest,
+    decode,
+    encode,
+    error_reply,
+    peek_id,
+)
+
+log = logging.getLogger("mapper.node.service")
+
+QueryHandler = Callable[[Message], Message]
+"""Takes a decoded request, returns the reply (its ``id`` is filled in by the node); raises
+``ProtocolError`` for an error reply."""
+
+SegmentHandler = Callable[[SegmentPoints], Segmentation]
+"""Serves one ``segment_points`` method: takes the request, returns the reply (``id`` filled in by
+the node); raises ``ProtocolError`` (e.g. ``not_ready``) for an error reply."""
+
+WARN_INTERVAL_S = 5.0
+"""Rejections and errors are logged as warnings at most this often per kind (DEBUG otherwise)."""
+
+HARD_LIMIT_FACTOR = 4
+"""ZeroMQ drops messages above ``HARD_LIMIT_FACTOR * max_message_bytes`` at the transport (the
+peer is disconnected, no reply) so a hostile sender cannot make the node allocate without bound;
+between ``max_message_bytes`` and that, the node answers ``too_large``."""
+
+
+@dataclass(frozen=True)
+class MapSnapshot:
+    """An immutable view of the map for saving (taken under the lock, written outside it)."""
+
+    map_version: int
+    keyframes: tuple[Keyframe, ...]
+    ov_space: str | None
+    ov_dim: int | None
+
+
+class MapState:
+    """Everything the node knows, behind :attr:`lock`. Counters are part of the state."""
+
+    def __init__(self, config: NodeConfig) -> None:
+        self.lock = threading.Lock()
+        self.config = config
+        self.window = KeyframeWindow(config.window)
+        self.global_map = GlobalSemanticMap(config.global_map)
+        """Global semantic point map (own lock; kept when keyframes leave the window)."""
+        self.map_version = 0
+        self.ov_space: str | None = config.ov_space
+        """Embedding space of the map (pinned by config, else set by the first keyframe with ov)."""
+        self.ov_dim: int | None = None
+        """Feature dimension of that space, learned from the first keyframe with ov."""
+        self.frames_received = 0
+        self.frames_rejected = 0
+        self.ack_counts: Counter[str] = Counter()
+        self.error_counts: Counter[str] = Counter()
+        self.requests_by_type: Counter[str] = Counter()
+        self.keyframes_evicted = 0
+        self.last_save: dict[str, Any] | None = None
+        self.started_monotonic = time.monotonic()
+
+    # -- called with the lock held ------------------------------------------------------------
+
+    def memory_bytes(self) -> int:
+        """Bytes of map data held: keyframe arrays plus the global map's arrays (later stages add
+        their volumes and caches)."""
+        return self.window.nbytes + self.global_map.nbytes
+
+    def snapshot(self) -> MapSnapshot:
+        return MapSnapshot(self.map_version, self.window.keyframes, self.ov_space, self.ov_dim)
+
+
+def _rss_bytes() -> int | None:
+    """Resident set size of this process (Linux), for operators; None where unavailable."""
+    try:
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+class MapperNode:
+    """The node. ``start()`` binds the sockets (raising if one cannot be bound), ``run()`` serves
+    until a signal or :meth:`request_stop`, ``stop()`` shuts down. Also usable in-process."""
+
+    def __init__(self, config: NodeConfig) -> None:
+        self.config = config
+        self.state = MapState(config)
+        self.store = MapStore(config.map_dir)
+        self.query_handlers: dict[type[Message], QueryHandler] = {
+            StatusRequest: self._handle_status,
+            Save: self._handle_save,
+            Load: self._handle_load,
+            QueryPoints: self._handle_query_points,
+            SegmentPoints: self._handle_segment_points,
+            Render: self._not_ready("render", "rendering"),
+        }
+        """Dispatch table of the query endpoint: request class -> handler."""
+        self.segment_methods: dict[str, SegmentHandler] = {
+            "govnesf": _govnesf_not_loaded,
+            "average": lambda msg: self._segment_average(msg, use_depth=False),
+            "average_depth": lambda msg: self._segment_average(msg, use_depth=True),
+        }
+        """``segment_points`` methods: name -> handler (the learned model registers "govnesf")."""
+        self._warmed_spaces: set[str] = set()
+        self._stop = threading.Event()
+        self._context = zmq.Context()
+        self._threads: list[threading.Thread] = []
+        self._events: queue.SimpleQueue[MapUpdated | None] = queue.SimpleQueue()
+        self._bind_errors: list[str] = []
+        self._saved_version: int | None = None
+        self._last_warning: dict[str, float] = {}
+        self._stopped = False
+        self._last_autosave = time.monotonic()
+        self.memory_providers: list[Callable[[], int]] = []
+        """Extra holders of map memory (e.g. the learned-model runtime); summed into ``memory_bytes``."""
+        self.status_providers: dict[str, Callable[[], Any]] = {}
+        """Extra ``status`` keys computed on request (e.g. ``"model"``: the runtime's stats)."""
+        self.keyframe_listeners: list[Callable[[Keyframe, int], None]] = []
+        """Called on the ingest thread, outside the state lock, after a new keyframe went into the
+        window and the global map, with the keyframe and its map version. Must be quick (queue the
+        work) and must not raise."""
+        self.workers: list[tuple[str, Callable[[threading.Event], None]]] = []
+        """Background threads ``(name, target)`` started by :meth:`start` after the sockets are
+        bound; ``target(stop_event)`` runs until the event is set and must not raise."""
+
+    # -- extension points ---------------------------------------------------------------------
+
+    def register_query_handler(self, message_type: type[Message], handler: QueryHandler) -> None:
+        """Serve ``message_type`` requests on the query endpoint with ``handler`` (replacing any)."""
+        self.query_handlers[message_type] = handler
+
+    def register_segment_method(self, method: str, handler: SegmentHandler) -> None:
+        """Serve ``segment_points`` requests with ``method`` (e.g. "govnesf") by ``handler``."""
+        self.segment_methods[method] = handler
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Start the socket threads; return once every socket is bound. Raises ``RuntimeError``
+        naming the endpoint when a bind fails (e.g. address in use). With ``load_autosave_on_start``
+        the autosaved map is loaded first (see :meth:`load_autosave`)."""
+        self.load_autosave()
+        workers: list[tuple[str, Callable[[threading.Event], None]]] = [
+            ("ingest", self._ingest_loop),
+            ("query", self._query_loop),
+        ]
+        if self.config.events_endpoint:
+            workers.append(("events", self._events_loop))
+        ready: list[threading.Event] = []
+        for name, target in workers:
+            bound = threading.Event()
+            thread = threading.Thread(target=target, args=(bound,), name=f"mapper-{name}", daemon=True)
+            thread.start()
+            self._threads.append(thread)
+            ready.append(bound)
+        for bound in ready:
+            bound.wait(timeout=10.0)
+        if self._bind_errors or not all(b.is_set() for b in ready):
+            self._stop_threads()
+            self._context.term()
+            self._stopped = True
+            raise RuntimeError("; ".join(self._bind_errors) or "socket threads did not start in 10 s")
+        for name, work in self.workers:
+            thread = threading.Thread(target=work, args=(self._stop,), name=f"mapper-{name}", daemon=True)
+            thread.start()
+            self._threads.append(thread)
+        log.info(
+            "serving: ingest %s, query %s, events %s, map_dir %s",
+            self.config.ingest_endpoint,
+            self.config.query_endpoint,
+            self.config.events_endpoint or "(off)",
+            os.path.abspath(self.config.map_dir),
+        )
+
+    def load_autosave(self) -> bool:
+        """Load ``autosave_name`` from the map directory if configured and present. A file that
+        cannot be loaded is renamed to ``NAME.govmap.unreadable`` (kept for inspection, not
+        overwritten by the next autosave) and the node starts empty. Returns True if loaded."""
+        cfg = self.config
+        if not (cfg.load_autosave_on_start and cfg.autosave_name):
+            return False
+        try:
+            path = self.store.path_for(cfg.autosave_name)
+        except StoreError as exc:
+            log.error("autosave %r: %s", cfg.autosave_name, exc)
+            return False
+        if not path.is_file():
+            log.info("no autosave at %s: starting with an empty map", path)
+            return False
+        try:
+            message = self._load_map(cfg.autosave_name)
+        except ProtocolError as exc:
+            aside = path.with_name(path.name + ".unreadable")
+            log.error("cannot load the autosave %s (%s); moved it to %s and starting empty", path,
+                      exc.message, aside)
+            try:
+                os.replace(path, aside)
+            except OSError as move_exc:
+                log.error("could not move %s aside: %s", path, move_exc)
+            return False
+        log.info("start-up: %s", message)
+        with self.state.lock:
+            self._saved_version = self.state.map_version
+        return True
+
+    def request_stop(self) -> None:
+        """Ask :meth:`run` to shut down (thread-safe, signal-safe)."""
+        self._stop.set()
+
+    def run(self) -> int:
+        """Serve until :meth:`request_stop` (or a signal, see :meth:`install_signal_handlers`);
+        then shut down. Returns the exit code."""
+        last_report = time.monotonic()
+        reported = (-1, -1)
+        while not self._stop.wait(timeout=0.5):
+            dead = [t.name for t in self._threads if not t.is_alive()]
+            if dead:
+                log.error("socket thread(s) %s stopped unexpectedly; shutting down", ", ".join(dead))
+                self.stop()
+                return 1
+            self._maybe_autosave()
+            now = time.monotonic()
+            if now - last_report >= 30.0:
+                last_report = now
+                with self.state.lock:
+                    current = (self.state.frames_received, self.state.map_version)
+                    line = self._summary_line()
+                if current != reported:
+                    reported = current
+                    log.info("%s", line)
+        return self.stop()
+
+    def stop(self) -> int:
+        """Stop the threads, close the sockets, do the final save if configured; returns the exit
+        code (0, or 1 when the final save failed). A second call does nothing and returns 0."""
+        if self._stopped:
+            return 0
+        self._stopped = True
+        self._stop_threads()
+        code = 0
+        if self.config.save_on_exit and self.config.autosave_name:
+            try:
+                self._save_to(self.config.autosave_name, reason="final")
+            except StoreError as exc:
+                log.error("final save failed: %s", exc)
+                code = 1
+        self._context.term()
+        with self.state.lock:
+            log.info("stopped: %s", self._summary_line())
+        return code
+
+    def _stop_threads(self) -> None:
+        self._stop.set()
+        self._events.put(None)  # wakes the events thread
+        for thread in self._threads:
+            thread.join(timeout=10.0)
+            if thread.is_alive():
+                log.error("thread %s did not stop within 10 s", thread.name)
+        self._threads = [t for t in self._threads if t.is_alive()]
+
+    def install_signal_handlers(self) -> None:
+        """Make SIGINT and SIGTERM request a clean shutdown (call from the main thread)."""
+
+        def handler(signum: int, _frame: FrameType | None) -> None:
+            log.info("received %s, shutting down", signal.Signals(signum).name)
+            self._stop.set()
+
+        signal.signal(signal.SIGINT, handler)
+        signal.signal(signal.SIGTERM, handler)
+
+    # -- socket loops -------------------------------------------------------------------------
+
+    def _bind(self, kind: int, endpoint: str, bound: threading.Event) -> zmq.Socket[bytes] | None:
+        sock: zmq.Socket[bytes] = self._context.socket(kind)
+        sock.setsockopt(zmq.LINGER, 1000)  # flush pending replies for up to 1 s on close
+        if kind == zmq.ROUTER:
+            sock.setsockopt(zmq.MAXMSGSIZE, HARD_LIMIT_FACTOR * self.config.max_message_bytes)
+        try:
+            sock.bind(endpoint)
+        except zmq.ZMQError as exc:
+            self._bind_errors.append(f"cannot bind {endpoint}: {exc}")
+            sock.close(linger=0)
+            bound.set()
+            return None
+        bound.set()
+        return sock
+
+    def _serve_router(
+        self, endpoint: str, bound: threading.Event, handle: Callable[[bytes], bytes], name: str
+    ) -> None:
+        sock = self._bind(zmq.ROUTER, endpoint, bound)
+        if sock is None:
+            return
+        poller = zmq.Poller()
+        poller.register(sock, zmq.POLLIN)
+        timeout_ms = int(self.config.poll_interval_s * 1000)
+        try:
+            while not self._stop.is_set():
+                if not poller.poll(timeout_ms):
+                    continue
+                while not self._stop.is_set():
+                    try:
+                        parts = sock.recv_multipart(zmq.NOBLOCK)
+                    except zmq.Again:
+                        break
+                    if len(parts) < 2:  # a ROUTER always prepends the identity; be defensive
+                        log.warning("%s: dropped a message without envelope (%d parts)", name, len(parts))
+                        continue
+                    reply = handle(parts[-1])
+                    try:
+                        sock.send_multipart([*parts[:-1], reply], zmq.NOBLOCK)
+                    except zmq.ZMQError as exc:  # peer gone or its queue full: nothing else to do
+                        log.warning("%s: could not send a reply: %s", name, exc)
+        finally:
+            sock.close()
+
+    def _ingest_loop(self, bound: threading.Event) -> None:
+        self._serve_router(self.config.ingest_endpoint, bound, self.handle_ingest, "ingest")
+
+    def _query_loop(self, bound: threading.Event) -> None:
+        self._serve_router(self.config.query_endpoint, bound, self.handle_query, "query")
+
+    def _events_loop(self, bound: threading.Event) -> None:
+        assert self.config.events_endpoint
+        sock = self._bind(zmq.PUB, self.config.events_endpoint, bound)
+        if sock is None:
+            return
+        try:
+            while True:
+                event = self._events.get()
+                if event is None or self._stop.is_set():
+                    break
+                try:
+                    sock.send(encode(event), zmq.NOBLOCK)
+                except zmq.ZMQError as exc:
+                    log.debug("events: dropped a notice: %s", exc)
+        finally:
+            sock.close(linger=0)
+
+    def _publish(self, map_version: int, keyframes: int) -> None:
+        if self.config.events_endpoint:
+            self._events.put(MapUpdated(map_version=map_version, keyframes=keyframes))
+
+    # -- message handling (pure bytes -> bytes, never raises) ----------------------------------
+
+    def handle_ingest(self, data: bytes) -> bytes:
+        """Handle one message of the ingest endpoint; returns the encoded ``ack`` or ``error``."""
+        with self.state.lock:
+            self.state.frames_received += 1
+        try:
+            msg = decode(data, max_bytes=self.config.max_message_bytes, direction="request")
+            if not isinstance(msg, Frame):
+                raise ProtocolError(
+                    "bad_request",
+                    f"the ingest endpoint accepts only 'frame' messages, got {msg.TYPE!r}; "
+                    "send queries to the query endpoint",
+                )
+            reply: Message = self._ingest_frame(msg)
+        except ProtocolError as exc:
+            reply = self._error(exc, data, "ingest")
+        except Exception as exc:  # a bug: answer, log, keep serving
+            reply = self._internal(exc, data, "ingest")
+        if isinstance(reply, Error) or (isinstance(reply, Ack) and reply.status == "rejected"):
+            with self.state.lock:
+                self.state.frames_rejected += 1
+        return encode(reply)
+
+    def handle_query(self, data: bytes) -> bytes:
+        """Handle one message of the query endpoint via :attr:`query_handlers`."""
+        try:
+            msg = decode(data, max_bytes=self.config.max_message_bytes, direction="request")
+            with self.state.lock:
+                self.state.requests_by_type[msg.TYPE] += 1
+            handler = self.query_handlers.get(type(msg))
+            if handler is None:
+                if isinstance(msg, Frame):
+                    raise ProtocolError(
+                        "bad_request", "'frame' messages go to the ingest endpoint, not the query endpoint"
+                    )
+                raise ProtocolError("bad_request", f"the query endpoint does not serve {msg.TYPE!r} requests")
+            reply = handler(msg)
+            msg_id = getattr(msg, "id", None)
+            if hasattr(reply, "id") and getattr(reply, "id", None) is None and msg_id is not None:
+                reply.id = msg_id
+        except ProtocolError as exc:
+            reply = self._error(exc, data, "query")
+        except Exception as exc:
+            reply = self._internal(exc, data, "query")
+        try:
+            return encode(reply)
+        except Exception as exc:  # a handler returned something unencodable: still answer
+            return encode(self._internal(exc, data, "query"))
+
+    def _error(self, exc: ProtocolError, data: bytes, where: str) -> Error:
+        with self.state.lock:
+            self.state.error_counts[exc.code] += 1
+            count = self.state.error_counts[exc.code]
+        self._warn_limited(
+            f"{where}:{exc.code}", "%s: %s error (%d so far): %s", where, exc.code, count, exc.message
+        )
+        return error_reply(exc, peek_id(data))
+
+    def _warn_limited(self, key: str, fmt: str, *args: object) -> None:
+        """Log a warning at most once per ``WARN_INTERVAL_S`` per key (DEBUG otherwise), so a
+        misbehaving client cannot flood the log."""
+        now = time.monotonic()
+        if now - self._last_warning.get(key, -math.inf) >= WARN_INTERVAL_S:
+            self._last_warning[key] = now
+            log.warning(fmt, *args)
+        else:
+            log.debug(fmt, *args)
+
+    def _internal(self, exc: Exception, data: bytes, where: str) -> Error:
+        log.error("%s: internal error while handling a message:\n%s", where, traceback.format_exc())
+        with self.state.lock:
+            self.state.error_counts["internal"] += 1
+        message = f"internal error ({type(exc).__name__}) while handling the request; see the node log"
+        return error_reply(ProtocolError("internal", message), peek_id(data))
+
+    # -- ingest -------------------------------------------------------------------------------
+
+    def _ingest_frame(self, frame: Frame) -> Ack:
+        keyframe = Keyframe(
+            seq=frame.seq,
+            stamp_ns=frame.stamp_ns,
+            camera=frame.camera,
+            K=frame.K,
+            world_from_cam=frame.world_from_cam,
+            rgb=frame.rgb,
+            depth_m=frame.depth_m,
+            ov=frame.ov,
+            ov_space=frame.ov_space,
+        )
+        state = self.state
+        with state.lock:
+            if frame.ov is not None:
+                if state.ov_space is not None and frame.ov_space != state.ov_space:
+                    raise ProtocolError(
+                        "ov_space_mismatch",
+                        f"frame seq {frame.seq}: ov_space {frame.ov_space!r} differs from the map's "
+                        f"{state.ov_space!r}; send features of that space, or load/start a map for yours",
+                    )
+                dim = int(frame.ov.shape[2])
+                if state.ov_dim is not None and dim != state.ov_dim:
+                    return self._reject(
+                        frame,
+                        f"ov feature dimension {dim} differs from the map's {state.ov_dim} "
+                        f"for space {state.ov_space!r}",
+                    )
+            update = state.window.consider(keyframe)
+            status: AckStatus
+            if update.added:
+                if frame.ov is not None:
+                    state.ov_space = frame.ov_space
+                    state.ov_dim = int(frame.ov.shape[2])
+                state.map_version += 1
+                state.keyframes_evicted += len(update.evicted)
+                status = "keyframe"
+                self._publish(state.map_version, len(state.window))
+            else:
+                status = "accepted"
+            state.ack_counts[status] += 1
+            version = state.map_version
+            space = state.ov_space
+        if update.added:
+            # outside the state lock, under the global map's own lock: queries keep working on their
+            # snapshot; status and save wait for at most this one integrate
+            stats = state.global_map.integrate(keyframe, map_version=version)
+            log.debug("frame seq %d: %d points into the global map (%d new voxels) in %.1f ms%s",
+                      frame.seq, stats.points, stats.voxels_new, 1e3 * stats.seconds,
+                      f" ({stats.skipped})" if stats.skipped else "")
+            if frame.ov is not None and space is not None:
+                self._warm_text_encoder(space)
+            for listener in self.keyframe_listeners:
+                listener(keyframe, version)
+        log.debug(
+            "frame seq %d (%s): %s, moved %.3f m, turned %.1f deg",
+            frame.seq,
+            frame.camera,
+            status,
+            update.translation_m,
+            update.rotation_deg,
+        )
+        return Ack(seq=frame.seq, status=status, map_version=version, id=frame.id)
+
+    def _reject(self, frame: Frame, reason: str) -> Ack:
+        """A rejected ack (called with the lock held)."""
+        self.state.ack_counts["rejected"] += 1
+        self._warn_limited("ingest:rejected", "frame seq %d rejected: %s", frame.seq, reason)
+        return Ack(
+            seq=frame.seq, status="rejected", map_version=self.state.map_version, reason=reason, id=frame.id
+        )
+
+    # -- queries ------------------------------------------------------------------------------
+
+    def _handle_status(self, msg: Message) -> Status:
+        state = self.state
+        with state.lock:
+            extra: dict[str, Any] = {
+                "max_keyframes": self.config.window.max_keyframes,
+                "frames_keyframe": state.ack_counts["keyframe"],
+                "frames_accepted": state.ack_counts["accepted"],
+                "frames_rejected_ack": state.ack_counts["rejected"],
+                "keyframes_evicted": state.keyframes_evicted,
+                "errors": dict(state.error_counts),
+                "requests": dict(state.requests_by_type),
+                "ov_dim": state.ov_dim,
+                "last_save": state.last_save,
+                "endpoints": {
+                    "ingest": self.config.ingest_endpoint,
+                    "query": self.config.query_endpoint,
+                    "events": self.config.events_endpoint,
+                },
+                "map_dir": os.path.abspath(self.config.map_dir),
+                "pid": os.getpid(),
+                "rss_bytes": _rss_bytes(),
+                "serving": sorted(t.TYPE for t, h in self.query_handlers.items() if not _is_not_ready(h)),
+                "segment_methods": sorted(m for m, h in self.segment_methods.items() if not _is_not_ready(h)),
+                **state.global_map.stats(),
+            }
+            for key, provider in self.status_providers.items():
+                extra[key] = provider()
+            return Status(
+                map_version=state.map_version,
+                keyframes=len(state.window),
+                frames_received=state.frames_received,
+                frames_rejected=state.frames_rejected,
+                ov_space=state.ov_space,
+                memory_bytes=state.memory_bytes() + sum(f() for f in self.memory_providers),
+                uptime_s=time.monotonic() - state.started_monotonic,
+                extra=extra,
+                id=getattr(msg, "id", None),
+            )
+
+    def _handle_save(self, msg: Message) -> Ok:
+        assert isinstance(msg, Save)
+        try:
+            path, version, count = self._save_to(msg.name, reason="request")
+        except StoreWriteError as exc:
+            log.error("save of map %r failed: %s", msg.name, exc)
+            raise ProtocolError("internal", f"save failed on the node: {exc}") from None
+        except StoreError as exc:
+            raise ProtocolError("bad_request", f"save failed: {exc}") from None
+        return Ok(id=msg.id, message=f"saved map version {version} ({count} keyframes) to {path}")
+
+    def _save_to(self, name: str, reason: str) -> tuple[str, int, int]:
+        """Snapshot under the lock, write outside it. Returns (path, map_version, keyframes)."""
+        with self.state.lock:
+            snap = self.state.snapshot()
+            global_arrays, global_manifest = self.state.global_map.to_arrays()
+        arrays, entries = keyframes_to_arrays(snap.keyframes)
+        arrays.update(global_arrays)
+        manifest = {
+            "map_version": snap.map_version,
+            "ov_space": snap.ov_space,
+            "ov_dim": snap.ov_dim,
+            "keyframes": entries,
+            "global_map": global_manifest,
+            "saved_unix_s": time.time(),
+            "config": to_dict(self.config),
+        }
+        started = time.monotonic()
+        path = self.store.save(name, arrays, manifest)
+        elapsed = time.monotonic() - started
+        with self.state.lock:
+            self.state.last_save = {"name": name, "map_version": snap.map_version, "unix_s": time.time()}
+        self._saved_version = snap.map_version
+        log.info(
+            "%s save: map version %d (%d keyframes) -> %s in %.2f s",
+            reason,
+            snap.map_version,
+            len(snap.keyframes),
+            path,
+            elapsed,
+        )
+        return str(path), snap.map_version, len(snap.keyframes)
+
+    def _handle_load(self, msg: Message) -> Ok:
+        assert isinstance(msg, Load)
+        return Ok(id=msg.id, message=self._load_map(msg.name))
+
+    def _load_map(self, name: str) -> str:
+        """Replace the window and the global map with the saved map ``name``; returns a note.
+        Raises ``ProtocolError`` (nothing changed) when the file is missing or damaged. Maps
+        saved without a global map section get one rebuilt from their keyframes."""
+        try:
+            arrays, manifest = self.store.load(name)
+            keyframes = keyframes_from_arrays(arrays, manifest.get("keyframes"))
+        except (StoreError, ValueError) as exc:
+            raise ProtocolError("bad_request", f"load failed: {exc}") from None
+        ov_space = manifest.get("ov_space")
+        ov_dim = manifest.get("ov_dim")
+        saved_version = manifest.get("map_version")
+        valid_space = ov_space is None or isinstance(ov_space, str)
+        if not valid_space or not (ov_dim is None or isinstance(ov_dim, int)):
+            raise ProtocolError("bad_request", f"load failed: map {name!r} has a corrupt manifest (ov)")
+        if self.config.ov_space is not None and ov_space is not None and ov_space != self.config.ov_space:
+            raise ProtocolError(
+                "ov_space_mismatch",
+                f"map {name!r} holds ov_space {ov_space!r}; this node is pinned to {self.config.ov_space!r}",
+            )
+        # build the new global map aside, so a damaged section changes nothing
+        fresh = GlobalSemanticMap(self.config.global_map, fusion=self.state.global_map.fusion)
+        section = manifest.get("global_map")
+        try:
+            if section is not None:
+                fresh.restore(arrays, section, map_version=0)
+            else:
+                for keyframe in keyframes:
+                    fresh.integrate(keyframe)
+        except ValueError as exc:
+            raise ProtocolError("bad_request", f"load failed: map {name!r}: {exc}") from None
+        state = self.state
+        with state.lock:
+            state.window.replace(keyframes)
+            state.ov_space = ov_space if ov_space is not None else self.config.ov_space
+            state.ov_dim = ov_dim
+            # keep the saved version when it is ahead, so versions seen by clients stay comparable
+            if isinstance(saved_version, int) and saved_version > state.map_version:
+                state.map_version = saved_version
+            else:
+                state.map_version += 1
+            version, count = state.map_version, len(state.window)
+            fresh.retag(version)
+            state.global_map = fresh  # a frame being integrated into the old map right now is dropped
+            self._publish(version, count)
+        points = len(state.global_map)
+        log.info("loaded map %r: %d keyframes, %d global points, now map version %d", name, count, points,
+                 version)
+        return f"loaded map {name!r}: {count} keyframes, {points} map points, map version {version}"
+
+    # -- semantic queries ---------------------------------------------------------------------
+
+    def _text_encoder(self, what: str) -> Any:
+        """The text encoder of the map's ov_space, or ``not_ready`` saying why there is none."""
+        from mapper.ov.encoders import UnknownSpaceError, get_text_encoder
+
+        with self.state.lock:
+            space = self.state.ov_space
+        if space is None:
+            raise ProtocolError(
+                "not_ready",
+                f"{what}: the map has no open-vocabulary features yet (no keyframe carried ov); "
+                "send frames with ov (e.g. minilm-l6-v2 features) first",
+            )
+        try:
+            return get_text_encoder(space)
+        except UnknownSpaceError as exc:
+            raise ProtocolError("not_ready", f"{what}: {exc}") from None
+
+    def _warm_text_encoder(self, space: str) -> None:
+        """Load the text encoder of ``space`` in the background once, so the first query is fast."""
+        if space in self._warmed_spaces:
+            return
+        self._warmed_spaces.add(space)
+
+        def warm() -> None:
+            from mapper.ov.encoders import UnknownSpaceError, get_text_encoder
+
+            try:
+                get_text_encoder(space).encode(["chair"])
+            except UnknownSpaceError:
+                log.info("no text encoder for ov_space %r: semantic queries will answer not_ready", space)
+            except Exception:  # a broken encoder must not take the node down; queries report it
+                log.exception("text encoder warm-up for %r failed", space)
+
+        threading.Thread(target=warm, name="mapper-encoder-warmup", daemon=True).start()
+
+    def _handle_query_points(self, msg: Message) -> Message:
+        assert isinstance(msg, QueryPoints)
+        from mapper.node.queries import query_points
+
+        encoder = self._text_encoder("query_points")
+        snapshot = self.state.global_map.snapshot()
+        return query_points(
+            snapshot,
+            encoder,
+            msg.texts,
+            negatives=msg.negatives,
+            min_score=msg.min_score,
+            max_points=msg.max_points,
+            objects=msg.objects,
+            config=self.config.queries,
+        )
+
+    def _handle_segment_points(self, msg: Message) -> Message:
+        assert isinstance(msg, SegmentPoints)
+        handler = self.segment_methods.get(msg.method)
+        if handler is None:
+            raise ProtocolError(
+                "bad_request",
+                f"method: {msg.method!r} unknown; served: {', '.join(sorted(self.segment_methods))}",
+            )
+        return handler(msg)
+
+    def _segment_average(self, msg: SegmentPoints, use_depth: bool) -> Segmentation:
+        """``average`` / ``average_depth``: OpenScene-2D averaging over the window's keyframes."""
+        from mapper.node.queries import segment_average
+
+        started = time.perf_counter()
+        method = "average_depth" if use_depth else "average"
+        with self.state.lock:
+            keyframes = self.state.window.keyframes
+        with_ov = [k for k in keyframes if k.ov is not None]
+        views = [
+            (k.ov, k.K, k.world_from_cam, (k.width, k.height), k.depth_m)
+            for k in with_ov
+            if k.ov is not None and (not use_depth or k.depth_m is not None)
+        ]
+        if not with_ov:
+            raise ProtocolError(
+                "not_ready",
+                f"segment_points method {method!r}: none of the {len(keyframes)} keyframes in the window "
+                "carries ov features; send frames with ov",
+            )
+        if not views:
+            raise ProtocolError(
+                "not_ready",
+                f"segment_points method 'average_depth' needs keyframes with both depth and ov: the "
+                f"window has {len(with_ov)} keyframes with ov, none with depth; send depth or use "
+                "method 'average'",
+            )
+        encoder = self._text_encoder(f"segment_points ({method})")
+        with self.state.lock:
+            dim = self.state.ov_dim
+        if dim is not None and dim != encoder.dim:
+            raise ProtocolError(
+                "not_ready",
+                f"segment_points: the map's features have dimension {dim}, the text encoder of "
+                f"{encoder.space!r} produces {encoder.dim}",
+            )
+        t_views = time.perf_counter()
+        text_emb = encoder.encode(list(msg.texts))
+        t_text = time.perf_counter()
+        xyz = np.asarray(msg.xyz, np.float32)
+        label, score, _ = segment_average(xyz, views, text_emb, use_depth=use_depth)
+        t_done = time.perf_counter()
+        return Segmentation(
+            label=label,
+            score=score,
+            timing_ms={
+                "views": 1e3 * (t_views - started),
+                "encode_text": 1e3 * (t_text - t_views),
+                "average": 1e3 * (t_done - t_text),
+                "total": 1e3 * (t_done - started),
+                "n_views": float(len(views)),
+            },
+        )
+
+    @staticmethod
+    def _not_ready(type_name: str, what: str) -> QueryHandler:
+        def handler(msg: Message) -> Message:
+            raise ProtocolError(
+                "not_ready",
+                f"{type_name} ({what}) is not served by this node yet: the model stage is not "
+                "installed; status, save and load are served",
+            )
+
+        handler.not_ready = True  # type: ignore[attr-defined]
+        return handler
+
+    # -- housekeeping -------------------------------------------------------------------------
+
+    def _maybe_autosave(self) -> None:
+        cfg = self.config
+        if not cfg.autosave_name or cfg.autosave_interval_s <= 0:
+            return
+        if time.monotonic() - self._last_autosave < cfg.autosave_interval_s:
+            return
+        self._last_autosave = time.monotonic()
+        with self.state.lock:
+            version = self.state.map_version
+        if version == self._saved_version:
+            return
+        try:
+            self._save_to(cfg.autosave_name, reason="periodic")
+        except StoreError as exc:
+            log.error("periodic save failed: %s", exc)
+
+    def _summary_line(self) -> str:
+        s = self.state
+        return (
+            f"map_version {s.map_version}, keyframes {len(s.window)}, frames received "
+            f"{s.frames_received} (rejected {s.frames_rejected}), memory {s.memory_bytes() / 1e6:.1f} MB"
+        )
+
+
+def _is_not_ready(handler: Callable[..., Any]) -> bool:
+    return bool(getattr(handler, "not_ready", False))
+
+
+def _govnesf_not_loaded(msg: SegmentPoints) -> Segmentation:
+    raise ProtocolError(
+        "not_ready",
+        "segment_points method 'govnesf' (learned blending): the learned model is not loaded on this "
+        "node yet; use method 'average' or 'average_depth'",
+    )
+
+
+_govnesf_not_loaded.not_ready = True  # type: ignore[attr-defined]

