@@ -1,0 +1,174 @@
+"""The layout's rules, checked from the source (docs/ARCHITECTURE.md, "Layout and import rules").
+
+* no import cycle anywhere in protocol/, mapper/, clients/ (imports inside functions count: a
+  cycle closed lazily is still a cycle);
+* imports point one way between the top-level packages: protocol imports nothing of the project,
+  mapper never imports clients, clients never import mapper;
+* the node core (config, window, store, global map, queries, service) imports without torch.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("protocol", "mapper", "clients")
+HEAVY = ("torch", "open3d", "sentence_transformers", "trimesh")
+"""Packages the node core must not load (the model, the simulator, the text encoder load them lazily)."""
+
+NODE_CORE = (
+    "mapper.errors",
+    "mapper.node.config",
+    "mapper.node.window",
+    "mapper.node.store",
+    "mapper.node.global_map",
+    "mapper.node.queries",
+    "mapper.node.keyframe_queue",
+    "mapper.node.service",
+    "mapper.runtime.config",
+    "mapper.ov.config",
+    "protocol",
+)
+
+
+def module_files() -> dict[str, Path]:
+    """Every module of the project: dotted name -> file."""
+    mods: dict[str, Path] = {}
+    for pkg in PACKAGES:
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            parts = list(path.relative_to(ROOT).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts.pop()
+            mods[".".join(parts)] = path
+    return mods
+
+
+def _resolve(name: str, mods: dict[str, Path]) -> str | None:
+    """The project module an imported dotted name lives in (``a.b.C`` -> ``a.b``), or None."""
+    while name:
+        if name in mods:
+            return name
+        name = name.rpartition(".")[0]
+    return None
+
+
+def import_graph(mods: dict[str, Path] | None = None) -> dict[str, set[str]]:
+    """module -> the project modules it imports (anywhere in the file, also inside functions)."""
+    mods = module_files() if mods is None else mods
+    graph: dict[str, set[str]] = {}
+    for mod, path in mods.items():
+        is_pkg = path.name == "__init__.py"
+        package = mod if is_pkg else mod.rpartition(".")[0]
+        edges: set[str] = set()
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            targets: list[str] = []
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    up = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                    base = ".".join([*up, base] if base else up)
+                # `from a import b` imports a.b when it is a module, else a name of a
+                targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in mods else base for a in node.names]
+            for target in targets:
+                found = _resolve(target, mods)
+                if found is not None and found != mod:
+                    edges.add(found)
+        graph[mod] = edges
+    return graph
+
+
+def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    cycles: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                cycles.append(sorted(comp))
+
+    sys.setrecursionlimit(max(sys.getrecursionlimit(), 10_000))
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return cycles
+
+
+def test_cycle_finder_finds_a_cycle_and_accepts_a_dag() -> None:
+    assert find_cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert find_cycles({"a": {"b"}, "b": {"c"}, "c": set()}) == []
+
+
+def test_graph_sees_lazy_and_relative_imports(tmp_path: Path) -> None:
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("def f():\n    from pkg import b\n")
+    (pkg / "b.py").write_text("from .a import f\n")
+    mods = {"pkg": pkg / "__init__.py", "pkg.a": pkg / "a.py", "pkg.b": pkg / "b.py"}
+    graph = import_graph(mods)
+    assert graph["pkg.a"] == {"pkg.b"} and graph["pkg.b"] == {"pkg.a"}
+    assert find_cycles(graph) == [["pkg.a", "pkg.b"]]
+
+
+def test_no_import_cycles() -> None:
+    cycles = find_cycles(import_graph())
+    assert not cycles, "import cycles (break them; docs/ARCHITECTURE.md): " + "; ".join(
+        " <-> ".join(c) for c in cycles
+    )
+
+
+@pytest.mark.parametrize(
+    ("source", "forbidden"),
+    [("protocol", ("mapper", "clients")), ("mapper", ("clients",)), ("clients", ("mapper",))],
+)
+def test_imports_point_one_way(source: str, forbidden: tuple[str, ...]) -> None:
+    bad = sorted(
+        f"{mod} -> {dep}"
+        for mod, deps in import_graph().items()
+        if mod.split(".")[0] == source
+        for dep in deps
+        if dep.split(".")[0] in forbidden
+    )
+    assert not bad, f"{source} must not import {forbidden}: {bad}"
+
+
+def test_node_core_imports_without_torch() -> None:
+    code = (
+        "import sys\n"
+        f"for m in {NODE_CORE!r}:\n"
+        "    __import__(m)\n"
+        f"heavy = sorted(m for m in {HEAVY!r} if m in sys.modules)\n"
+        "print(','.join(heavy))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120, check=False
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "", f"the node core imported {out.stdout.strip()}"
