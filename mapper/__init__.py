@@ -1,4 +1,6 @@
-"""The mapping node: service loop, keyframe window, cost volume, model, rendering, queries.
+"""The mapper: the node core (``node``), its plugins (``node.plugins``), the learned model inside
+the node (``runtime``), the network and its ops (``model``, ``model.ops``), open-vocabulary spaces
+(``ov``), training and evaluation (``training``). Layout and import rules: docs/ARCHITECTURE.md.
 
-Never imports `clients`.
+Never imports ``clients``.
 """
