@@ -7,7 +7,7 @@ import sys
 
 from clients.importers.base import UP_AXES, ImporterError, ReaderOptions, parse_K
 from clients.importers.convert import RGB_ENCODINGS, convert
-from clients.importers.registry import FORMATS, open_dataset
+from clients.importers.registry import ALIASES, FORMATS, open_dataset
 
 
 def _positive_int(text: str) -> int:
@@ -21,14 +21,19 @@ def _positive_int(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    formats = "\n".join(f"  {name:<8} {reader.description}" for name, reader in FORMATS.items())
+    formats = "\n".join(
+        [f"  {name:<8} {reader.description}" for name, reader in FORMATS.items()]
+        + [f"  {alias:<8} same as {target}" for alias, target in ALIASES.items()]
+    )
     parser = argparse.ArgumentParser(
         prog="govnesf import",
         description="Convert a dataset folder to a .govrec recording (see docs/IMPORT.md).",
         epilog=f"formats:\n{formats}",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("format", choices=list(FORMATS), metavar="FORMAT", help="dataset layout: %(choices)s")
+    parser.add_argument(
+        "format", choices=[*FORMATS, *ALIASES], metavar="FORMAT", help="dataset layout: %(choices)s"
+    )
     parser.add_argument("path", metavar="PATH", help="dataset folder (scene / sequence)")
     parser.add_argument("--out", required=True, metavar="FILE.govrec", help="recording to write")
     parser.add_argument(
@@ -65,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=list(UP_AXES),
         default=None,
         help="axis of the dataset's world that points up, rotated to +z (default: per format; "
-        "7scenes -y, others z)",
+        "7scenes and open3d -y, others z)",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace FILE.govrec if it exists")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
