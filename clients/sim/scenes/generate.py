@@ -1,0 +1,176 @@
+"""Scene assembly: `generate_scene(seed, style)` builds the room, places its objects and returns
+the labelled, textured mesh as a `Scene`.
+
+>>> scene = generate_scene(3, "apartment")
+>>> scene.seed, scene.style, len(scene.instances) > 0
+(3, 'apartment', True)
+>>> bool((generate_scene(3, "apartment").vertices == scene.vertices).all())
+True
+>>> generate_scene(3, "loft")
+Traceback (most recent call last):
+...
+ValueError: unknown scene style 'loft'; choose one of ['apartment', 'studio']
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from clients.sim.scenes.appearance import Light, Material, Texture
+from clients.sim.scenes.furniture import _clock, _curtain_panel, _door, _picture, _window
+from clients.sim.scenes.placement import _Placer
+from clients.sim.scenes.primitives import _box, _group, _Object, _Part
+from clients.sim.scenes.rand import _Rand, _scaled
+from clients.sim.scenes.scene import Instance, Scene
+from clients.sim.scenes.styles import STYLES
+from clients.sim.scenes.vocabulary import LABEL_OF
+from clients.sim.scenes.zones import _ZONES, _clutter
+
+
+def generate_scene(seed: int, style: str = "apartment") -> Scene:
+    """Build one room. Fully determined by `(seed, style)`.
+
+    Args:
+        seed: any int >= 0.
+        style: a key of `STYLES`.
+    """
+    if style not in STYLES:
+        raise ValueError(f"unknown scene style {style!r}; choose one of {sorted(STYLES)}")
+    if not isinstance(seed, int | np.integer) or seed < 0:
+        raise ValueError(f"seed {seed!r} must be an int >= 0")
+    st = STYLES[style]
+    r = _Rand(int(seed) * 7919 + sum(map(ord, style)), st)
+    size = np.array([r.u(*st.room_x_m), r.u(*st.room_y_m), r.u(*st.ceiling_m)])
+
+    structures: list[np.ndarray] = []
+    if r.chance(st.notch_prob):  # L-shaped room: a block fills one corner
+        nx, ny = r.u(0.25, 0.4) * size[0], r.u(0.25, 0.4) * size[1]
+        cx, cy = r.pick((0, 1)), r.pick((0, 1))
+        lo = np.array([0.0 if cx == 0 else size[0] - nx, 0.0 if cy == 0 else size[1] - ny, 0.0])
+        structures.append(np.stack([lo, lo + [nx, ny, size[2]]]))
+    p = _Placer(r, size, structures)
+
+    # door first (with a keep-out zone in front of it), then windows with curtains
+    door = _door(r)
+    dw = door.aabb()[1, 0]
+    p.try_place(door, reserve=np.array([[-dw - 0.1, 0.0, 0.0], [dw + 0.1, 1.1, 2.2]]), tries=80)
+    wall_mat = r.mat(r.pick(st.wall_colours), *r.pick(st.wall_textures), contrast=0.85)
+    curtain_mat = r.mat(r.pick(st.fabric_colours), Texture.FABRIC, 0.05)
+    for _ in range(int(r.rng.integers(st.n_windows[0], st.n_windows[1] + 1))):
+        win = _window(r, size[2])
+        ww = win.aabb()[1, 0]
+        z1 = win.aabb()[1, 2] + 0.12
+        cw = r.u(0.3, 0.45)
+        members = [win]
+        if r.chance(0.85):
+            members.append(_curtain_panel(r, cw, z1, curtain_mat).transformed(
+                0, np.array([-ww - cw / 2 - 0.01, 0, 0])))
+            members.append(_curtain_panel(r, cw, z1, curtain_mat).transformed(
+                0, np.array([ww + cw / 2 + 0.01, 0, 0])))
+        p.try_place(_group("window", members), blocks_floor=True)
+
+    # functional zones
+    names = list(st.zone_weights)
+    weights = np.array([st.zone_weights[n] for n in names])
+    n_z = int(r.rng.integers(st.n_zones[0], st.n_zones[1] + 1))
+    chosen = r.rng.choice(len(names), size=min(n_z, len(names)), replace=False, p=weights / weights.sum())
+    for zi in chosen:
+        _ZONES[names[int(zi)]][0](p)
+    for zi in chosen:
+        _ZONES[names[int(zi)]][1](p)
+    _clutter(p, int(r.rng.integers(st.n_clutter[0], st.n_clutter[1] + 1)))
+
+    # decoration on the walls
+    for _ in range(int(r.rng.integers(1, 4))):
+        p.try_place(_picture(r), blocks_floor=False)
+    if r.chance(0.5):
+        p.try_place(_clock(r), blocks_floor=False)
+
+    # --- assemble the mesh ---
+    floor_c, floor_c2 = r.pick(st.floor_colours)
+    floor_tex, floor_scale = r.pick(st.floor_textures)
+    floor_mat = Material(r.jitter(floor_c), floor_c2, floor_tex, floor_scale)
+    ceil_mat = Material(st.ceiling_colour, _scaled(st.ceiling_colour, 0.9), Texture.PLAIN, 0.5)
+    t = 0.1
+    sx, sy, sz = size
+    structure_parts: list[tuple[_Part, str]] = [
+        (_box((0, 0, -t), (sx, sy, 0), floor_mat), "floor"),
+        (_box((0, 0, sz), (sx, sy, sz + t), ceil_mat), "ceiling"),
+        (_box((-t, -t, 0), (sx + t, 0, sz), wall_mat), "wall"),
+        (_box((-t, sy, 0), (sx + t, sy + t, sz), wall_mat), "wall"),
+        (_box((-t, 0, 0), (0, sy, sz), wall_mat), "wall"),
+        (_box((sx, 0, 0), (sx + t, sy, sz), wall_mat), "wall"),
+    ]
+    for b in structures:
+        structure_parts.append((_box(b[0], b[1], wall_mat), "wall"))
+
+    flat: list[tuple[_Object, int]] = []
+    for obj in p.placed:
+        _flatten(obj, -1, flat)
+
+    verts, tris, labels, inst_ids, cols, cols2, texs, scales = [], [], [], [], [], [], [], []
+    n_v = 0
+
+    def add(part: _Part, label: int, inst: int) -> None:
+        nonlocal n_v
+        verts.append(part.vertices)
+        tris.append(part.triangles + n_v)
+        n_v += part.vertices.shape[0]
+        m = part.triangles.shape[0]
+        labels.append(np.full(m, label, np.int32))
+        inst_ids.append(np.full(m, inst, np.int32))
+        cols.append(np.tile(np.asarray(part.material.colour, np.float32), (m, 1)))
+        cols2.append(np.tile(np.asarray(part.material.colour2, np.float32), (m, 1)))
+        texs.append(np.full(m, int(part.material.texture), np.int8))
+        scales.append(np.full(m, part.material.scale_m, np.float32))
+
+    for part, name in structure_parts:
+        add(part, LABEL_OF[name], -1)
+    instances: list[Instance] = []
+    for idx, (obj, support) in enumerate(flat):
+        for part in obj.parts:
+            add(part, LABEL_OF[obj.class_name], idx)
+        v = np.concatenate([q.vertices for q in obj.parts])
+        part_boxes = np.stack([q.aabb for q in obj.parts])
+        instances.append(Instance(idx, obj.class_name, LABEL_OF[obj.class_name], v.min(0), v.max(0),
+                                  _area_centroid(obj.parts), support, part_boxes))
+
+    vertices = np.concatenate(verts).astype(np.float32)
+    triangles = np.concatenate(tris).astype(np.int32)
+    tri_v = vertices.astype(np.float64)[triangles]
+    n = np.cross(tri_v[:, 1] - tri_v[:, 0], tri_v[:, 2] - tri_v[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+    light = Light(
+        position=np.array([r.u(0.3, 0.7) * sx, r.u(0.3, 0.7) * sy, sz - 0.3]),
+        colour=np.asarray(st.light_colour, dtype=np.float64),
+        diffuse=r.u(*st.light_diffuse), ambient=r.u(*st.ambient), falloff_m=r.u(3.0, 4.5))
+
+    return Scene(
+        seed=int(seed), style=style, vertices=vertices, triangles=triangles,
+        face_label=np.concatenate(labels), face_instance=np.concatenate(inst_ids),
+        instances=instances, room_min=np.zeros(3), room_max=size.astype(np.float64),
+        face_colour=np.concatenate(cols), face_colour2=np.concatenate(cols2),
+        face_texture=np.concatenate(texs), face_texture_scale=np.concatenate(scales),
+        face_normal=n.astype(np.float32), light=light,
+        structures=[(b[0].copy(), b[1].copy()) for b in structures])
+
+
+def _flatten(obj: _Object, support: int, out: list[tuple[_Object, int]]) -> None:
+    if obj.parts:
+        out.append((obj, support))
+        me = len(out) - 1
+    else:
+        me = support
+    for c in obj.children:
+        _flatten(c, me, out)
+
+
+def _area_centroid(parts: list[_Part]) -> np.ndarray:
+    total, acc = 0.0, np.zeros(3)
+    for q in parts:
+        tv = q.vertices[q.triangles]
+        a = 0.5 * np.linalg.norm(np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0]), axis=1)
+        total += a.sum()
+        acc += (a[:, None] * tv.mean(1)).sum(0)
+    return acc / max(total, 1e-12)
