@@ -19,6 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from mapper.model.ops.checks import check_shape
 from mapper.model.ops.geometry import (
     in_view,
     invert_pose,
@@ -96,17 +97,15 @@ def average_features(
         raise ValueError(f"border_px {border_px} must be >= 0")
     device = torch.device(device)
     pts = _as_tensor(points, torch.float32, device)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"points must have shape (N, 3), got {tuple(pts.shape)}")
+    check_shape(pts, "N 3", "points must have shape (N points, xyz)")
     parsed = [OVView(*v) for v in views]
+    for i, v in enumerate(parsed):
+        check_shape(v.ov, "h w D", f"view {i}: ov")
+        if len(v.image_wh) != 2 or min(v.image_wh) < 1:
+            raise ValueError(f"view {i}: image_wh must be (W, H) >= 1, got {v.image_wh}")
     dims = {int(v.ov.shape[-1]) for v in parsed}
     if len(dims) > 1:
         raise ValueError(f"views have OV features of different dimensions {sorted(dims)}")
-    for i, v in enumerate(parsed):
-        if len(v.ov.shape) != 3:
-            raise ValueError(f"view {i}: ov must be (h, w, D), got shape {tuple(v.ov.shape)}")
-        if len(v.image_wh) != 2 or min(v.image_wh) < 1:
-            raise ValueError(f"view {i}: image_wh must be (W, H) >= 1, got {v.image_wh}")
     dim = dims.pop() if dims else 0
     n_pts = pts.shape[0]
     feats = torch.zeros(n_pts, dim, dtype=torch.float32, device=device)
@@ -115,10 +114,8 @@ def average_features(
     vw = None
     if view_weights is not None:
         vw = _as_tensor(view_weights, torch.float32, device)
-        if tuple(vw.shape) != (len(parsed), n_pts):
-            raise ValueError(
-                f"view_weights must have shape (V, N) = ({len(parsed)}, {n_pts}), got {tuple(vw.shape)}"
-            )
+        check_shape(vw, "V N", "view_weights must have shape (V views, N points)",
+                    {"V": len(parsed), "N": n_pts})
         if not bool((vw >= 0).all()):
             raise ValueError("view_weights must be >= 0")
         vw = vw[view_ids]

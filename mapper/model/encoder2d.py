@@ -13,6 +13,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mapper.model.config import EncoderConfig
+from mapper.model.ops.checks import check_shape
 
 __all__ = ["ImageEncoder"]
 
@@ -77,8 +78,7 @@ class ImageEncoder(nn.Module):
         return torch.cat([x, skip], dim=1)
 
     def forward(self, rgb: Tensor) -> Tensor:
-        if rgb.ndim != 4 or rgb.shape[1] != 3:
-            raise ValueError(f"rgb must have shape (N, 3, H, W), got {tuple(rgb.shape)}")
+        check_shape(rgb, "N 3 H W", "rgb")
         x = (rgb - 0.45) / 0.25  # roughly zero-mean, unit-variance input
         x1 = self.stage1(self.stem(x))
         x2 = self.stage2(x1)

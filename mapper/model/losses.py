@@ -12,6 +12,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from mapper.model.ops.checks import check_shape
+
 __all__ = [
     "LossOutputs", "color_loss", "distortion_loss", "govnesf_loss", "ov_cosine_loss"]
 
@@ -35,8 +37,10 @@ def _masked_mean(values: Tensor, mask: Tensor | None) -> Tensor:
 
 def color_loss(pred_rgb: Tensor, target_rgb: Tensor, mask: Tensor | None = None) -> Tensor:
     """(R, 3), (R, 3), optional (R,) bool -> () mean squared error over the kept rays."""
-    if pred_rgb.shape != target_rgb.shape:
-        raise ValueError(f"pred {tuple(pred_rgb.shape)} and target {tuple(target_rgb.shape)} differ")
+    dims = check_shape(pred_rgb, "R 3", "pred_rgb")
+    check_shape(target_rgb, "R 3", "target_rgb", dims)
+    if mask is not None:
+        check_shape(mask, "R", "mask", dims)
     per_ray = ((pred_rgb.float() - target_rgb.float()) ** 2).mean(dim=-1)
     return _masked_mean(per_ray, mask)
 
@@ -46,8 +50,10 @@ def ov_cosine_loss(pred_ov: Tensor, target_ov: Tensor, mask: Tensor | None = Non
 
     Zero vectors give cos = 0 (loss 1) with finite gradients (eps in the norm).
     """
-    if pred_ov.shape != target_ov.shape:
-        raise ValueError(f"pred {tuple(pred_ov.shape)} and target {tuple(target_ov.shape)} differ")
+    dims = check_shape(pred_ov, "R D", "pred_ov")
+    check_shape(target_ov, "R D", "target_ov", dims)
+    if mask is not None:
+        check_shape(mask, "R", "mask", dims)
     cos = F.cosine_similarity(pred_ov.float(), target_ov.float(), dim=-1, eps=1e-8)
     return _masked_mean(1.0 - cos, mask)
 
@@ -86,8 +92,8 @@ def distortion_loss(weights: Tensor, t: Tensor) -> Tensor:
     Args:
         weights: (R, S) rendering weights; t: (R, S) sample distances along each ray (increasing).
     """
-    if weights.shape != t.shape or weights.ndim != 2:
-        raise ValueError(f"weights {tuple(weights.shape)} and t {tuple(t.shape)} must be the same (R, S)")
+    dims = check_shape(weights, "R S", "weights")
+    check_shape(t, "R S", "t (the same (R, S) as weights)", dims)
     w = weights.float()
     tt = t.float()
     span = (tt[:, -1:] - tt[:, :1]).clamp_min(1e-9)

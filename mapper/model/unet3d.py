@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mapper.model.config import VolumeConfig
+from mapper.model.ops.checks import check_shape
 
 __all__ = ["VolumeUNet"]
 
@@ -48,8 +49,7 @@ class VolumeUNet(nn.Module):
         return torch.cat([x, skip], dim=1)
 
     def forward(self, volume: Tensor) -> Tensor:
-        if volume.ndim != 5:
-            raise ValueError(f"volume must have shape (B, C, X, Y, Z), got {tuple(volume.shape)}")
+        check_shape(volume, "B C X Y Z", "volume")
         x1 = self.enc1(volume)
         x2 = self.enc2(x1)
         x3 = self.enc3(x2)

@@ -63,6 +63,7 @@ from typing import Any, Protocol
 import numpy as np
 from scipy.sparse import csr_matrix
 
+from mapper.model.ops.checks import check_shape
 from mapper.node.config import GlobalMapConfig
 
 log = logging.getLogger("mapper.node.global_map")
@@ -160,6 +161,13 @@ def voxel_keys(
     idx = np.where(ok[:, None], idx, 0).astype(np.int64) + _KEY_OFFSET
     keys = (idx[:, 0] << (2 * _KEY_BITS)) | (idx[:, 1] << _KEY_BITS) | idx[:, 2]
     return keys, ok
+
+
+def _check_depth(keyframe: KeyframeLike) -> None:
+    """A keyframe's depth, when it has one, covers its image pixel for pixel."""
+    if keyframe.depth_m is not None:
+        height, width = keyframe.rgb.shape[:2]
+        check_shape(keyframe.depth_m, "H W", "depth_m (the image's H, W)", {"H": height, "W": width})
 
 
 @dataclass(frozen=True)
@@ -353,9 +361,10 @@ class GlobalSemanticMap:
         depth = keyframe.depth_m
         if depth is None:
             return "no depth"
+        dims = check_shape(depth, "H W", "depth_m")
         height, width = depth.shape
-        if confidence is not None and confidence.shape != depth.shape:
-            raise ValueError(f"confidence {confidence.shape} must match the depth {depth.shape}")
+        if confidence is not None:
+            check_shape(confidence, "H W", "confidence (the depth's H, W)", dims)
         stride = cfg.pixel_stride if pixel_stride is None else int(pixel_stride)
         if stride < 1:
             raise ValueError(f"pixel_stride {stride} out of range: must be >= 1")
@@ -438,10 +447,9 @@ class GlobalSemanticMap:
         points to a keyframe already counted (rendered depth for a keyframe integrated earlier
         without depth), so the staleness clock does not tick twice."""
         started = time.perf_counter()
-        if keyframe.ov is not None and keyframe.ov.ndim != 3:
-            raise ValueError(f"ov must be (h, w, D), got shape {keyframe.ov.shape}")
-        if keyframe.depth_m is not None and keyframe.depth_m.shape != keyframe.rgb.shape[:2]:
-            raise ValueError(f"depth {keyframe.depth_m.shape} must match the image {keyframe.rgb.shape[:2]}")
+        if keyframe.ov is not None:
+            check_shape(keyframe.ov, "h w D", "ov")
+        _check_depth(keyframe)
         obs = self.observe(keyframe, pixel_stride=pixel_stride, confidence=confidence)  # outside the lock
         with self._lock:
             if keyframe.ov is not None:
@@ -478,11 +486,10 @@ class GlobalSemanticMap:
         ``voxels_touched`` their voxels. Raises ``ValueError`` (nothing changed) without ``ov``, on a
         bad ``ov`` shape or a feature dimension other than the map's."""
         started = time.perf_counter()
-        if keyframe.ov is None or keyframe.ov.ndim != 3:
-            shape = None if keyframe.ov is None else keyframe.ov.shape
-            raise ValueError(f"integrate_features needs ov of shape (h, w, D), got {shape}")
-        if keyframe.depth_m is not None and keyframe.depth_m.shape != keyframe.rgb.shape[:2]:
-            raise ValueError(f"depth {keyframe.depth_m.shape} must match the image {keyframe.rgb.shape[:2]}")
+        if keyframe.ov is None:
+            raise ValueError("integrate_features needs ov of shape (h, w, D), got None")
+        check_shape(keyframe.ov, "h w D", "ov")
+        _check_depth(keyframe)
         obs = self.observe(keyframe, pixel_stride=pixel_stride, confidence=confidence)  # outside the lock
         with self._lock:
             self._set_dim(int(keyframe.ov.shape[2]))

@@ -2,7 +2,8 @@
 
 A worker (``mapper.node.plugins.depth_points``: points from rendered depth;
 ``mapper.node.plugins.ov_features``: OV features from the in-process encoder) is handed
-keyframes on the ingest thread and does the slow work on its own thread (``node.workers``). What they share lives here:
+keyframes on the ingest thread and does the slow work on its own thread (``node.workers``).
+What they share lives here:
 
 * :class:`KeyframeQueue`: a bounded FIFO; ``put`` is O(1) and never blocks ingest; beyond
   ``max_len`` items the oldest is dropped and counted; ``wake`` is set on every put;

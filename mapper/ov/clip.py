@@ -46,6 +46,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from mapper.model.ops.checks import check_shape
 from mapper.ov.clip_tokenizer import ClipTokenizer
 from mapper.ov.config import ACTIVATIONS, ClipBackendConfig
 
@@ -467,7 +468,8 @@ def dense_grid_shape(height: int, width: int, short_side: int, patch_size: int) 
 def _check_rgb(rgb: np.ndarray) -> None:
     if not isinstance(rgb, np.ndarray):
         raise TypeError(f"rgb must be a numpy array, got {type(rgb).__name__}")
-    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+    check_shape(rgb, "H W 3", "rgb")
+    if rgb.dtype != np.uint8:
         raise ValueError(f"rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
     if rgb.shape[0] < 1 or rgb.shape[1] < 1:
         raise ValueError(f"rgb must be at least 1x1 pixels, got {rgb.shape[0]}x{rgb.shape[1]}")

@@ -47,6 +47,7 @@ from torch import Tensor
 from mapper.model.baselines import OVView, average_features
 from mapper.model.field import GovNeSF, SourceViews, render_depth_maps, render_rays
 from mapper.model.fusion import blend
+from mapper.model.ops.checks import check_shape
 from mapper.model.ops.cost_volume import VolumeBounds, sample_volume
 from mapper.model.ops.geometry import (
     camera_centers,
@@ -495,9 +496,8 @@ def psnr(pred: Tensor, target: Tensor) -> float:
 def ssim(pred: Tensor, target: Tensor, *, window: int = 11, sigma: float = 1.5) -> float:
     """Structural similarity (Wang et al. 2004) of (H, W, C) images in [0, 1]: Gaussian window
     11 / sigma 1.5, constants (0.01, 0.03), per channel over the valid region, averaged."""
-    if pred.shape != target.shape or pred.ndim != 3:
-        raise ValueError(f"ssim needs two (H, W, C) images of one shape, got {tuple(pred.shape)} "
-                         f"and {tuple(target.shape)}")
+    dims = check_shape(pred, "H W C", "ssim pred")
+    check_shape(target, "H W C", "ssim target (the shape of pred)", dims)
     if min(pred.shape[:2]) < window:
         raise ValueError(f"images {tuple(pred.shape[:2])} are smaller than the {window} px SSIM window")
     x = pred.double().permute(2, 0, 1).unsqueeze(1)  # (C, 1, H, W)

@@ -7,8 +7,9 @@
 A spec is a space-separated list of dimensions: a number must match exactly, a name matches any
 size (and the same name must have the same size wherever it appears in one call, or across calls
 that share a ``dims`` dict), ``*`` matches any number of leading dimensions (only first), and
-``a|b`` accepts either number. Works on anything with a ``.shape`` (torch tensors, numpy arrays);
-imports neither.
+``a|b`` accepts either number. Messages write ``*`` as ``...``, the docstrings' notation
+(``(..., 4, 4)``). Works on anything with a ``.shape`` (torch tensors, numpy arrays); imports
+neither.
 
 Checks are on by default; ``GOVNESF_SHAPE_CHECKS=0`` in the environment (read at import) turns
 them off for speed, as kornia's switch does. They guard the model's public entry points; inputs
@@ -19,6 +20,10 @@ from the wire are validated earlier, by ``protocol/``.
 {'N': 5}
 >>> check_shape(np.zeros((2, 7, 4, 4)), "* 4 4", "world_from_cam")
 {}
+>>> check_shape(np.zeros((3, 3)), "* 4 4", "world_from_cam")
+Traceback (most recent call last):
+...
+mapper.model.ops.checks.ShapeError: world_from_cam: expected shape (..., 4, 4), got (3, 3)
 >>> check_shape(np.zeros((5, 4)), "N 3", "points")
 Traceback (most recent call last):
 ...
@@ -46,8 +51,10 @@ class ShapeError(ValueError):
 
 
 def format_spec(tokens: list[str]) -> str:
-    """``["N", "3"]`` -> ``"(N, 3)"``; a single dimension keeps its trailing comma."""
-    return "(" + ", ".join(tokens) + ("," if len(tokens) == 1 else "") + ")"
+    """``["N", "3"]`` -> ``"(N, 3)"``, ``["*", "4"]`` -> ``"(..., 4)"``; a single dimension keeps its
+    trailing comma."""
+    shown = ["..." if t == "*" else t for t in tokens]
+    return "(" + ", ".join(shown) + ("," if len(shown) == 1 else "") + ")"
 
 
 def check_shape(x: Any, spec: str, name: str, dims: dict[str, int] | None = None) -> dict[str, int]:

@@ -33,6 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from mapper.model.ops.checks import check_shape
 from mapper.model.ops.geometry import in_view, invert_pose, project_points, sample_bilinear, scale_uv
 
 __all__ = [
@@ -108,8 +109,7 @@ def bounds_from_points(
     Returns:
         VolumeBounds.
     """
-    if points_m.ndim != 2 or points_m.shape[-1] != 3:
-        raise ValueError(f"points_m must have shape (N, 3), got {tuple(points_m.shape)}")
+    check_shape(points_m, "N 3", "points_m")
     pts = points_m.detach().to(torch.float64)
     pts = pts[torch.isfinite(pts).all(dim=-1)]
     if pts.shape[0] == 0:
@@ -190,8 +190,7 @@ def build_cost_volume(
         mean: (C, X, Y, Z), variance: (C, X, Y, Z) over the views that see each voxel (0 where
         none does), count: (X, Y, Z) number of such views (float).
     """
-    if features.ndim != 4:
-        raise ValueError(f"features must have shape (N, C, h, w), got {tuple(features.shape)}")
+    check_shape(features, "N C h w", "features")
     n_views, channels = features.shape[:2]
     centers = bounds.voxel_centers(features.dtype, features.device)  # (V, 3)
     uv, z = project_points(
@@ -238,10 +237,7 @@ def sample_volume(volume: Tensor, bounds: VolumeBounds, points_m: Tensor) -> tup
     Returns:
         values: (..., C) and inside: (...,) bool (point within the closed grid box).
     """
-    if volume.ndim != 4 or tuple(volume.shape[1:]) != tuple(bounds.dims):
-        raise ValueError(
-            f"volume must have shape (C, {', '.join(map(str, bounds.dims))}), got {tuple(volume.shape)}"
-        )
+    check_shape(volume, "C X Y Z", "volume (C, bounds.dims)", dict(zip("XYZ", bounds.dims, strict=True)))
     lead = points_m.shape[:-1]
     pts = points_m.reshape(-1, 3)
     origin = pts.new_tensor(bounds.origin_m)
@@ -336,15 +332,10 @@ class CostVolume:
         """
         if view_id in self._views:
             raise ValueError(f"view {view_id!r} is already in the cost volume; remove it first")
-        if features.ndim != 3 or features.shape[0] != self.feature_dim:
-            raise ValueError(
-                f"features must have shape ({self.feature_dim}, h, w), got {tuple(features.shape)}"
-            )
-        if tuple(K.shape) != (4,) or tuple(world_from_cam.shape) != (4, 4):
-            raise ValueError(
-                f"K must be (4,) and world_from_cam (4, 4), got {tuple(K.shape)} and "
-                f"{tuple(world_from_cam.shape)}"
-            )
+        check_shape(features, "C h w", f"features must have shape ({self.feature_dim}, h, w)",
+                    {"C": self.feature_dim})
+        check_shape(K, "4", "K")
+        check_shape(world_from_cam, "4 4", "world_from_cam")
         if len(image_wh) != 2 or min(image_wh) < 1:
             raise ValueError(f"image_wh {image_wh} out of range: (W, H) with W, H >= 1")
         view = _StoredView(

@@ -30,6 +30,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from mapper.model.ops.checks import check_shape
+
 __all__ = [
     "frustum_points",
     "DEFAULT_EPS",
@@ -54,18 +56,15 @@ _UV_LIMIT = 6.0e4
 
 
 def _check_pose(pose: Tensor, name: str) -> None:
-    if pose.shape[-2:] != (4, 4):
-        raise ValueError(f"{name} must have shape (..., 4, 4), got {tuple(pose.shape)}")
+    check_shape(pose, "* 4 4", name)
 
 
 def _check_points(points: Tensor, name: str) -> None:
-    if points.ndim < 2 or points.shape[-1] != 3:
-        raise ValueError(f"{name} must have shape (..., N, 3), got {tuple(points.shape)}")
+    check_shape(points, "* N 3", name)
 
 
 def _check_K(K: Tensor) -> None:
-    if K.shape[-1] != 4:
-        raise ValueError(f"K must have shape (..., 4) as [fx, fy, cx, cy], got {tuple(K.shape)}")
+    check_shape(K, "* 4", "K must have shape [fx, fy, cx, cy]")
 
 
 def invert_pose(a_from_b: Tensor) -> Tensor:
@@ -260,10 +259,8 @@ def in_view(
 
 
 def _flatten_for_sampling(image: Tensor, uv: Tensor) -> tuple[Tensor, Tensor, tuple[int, ...]]:
-    if image.ndim < 3:
-        raise ValueError(f"image must have shape (..., C, H, W), got {tuple(image.shape)}")
-    if uv.ndim < 2 or uv.shape[-1] != 2:
-        raise ValueError(f"uv must have shape (..., N, 2), got {tuple(uv.shape)}")
+    check_shape(image, "* C H W", "image")
+    check_shape(uv, "* N 2", "uv must have shape [u, v] per point")
     batch = torch.broadcast_shapes(image.shape[:-3], uv.shape[:-2])
     n_batch = math.prod(batch)
     img = image.expand(*batch, *image.shape[-3:]).reshape(n_batch, *image.shape[-3:])
