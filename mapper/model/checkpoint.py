@@ -15,10 +15,10 @@ Every file is written to a temporary file in the same folder and moved into plac
 reader never pairs a JSON with half-written or mismatched weights.
 
 Example:
-    >>> from mapper.model.checkpoint import load_model                      # doctest: +SKIP
-    >>> model, meta = load_model("checkpoints/cpu-small.json")       # doctest: +SKIP
-    >>> meta["preset"], meta["step"]                                  # doctest: +SKIP
-    ('cpu-small', 3000)
+    >>> from mapper.model.checkpoint import load_model
+    >>> model, meta = load_model("checkpoints/cpu-small.json")  # run from the repository root
+    >>> meta["preset"], meta["mode"]
+    ('cpu-small', 'blend')
 """
 
 from __future__ import annotations
