@@ -20,7 +20,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from clients.demo import NodeProcess, synthetic_frame  # noqa: E402
+from clients.harness import NodeProcess, synthetic_frame  # noqa: E402
 from protocol.messages import Ack, encode  # noqa: E402
 
 

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from clients.demo import chair_distance, sim_stream
+from clients.harness import chair_distance, sim_stream
 from mapper.node.config import config_from_dict
 from mapper.node.plugins.learned import install_learned_handlers
 from mapper.node.service import MapperNode

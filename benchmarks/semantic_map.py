@@ -25,7 +25,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 
 def _keyframes(seed: int, frames: int, width: int, height: int, offset_m: float = 0.0) -> list:
-    from clients.demo import sim_stream
+    from clients.harness import sim_stream
     from mapper.node.window import Keyframe
 
     stream = sim_stream(seed, frames, width, height)
@@ -115,7 +115,7 @@ def bench_segment(args: argparse.Namespace) -> None:
 
     kfs = _keyframes(args.seed, args.frames, 160, 120)
     window = kfs[:: max(1, len(kfs) // args.views)][: args.views]
-    from clients.demo import sim_stream
+    from clients.harness import sim_stream
 
     scene = sim_stream(args.seed, 1, 16, 12, ov=False).scene
     xyz, _, _ = scene.sample_surface(args.points, seed=0, exclude_labels=(LABEL_OF["ceiling"],))
@@ -138,7 +138,7 @@ def bench_stream(args: argparse.Namespace) -> None:
 
     from tqdm import tqdm
 
-    from clients.demo import NodeProcess, sim_stream
+    from clients.harness import NodeProcess, sim_stream
 
     rooms = max(1, args.rooms)
     per_room = args.frames // rooms

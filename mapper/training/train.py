@@ -449,17 +449,21 @@ def train(
             dist.destroy_process_group()
 
 
-def _train(
-    cfg: TrainConfig,
-    dd: _Dist,
-    *,
-    resume: str | Path | None,
-    until_step: int | None,
-    model_cfg: ModelConfig | None,
-    command: str | None,
-    progress: bool,
-) -> dict[str, Any]:
-    is_main = dd.rank == 0
+@dataclass
+class _Data:
+    """What a run trains and validates on (validation only on rank 0)."""
+
+    train_scenes: list[Scene]
+    mcfg: ModelConfig
+    sampler: RaySampler
+    val_views: list[ValidationView]
+    text_emb: np.ndarray
+    load_s: float
+
+
+def _load_data(cfg: TrainConfig, dd: _Dist, model_cfg: ModelConfig | None) -> _Data:
+    """Training scenes, the model config (its ``ov_dim`` follows the data), the ray sampler and, on
+    rank 0, the validation views and class text embeddings."""
     t_load = time.perf_counter()
     train_scenes = _load_scenes(cfg.train_dir, limit=cfg.max_train_scenes)
     ov_dim = train_scenes[0].ov_dim
@@ -476,160 +480,226 @@ def _train(
     )
     val_views: list[ValidationView] = []
     text_emb = np.zeros((0, ov_dim), np.float32)
-    if is_main and cfg.val_dir:
+    if dd.rank == 0 and cfg.val_dir:
         val_scenes = _load_scenes(cfg.val_dir, with_novel_views=True)
         val_views = validation_views(
             val_scenes, cfg.num_sources or mcfg.num_source_views, views_per_scene=cfg.val_views_per_scene
         )
         text_emb = class_text_embeddings(cfg.val_dir, val_scenes[0].class_names)
-    load_s = time.perf_counter() - t_load
+    return _Data(train_scenes, mcfg, sampler, val_views, text_emb, time.perf_counter() - t_load)
 
+
+@dataclass
+class _Model:
+    """The model and optimiser, and where the run starts (after ``--resume``)."""
+
+    model: GovNeSF
+    optimizer: torch.optim.Optimizer
+    start: int = 0
+    wall_before: float = 0.0
+    history: list[dict[str, Any]] = field(default_factory=list)
+
+
+def _build_model(cfg: TrainConfig, mcfg: ModelConfig, dd: _Dist, resume: str | Path | None) -> _Model:
+    """Seeded model + AdamW, restored from ``resume`` if given; every rank gets rank 0's weights."""
     torch.manual_seed(cfg.seed)
     model = GovNeSF(mcfg, mode=cfg.mode).to(dd.device)  # type: ignore[arg-type]
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    start = 0
-    wall_before = 0.0
-    history: list[dict[str, Any]] = []
+    built = _Model(model, optimizer)
     if resume is not None:
         meta, extra = load_training_state(resume, model, optimizer)
-        start = int(meta["step"])
-        wall_before = float(meta.get("train_wall_s", 0.0))
-        history = list(meta.get("validation_history", []))
+        built.start = int(meta["step"])
+        built.wall_before = float(meta.get("train_wall_s", 0.0))
+        built.history = list(meta.get("validation_history", []))
         if "rng.torch" in extra:
             torch.set_rng_state(extra["rng.torch"])
     if dd.world > 1:  # every rank starts from rank 0's weights
         for t in list(model.state_dict().values()):
             dist.broadcast(t, src=0)
+    return built
 
-    out_dir = Path(cfg.out_dir)
-    log_path = out_dir / "log.jsonl"
-    if is_main:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    stop = cfg.max_steps if until_step is None else min(cfg.max_steps, until_step)
-    command = command or " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])
-    base_meta = {
-        "preset": cfg.preset if model_cfg is None else mcfg.name,
-        "train_config": dataclasses.asdict(cfg),
-        "command": command,
-        "git_commit": _git_commit(),
-        "world_size": dd.world,
-        "device": str(dd.device),
-        "torch": torch.__version__,
-        "ov_space": "minilm-l6-v2",
-    }
-    t0 = time.perf_counter()
-    last_stats: dict[str, float] = {}
-    last_val: dict[str, Any] = history[-1] if history else {}
 
-    def wall() -> float:
-        return wall_before + time.perf_counter() - t0
+class _Run:
+    """One run's bookkeeping on rank 0: the log, the progress bar, validation and checkpoints."""
 
-    def meta_for(step: int) -> dict[str, Any]:
+    def __init__(
+        self,
+        cfg: TrainConfig,
+        dd: _Dist,
+        data: _Data,
+        built: _Model,
+        *,
+        stop: int,
+        command: str,
+        preset: str,
+    ) -> None:
+        self.cfg, self.data, self.built, self.stop = cfg, data, built, stop
+        self.out_dir = Path(cfg.out_dir)
+        self.log_path = self.out_dir / "log.jsonl"
+        self.base_meta = {
+            "preset": preset,
+            "train_config": dataclasses.asdict(cfg),
+            "command": command,
+            "git_commit": _git_commit(),
+            "world_size": dd.world,
+            "device": str(dd.device),
+            "torch": torch.__version__,
+            "ov_space": "minilm-l6-v2",
+        }
+        self.device = dd.device
+        self.t0 = time.perf_counter()
+        self.last_stats: dict[str, float] = {}
+        self.last_val: dict[str, Any] = built.history[-1] if built.history else {}
+        self.bar: Any = None
+
+    def wall(self) -> float:
+        return self.built.wall_before + time.perf_counter() - self.t0
+
+    def meta_for(self, step: int) -> dict[str, Any]:
         return {
-            **base_meta,
+            **self.base_meta,
             "step": step,
-            "train_wall_s": round(wall(), 1),
-            "last_train_stats": last_stats,
-            "metrics": last_val,
-            "validation_history": history,
+            "train_wall_s": round(self.wall(), 1),
+            "last_train_stats": self.last_stats,
+            "metrics": self.last_val,
+            "validation_history": self.built.history,
         }
 
-    def save_training(step: int) -> None:
+    def save_training(self, step: int) -> None:
         save_checkpoint(
-            out_dir / "last",
-            model,
-            metadata=meta_for(step),
-            optimizer=optimizer,
+            self.out_dir / "last",
+            self.built.model,
+            metadata=self.meta_for(step),
+            optimizer=self.built.optimizer,
             extra_tensors={"rng.torch": torch.get_rng_state()},
         )
 
-    def run_validation(step: int) -> None:
-        nonlocal last_val
-        if not val_views:
+    def run_validation(self, step: int) -> None:
+        cfg = self.cfg
+        if not self.data.val_views:
             return
         t_val = time.perf_counter()
         res = validate(
-            model,
-            val_views,
-            text_emb,
+            self.built.model,
+            self.data.val_views,
+            self.data.text_emb,
             stride_px=cfg.val_stride_px,
             depth_guided_masking=cfg.depth_guided_masking,
             clip_to_volume=cfg.clip_to_volume,
-            device=dd.device,
+            device=self.device,
         )
         res = {"step": step, **res, "val_s": round(time.perf_counter() - t_val, 1)}
-        last_val = res
-        history.append({k: v for k, v in res.items() if k != "per_scene_miou"})
-        _log(log_path, {"event": "validation", **res})
-        if bar is not None:
-            bar.write(
+        self.last_val = res
+        self.built.history.append({k: v for k, v in res.items() if k != "per_scene_miou"})
+        _log(self.log_path, {"event": "validation", **res})
+        if self.bar is not None:
+            self.bar.write(
                 f"step {step}: val 2D mIoU {res['miou_2d']:.3f}  PSNR {res['psnr']:.2f} dB "
                 f"({res['val_s']:.0f} s)"
             )
         if cfg.export:
-            save_checkpoint(cfg.export, model, metadata=meta_for(step), half=cfg.export_half)
+            save_checkpoint(cfg.export, self.built.model, metadata=self.meta_for(step), half=cfg.export_half)
 
-    bar = None
-    if is_main:
+    def begin(self, *, progress: bool) -> None:
+        """The ``start`` log record and the progress bar."""
+        cfg, start = self.cfg, self.built.start
         _log(
-            log_path,
+            self.log_path,
             {
                 "event": "start",
                 "from_step": start,
-                "until": stop,
+                "until": self.stop,
                 "max_steps": cfg.max_steps,
-                "world_size": dd.world,
-                "load_s": round(load_s, 1),
-                "command": command,
-                "train_scenes": len(train_scenes),
-                "val_views": len(val_views),
+                "world_size": self.base_meta["world_size"],
+                "load_s": round(self.data.load_s, 1),
+                "command": self.base_meta["command"],
+                "train_scenes": len(self.data.train_scenes),
+                "val_views": len(self.data.val_views),
             },
         )
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(
-                total=stop,
+            self.bar = tqdm(
+                total=self.stop,
                 initial=start,
-                desc=f"train {mcfg.name}/{cfg.mode}",
+                desc=f"train {self.data.mcfg.name}/{cfg.mode}",
                 dynamic_ncols=True,
                 file=sys.stderr,
             )
-    step = start
+
+    def after_step(self, done: int, stats: dict[str, float]) -> None:
+        """Progress, log, validation and checkpoint after ``done`` completed steps."""
+        cfg = self.cfg
+        if self.bar is not None:
+            self.bar.update(1)
+            self.bar.set_postfix(
+                loss=f"{stats['loss']:.4f}",
+                rgb=f"{stats['color']:.4f}",
+                ov=f"{stats['ov']:.3f}",
+                lr=f"{stats['lr']:.1e}",
+            )
+        if done % cfg.log_every == 0 or done == self.stop:
+            _log(self.log_path, {"event": "step", "step": done, **stats, "wall_s": round(self.wall(), 1)})
+        if done % cfg.val_every == 0 and done != self.stop:
+            self.run_validation(done)
+        if done % cfg.checkpoint_every == 0 or done == self.stop:
+            self.save_training(done)
+
+    def end(self, done: int, *, validate_last: bool) -> None:
+        """Final validation (when the run is complete), checkpoint and ``end`` record."""
+        if validate_last:
+            self.run_validation(done)
+        self.save_training(done)
+        if self.bar is not None:
+            self.bar.close()
+        _log(self.log_path, {"event": "end", "step": done, "wall_s": round(self.wall(), 1)})
+
+
+def _train(
+    cfg: TrainConfig,
+    dd: _Dist,
+    *,
+    resume: str | Path | None,
+    until_step: int | None,
+    model_cfg: ModelConfig | None,
+    command: str | None,
+    progress: bool,
+) -> dict[str, Any]:
+    is_main = dd.rank == 0
+    data = _load_data(cfg, dd, model_cfg)
+    built = _build_model(cfg, data.mcfg, dd, resume)
+    model, start = built.model, built.start
+    if is_main:
+        Path(cfg.out_dir).mkdir(parents=True, exist_ok=True)
+    stop = cfg.max_steps if until_step is None else min(cfg.max_steps, until_step)
+    command = command or " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])
+    preset = cfg.preset if model_cfg is None else data.mcfg.name
+    run = _Run(cfg, dd, data, built, stop=stop, command=command, preset=preset)
+    if is_main:
+        run.begin(progress=progress)
     for step in range(start, stop):
-        stats = train_step(model, optimizer, sampler, cfg, step, dd.rank, dd.world, dd.device)
+        stats = train_step(model, built.optimizer, data.sampler, cfg, step, dd.rank, dd.world, dd.device)
         if not all(math.isfinite(v) for v in stats.values()):
             raise FloatingPointError(f"step {step}: non-finite training statistics {stats}")
-        last_stats = stats
+        run.last_stats = stats
         done = step + 1
         if is_main:
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(
-                    loss=f"{stats['loss']:.4f}",
-                    rgb=f"{stats['color']:.4f}",
-                    ov=f"{stats['ov']:.3f}",
-                    lr=f"{stats['lr']:.1e}",
-                )
-            if done % cfg.log_every == 0 or done == stop:
-                _log(log_path, {"event": "step", "step": done, **stats, "wall_s": round(wall(), 1)})
-            if done % cfg.val_every == 0 and done != stop:
-                run_validation(done)
-            if done % cfg.checkpoint_every == 0 or done == stop:
-                save_training(done)
+            run.after_step(done, stats)
         if dd.world > 1 and done % cfg.val_every == 0:
             dist.barrier()
     done = max(start, stop)
     if is_main:
-        if done >= cfg.max_steps or until_step is None:
-            run_validation(done)
-        save_training(done)
-        if bar is not None:
-            bar.close()
-        _log(log_path, {"event": "end", "step": done, "wall_s": round(wall(), 1)})
+        run.end(done, validate_last=done >= cfg.max_steps or until_step is None)
     if dd.world > 1:
         dist.barrier()
-    return {"step": done, "train": last_stats, "validation": last_val, "train_wall_s": wall(), "model": model}
+    return {
+        "step": done,
+        "train": run.last_stats,
+        "validation": run.last_val,
+        "train_wall_s": run.wall(),
+        "model": model,
+    }
 
 
 def _log(path: Path, record: dict[str, Any]) -> None:

@@ -1,7 +1,7 @@
 """``--rerun FILE.rrd`` logging (clients/rerun_log.py): every test writes a real ``.rrd`` and reads
 it back with ``rerun.chunk.RrdReader`` (rerun-sdk 0.41), checking entity paths and their data.
 
-The CLI paths run against a real ``govnesf serve`` process (``clients.demo.NodeProcess``, as in
+The CLI paths run against a real ``govnesf serve`` process (``clients.harness.NodeProcess``, as in
 tests/e2e) fed with the demo's synthetic checkerboard frames (``demo-checker`` features: one-hot
 sky / dark / light cells). That process registers a text encoder for the ``demo-checker`` space
 before it serves (the built-in MiniLM encoder takes longer to load than a test may run), so
@@ -29,7 +29,7 @@ import zmq
 from clients import replay
 from clients.cli import query as client_cli
 from clients.cli import render as render_cli
-from clients.demo import (
+from clients.harness import (
     DEMO_OV_DIM,
     DEMO_OV_SPACE,
     REPO_ROOT,

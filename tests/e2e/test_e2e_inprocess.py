@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from clients.client import MapperClient
-from clients.demo import free_endpoints, synthetic_frame
+from clients.harness import free_endpoints, synthetic_frame
 from mapper.node.config import config_from_dict
 from mapper.node.service import MapperNode
 from mapper.node.window import Keyframe
@@ -185,7 +185,7 @@ def test_save_failure_on_the_node_is_internal_and_changes_nothing(tmp_path: Path
 def test_without_depth_semantic_requests_are_not_ready(node: MapperNode) -> None:
     """Frames with ov but no depth count for the window, add no map points; semantic requests
     then answer not_ready, except the depth-free averaging baseline."""
-    from clients.demo import sim_stream
+    from clients.harness import sim_stream
     from protocol.errors import RemoteError
 
     stream = sim_stream(3, 30, 40, 30, depth=False)

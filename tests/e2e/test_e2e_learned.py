@@ -16,7 +16,7 @@ from PIL import Image
 
 from clients.cli import main as govnesf
 from clients.client import MapperClient
-from clients.demo import free_endpoints
+from clients.harness import free_endpoints
 from mapper.model.field import GovNeSF
 from mapper.node.config import config_from_dict
 from mapper.node.plugins.learned import install_learned_handlers

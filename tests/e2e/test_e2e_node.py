@@ -20,7 +20,7 @@ import pytest
 import zmq
 
 from clients.client import MapperClient
-from clients.demo import REPO_ROOT, NodeProcess, synthetic_frame, write_synthetic_recording
+from clients.harness import REPO_ROOT, NodeProcess, synthetic_frame, write_synthetic_recording
 from clients.replay import replay
 from protocol.errors import RemoteError
 from protocol.messages import (
@@ -348,7 +348,7 @@ def test_cli_status_and_unreachable_replay(node: NodeProcess, tmp_path: Path) ->
     assert out.returncode == 0, out.stderr
     assert "map_version" in out.stdout and "frames_received" in out.stdout
     recording = write_synthetic_recording(tmp_path / "r.govrec", 2, W, H)
-    from clients.demo import free_endpoints
+    from clients.harness import free_endpoints
 
     (nobody,) = free_endpoints(1)
     out = subprocess.run(

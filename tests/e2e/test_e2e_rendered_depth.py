@@ -11,7 +11,7 @@ from collections.abc import Iterator
 import pytest
 
 from clients.client import MapperClient
-from clients.demo import REPO_ROOT, NodeProcess, synthetic_frames
+from clients.harness import REPO_ROOT, NodeProcess, synthetic_frames
 
 pytestmark = [
     pytest.mark.slow,

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from clients.client import MapperClient
-from clients.demo import REPO_ROOT, NodeProcess, chair_distance, mean_iou, sim_stream
+from clients.harness import REPO_ROOT, NodeProcess, chair_distance, mean_iou, sim_stream
 from protocol.messages import Error, Frame, Points
 
 pytestmark = pytest.mark.slow
