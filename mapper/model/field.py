@@ -9,7 +9,8 @@ Pipeline for query points p (R rays x S samples):
    sigma = DensityMLP(v), 0 outside the volume.
 
 ``render_rays`` composites along rays; the OV features are composited with DETACHED weights so
-the OV loss never trains the density (2D OV maps are not view-consistent).
+the OV loss never trains the density (2D OV maps are not view-consistent). It, ``render_depth_maps``
+and the node's runtime all march with ``mapper.model.render.march_rays`` (the one ray marcher).
 
 Point mode (``query_points``): the source-view-agnostic OV feature at given points, each a single
 sample (3D segmentation). Distill mode (``mode="distill"``): the OV feature is regressed by
@@ -28,6 +29,7 @@ from torch import Tensor, nn
 from mapper.model.config import ModelConfig
 from mapper.model.encoder2d import ImageEncoder
 from mapper.model.fusion import DensityMLP, DistillHead, FusionNet, blend
+from mapper.model.ops.checks import check_shape
 from mapper.model.ops.cost_volume import VolumeBounds, build_cost_volume, cost_volume_features, sample_volume
 from mapper.model.ops.geometry import (
     camera_centers,
@@ -39,14 +41,8 @@ from mapper.model.ops.geometry import (
     sample_nearest,
     scale_uv,
 )
-from mapper.model.ops.rendering import (
-    Rays,
-    composite,
-    expected_depth,
-    intersect_aabb,
-    render_weights,
-    sample_along_rays,
-)
+from mapper.model.ops.rendering import Rays
+from mapper.model.render import march_rays
 from mapper.model.unet3d import VolumeUNet
 
 __all__ = [
@@ -156,6 +152,8 @@ class PointOutputs:
     """(P,) bool: at least one view sees the point."""
     num_views: Tensor
     """(P,) long: number of views that see the point (evaluation keeps points seen by > 1)."""
+    ov_weights: Tensor | None = None
+    """(P, N) the OV blending weights over the source views (blend mode; None for Distill)."""
 
 
 @dataclass
@@ -332,15 +330,20 @@ class GovNeSF(nn.Module):
                 ov=torch.cat([p.ov for p in parts]),
                 valid=torch.cat([p.valid for p in parts]),
                 num_views=torch.cat([p.num_views for p in parts]),
+                ov_weights=None
+                if parts[0].ov_weights is None
+                else torch.cat([p.ov_weights for p in parts if p.ov_weights is not None]),
             )
         samples = self.sample_views(views, points, depth_guided_masking)
         v, _ = sample_volume(volume, bounds, points.to(volume.dtype))
         fused = self.fusion(samples.rgb, samples.features, v, samples.source_dirs, samples.mask, None)
         if self.distill is not None:
             ov = self.distill(fused.x_att, samples.mask, v) * fused.valid.unsqueeze(-1)
+            weights = None
         else:
             ov = blend(fused.ov_weights, samples.ov)
-        return PointOutputs(ov=ov, valid=fused.valid, num_views=samples.mask.sum(dim=1))
+            weights = fused.ov_weights
+        return PointOutputs(ov=ov, valid=fused.valid, num_views=samples.mask.sum(dim=1), ov_weights=weights)
 
 
 def render_rays(
@@ -359,7 +362,8 @@ def render_rays(
     clip_to_volume: bool = False,
     weight_threshold: float = 0.0,
 ) -> RenderOutputs:
-    """Volume-render R rays (defaults from ``model.cfg.render``).
+    """Volume-render R rays (defaults from ``model.cfg.render``) with the one marcher,
+    :func:`mapper.model.render.march_rays`.
 
     ``clip_to_volume`` (empty-space skipping): sample only the part of [near, far] inside the
     volume's bounds (density is 0 outside it); rays that miss the volume keep [near, far].
@@ -367,59 +371,42 @@ def render_rays(
 
     ``weight_threshold`` > 0: density first (cheap: volume lookup + MLP), then the expensive
     per-view appearance (projection, sampling, FusionNet) only for samples whose rendering weight
-    exceeds it; the others contribute 0 colour / OV. This is an approximation (it drops the
+    reaches it; the others contribute 0 colour / OV. This is an approximation (it drops the
     colour gradient through those tiny weights); 0 (default) is exact.
     """
     if weight_threshold < 0:
         raise ValueError(f"weight_threshold {weight_threshold} out of range: must be >= 0")
     rc = model.cfg.render
-    n_rays = len(rays)
     like = rays.origins
-    near = torch.as_tensor(rc.near_m if near_m is None else near_m, dtype=like.dtype, device=like.device)
-    far = torch.as_tensor(rc.far_m if far_m is None else far_m, dtype=like.dtype, device=like.device)
-    if clip_to_volume:
-        near, far = near.expand(n_rays), far.expand(n_rays)
-        box_min = like.new_tensor(bounds.origin_m)
-        box_max = like.new_tensor(bounds.max_corner_m)
-        t_in, t_out, hit = intersect_aabb(rays.origins, rays.directions, box_min, box_max)
-        clipped_near, clipped_far = torch.maximum(near, t_in), torch.minimum(far, t_out)
-        use = hit & (clipped_far > clipped_near)
-        near = torch.where(use, clipped_near, near)
-        far = torch.where(use, clipped_far, far)
-    t, deltas = sample_along_rays(
-        rays.origins,
-        rays.directions,
-        near,
-        far,
-        rc.n_samples if n_samples is None else n_samples,
+    box = (like.new_tensor(bounds.origin_m), like.new_tensor(bounds.max_corner_m)) if clip_to_volume else None
+
+    def density(points: Tensor) -> tuple[Tensor, Tensor]:
+        return model.density_at(volume, bounds, points)
+
+    def appearance(points: Tensor, view_dirs: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return model.appearance(views, v, points, view_dirs, depth_guided_masking)
+
+    out = march_rays(
+        rays,
+        density,
+        appearance,
+        n_samples=rc.n_samples if n_samples is None else n_samples,
+        near_m=rc.near_m if near_m is None else near_m,
+        far_m=rc.far_m if far_m is None else far_m,
         stratified=stratified,
         generator=generator,
+        box=box,
+        min_weight=weight_threshold,
     )
-    points = rays.origins[:, None, :] + t[..., None] * rays.directions[:, None, :]  # (R, S, 3)
-    S = t.shape[1]
-    flat = points.reshape(-1, 3)
-    sigma, v = model.density_at(volume, bounds, flat)
-    sigma = sigma.reshape(n_rays, S)
-    weights, _ = render_weights(sigma, deltas.to(sigma.dtype))
-    dirs = rays.directions[:, None, :].expand(n_rays, S, 3).reshape(-1, 3)
-    if weight_threshold > 0:
-        # Appearance only where the sample matters; the rest render as 0 (their weight is tiny).
-        keep = (weights.detach() > weight_threshold).reshape(-1).nonzero().squeeze(-1)
-        rgb_k, ov_k, valid_k = model.appearance(views, v[keep], flat[keep], dirs[keep], depth_guided_masking)
-        rgb = rgb_k.new_zeros(n_rays * S, 3).index_copy(0, keep, rgb_k)
-        ov = ov_k.new_zeros(n_rays * S, ov_k.shape[-1]).index_copy(0, keep, ov_k)
-        valid = valid_k.new_zeros(n_rays * S).index_copy(0, keep, valid_k)
-    else:
-        rgb, ov, valid = model.appearance(views, v, flat, dirs, depth_guided_masking)
-    rgb, ov, valid = rgb.reshape(n_rays, S, 3), ov.reshape(n_rays, S, -1), valid.reshape(n_rays, S)
+    assert out.rgb is not None and out.ov is not None
     return RenderOutputs(
-        rgb=composite(weights, rgb),
-        ov=composite(weights.detach(), ov),
-        depth_m=expected_depth(weights, t.to(weights.dtype)),
-        opacity=weights.sum(dim=-1),
-        weights=weights,
-        t=t,
-        valid_fraction=valid.float().mean(dim=-1),
+        rgb=out.rgb,
+        ov=out.ov,
+        depth_m=out.depth_m,
+        opacity=out.opacity,
+        weights=out.weights,
+        t=out.t,
+        valid_fraction=out.valid.float().mean(dim=-1),
     )
 
 
@@ -437,7 +424,8 @@ def render_depth_maps(
     min_opacity: float = 0.5,
     chunk_rays: int = 16384,
 ) -> tuple[Tensor, Tensor]:
-    """The model's z-depth seen from N cameras: density only (no source views needed).
+    """The model's z-depth seen from N cameras: a depth-only march (no source views needed) on
+    ``[near_m, far_m]`` clipped to the volume box; rays that miss the box render nothing.
 
     Args:
         volume: (Dv, X, Y, Z) over ``bounds``; K: (N, 4) for (width, height); world_from_cam: (N, 4, 4).
@@ -447,13 +435,19 @@ def render_depth_maps(
     Returns:
         depth_m: (N, height, width) z-depth along each optical axis (0 = none); opacity: same shape.
     """
+    if chunk_rays < 1:
+        raise ValueError(f"chunk_rays {chunk_rays} out of range: must be >= 1")
+    check_shape(world_from_cam, "N 4 4", "world_from_cam", check_shape(K, "N 4", "K"))
     rc = model.cfg.render
     n = K.shape[0]
     depth = torch.zeros(n, height, width, device=volume.device)
     opacity = torch.zeros(n, height, width, device=volume.device)
-    box_min = volume.new_tensor(bounds.origin_m)
-    box_max = volume.new_tensor(bounds.max_corner_m)
+    box = (volume.new_tensor(bounds.origin_m), volume.new_tensor(bounds.max_corner_m))
     S = rc.n_samples if n_samples is None else n_samples
+
+    def density(points: Tensor) -> tuple[Tensor, Tensor]:
+        return model.density_at(volume, bounds, points)
+
     for i in range(n):
         origins, dirs = pixel_rays(K[i].to(volume.dtype), world_from_cam[i].to(volume.dtype), width, height)
         origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
@@ -461,21 +455,13 @@ def render_depth_maps(
         z_all, op_all = [], []
         for j in range(0, origins.shape[0], chunk_rays):
             o, d = origins[j : j + chunk_rays], dirs[j : j + chunk_rays]
-            t_in, t_out, hit = intersect_aabb(o, d, box_min, box_max)
-            near = torch.clamp(t_in, min=rc.near_m)
-            far = torch.minimum(t_out, torch.full_like(t_out, rc.far_m))
-            use = hit & (far > near + 1e-6)
-            near = torch.where(use, near, torch.full_like(near, rc.near_m))
-            far = torch.where(use, far, torch.full_like(far, rc.near_m + 1e-3))
-            t, deltas = sample_along_rays(o, d, near, far, S, stratified=False)
-            pts = o[:, None, :] + t[..., None] * d[:, None, :]
-            sigma, _ = model.density_at(volume, bounds, pts.reshape(-1, 3))
-            sigma = sigma.reshape(-1, S) * use[:, None].to(sigma.dtype)
-            w, _ = render_weights(sigma, deltas.to(sigma.dtype))
-            op = w.sum(-1)
-            z = expected_depth(w, t.to(w.dtype)) * (d @ axis)
-            z_all.append(torch.where(op >= min_opacity, z, torch.zeros_like(z)))
-            op_all.append(op)
+            out = march_rays(
+                Rays(o, d), density, None, n_samples=S, near_m=rc.near_m, far_m=rc.far_m,
+                box=box, skip_missed=True,
+            )  # fmt: skip
+            z = out.depth_m * (d @ axis)
+            z_all.append(torch.where(out.opacity >= min_opacity, z, torch.zeros_like(z)))
+            op_all.append(out.opacity)
         depth[i] = torch.cat(z_all).reshape(height, width)
         opacity[i] = torch.cat(op_all).reshape(height, width)
     return depth, opacity

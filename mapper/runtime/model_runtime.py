@@ -73,13 +73,8 @@ from mapper.model.ops.geometry import (
     pixel_rays,
     project_points,
 )
-from mapper.model.ops.rendering import (
-    composite,
-    expected_depth,
-    intersect_aabb,
-    render_weights,
-    sample_along_rays,
-)
+from mapper.model.ops.rendering import Rays
+from mapper.model.render import AppearanceFn, march_rays, occupancy_mask
 from mapper.ov.encoders import TextEncoder, UnknownSpaceError, get_text_encoder
 from mapper.runtime.config import ModelRuntimeConfig
 
@@ -902,77 +897,59 @@ class ModelRuntime:
         """rgb (R, 3), ray distance (R,), opacity (R,), ov (R, D) | None and covered (R,) (the
         opacity of samples some source view sees) for one chunk of rays.
 
+        The model's one marcher (``mapper.model.render.march_rays``) with the runtime's density
+        (view-support mask), its view-grouped appearance, ``samples_per_ray`` bins on
+        ``[near, far]`` clipped to the volume box (density is exactly 0 outside it; rays that miss
+        the box render nothing). Dense mode evaluates every sample; skipping evaluates the density
+        only in occupied voxels and the appearance only where the weight reaches ``min_weight``.
         ``appearance=False`` (a depth-only render) skips the appearance pass: rgb and covered are 0;
         depth and opacity are exactly those of a full render (they depend on the density only).
-
-        Both modes sample ``samples_per_ray`` bins on ``[near, far]`` clipped to the volume box
-        (density is exactly 0 outside it; rays that miss the box render nothing). Dense mode
-        evaluates every sample; skipping evaluates the density only in occupied voxels and the
-        appearance only where the weight reaches ``min_weight``.
         """
         cfg = self.config
         b = prep.bounds
-        n = origins.shape[0]
-        S = self.samples_per_ray
-        box_min = origins.new_tensor(b.origin_m)
-        box_max = origins.new_tensor(b.max_corner_m)
-        t_in, t_out, hit = intersect_aabb(origins, dirs, box_min, box_max)
-        near = torch.maximum(t_in, torch.full_like(t_in, cfg.near_m))
-        far = torch.minimum(t_out, torch.full_like(t_out, cfg.far_m))
-        active = hit & (far > near + 1e-6)
-        near = torch.where(active, near, torch.full_like(near, cfg.near_m))
-        far = torch.where(active, far, torch.full_like(far, cfg.far_m))
-        t, deltas = sample_along_rays(origins, dirs, near, far, S, stratified=False)
-        points = origins[:, None, :] + t[..., None] * dirs[:, None, :]  # (R, S, 3)
-        flat = points.reshape(-1, 3)
-        evaluate = active[:, None].expand(n, S).reshape(-1)
-        if occupancy is not None:
-            cont = (flat - box_min) / b.voxel_size_m
-            vox = cont.floor().long()
-            dims = torch.tensor(b.dims, device=flat.device)
-            inside = ((vox >= 0) & (vox < dims)).all(dim=-1)
-            vox = torch.minimum(vox.clamp_min(0), dims - 1)
-            evaluate = evaluate & inside & occupancy[vox[:, 0], vox[:, 1], vox[:, 2]]
-        eval_idx = evaluate.nonzero().squeeze(-1)
-        stats["samples"] += n * S
-        stats["density_evals"] += int(eval_idx.numel())
-        sigma = torch.zeros(n * S, device=flat.device)
-        dv = model.cfg.volume.volume_feature_dim
-        v_all = torch.zeros(n * S, dv, device=flat.device)
-        if eval_idx.numel():
-            sig, v = self._density(model, prep, flat[eval_idx])
-            sigma[eval_idx] = sig
-            v_all[eval_idx] = v
-        weights, _ = render_weights(sigma.reshape(n, S), deltas)
-        keep = evaluate
-        if not appearance:
-            keep = torch.zeros_like(keep)
-        elif occupancy is not None and cfg.min_weight > 0:
-            keep = keep & (weights.reshape(-1) >= cfg.min_weight)
-        keep_idx = keep.nonzero().squeeze(-1)
-        stats["appearance_evals"] += int(keep_idx.numel())
+        out = march_rays(
+            Rays(origins, dirs),
+            lambda points: self._density(model, prep, points),
+            self._appearance(model, prep, need_ov, allowed, stats) if appearance else None,
+            n_samples=self.samples_per_ray,
+            near_m=cfg.near_m,
+            far_m=cfg.far_m,
+            box=(origins.new_tensor(b.origin_m), origins.new_tensor(b.max_corner_m)),
+            skip_missed=True,
+            sample_mask=occupancy_mask(occupancy, b) if occupancy is not None else None,
+            min_weight=cfg.min_weight if occupancy is not None else 0.0,  # pruning only with skipping
+        )
+        stats["samples"] += out.t.numel()
+        stats["density_evals"] += out.density_evals
+        stats["appearance_evals"] += out.appearance_evals
+        rgb = out.rgb if out.rgb is not None else origins.new_zeros(origins.shape[0], 3)
+        ov = out.ov if (need_ov and prep.ov is not None and out.ov is not None) else None
+        covered = (out.weights * out.valid.to(out.weights.dtype)).sum(dim=-1)
+        return rgb, out.depth_m, out.opacity, ov, covered
+
+    def _appearance(
+        self, model: GovNeSF, prep: _Prepared, need_ov: bool, allowed: Tensor, stats: dict[str, int]
+    ) -> AppearanceFn:
+        """The marcher's appearance: each sample with the source views of its view group
+        (``_view_groups``), in chunks of ``chunk_points``; samples no allowed view sees get 0."""
         d_ov = prep.ov.shape[1] if (need_ov and prep.ov is not None) else 0
-        rgb_s = torch.zeros(n * S, 3, device=flat.device)
-        ov_s = torch.zeros(n * S, d_ov, device=flat.device) if d_ov else None
-        valid_s = torch.zeros(n * S, device=flat.device)
-        if keep_idx.numel():
-            sample_dirs = dirs[:, None, :].expand(n, S, 3).reshape(-1, 3)
-            groups = self._view_groups(prep, flat[keep_idx], allowed)
+        chunk = self.config.chunk_points
+
+        def appearance(points: Tensor, view_dirs: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+            n = points.shape[0]
+            rgb = points.new_zeros(n, 3)
+            ov = points.new_zeros(n, d_ov)
+            valid = torch.zeros(n, dtype=torch.bool, device=points.device)
+            groups = self._view_groups(prep, points, allowed)
             stats["view_groups"] += len(groups)
             for local, view_idx in groups:
                 views = self._source_views(prep, view_idx, need_ov=d_ov > 0, use_depth=False)
-                for j in range(0, local.numel(), cfg.chunk_points):
-                    sub = keep_idx[local[j : j + cfg.chunk_points]]
-                    rgb_k, ov_k, valid_k = model.appearance(
-                        views, v_all[sub], flat[sub], sample_dirs[sub], False
-                    )
-                    rgb_s[sub] = rgb_k
-                    valid_s[sub] = valid_k.float()
-                    if ov_s is not None:
-                        ov_s[sub] = ov_k
-        rgb = composite(weights, rgb_s.reshape(n, S, 3))
-        ray_depth = expected_depth(weights, t)
-        opacity = weights.sum(dim=-1)
-        ov = composite(weights, ov_s.reshape(n, S, -1)) if ov_s is not None else None
-        covered = (weights * valid_s.reshape(n, S)).sum(dim=-1)
-        return rgb, ray_depth, opacity, ov, covered
+                for j in range(0, local.numel(), chunk):
+                    sub = local[j : j + chunk]
+                    rgb_k, ov_k, valid_k = model.appearance(views, v[sub], points[sub], view_dirs[sub], False)
+                    rgb[sub], valid[sub] = rgb_k, valid_k
+                    if d_ov:
+                        ov[sub] = ov_k
+            return rgb, ov, valid
+
+        return appearance

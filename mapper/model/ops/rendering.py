@@ -31,11 +31,15 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from mapper.model.ops.checks import check_shape
+
 __all__ = [
+    "MIN_SPAN_M",
     "TAU_MAX",
     "RaySamples",
     "Rays",
     "accumulated_opacity",
+    "clip_to_box",
     "composite",
     "expected_depth",
     "intersect_aabb",
@@ -48,6 +52,9 @@ TAU_MAX = 1.0e4
 
 _FACTOR_MAX = 1.0e10  # cap on density (1/m) and spacing (m) before their product
 
+MIN_SPAN_M = 1.0e-6
+"""Shortest part of ``[near, far]`` inside a box that ``clip_to_box`` counts as a hit (m)."""
+
 
 @dataclass
 class Rays:
@@ -59,15 +66,7 @@ class Rays:
     """(R, 3) unit directions in the world frame."""
 
     def __post_init__(self) -> None:
-        if (
-            self.origins.ndim != 2
-            or self.origins.shape[-1] != 3
-            or self.origins.shape != self.directions.shape
-        ):
-            raise ValueError(
-                f"origins and directions must both be (R, 3), got {tuple(self.origins.shape)} "
-                f"and {tuple(self.directions.shape)}"
-            )
+        check_shape(self.directions, "R 3", "directions", check_shape(self.origins, "R 3", "origins"))
 
     def __len__(self) -> int:
         return int(self.origins.shape[0])
@@ -122,11 +121,7 @@ def sample_along_rays(
     Returns:
         t: (R, S) sample distances (m); deltas: (R, S) bin lengths (m).
     """
-    if origins.shape != directions.shape or origins.ndim != 2 or origins.shape[-1] != 3:
-        raise ValueError(
-            f"origins and directions must both be (R, 3), got {tuple(origins.shape)}, "
-            f"{tuple(directions.shape)}"
-        )
+    check_shape(directions, "R 3", "directions", check_shape(origins, "R 3", "origins"))
     if n_samples < 1:
         raise ValueError(f"n_samples {n_samples} out of range: must be >= 1")
     n_rays = origins.shape[0]
@@ -255,3 +250,32 @@ def intersect_aabb(
     zero = torch.zeros_like(t_near)
     t_near, t_far = torch.where(hit, t_near, zero), torch.where(hit, t_far, zero)
     return t_near.to(out_dtype), t_far.to(out_dtype), hit
+
+
+def clip_to_box(
+    origins: Tensor,
+    directions: Tensor,
+    near_m: float | Tensor,
+    far_m: float | Tensor,
+    box_min: Tensor,
+    box_max: Tensor,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Clip per-ray ``[near, far]`` to the part inside an axis-aligned box.
+
+    Args:
+        origins, directions: (R, 3); near_m, far_m: a float or (R,) bounds (m);
+        box_min, box_max: (3,) world corners (m).
+
+    Returns:
+        near: (R,), far: (R,) the clipped bounds where the ray crosses the box for more than
+        ``MIN_SPAN_M`` inside ``[near, far]``, the given bounds elsewhere; inside: (R,) bool, where
+        it does.
+    """
+    check_shape(directions, "R 3", "directions", check_shape(origins, "R 3", "origins"))
+    n_rays = origins.shape[0]
+    t_in, t_out, hit = intersect_aabb(origins, directions, box_min, box_max)
+    near = torch.as_tensor(near_m, dtype=t_in.dtype, device=t_in.device).expand(n_rays)
+    far = torch.as_tensor(far_m, dtype=t_in.dtype, device=t_in.device).expand(n_rays)
+    clipped_near, clipped_far = torch.maximum(near, t_in), torch.minimum(far, t_out)
+    inside = hit & (clipped_far > clipped_near + MIN_SPAN_M)
+    return torch.where(inside, clipped_near, near), torch.where(inside, clipped_far, far), inside

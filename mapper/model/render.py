@@ -1,0 +1,213 @@
+"""The one ray marcher: samples -> density -> weights -> appearance -> composite.
+
+Every renderer of the model calls :func:`march_rays`: ``field.render_rays`` (training,
+evaluation, ``render_image``), ``field.render_depth_maps`` (density only) and the node's
+``ModelRuntime`` (occupancy-grid empty-space skipping, per-point source-view groups). What
+differs between them is passed in, never re-implemented:
+
+* ``density(points) -> (sigma, features)``: the field's density at (P, 3) points and the
+  per-point features the appearance needs (``GovNeSF.density_at`` over a volume; the runtime
+  adds its view-support mask);
+* ``appearance(points, view_dirs, features) -> (rgb, ov, valid)`` over any subset of the
+  samples (``GovNeSF.appearance`` with one set of source views; the runtime passes one that
+  splits the samples into view groups), or None for a depth-only march;
+* ``box``: clip ``[near, far]`` to the volume box (``clip_to_box``); ``skip_missed``: rays that
+  do not cross it are not evaluated at all (they render nothing) instead of being marched over
+  their unclipped ``[near, far]``;
+* ``sample_mask(points) -> bool``: samples where the density may be non-zero (e.g.
+  :func:`occupancy_mask`); the others get density 0 without a network call;
+* ``min_weight``: the appearance runs only for samples whose (detached) weight reaches it; the
+  others contribute 0 colour / OV.
+
+The maths per ray (bins, weights, compositing) is ``mapper.model.ops.rendering``.
+
+Example (a constant density, depth only):
+    >>> import torch
+    >>> from mapper.model.ops.rendering import Rays
+    >>> rays = Rays(torch.zeros(1, 3), torch.tensor([[0.0, 0.0, 1.0]]))
+    >>> out = march_rays(rays, lambda p: (torch.full((p.shape[0],), 1e6), p.new_zeros(p.shape[0], 1)),
+    ...                  n_samples=4, near_m=1.0, far_m=3.0)
+    >>> out.depth_m.tolist(), out.opacity.tolist(), out.rgb is None
+    ([1.25], [1.0], True)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from mapper.model.ops.checks import check_shape
+from mapper.model.ops.cost_volume import VolumeBounds
+from mapper.model.ops.rendering import (
+    Rays,
+    clip_to_box,
+    composite,
+    expected_depth,
+    render_weights,
+    sample_along_rays,
+)
+
+__all__ = [
+    "AppearanceFn",
+    "DensityFn",
+    "MarchOutputs",
+    "SampleMask",
+    "march_rays",
+    "occupancy_mask",
+]
+
+DensityFn = Callable[[Tensor], tuple[Tensor, Tensor]]
+"""(P, 3) points -> sigma (P,) (1/m), features (P, Dv) handed to the appearance."""
+
+AppearanceFn = Callable[[Tensor, Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]
+"""points (K, 3), unit view directions (K, 3), features (K, Dv) -> rgb (K, 3), ov (K, D),
+valid (K,) bool (some source view sees the point). Called once per march, with K >= 0."""
+
+SampleMask = Callable[[Tensor], Tensor]
+"""(P, 3) points -> (P,) bool: where the density may be non-zero."""
+
+
+@dataclass
+class MarchOutputs:
+    """Per-ray results of :func:`march_rays`."""
+
+    t: Tensor
+    """(R, S) sample distances along the unit ray directions (m)."""
+    weights: Tensor
+    """(R, S) rendering weights ``T_i alpha_i``."""
+    depth_m: Tensor
+    """(R,) expected distance along the unit direction (``expected_depth``)."""
+    opacity: Tensor
+    """(R,) accumulated opacity."""
+    rgb: Tensor | None
+    """(R, 3) composited colour; None for a depth-only march."""
+    ov: Tensor | None
+    """(R, D) OV feature composited with DETACHED weights; None for a depth-only march."""
+    valid: Tensor
+    """(R, S) bool: the appearance ran for the sample and some source view sees it."""
+    density_evals: int
+    """Samples the density was evaluated for."""
+    appearance_evals: int
+    """Samples the appearance was evaluated for."""
+
+
+def occupancy_mask(occupancy: Tensor, bounds: VolumeBounds) -> SampleMask:
+    """A ``sample_mask`` from an (X, Y, Z) bool occupancy grid over ``bounds``: True for points
+    inside the grid whose voxel is occupied."""
+    check_shape(occupancy, "X Y Z", "occupancy (bounds.dims)", dict(zip("XYZ", bounds.dims, strict=True)))
+
+    def mask(points: Tensor) -> Tensor:
+        vox = ((points - points.new_tensor(bounds.origin_m)) / bounds.voxel_size_m).floor().long()
+        dims = torch.tensor(bounds.dims, device=points.device)
+        inside = ((vox >= 0) & (vox < dims)).all(dim=-1)
+        vox = torch.minimum(vox.clamp_min(0), dims - 1)
+        return inside & occupancy[vox[:, 0], vox[:, 1], vox[:, 2]]
+
+    return mask
+
+
+def march_rays(
+    rays: Rays,
+    density: DensityFn,
+    appearance: AppearanceFn | None = None,
+    *,
+    n_samples: int,
+    near_m: float | Tensor,
+    far_m: float | Tensor,
+    stratified: bool = False,
+    generator: torch.Generator | None = None,
+    box: tuple[Tensor, Tensor] | None = None,
+    skip_missed: bool = False,
+    sample_mask: SampleMask | None = None,
+    min_weight: float = 0.0,
+) -> MarchOutputs:
+    """Volume-render R rays with the given density and appearance.
+
+    Args:
+        rays: R rays (unit directions).
+        density, appearance: see the module docstring; ``appearance=None`` marches density only.
+        n_samples: S bins on ``[near, far]`` (one sample each: the midpoint, or jittered with
+            ``stratified``, using ``generator``).
+        near_m, far_m: a float or (R,) per-ray bounds (m).
+        box: (box_min (3,), box_max (3,)): clip ``[near, far]`` to this box.
+        skip_missed: with ``box``: rays that do not cross it get density 0 and no appearance
+            (their samples stay on ``[near, far]``).
+        sample_mask: samples outside it get density 0 without a ``density`` call.
+        min_weight: > 0: appearance only where the detached weight reaches it (approximate: the
+            others render 0 and lose their colour gradient); 0 (default): every evaluated sample.
+
+    With neither ``skip_missed``, ``sample_mask`` nor ``min_weight`` every sample goes through
+    ``density`` and ``appearance`` in one call each (the differentiable training path);
+    otherwise the selected samples are gathered, evaluated and scattered back (differentiable too).
+    """
+    if min_weight < 0:
+        raise ValueError(f"min_weight {min_weight} out of range: must be >= 0")
+    if skip_missed and box is None:
+        raise ValueError("skip_missed needs a box: it skips the rays that miss the box")
+    origins, dirs = rays.origins, rays.directions
+    n_rays = len(rays)
+    near = torch.as_tensor(near_m, dtype=origins.dtype, device=origins.device)
+    far = torch.as_tensor(far_m, dtype=origins.dtype, device=origins.device)
+    crosses: Tensor | None = None
+    if box is not None:
+        near, far, inside = clip_to_box(origins, dirs, near, far, box[0], box[1])
+        crosses = inside if skip_missed else None
+    t, deltas = sample_along_rays(
+        origins, dirs, near, far, n_samples, stratified=stratified, generator=generator
+    )
+    S = t.shape[1]
+    P = n_rays * S
+    flat = (origins[:, None, :] + t[..., None] * dirs[:, None, :]).reshape(P, 3)
+    evaluate = None if crosses is None else crosses[:, None].expand(n_rays, S).reshape(P)
+    if sample_mask is not None:
+        occupied = sample_mask(flat)
+        evaluate = occupied if evaluate is None else evaluate & occupied
+
+    if evaluate is None:
+        sigma, features = density(flat)
+        density_evals = P
+    else:
+        idx = evaluate.nonzero().squeeze(-1)
+        sig, feat = density(flat[idx])
+        sigma = sig.new_zeros(P).index_copy(0, idx, sig)
+        features = feat.new_zeros(P, feat.shape[-1]).index_copy(0, idx, feat)
+        density_evals = int(idx.numel())
+    sigma = sigma.reshape(n_rays, S)
+    weights, _ = render_weights(sigma, deltas.to(sigma.dtype))
+
+    rgb = ov = None
+    valid = torch.zeros(n_rays, S, dtype=torch.bool, device=flat.device)
+    appearance_evals = 0
+    if appearance is not None:
+        keep = evaluate
+        if min_weight > 0:
+            heavy = (weights.detach() >= min_weight).reshape(P)
+            keep = heavy if keep is None else keep & heavy
+        view_dirs = dirs[:, None, :].expand(n_rays, S, 3).reshape(P, 3)
+        if keep is None:
+            rgb_s, ov_s, valid_s = appearance(flat, view_dirs, features)
+            appearance_evals = P
+        else:
+            kept = keep.nonzero().squeeze(-1)
+            rgb_k, ov_k, valid_k = appearance(flat[kept], view_dirs[kept], features[kept])
+            rgb_s = rgb_k.new_zeros(P, 3).index_copy(0, kept, rgb_k)
+            ov_s = ov_k.new_zeros(P, ov_k.shape[-1]).index_copy(0, kept, ov_k)
+            valid_s = valid_k.new_zeros(P).index_copy(0, kept, valid_k)
+            appearance_evals = int(kept.numel())
+        rgb = composite(weights, rgb_s.reshape(n_rays, S, 3))
+        ov = composite(weights.detach(), ov_s.reshape(n_rays, S, -1))
+        valid = valid_s.reshape(n_rays, S)
+    return MarchOutputs(
+        t=t,
+        weights=weights,
+        depth_m=expected_depth(weights, t.to(weights.dtype)),
+        opacity=weights.sum(dim=-1),
+        rgb=rgb,
+        ov=ov,
+        valid=valid,
+        density_evals=density_evals,
+        appearance_evals=appearance_evals,
+    )
