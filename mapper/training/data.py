@@ -326,6 +326,8 @@ class TrainSample:
     target: int
     seed: int
     """Seed for the stochastic parts of the step (stratified ray samples)."""
+    target_t: Tensor | None = None
+    """(R,) true distance along each ray to the surface (from the target's depth; 0 = none)."""
 
     def to(self, device: torch.device | str) -> TrainSample:
         return TrainSample(
@@ -337,6 +339,7 @@ class TrainSample:
             self.scene,
             self.target,
             self.seed,
+            None if self.target_t is None else self.target_t.to(device),
         )
 
 
@@ -358,6 +361,8 @@ class RaySampler:
         seed: int = 0,
         frustum_bounds_prob: float = 0.0,
         frustum_range_m: float = 4.0,
+        photometric_prob: float = 0.0,
+        photometric_strength: float = 0.2,
     ) -> None:
         if not scenes:
             raise ValueError("RaySampler needs at least one scene")
@@ -367,6 +372,10 @@ class RaySampler:
             raise ValueError(f"frustum_bounds_prob {frustum_bounds_prob} out of range 0..1")
         if not frustum_range_m > 0.0:
             raise ValueError(f"frustum_range_m {frustum_range_m} out of range: must be > 0")
+        if not 0.0 <= photometric_prob <= 1.0:
+            raise ValueError(f"photometric_prob {photometric_prob} out of range 0..1")
+        if not 0.0 <= photometric_strength < 1.0:
+            raise ValueError(f"photometric_strength {photometric_strength} out of range: 0 <= s < 1")
         for s in scenes:
             if s.num_frames < 2:
                 raise ValueError(f"scene {s.name} has {s.num_frames} frame(s); training needs >= 2")
@@ -384,6 +393,9 @@ class RaySampler:
         self.frustum_bounds_prob = frustum_bounds_prob
         """Fraction of examples whose volume bounds come from the sources' frusta, not their depth."""
         self.frustum_range_m = frustum_range_m
+        self.photometric_prob = photometric_prob
+        """Fraction of examples whose colours are jittered (:func:`photometric_jitter`)."""
+        self.photometric_strength = photometric_strength
 
     def rng(self, step: int, item: int) -> np.random.Generator:
         return np.random.default_rng(np.random.SeedSequence([self.seed, step, item]))
@@ -411,16 +423,59 @@ class RaySampler:
         ov_map = torch.from_numpy(scene.ov[target]).permute(2, 0, 1).float()  # (D, h, w)
         target_ov, _ = sample_bilinear(ov_map, scale_uv(uv, (w, h), (ov_map.shape[-1], ov_map.shape[-2])))
         target_rgb = torch.from_numpy(scene.rgb[target][rows, cols]).float() / 255.0
-        return TrainSample(
+        ray_dirs = dirs[r_t, c_t]
+        z = torch.from_numpy(scene.depth_m[target][rows, cols]).float()
+        cos = (ray_dirs @ pose_t[:3, 2]).clamp_min(1e-6)
+        target_t = torch.where(z > 0, z / cos, torch.zeros_like(z))
+        sample = TrainSample(
             sources=sources,
             origins=origins[r_t, c_t],
-            directions=dirs[r_t, c_t],
+            directions=ray_dirs,
             target_rgb=target_rgb,
             target_ov=target_ov,
             scene=scene.name,
             target=target,
             seed=int(rng.integers(2**62)),
+            target_t=target_t,
         )
+        # Drawn after everything else, so that examples without it are unchanged.
+        if self.photometric_prob > 0 and bool(rng.random() < self.photometric_prob):
+            src_rgb, tgt_rgb = photometric_jitter(sources.rgb, target_rgb, self.photometric_strength, rng)
+            sample.sources.rgb, sample.target_rgb = src_rgb, tgt_rgb
+        return sample
+
+
+def photometric_jitter(
+    source_rgb: Tensor, target_rgb: Tensor, strength: float, rng: np.random.Generator
+) -> tuple[Tensor, Tensor]:
+    """A camera's colour response, drawn once per example: gamma, per-channel gain (white balance)
+    and offset shared by the sources and the target (what a real camera does to the whole
+    sequence), plus a small per-source exposure gain (auto-exposure between frames).
+
+    Args:
+        source_rgb: (N, 3, H, W) in [0, 1]; target_rgb: (R, 3) in [0, 1]; strength in [0, 1).
+
+    Returns:
+        The jittered copies, clamped to [0, 1].
+
+    >>> src, tgt = torch.full((2, 3, 1, 1), 0.5), torch.full((4, 3), 0.5)
+    >>> a, b = photometric_jitter(src, tgt, 0.0, np.random.default_rng(0))
+    >>> bool(torch.equal(a, src) and torch.equal(b, tgt))
+    True
+    """
+    s = float(strength)
+    gamma = float(np.exp(rng.uniform(-s, s)))
+    gain = torch.from_numpy(1.0 + rng.uniform(-s, s, size=3)).float()  # (3,)
+    offset = float(rng.uniform(-0.25 * s, 0.25 * s))
+    per_view = torch.from_numpy(1.0 + rng.uniform(-0.25 * s, 0.25 * s, size=len(source_rgb))).float()
+
+    def respond(rgb: Tensor, channel_dim: int) -> Tensor:
+        shape = [1] * rgb.ndim
+        shape[channel_dim] = 3
+        return (rgb.clamp(0, 1) ** gamma * gain.reshape(shape) + offset).clamp(0, 1)
+
+    src = (respond(source_rgb, 1) * per_view.reshape(-1, 1, 1, 1)).clamp(0, 1)
+    return src, respond(target_rgb, -1)
 
 
 @dataclass

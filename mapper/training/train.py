@@ -43,13 +43,21 @@ import torch.distributed as dist
 
 from mapper.model.checkpoint import load_training_state, save_checkpoint
 from mapper.model.config import ModelConfig, get_preset
-from mapper.model.field import GovNeSF, render_rays
-from mapper.model.losses import distortion_loss, govnesf_loss
+from mapper.model.field import GovNeSF, SourceViews, render_rays
+from mapper.model.losses import distortion_loss, govnesf_loss, ov_cosine_loss
 from mapper.model.ops.geometry import pixel_rays
 from mapper.model.ops.rendering import Rays
+from mapper.model.supervision import (
+    ray_depth_loss,
+    surface_loss,
+    surface_points,
+    visibility_loss,
+    visibility_targets,
+)
 from mapper.training.data import (
     RaySampler,
     Scene,
+    TrainSample,
     ValidationView,
     find_scenes,
     load_scene,
@@ -110,6 +118,30 @@ class TrainConfig:
     distortion_weight: float = 0.0
     """Weight of mip-NeRF 360's distortion loss on the rendering weights (0 = off, the paper's
     loss). Pushes the density towards sharp surfaces (an experiment; docs/TRAINING.md)."""
+    depth_weight: float = 0.0
+    """Geometry supervision: weight of the relative L1 between each ray's rendered distance and the
+    true one from the target's depth (``mapper.model.supervision.ray_depth_loss``; 0 = off, the
+    paper's depth-free loss). Inference stays RGB-only."""
+    surface_weight: float = 0.0
+    """Weight of the line-of-sight loss: no rendering weight in front of the true surface, the
+    weight mass within ``surface_band_m`` of it (``supervision.surface_loss``; 0 = off)."""
+    surface_band_m: float = 0.15
+    """Half-width of the surface band (metres; widened to the sample spacing)."""
+    point_ov_weight: float = 0.0
+    """Weight of the point-level OV loss: ``1 - cos`` of the blended OV feature AT the true surface
+    point of each target ray (the 3D task's query) against the target's OV (0 = off)."""
+    visibility_weight: float = 0.0
+    """Weight of the visibility loss on the OV blending weights at those surface points: ``-log``
+    of the weight mass on the source views whose depth says they see the point (blend mode only;
+    ``supervision.visibility_loss``; 0 = off)."""
+    visibility_rel_tol: float = 0.05
+    """A source view sees a surface point when its depth there agrees within 5 cm + this x depth."""
+    photometric_prob: float = 0.0
+    """Fraction of examples whose colours get a random camera response (gamma, white balance,
+    offset, per-view exposure; ``mapper.training.data.photometric_jitter``), so real cameras are not
+    a new world (0 = off)."""
+    photometric_strength: float = 0.2
+    """Size of that jitter (0 <= s < 1)."""
     depth_guided_masking: bool = False
     clip_to_volume: bool = True
     """Spend the ray samples inside the volume bounds (density is 0 outside; ``render_rays``)."""
@@ -143,6 +175,14 @@ class TrainConfig:
             (0.0 <= self.min_lr_ratio <= 1.0, "min_lr_ratio", "in [0, 1]"),
             (self.ov_weight >= 0, "ov_weight", ">= 0"),
             (self.distortion_weight >= 0, "distortion_weight", ">= 0"),
+            (self.depth_weight >= 0, "depth_weight", ">= 0"),
+            (self.surface_weight >= 0, "surface_weight", ">= 0"),
+            (self.surface_band_m > 0, "surface_band_m", "> 0"),
+            (self.point_ov_weight >= 0, "point_ov_weight", ">= 0"),
+            (self.visibility_weight >= 0, "visibility_weight", ">= 0"),
+            (self.visibility_rel_tol >= 0, "visibility_rel_tol", ">= 0"),
+            (0.0 <= self.photometric_prob <= 1.0, "photometric_prob", "in [0, 1]"),
+            (0.0 <= self.photometric_strength < 1.0, "photometric_strength", "in [0, 1)"),
             (self.log_every >= 1, "log_every", ">= 1"),
             (self.checkpoint_every >= 1, "checkpoint_every", ">= 1"),
             (self.val_every >= 1, "val_every", ">= 1"),
@@ -244,9 +284,14 @@ def _git_commit() -> str:
 
 
 # ---- one step ------------------------------------------------------------------------------------
+LOSS_TERMS = ("loss", "color", "ov", "depth", "surface", "point_ov", "visibility")
+"""The per-step loss terms ``train_step`` reports (the total first; a term switched off reads 0)."""
+
+
 def _loss_for_sample(
     model: GovNeSF, sampler: RaySampler, cfg: TrainConfig, step: int, item: int, device: torch.device
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """The total loss of one example (to back-propagate) and its detached terms (``LOSS_TERMS``)."""
     s = sampler.sample(step, item).to(device)
     src = s.sources
     views = model.make_source_views(src.rgb, src.ov, src.K, src.world_from_cam, src.depth_m)
@@ -267,9 +312,44 @@ def _loss_for_sample(
     )
     loss = govnesf_loss(out.rgb, s.target_rgb, out.ov, s.target_ov, ov_weight=cfg.ov_weight)
     total = loss.total
+    terms = {"color": float(loss.color.detach()), "ov": float(loss.ov.detach())}
     if cfg.distortion_weight > 0:
         total = total + cfg.distortion_weight * distortion_loss(out.weights, out.t)
-    return total, loss.color.detach(), loss.ov.detach()
+    has_t = s.target_t is not None and bool((s.target_t > 0).any())
+    if has_t and s.target_t is not None and (cfg.depth_weight > 0 or cfg.surface_weight > 0):
+        depth = ray_depth_loss(out.depth_m, s.target_t)
+        surface = surface_loss(out.weights, out.t, s.target_t, band_m=cfg.surface_band_m)
+        total = total + cfg.depth_weight * depth + cfg.surface_weight * surface
+        terms.update(depth=float(depth.detach()), surface=float(surface.detach()))
+    if has_t and s.target_t is not None and (cfg.point_ov_weight > 0 or cfg.visibility_weight > 0):
+        point_terms = _surface_point_losses(model, views, volume, s, cfg)
+        for name, weight in (("point_ov", cfg.point_ov_weight), ("visibility", cfg.visibility_weight)):
+            if name in point_terms:
+                total = total + weight * point_terms[name]
+                terms[name] = float(point_terms[name].detach())
+    terms["loss"] = float(total.detach())
+    return total, terms
+
+
+def _surface_point_losses(
+    model: GovNeSF, views: SourceViews, volume: torch.Tensor, s: TrainSample, cfg: TrainConfig
+) -> dict[str, torch.Tensor]:
+    """Point-level OV and visibility losses at the true surface points of the target rays."""
+    assert s.target_t is not None
+    keep = s.target_t > 0
+    src = s.sources
+    points = surface_points(s.origins[keep], s.directions[keep], s.target_t[keep])  # (P, 3)
+    po = model.query_points(views, volume, src.bounds, points, depth_guided_masking=cfg.depth_guided_masking)
+    out: dict[str, torch.Tensor] = {}
+    if cfg.point_ov_weight > 0:
+        out["point_ov"] = ov_cosine_loss(po.ov, s.target_ov[keep], po.valid)
+    if cfg.visibility_weight > 0 and po.ov_weights is not None:
+        w, h = src.rgb.shape[-1], src.rgb.shape[-2]
+        visible, known = visibility_targets(
+            points, src.K, src.world_from_cam, src.depth_m, (w, h), rel_tol=cfg.visibility_rel_tol
+        )
+        out["visibility"] = visibility_loss(po.ov_weights, visible, known)
+    return out
 
 
 def train_step(
@@ -288,11 +368,11 @@ def train_step(
     model.train()
     optimizer.zero_grad(set_to_none=True)
     items = list(range(rank, cfg.batch_views, world))
-    stats = torch.zeros(3, dtype=torch.float64)
+    stats = torch.zeros(len(LOSS_TERMS), dtype=torch.float64)
     for item in items:
-        total, color, ov = _loss_for_sample(model, sampler, cfg, step, item, device)
+        total, terms = _loss_for_sample(model, sampler, cfg, step, item, device)
         (total / len(items)).backward()
-        stats += torch.tensor([total.item(), color.item(), ov.item()], dtype=torch.float64)
+        stats += torch.tensor([terms.get(k, 0.0) for k in LOSS_TERMS], dtype=torch.float64)
     _average_gradients(model, world)
     if world > 1:
         dist.all_reduce(stats, op=dist.ReduceOp.SUM)
@@ -302,13 +382,12 @@ def train_step(
     for group in optimizer.param_groups:
         group["lr"] = lr
     optimizer.step()
-    return {
-        "loss": float(stats[0]),
-        "color": float(stats[1]),
-        "ov": float(stats[2]),
-        "lr": lr,
-        "grad_norm": float(grad_norm),
-    }
+    losses = {k: float(v) for k, v in zip(LOSS_TERMS, stats, strict=True)}
+    if cfg.depth_weight == 0 and cfg.surface_weight == 0:
+        del losses["depth"], losses["surface"]
+    if cfg.point_ov_weight == 0 and cfg.visibility_weight == 0:
+        del losses["point_ov"], losses["visibility"]
+    return {**losses, "lr": lr, "grad_norm": float(grad_norm)}
 
 
 # ---- validation ----------------------------------------------------------------------------------
@@ -477,6 +556,8 @@ def _load_data(cfg: TrainConfig, dd: _Dist, model_cfg: ModelConfig | None) -> _D
         seed=cfg.seed,
         frustum_bounds_prob=cfg.frustum_bounds_prob,
         frustum_range_m=cfg.frustum_range_m,
+        photometric_prob=cfg.photometric_prob,
+        photometric_strength=cfg.photometric_strength,
     )
     val_views: list[ValidationView] = []
     text_emb = np.zeros((0, ov_dim), np.float32)
