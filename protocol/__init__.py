@@ -10,6 +10,7 @@ from protocol.messages import (
     MAX_MESSAGE_BYTES,
     ORTHONORMAL_TOL,
     PROTOCOL_VERSION,
+    RENDER_OUTPUTS,
     Ack,
     Error,
     Frame,
@@ -37,7 +38,7 @@ from protocol.messages import (
 from protocol.recording import RecordingReader, RecordingWriter, read_recording
 
 __all__ = [
-    "ERROR_CODES", "MAX_MESSAGE_BYTES", "ORTHONORMAL_TOL", "PROTOCOL_VERSION",
+    "ERROR_CODES", "MAX_MESSAGE_BYTES", "ORTHONORMAL_TOL", "PROTOCOL_VERSION", "RENDER_OUTPUTS",
     "Ack", "Error", "ErrorCode", "Frame", "Load", "MapUpdated", "Message", "ObjectCandidate", "Ok",
     "Points", "ProtocolError", "QueryPoints", "RecordingHeader", "RecordingReader", "RecordingWriter",
     "RemoteError",

@@ -77,6 +77,7 @@ from mapper.model.ops.rendering import Rays
 from mapper.model.render import AppearanceFn, march_rays, occupancy_mask
 from mapper.ov.encoders import TextEncoder, UnknownSpaceError, get_text_encoder
 from mapper.runtime.config import ModelRuntimeConfig
+from protocol.messages import RENDER_OUTPUTS  # what render can produce: the wire's names
 
 __all__ = [
     "RENDER_OUTPUTS",
@@ -88,8 +89,6 @@ __all__ = [
 
 log = logging.getLogger("mapper.runtime.model_runtime")
 
-RENDER_OUTPUTS = ("rgb", "depth", "label", "score")
-"""What :meth:`ModelRuntime.render` can produce (same names as the wire protocol)."""
 
 _REPO_ROOT = Path(__file__).resolve().parents[2]
 
