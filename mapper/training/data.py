@@ -15,6 +15,13 @@ resumed run draws exactly what an uninterrupted one would.
 
 Scenes stay decoded in memory (rgb uint8, depth float32, ov float16: about 1 MB a frame at
 160 x 120 with a 40 x 30 x 384 ov map).
+
+Real RGB-D sequences (``govnesf import``, e.g. ICL-NUIM; ``scripts/make_real_data.sh``) have colour,
+depth and poses but no ov maps: ``load_scene(..., require_ov=False)`` gives them an all-zero ov map
+(``Scene.has_ov = False``; one shared zero frame, no memory per frame) and can resize them to the
+training size (``image_wh``). ``RaySampler(..., extra_scenes=..., extra_weight=p)`` draws a fraction
+p of the examples from such scenes; their ``TrainSample.has_ov`` is False and training gives every
+OV term of those examples weight 0 (colour and geometry only).
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -43,6 +51,7 @@ __all__ = [
     "find_scenes",
     "load_scene",
     "overlap_scores",
+    "resize_view",
     "select_sources",
     "source_batch",
     "validation_views",
@@ -50,6 +59,15 @@ __all__ = [
 
 _POINT_STRIDE_PX = 8
 """Depth pixels (every 8th row and column) back-projected per frame for overlap and bounds."""
+
+DEFAULT_OV_DIM = 384
+"""Dimension of the zero ov maps of a recording without ov when ``load_scene`` gets no ``ov_shape``
+(SimLSeg's minilm-l6-v2 space; training passes the model's own)."""
+OV_STRIDE_PX = 4
+"""Image pixels per ov cell of those zero maps by default (SimLSeg's stride: 40 x 30 at 160 x 120)."""
+_MIX_STREAM = 1
+"""Extra entropy word of the random stream that decides whether an example comes from the extra
+scenes (``RaySampler.extra_weight``); separate from the example's own stream, see ``sample``."""
 
 
 @dataclass
@@ -81,6 +99,9 @@ class Scene:
     """(F, M, 3) float32 world points back-projected from a strided depth grid (NaN = no depth)."""
     class_names: list[str]
     novel: NovelViews | None = None
+    has_ov: bool = True
+    """False for a recording without ov maps (a real RGB-D sequence): ``ov`` is all zeros (a
+    read-only broadcast of one zero frame) and training masks every OV term of its examples."""
 
     @property
     def num_frames(self) -> int:
@@ -127,33 +148,112 @@ def find_scenes(root: str | Path) -> list[Path]:
     return scenes
 
 
-def load_scene(path: str | Path, *, with_novel_views: bool = False) -> Scene:
+def _pixel_centre_index(src: int, dst: int) -> np.ndarray:
+    """(dst,) source index of the pixel holding each destination pixel centre (centre-aligned
+    nearest neighbour, like ``cv2.INTER_NEAREST_EXACT``)."""
+    return np.minimum(((np.arange(dst) + 0.5) * (src / dst)).astype(np.int64), src - 1)
+
+
+def resize_view(
+    rgb: np.ndarray,
+    depth_m: np.ndarray | None,
+    K: np.ndarray,
+    image_wh: tuple[int, int],
+    label: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray | None]:
+    """One view resized to ``image_wh`` = (W, H): colour by area averaging (``cv2.INTER_AREA``),
+    depth and labels by nearest neighbour (no depth mixed across an edge), and ``K`` (4,) scaled.
+
+    With pixel centres at integer + 0.5 (the project's convention) a resize maps image
+    coordinates u -> u * W' / W exactly, so fx and cx scale alike (and fy, cy).
+
+    >>> rgb, K = np.zeros((480, 640, 3), np.uint8), np.array([525.0, 525.0, 320.0, 240.0])
+    >>> resize_view(rgb, None, K, (160, 120))[2].tolist()
+    [131.25, 131.25, 80.0, 60.0]
+    """
+    h, w = rgb.shape[:2]
+    w2, h2 = int(image_wh[0]), int(image_wh[1])
+    if (w2, h2) == (w, h):
+        return rgb, depth_m, np.asarray(K, np.float64), label
+    sx, sy = w2 / w, h2 / h
+    K2 = np.asarray(K, np.float64) * np.array([sx, sy, sx, sy])
+    rgb2 = cv2.resize(rgb, (w2, h2), interpolation=cv2.INTER_AREA)
+    rows, cols = _pixel_centre_index(h, h2), _pixel_centre_index(w, w2)
+    depth2 = None if depth_m is None else np.ascontiguousarray(depth_m[rows][:, cols])
+    label2 = None if label is None else np.ascontiguousarray(label[rows][:, cols])
+    return rgb2, depth2, K2, label2
+
+
+def load_scene(
+    path: str | Path,
+    *,
+    with_novel_views: bool = False,
+    require_ov: bool = True,
+    image_wh: tuple[int, int] | None = None,
+    ov_shape: tuple[int, int, int] | None = None,
+) -> Scene:
     """Decode a recorded scene folder into memory.
 
+    Args:
+        require_ov: every frame must carry an ov map (simulated training / validation scenes).
+            False also accepts a recording whose frames have none (a real RGB-D sequence): it
+            gets all-zero ov maps of ``ov_shape`` and ``has_ov = False``. Depth is always required.
+        image_wh: (W, H) to resize colour (area), depth (nearest) and intrinsics to (and the novel
+            views); None keeps the recorded size. The ov maps keep their grid.
+        ov_shape: (h, w, D) of the zero ov maps of a recording without ov (training passes the
+            training scenes' grid and the model's ``ov_dim``); default the image size / 4 and
+            ``DEFAULT_OV_DIM``.
+
     Raises:
-        ValueError: a frame has no depth or no ov map (record with ``--depth`` and without ``--no-ov``).
+        ValueError: a frame has no depth, or no ov map with ``require_ov`` (record with
+            ``--depth`` and without ``--no-ov``), or only some frames have ov maps.
     """
     path = Path(path)
     reader = read_recording(path / "frames.govrec")
     rgb, depth, ov, Ks, poses = [], [], [], [], []
+    without_ov: list[int] = []
     for i, frame in enumerate(reader.frames()):
-        if frame.depth_m is None or frame.ov is None:
+        if frame.depth_m is None or (require_ov and frame.ov is None):
+            need = "both (govnesf sim record --depth, without --no-ov)" if require_ov else "depth"
+            hint = "" if frame.depth_m is None else "; a real RGB-D sequence without ov: require_ov=False"
             raise ValueError(
                 f"{path}: frame {i} has depth={frame.depth_m is not None}, ov={frame.ov is not None}; "
-                "training needs both (govnesf sim record --depth, without --no-ov)"
+                f"training needs {need}{hint}"
             )
-        rgb.append(frame.rgb)
-        depth.append(frame.depth_m.astype(np.float32))
-        ov.append(frame.ov.astype(np.float16))
-        Ks.append(frame.K)
+        frame_rgb, frame_depth, frame_K = frame.rgb, frame.depth_m.astype(np.float32), frame.K
+        if image_wh is not None:
+            frame_rgb, resized, frame_K, _ = resize_view(frame_rgb, frame_depth, frame_K, image_wh)
+            assert resized is not None
+            frame_depth = resized
+        rgb.append(frame_rgb)
+        depth.append(frame_depth)
+        if frame.ov is None:
+            without_ov.append(i)
+        else:
+            ov.append(frame.ov.astype(np.float16))
+        Ks.append(frame_K)
         poses.append(frame.world_from_cam)
     if reader.truncated:
         raise ValueError(f"{path / 'frames.govrec'} is truncated: {reader.error}")
     if not rgb:
         raise ValueError(f"{path / 'frames.govrec'} has no frames")
+    if without_ov and ov:
+        raise ValueError(
+            f"{path}: {len(ov)} frames have ov maps and {len(without_ov)} (first: frame {without_ov[0]}) "
+            "have none; a training scene has ov maps in every frame or in none"
+        )
     K = np.stack(Ks).astype(np.float64)
     world_from_cam = np.stack(poses).astype(np.float64)
     depth_m = np.stack(depth)
+    rgb_all = np.stack(rgb)
+    has_ov = not without_ov
+    if has_ov:
+        ov_all = np.stack(ov)
+    else:
+        height, width = rgb_all.shape[1:3]
+        default_shape = (max(1, height // OV_STRIDE_PX), max(1, width // OV_STRIDE_PX), DEFAULT_OV_DIM)
+        oh, ow, od = ov_shape or default_shape
+        ov_all = np.broadcast_to(np.zeros((1, oh, ow, od), np.float16), (len(rgb), oh, ow, od))
     names_path = path / "gt" / "class_names.json"
     meta_names = reader.header.meta.get("class_names") if isinstance(reader.header.meta, dict) else None
     class_names = json.loads(names_path.read_text()) if names_path.is_file() else list(meta_names or [])
@@ -169,16 +269,31 @@ def load_scene(path: str | Path, *, with_novel_views: bool = False) -> Scene:
                 rgb=d["rgb"],
                 label=d["label"].astype(np.int32),
             )
+        if image_wh is not None:
+            rgbs, nKs, labels = [], [], []
+            for v in range(len(novel.K)):
+                v_rgb, _, v_K, v_label = resize_view(novel.rgb[v], None, novel.K[v], image_wh, novel.label[v])
+                assert v_label is not None
+                rgbs.append(v_rgb)
+                nKs.append(v_K)
+                labels.append(v_label)
+            novel = NovelViews(
+                K=np.stack(nKs),
+                world_from_cam=novel.world_from_cam,
+                rgb=np.stack(rgbs),
+                label=np.stack(labels),
+            )
     return Scene(
         name=path.name,
-        rgb=np.stack(rgb),
+        rgb=rgb_all,
         depth_m=depth_m,
-        ov=np.stack(ov),
+        ov=ov_all,
         K=K,
         world_from_cam=world_from_cam,
         points_m=_backproject_grid(depth_m, K, world_from_cam, _POINT_STRIDE_PX),
         class_names=class_names,
         novel=novel,
+        has_ov=has_ov,
     )
 
 
@@ -328,6 +443,9 @@ class TrainSample:
     """Seed for the stochastic parts of the step (stratified ray samples)."""
     target_t: Tensor | None = None
     """(R,) true distance along each ray to the surface (from the target's depth; 0 = none)."""
+    has_ov: bool = True
+    """False: the target's scene has no ov maps (``target_ov`` and the sources' ov are zeros);
+    training gives every OV term of this example weight 0."""
 
     def to(self, device: torch.device | str) -> TrainSample:
         return TrainSample(
@@ -340,6 +458,7 @@ class TrainSample:
             self.target,
             self.seed,
             None if self.target_t is None else self.target_t.to(device),
+            self.has_ov,
         )
 
 
@@ -348,6 +467,10 @@ class RaySampler:
 
     ``sample(step, item)`` depends only on ``(seed, step, item)`` and the scenes, never on which
     process draws it or on what was drawn before.
+
+    ``extra_scenes`` (e.g. real RGB-D sequences loaded with ``require_ov=False``) are drawn with
+    probability ``extra_weight`` per example (0: never, and the examples are exactly those of a
+    sampler without them).
     """
 
     def __init__(
@@ -363,6 +486,8 @@ class RaySampler:
         frustum_range_m: float = 4.0,
         photometric_prob: float = 0.0,
         photometric_strength: float = 0.2,
+        extra_scenes: list[Scene] | None = None,
+        extra_weight: float = 0.0,
     ) -> None:
         if not scenes:
             raise ValueError("RaySampler needs at least one scene")
@@ -376,15 +501,24 @@ class RaySampler:
             raise ValueError(f"photometric_prob {photometric_prob} out of range 0..1")
         if not 0.0 <= photometric_strength < 1.0:
             raise ValueError(f"photometric_strength {photometric_strength} out of range: 0 <= s < 1")
-        for s in scenes:
+        extra_scenes = list(extra_scenes or [])
+        if not 0.0 <= extra_weight <= 1.0:
+            raise ValueError(f"extra_weight {extra_weight} out of range 0..1")
+        if extra_weight > 0 and not extra_scenes:
+            raise ValueError(f"extra_weight {extra_weight} > 0 needs extra_scenes")
+        for s in [*scenes, *extra_scenes]:
             if s.num_frames < 2:
                 raise ValueError(f"scene {s.name} has {s.num_frames} frame(s); training needs >= 2")
             if s.ov_dim != cfg.fusion.ov_dim:
+                hint = "" if s.has_ov else " (a scene without ov: load it with ov_shape=(h, w, ov_dim))"
                 raise ValueError(
                     f"scene {s.name} has {s.ov_dim}-d ov features but the model expects "
-                    f"{cfg.fusion.ov_dim} (fusion.ov_dim)"
+                    f"{cfg.fusion.ov_dim} (fusion.ov_dim){hint}"
                 )
         self.scenes = scenes
+        self.extra_scenes = extra_scenes
+        self.extra_weight = extra_weight
+        """Probability that an example is drawn from ``extra_scenes`` instead of ``scenes``."""
         self.cfg = cfg
         self.rays_per_view = rays_per_view
         self.num_sources = num_sources or cfg.num_source_views
@@ -400,10 +534,20 @@ class RaySampler:
     def rng(self, step: int, item: int) -> np.random.Generator:
         return np.random.default_rng(np.random.SeedSequence([self.seed, step, item]))
 
+    def from_extra(self, step: int, item: int) -> bool:
+        """Whether example ``item`` of ``step`` is drawn from the extra scenes: a draw of its own
+        stream (``(seed, step, item, 1)``), made only when ``extra_weight > 0``, so the example's
+        main stream, and every example drawn from the main scenes, is the same as without them."""
+        if self.extra_weight <= 0:
+            return False
+        mix = np.random.default_rng(np.random.SeedSequence([self.seed, step, item, _MIX_STREAM]))
+        return bool(mix.random() < self.extra_weight)
+
     def sample(self, step: int, item: int) -> TrainSample:
         """Example ``item`` of the global batch of ``step``."""
         rng = self.rng(step, item)
-        scene = self.scenes[int(rng.integers(len(self.scenes)))]
+        pool = self.extra_scenes if self.from_extra(step, item) else self.scenes
+        scene = pool[int(rng.integers(len(pool)))]
         target = int(rng.integers(scene.num_frames))
         K, pose = scene.K[target], scene.world_from_cam[target]
         src = select_sources(
@@ -420,8 +564,11 @@ class RaySampler:
         origins, dirs = pixel_rays(K_t, pose_t, w, h)  # (H, W, 3)
         r_t, c_t = torch.from_numpy(rows), torch.from_numpy(cols)
         uv = torch.stack([c_t + 0.5, r_t + 0.5], dim=-1).float()  # (R, 2)
-        ov_map = torch.from_numpy(scene.ov[target]).permute(2, 0, 1).float()  # (D, h, w)
-        target_ov, _ = sample_bilinear(ov_map, scale_uv(uv, (w, h), (ov_map.shape[-1], ov_map.shape[-2])))
+        if scene.has_ov:
+            ov_map = torch.from_numpy(scene.ov[target]).permute(2, 0, 1).float()  # (D, h, w)
+            target_ov, _ = sample_bilinear(ov_map, scale_uv(uv, (w, h), (ov_map.shape[-1], ov_map.shape[-2])))
+        else:  # no OV supervision (masked in training)
+            target_ov = torch.zeros(len(pix), scene.ov_dim)
         target_rgb = torch.from_numpy(scene.rgb[target][rows, cols]).float() / 255.0
         ray_dirs = dirs[r_t, c_t]
         z = torch.from_numpy(scene.depth_m[target][rows, cols]).float()
@@ -437,6 +584,7 @@ class RaySampler:
             target=target,
             seed=int(rng.integers(2**62)),
             target_t=target_t,
+            has_ov=scene.has_ov,
         )
         # Drawn after everything else, so that examples without it are unchanged.
         if self.photometric_prob > 0 and bool(rng.random() < self.photometric_prob):

@@ -155,6 +155,16 @@ class TrainConfig:
     val_stride_px: int = 4
     max_train_scenes: int = 0
     """Use only the first N training scenes (0: all)."""
+    extra_train_dirs: list[str] = field(default_factory=list)
+    """Scene folders or roots of scenes without OV maps (real RGB-D sequences from ``govnesf
+    import``, e.g. ``scripts/make_real_data.sh data`` -> ``data/real``) for colour and geometry:
+    loaded with ``load_scene(require_ov=False)``, resized to the training scenes' image size, and
+    drawn with probability ``extra_train_weight``. Every folder must exist; they are loaded only
+    when ``extra_train_weight > 0``."""
+    extra_train_weight: float = 0.0
+    """Probability that an example comes from ``extra_train_dirs`` (0 = never: the run is
+    bit-identical to one without them). Those examples train colour, depth, surface and visibility;
+    their OV terms get weight 0 (and read 0 in the logged means)."""
     extra: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -190,6 +200,18 @@ class TrainConfig:
             (self.val_stride_px >= 1, "val_stride_px", ">= 1"),
             (self.threads >= 0, "threads", ">= 0"),
             (self.max_train_scenes >= 0, "max_train_scenes", ">= 0"),
+            (
+                isinstance(self.extra_train_dirs, list)
+                and all(isinstance(d, str) and d for d in self.extra_train_dirs),
+                "extra_train_dirs",
+                "a list of folder paths",
+            ),
+            (0.0 <= self.extra_train_weight <= 1.0, "extra_train_weight", "in [0, 1]"),
+            (
+                self.extra_train_weight == 0 or bool(self.extra_train_dirs),
+                "extra_train_weight",
+                "0 when extra_train_dirs is empty",
+            ),
         ]
         for ok, name, allowed in checks:
             if not ok:
@@ -310,9 +332,12 @@ def _loss_for_sample(
         depth_guided_masking=cfg.depth_guided_masking,
         clip_to_volume=cfg.clip_to_volume,
     )
-    loss = govnesf_loss(out.rgb, s.target_rgb, out.ov, s.target_ov, ov_weight=cfg.ov_weight)
+    # An example without OV supervision (a real RGB-D scene, s.has_ov False) keeps its OV terms in
+    # the graph with weight 0 (zero gradients, not missing ones) and reports them as 0.
+    ov_weight = cfg.ov_weight if s.has_ov else 0.0
+    loss = govnesf_loss(out.rgb, s.target_rgb, out.ov, s.target_ov, ov_weight=ov_weight)
     total = loss.total
-    terms = {"color": float(loss.color.detach()), "ov": float(loss.ov.detach())}
+    terms = {"color": float(loss.color.detach()), "ov": float(loss.ov.detach()) if s.has_ov else 0.0}
     if cfg.distortion_weight > 0:
         total = total + cfg.distortion_weight * distortion_loss(out.weights, out.t)
     has_t = s.target_t is not None and bool((s.target_t > 0).any())
@@ -323,10 +348,11 @@ def _loss_for_sample(
         terms.update(depth=float(depth.detach()), surface=float(surface.detach()))
     if has_t and s.target_t is not None and (cfg.point_ov_weight > 0 or cfg.visibility_weight > 0):
         point_terms = _surface_point_losses(model, views, volume, s, cfg)
-        for name, weight in (("point_ov", cfg.point_ov_weight), ("visibility", cfg.visibility_weight)):
+        point_ov_weight = cfg.point_ov_weight if s.has_ov else 0.0
+        for name, weight in (("point_ov", point_ov_weight), ("visibility", cfg.visibility_weight)):
             if name in point_terms:
                 total = total + weight * point_terms[name]
-                terms[name] = float(point_terms[name].detach())
+                terms[name] = float(point_terms[name].detach()) if weight > 0 else 0.0
     terms["loss"] = float(total.detach())
     return total, terms
 
@@ -492,6 +518,31 @@ def _load_scenes(root: str, *, limit: int = 0, with_novel_views: bool = False) -
     return [load_scene(p, with_novel_views=with_novel_views) for p in paths]
 
 
+def _load_extra_scenes(cfg: TrainConfig, like: Scene, ov_dim: int) -> list[Scene]:
+    """The ``extra_train_dirs`` scenes (ov-less allowed), at the image size and ov grid of ``like``
+    with the model's ``ov_dim``; none when ``extra_train_weight`` is 0 (the folders must exist)."""
+    for d in cfg.extra_train_dirs:
+        if not Path(d).exists():
+            raise FileNotFoundError(
+                f"train config: extra_train_dirs: folder {d} does not exist "
+                "(real sequences: scripts/make_real_data.sh DATA_DIR writes DATA_DIR/real)"
+            )
+    if cfg.extra_train_weight == 0:
+        return []
+    paths: list[Path] = []
+    for d in cfg.extra_train_dirs:
+        try:
+            paths += find_scenes(d)
+        except FileNotFoundError:
+            raise FileNotFoundError(
+                f"train config: extra_train_dirs: no scene (frames.govrec, or */frames.govrec) in {d}"
+            ) from None
+    ov_h, ov_w = like.ov.shape[1:3]
+    return [
+        load_scene(p, require_ov=False, image_wh=like.image_wh, ov_shape=(ov_h, ov_w, ov_dim)) for p in paths
+    ]
+
+
 def train(
     cfg: TrainConfig,
     *,
@@ -538,6 +589,8 @@ class _Data:
     val_views: list[ValidationView]
     text_emb: np.ndarray
     load_s: float
+    extra_scenes: list[Scene] = field(default_factory=list)
+    """The ``extra_train_dirs`` scenes (empty when ``extra_train_weight`` is 0)."""
 
 
 def _load_data(cfg: TrainConfig, dd: _Dist, model_cfg: ModelConfig | None) -> _Data:
@@ -547,6 +600,7 @@ def _load_data(cfg: TrainConfig, dd: _Dist, model_cfg: ModelConfig | None) -> _D
     train_scenes = _load_scenes(cfg.train_dir, limit=cfg.max_train_scenes)
     ov_dim = train_scenes[0].ov_dim
     mcfg = model_cfg or get_preset(cfg.preset, ov_dim=ov_dim)
+    extra_scenes = _load_extra_scenes(cfg, train_scenes[0], mcfg.fusion.ov_dim)
     sampler = RaySampler(
         train_scenes,
         mcfg,
@@ -558,6 +612,8 @@ def _load_data(cfg: TrainConfig, dd: _Dist, model_cfg: ModelConfig | None) -> _D
         frustum_range_m=cfg.frustum_range_m,
         photometric_prob=cfg.photometric_prob,
         photometric_strength=cfg.photometric_strength,
+        extra_scenes=extra_scenes,
+        extra_weight=cfg.extra_train_weight,
     )
     val_views: list[ValidationView] = []
     text_emb = np.zeros((0, ov_dim), np.float32)
@@ -567,7 +623,8 @@ def _load_data(cfg: TrainConfig, dd: _Dist, model_cfg: ModelConfig | None) -> _D
             val_scenes, cfg.num_sources or mcfg.num_source_views, views_per_scene=cfg.val_views_per_scene
         )
         text_emb = class_text_embeddings(cfg.val_dir, val_scenes[0].class_names)
-    return _Data(train_scenes, mcfg, sampler, val_views, text_emb, time.perf_counter() - t_load)
+    load_s = time.perf_counter() - t_load
+    return _Data(train_scenes, mcfg, sampler, val_views, text_emb, load_s, extra_scenes)
 
 
 @dataclass
@@ -695,6 +752,7 @@ class _Run:
                 "load_s": round(self.data.load_s, 1),
                 "command": self.base_meta["command"],
                 "train_scenes": len(self.data.train_scenes),
+                "extra_train_scenes": len(self.data.extra_scenes),
                 "val_views": len(self.data.val_views),
             },
         )
