@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from mapper.model.ops.checks import check_shape
+
 NUM_SCANNET_CLASSES = 20
 """Number of ScanNet benchmark classes; label ids 0..19."""
 
@@ -79,8 +81,7 @@ def confusion_matrix(gt: np.ndarray, pred: np.ndarray, num_classes: int = NUM_SC
 def segmentation_scores(cm: np.ndarray) -> SegmentationScores:
     """mIoU / mAcc / oAcc of a (C, C) confusion matrix (rows = ground truth) over present classes."""
     cm = np.asarray(cm, dtype=np.float64)
-    if cm.ndim != 2 or cm.shape[0] != cm.shape[1]:
-        raise ValueError(f"confusion matrix must be square (C, C), got shape {cm.shape}")
+    check_shape(cm, "C C", "confusion matrix")
     return _scores(cm, cm.sum(axis=1))
 
 
@@ -158,9 +159,8 @@ def predict_labels(features: np.ndarray | torch.Tensor, text_emb: np.ndarray | t
     is_numpy = not isinstance(features, torch.Tensor)
     f = torch.as_tensor(np.asarray(features) if is_numpy else features)
     t = torch.as_tensor(text_emb).to(device=f.device)
-    if f.ndim != 2 or t.ndim != 2 or f.shape[1] != t.shape[1]:
-        raise ValueError(f"features (N, D) and text_emb (C, D) must share D, got {tuple(f.shape)} "
-                         f"and {tuple(t.shape)}")
+    dims = check_shape(f, "N D", "features")
+    check_shape(t, "C D", "text_emb (must share D with features)", dims)
     if t.shape[0] == 0:
         raise ValueError("text_emb has no classes")
     t = t.float()
@@ -186,3 +186,127 @@ def format_scores_table(rows: Sequence[tuple[str, SegmentationScores]],
             cells += ["-" if np.isnan(v) else f"{100 * v:.1f}" for v in s.iou[: len(class_names)]]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+# ---- novel-view render metrics (rgb and depth against a real frame) ----------------------------
+# Used by benchmarks/real_sequence.py. A depth of 0 or a non-finite value means "no depth" on
+# either side (the runtime renders 0 where the opacity stays below ``min_opacity``; sensors write 0
+# where they measured nothing).
+
+
+@dataclass(frozen=True)
+class DepthErrors:
+    """Relative depth error of a predicted depth map against a reference depth map."""
+
+    median_rel: float
+    """Median of |pred - ref| / ref over the compared pixels (NaN if none)."""
+    mean_rel: float
+    """Mean of |pred - ref| / ref over the compared pixels (NaN if none)."""
+    within_10pct: float
+    """Fraction of the compared pixels with a relative error <= 0.10 (NaN if none)."""
+    within_25pct: float
+    """Fraction of the compared pixels with a relative error <= 0.25 (NaN if none)."""
+    coverage: float
+    """Compared pixels / pixels with a reference depth: how much of the measured scene got a
+    predicted depth (NaN if the reference has no depth)."""
+    num_compared: int
+    """Pixels where both maps have a depth."""
+    num_reference: int
+    """Pixels where the reference has a depth."""
+
+
+def has_depth(depth_m: np.ndarray) -> np.ndarray:
+    """Boolean mask of the pixels carrying a depth: finite and > 0.
+
+    >>> has_depth(np.array([0.0, 1.5, np.nan, -1.0, np.inf])).tolist()
+    [False, True, False, False, False]
+    """
+    depth_m = np.asarray(depth_m)
+    return np.isfinite(depth_m) & (depth_m > 0)
+
+
+def relative_depth_errors(pred_m: np.ndarray, ref_m: np.ndarray) -> tuple[np.ndarray, int]:
+    """|pred - ref| / ref at the pixels where both maps have a depth (:func:`has_depth`).
+
+    Args:
+        pred_m: (H, W) predicted depth (metres), 0 / non-finite = none.
+        ref_m: (H, W) reference depth (metres), same shape, 0 / non-finite = none.
+
+    Returns:
+        ((N,) float64 relative errors in row-major pixel order, number of pixels with a reference
+        depth). N / that number is the coverage.
+
+    >>> pred = np.array([[1.1, 0.0], [2.0, 3.0]])
+    >>> ref = np.array([[1.0, 2.0], [0.0, 2.0]])
+    >>> rel, n_ref = relative_depth_errors(pred, ref)
+    >>> rel.round(6).tolist(), n_ref
+    ([0.1, 0.5], 3)
+    """
+    pred = np.asarray(pred_m, dtype=np.float64)
+    ref = np.asarray(ref_m, dtype=np.float64)
+    if pred.shape != ref.shape:
+        raise ValueError(f"predicted depth has shape {pred.shape} but the reference {ref.shape}")
+    ref_ok = has_depth(ref)
+    both = ref_ok & has_depth(pred)
+    return np.abs(pred[both] - ref[both]) / ref[both], int(ref_ok.sum())
+
+
+def summarize_depth_errors(rel: np.ndarray, num_reference: int) -> DepthErrors:
+    """:class:`DepthErrors` of (N,) relative errors from ``num_reference`` reference pixels.
+
+    Pool several images by concatenating their errors and adding their reference counts.
+    """
+    rel = np.asarray(rel, dtype=np.float64).reshape(-1)
+    if num_reference < rel.size:
+        raise ValueError(f"{rel.size} compared pixels but only {num_reference} reference pixels")
+    nan = float("nan")
+    if rel.size == 0:
+        return DepthErrors(nan, nan, nan, nan, 0.0 if num_reference else nan, 0, int(num_reference))
+    return DepthErrors(
+        median_rel=float(np.median(rel)),
+        mean_rel=float(rel.mean()),
+        within_10pct=float((rel <= 0.10).mean()),
+        within_25pct=float((rel <= 0.25).mean()),
+        coverage=float(rel.size / num_reference),
+        num_compared=int(rel.size),
+        num_reference=int(num_reference),
+    )
+
+
+def depth_errors(pred_m: np.ndarray, ref_m: np.ndarray) -> DepthErrors:
+    """:class:`DepthErrors` of a (H, W) predicted depth against a (H, W) reference depth."""
+    return summarize_depth_errors(*relative_depth_errors(pred_m, ref_m))
+
+
+def masked_psnr(
+    pred: np.ndarray, target: np.ndarray, mask: np.ndarray | None = None, *, max_value: float = 1.0
+) -> float:
+    """PSNR (dB) = 10 log10(max_value^2 / MSE), the MSE over the pixels of ``mask`` (all channels).
+
+    Args:
+        pred: (H, W) or (H, W, C) image.
+        target: same shape as ``pred``, same units.
+        mask: (H, W) bool, the pixels to compare; None = all.
+        max_value: peak value of the images (1.0 for [0, 1], 255.0 for uint8).
+
+    Returns:
+        inf for identical pixels, NaN for an empty mask.
+
+    >>> masked_psnr(np.array([[0.0, 0.5]]), np.array([[0.0, 0.0]]))  # MSE 0.125 -> 10 log10(8)
+    9.030899869919436
+    """
+    p = np.asarray(pred, dtype=np.float64)
+    t = np.asarray(target, dtype=np.float64)
+    if p.shape != t.shape or p.ndim not in (2, 3):
+        raise ValueError(f"pred {p.shape} and target {t.shape} must be the same (H, W) or (H, W, C) shape")
+    if max_value <= 0:
+        raise ValueError(f"max_value must be > 0, got {max_value}")
+    if mask is not None:
+        m = np.asarray(mask, dtype=bool)
+        if m.shape != p.shape[:2]:
+            raise ValueError(f"mask has shape {m.shape}, expected the image's (H, W) = {p.shape[:2]}")
+        p, t = p[m], t[m]
+    if p.size == 0:
+        return float("nan")
+    mse = float(np.mean((p - t) ** 2))
+    return float("inf") if mse == 0 else float(10.0 * np.log10(max_value**2 / mse))
