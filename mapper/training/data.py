@@ -39,6 +39,7 @@ from torch import Tensor
 from mapper.model.config import ModelConfig
 from mapper.model.ops.cost_volume import VolumeBounds, bounds_from_points
 from mapper.model.ops.geometry import frustum_points, pixel_rays, sample_bilinear, scale_uv
+from mapper.model.supervision import ray_distance
 from protocol.recording import read_recording
 
 __all__ = [
@@ -572,8 +573,7 @@ class RaySampler:
         target_rgb = torch.from_numpy(scene.rgb[target][rows, cols]).float() / 255.0
         ray_dirs = dirs[r_t, c_t]
         z = torch.from_numpy(scene.depth_m[target][rows, cols]).float()
-        cos = (ray_dirs @ pose_t[:3, 2]).clamp_min(1e-6)
-        target_t = torch.where(z > 0, z / cos, torch.zeros_like(z))
+        target_t = ray_distance(z, ray_dirs, pose_t[:3, 2])
         sample = TrainSample(
             sources=sources,
             origins=origins[r_t, c_t],

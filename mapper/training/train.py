@@ -340,13 +340,13 @@ def _loss_for_sample(
     terms = {"color": float(loss.color.detach()), "ov": float(loss.ov.detach()) if s.has_ov else 0.0}
     if cfg.distortion_weight > 0:
         total = total + cfg.distortion_weight * distortion_loss(out.weights, out.t)
-    has_t = s.target_t is not None and bool((s.target_t > 0).any())
-    if has_t and s.target_t is not None and (cfg.depth_weight > 0 or cfg.surface_weight > 0):
-        depth = ray_depth_loss(out.depth_m, s.target_t)
-        surface = surface_loss(out.weights, out.t, s.target_t, band_m=cfg.surface_band_m)
+    target_t = s.target_t if s.target_t is not None and bool((s.target_t > 0).any()) else None
+    if target_t is not None and (cfg.depth_weight > 0 or cfg.surface_weight > 0):
+        depth = ray_depth_loss(out.depth_m, target_t)
+        surface = surface_loss(out.weights, out.t, target_t, band_m=cfg.surface_band_m)
         total = total + cfg.depth_weight * depth + cfg.surface_weight * surface
         terms.update(depth=float(depth.detach()), surface=float(surface.detach()))
-    if has_t and s.target_t is not None and (cfg.point_ov_weight > 0 or cfg.visibility_weight > 0):
+    if target_t is not None and (cfg.point_ov_weight > 0 or cfg.visibility_weight > 0):
         point_terms = _surface_point_losses(model, views, volume, s, cfg)
         point_ov_weight = cfg.point_ov_weight if s.has_ov else 0.0
         for name, weight in (("point_ov", point_ov_weight), ("visibility", cfg.visibility_weight)):
