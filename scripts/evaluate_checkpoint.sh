@@ -23,6 +23,12 @@ PYTHON="${PYTHON:-.venv/bin/python}"
 DATA="${DATA:-data}"
 export HF_HUB_OFFLINE=1 OMP_NUM_THREADS="${OMP_NUM_THREADS:-2}"
 if [[ ! -f "$CKPT" ]]; then echo "evaluate_checkpoint: no checkpoint $CKPT" >&2; exit 2; fi
+for part in "${PARTS[@]}"; do
+    case "$part" in
+        val|3d|2d|visibility|rgbonly|real) ;;
+        *) echo "evaluate_checkpoint: unknown part $part (val 3d 2d visibility rgbonly real)" >&2; exit 2 ;;
+    esac
+done
 mkdir -p "$OUT"
 for part in "${PARTS[@]}"; do
     start=$(date +%s)
