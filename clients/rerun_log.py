@@ -1,4 +1,5 @@
-"""Logging to a Rerun ``.rrd`` file (``--rerun FILE.rrd`` of ``govnesf query/render/replay`` and the demo).
+"""Logging for the Rerun viewer: to an ``.rrd`` file (``--rerun FILE.rrd`` of ``govnesf
+query/render/replay`` and the demo) and/or live to a running viewer (``--rerun-connect ADDR``).
 
 One place for all Rerun logging. ``rerun`` (the PyPI package ``rerun-sdk``, pinned in
 pyproject.toml) is imported lazily, only when a recording is opened or a path is checked, so no
@@ -11,6 +12,10 @@ Usage::
     with RerunLog(path) as rlog:                 # one RecordingStream (application id "govnesf")
         rlog.log_query(points, ["chair"])        # closed (flushed, footer written) on exit
     # view it: rerun out/chair.rrd
+
+    url = check_connect_addr("127.0.0.1:9876")  # a viewer started with `rerun` listens there
+    with RerunLog(connect=url) as rlog:          # live; RerunLog(path, connect=url) does both
+        rlog.log_query(points, ["chair"])
 
 Entity layout (world +z up, metres; see docs/RERUN.md):
 
@@ -31,6 +36,8 @@ Timelines: ``frame`` (the frame's ``seq``), ``stamp`` (its ``stamp_ns``) and ``m
 from __future__ import annotations
 
 import os
+import re
+import socket
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
@@ -50,6 +57,9 @@ __all__ = [
     "RERUN_PIN",
     "RerunLog",
     "RerunLogError",
+    "CONNECT_HELP",
+    "check_connect_addr",
+    "check_rerun_outputs",
     "check_rrd_path",
     "import_rerun",
 ]
@@ -59,6 +69,15 @@ RERUN_PIN = "rerun-sdk==0.41.0"
 
 APPLICATION_ID = "govnesf"
 """The Rerun application id of every recording written here."""
+
+DEFAULT_VIEWER_PORT = 9876
+"""Port of a viewer started with plain ``rerun`` (Rerun's default)."""
+
+CONNECT_CHECK_TIMEOUT_S = 2.0
+"""How long :func:`check_connect_addr` waits for the viewer's port to accept a TCP connection."""
+
+FLUSH_TIMEOUT_S = 10.0
+"""How long closing a live (``connect``) log waits for the viewer to take the data."""
 
 NOTHING_COLOUR = (0, 0, 0)
 """Colour of label -1 (class id 0): nothing rendered / unlabelled."""
@@ -75,7 +94,7 @@ def import_rerun() -> ModuleType:
     except ImportError as exc:
         raise RerunLogError(
             f"--rerun needs the Python package {RERUN_PIN} (the Rerun SDK), which is not importable "
-            f"({exc}); install the project's pins with: .venv/bin/pip install -c constraints.txt -e ."
+            f"({exc}); install the extra: pip install 'govnesf[rerun]' (in a checkout: make setup)"
         ) from exc
     return rr
 
@@ -83,6 +102,72 @@ def import_rerun() -> ModuleType:
 def _rerun_disabled_by_env() -> bool:
     """Rerun's own switch: ``RERUN=0/false/off/no`` turns every recording off."""
     return os.environ.get("RERUN", "").strip().lower() in {"0", "false", "off", "no"}
+
+
+_URL = re.compile(r"(rerun|rerun\+http|rerun\+https)://([^/:\s]+|\[[0-9a-fA-F:]+\]):(\d{1,5})/proxy")
+_HOST_PORT = re.compile(r"([^/:\s]+|\[[0-9a-fA-F:]+\]):(\d{1,5})")
+
+
+def check_connect_addr(addr: str, *, probe: bool = True) -> str:
+    """Check, before any work, the ``--rerun-connect`` address of a running Rerun viewer (or
+    ``rerun --serve-grpc`` proxy); returns its gRPC URL.
+
+    ``addr`` is ``PORT`` (on 127.0.0.1), ``HOST:PORT``, or a URL ``rerun+http://HOST:PORT/proxy``
+    (also ``rerun://`` and ``rerun+https://``, as Rerun's ``connect_grpc`` takes them). With
+    ``probe``, the port must accept a TCP connection within :data:`CONNECT_CHECK_TIMEOUT_S`
+    (otherwise Rerun would buffer and fail only at the end). Raises :class:`RerunLogError` with the
+    reason: the package is missing, ``RERUN=off``, a malformed address, or nothing listens there.
+    """
+    import_rerun()
+    if _rerun_disabled_by_env():
+        raise RerunLogError(
+            f"--rerun-connect {addr}: the environment variable RERUN={os.environ.get('RERUN')} turns "
+            "Rerun logging off; unset it to stream to a viewer"
+        )
+    text = addr.strip()
+    if text.isdigit():
+        text = f"127.0.0.1:{text}"
+    url_match = _URL.fullmatch(text)
+    host_match = None if url_match else _HOST_PORT.fullmatch(text)
+    if url_match:
+        url, host, port = text, url_match.group(2), int(url_match.group(3))
+    elif host_match:
+        host, port = host_match.group(1), int(host_match.group(2))
+        url = f"rerun+http://{host}:{port}/proxy"
+    else:
+        raise RerunLogError(
+            f"--rerun-connect {addr!r}: expected PORT, HOST:PORT or rerun+http://HOST:PORT/proxy "
+            f"(a viewer started with `rerun` listens on 127.0.0.1:{DEFAULT_VIEWER_PORT})"
+        )
+    if not 1 <= port <= 65535:
+        raise RerunLogError(f"--rerun-connect {addr!r}: port {port} is not in 1..65535")
+    if probe:
+        try:
+            with socket.create_connection((host.strip("[]"), port), timeout=CONNECT_CHECK_TIMEOUT_S):
+                pass
+        except OSError as exc:
+            raise RerunLogError(
+                f"--rerun-connect {addr}: no Rerun viewer answers at {host}:{port} "
+                f"({exc.strerror or exc}); start one first (`rerun --port {port}`, or "
+                f"`rerun --serve-grpc --port {port}` without a display)"
+            ) from None
+    return url
+
+
+CONNECT_HELP = (
+    "also stream it live to a running Rerun viewer: PORT, HOST:PORT or rerun+http://HOST:PORT/proxy "
+    f"(a viewer started with `rerun` listens on 127.0.0.1:{DEFAULT_VIEWER_PORT}); with --rerun, both"
+)
+"""``--help`` text of ``--rerun-connect`` (the same in every command)."""
+
+
+def check_rerun_outputs(path: str | Path | None, connect: str | None) -> None:
+    """The checks of ``--rerun PATH`` (:func:`check_rrd_path`) and ``--rerun-connect ADDR``
+    (:func:`check_connect_addr`) for the ones given; :class:`RerunLogError` on the first problem."""
+    if path is not None:
+        check_rrd_path(path)
+    if connect is not None:
+        check_connect_addr(connect)
 
 
 def check_rrd_path(path: str | Path) -> Path:
@@ -147,18 +232,33 @@ def label_colours(label: np.ndarray) -> np.ndarray:  # (N,) int -> (N, 3) uint8
 
 
 class RerunLog:
-    """One ``.rrd`` file: a Rerun ``RecordingStream`` (application id ``"govnesf"``) saved to
-    ``path``. A context manager; :meth:`close` flushes and writes the file's footer, so the file is
-    complete when it returns. ``path`` is checked with :func:`check_rrd_path` first."""
+    """One Rerun ``RecordingStream`` (application id ``"govnesf"``) saved to the ``.rrd`` file
+    ``path`` and/or streamed live to the viewer at ``connect`` (a gRPC URL or address, see
+    :func:`check_connect_addr`). A context manager; :meth:`close` flushes and writes the file's
+    footer, so the file is complete (and the viewer has everything) when it returns. ``path`` is
+    checked with :func:`check_rrd_path` and ``connect`` with :func:`check_connect_addr` first."""
 
-    def __init__(self, path: str | Path, *, recording_name: str | None = None) -> None:
-        self.path = check_rrd_path(path)
+    def __init__(
+        self, path: str | Path | None = None, *, connect: str | None = None, recording_name: str | None = None
+    ) -> None:
+        if path is None and connect is None:
+            raise RerunLogError("RerunLog needs a file path, a viewer address (connect=...) or both")
+        self.path = check_rrd_path(path) if path is not None else None
+        self.url = check_connect_addr(connect) if connect is not None else None
+        """gRPC URL of the live viewer, or None."""
         self._rr = import_rerun()
         rr = self._rr
         self.rec: rerun.RecordingStream = rr.RecordingStream(APPLICATION_ID, recording_id=uuid.uuid4())
         if not self.rec.is_enabled():
-            raise RerunLogError(f"--rerun {path}: Rerun logging is disabled in this environment (RERUN)")
-        self.rec.save(self.path)
+            raise RerunLogError(
+                f"--rerun {path or connect}: Rerun logging is disabled in this environment (RERUN)"
+            )
+        if self.path is not None and self.url is not None:
+            self.rec.set_sinks(rr.FileSink(self.path), rr.GrpcSink(self.url))
+        elif self.path is not None:
+            self.rec.save(self.path)
+        else:
+            self.rec.connect_grpc(self.url)
         if recording_name:
             self.rec.send_recording_name(recording_name)
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -169,11 +269,22 @@ class RerunLog:
     # -- lifecycle ------------------------------------------------------------------------------
 
     def close(self) -> None:
-        """Flush everything and close the file (idempotent)."""
+        """Flush everything and close the file and the viewer connection (idempotent).
+
+        Raises:
+            RerunLogError: the live viewer did not take the data within :data:`FLUSH_TIMEOUT_S`
+                (the file, if any, is still complete).
+        """
         if self.closed:
             return
         self.closed = True
-        self.rec.flush()
+        try:
+            self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S if self.url is not None else 1e38)
+        except RuntimeError as exc:  # the gRPC sink could not deliver
+            self.rec.disconnect()
+            raise RerunLogError(
+                f"--rerun-connect {self.url}: the viewer did not take the data: {exc}"
+            ) from None
         self.rec.disconnect()  # finalises the file sink: footer written, file closed
 
     def __enter__(self) -> RerunLog:

@@ -5,9 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from clients.importers.base import UP_AXES, ImporterError, ReaderOptions, parse_K
+from clients.importers.base import UP_AXES, DatasetReader, ImporterError, ReaderOptions, parse_K
 from clients.importers.convert import RGB_ENCODINGS, convert
 from clients.importers.registry import ALIASES, FORMATS, open_dataset
+from clients.importers.rosbag import POSE_AXES, POSE_INTERP, RosbagOptions, RosbagReader
 
 
 def _positive_int(text: str) -> int:
@@ -74,12 +75,45 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--overwrite", action="store_true", help="replace FILE.govrec if it exists")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    ros = parser.add_argument_group("rosbag options (FORMAT rosbag only; docs/IMPORT.md)")
+    for flag, meta, text in ROSBAG_FLAGS:
+        ros.add_argument(flag, metavar=meta, default=None, help=text)
+    ros.add_argument("--max-dt", type=float, default=None, metavar="S",
+                     help="largest time between an image and its depth image / pose samples (default 0.05)")
+    ros.add_argument("--pose-interp", choices=POSE_INTERP, default=None,
+                     help="pose at the image stamp: interpolated (linear, default) or the nearest sample")
+    ros.add_argument("--pose-axes", choices=POSE_AXES, default=None,
+                     help="axes of --pose-topic's frame: optical (x right, y down, z forward; default) or "
+                          "body (REP 103 x forward, y left, z up)")  # fmt: skip
     return parser
+
+
+ROSBAG_FLAGS = (
+    ("--image-topic", "TOPIC", "colour topic (Image or CompressedImage; default: the only one)"),
+    ("--depth-topic", "TOPIC", "depth topic (Image 16UC1 mm / 32FC1 m; default: the one named *depth*)"),
+    ("--camera-info-topic", "TOPIC", "CameraInfo topic (default: IMAGE_NS/camera_info, or the only one)"),
+    ("--pose-topic", "TOPIC", "PoseStamped / PoseWithCovarianceStamped / Odometry topic (default: TF)"),
+    ("--world-frame", "FRAME", "TF frame the poses are in (default map; with --pose-topic: its frame_id)"),
+    ("--camera-frame", "FRAME", "TF frame of the camera (default: the images' header.frame_id)"),
+)
+
+
+def rosbag_options(args: argparse.Namespace) -> RosbagOptions | None:
+    """The rosbag options given on the command line (None when none was given)."""
+    names = [flag[2:].replace("-", "_") for flag, _, _ in ROSBAG_FLAGS]
+    given = {name: getattr(args, name) for name in names}
+    given.update(max_dt_s=args.max_dt, pose_interp=args.pose_interp, pose_axes=args.pose_axes)
+    given = {k: v for k, v in given.items() if v is not None}
+    return RosbagOptions(**given) if given else None
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``govnesf import``; returns the exit status (0 ok, 1 import error, 2 usage)."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    ros = rosbag_options(args)
+    if ros is not None and ALIASES.get(args.format, args.format) != RosbagReader.format_name:
+        parser.error(f"the rosbag options do not apply to format {args.format}")
     try:
         options = ReaderOptions(
             K=parse_K(args.K) if args.K is not None else None,
@@ -87,7 +121,10 @@ def main(argv: list[str] | None = None) -> int:
             fps=args.fps,
             up_axis=args.up_axis,
         )
-        reader = open_dataset(args.format, args.path, options)
+        if ALIASES.get(args.format, args.format) == RosbagReader.format_name:
+            reader: DatasetReader = RosbagReader(args.path, options, ros)
+        else:
+            reader = open_dataset(args.format, args.path, options)
         summary = convert(
             reader,
             args.out,

@@ -7,6 +7,7 @@ from pathlib import Path
 from clients.importers.base import DatasetReader, ImporterError, ReaderOptions
 from clients.importers.open3d_log import Open3dLogReader
 from clients.importers.replica import ReplicaReader
+from clients.importers.rosbag import RosbagReader
 from clients.importers.scannet import ScanNetReader
 from clients.importers.sevenscenes import SevenScenesReader
 from clients.importers.sim import SimReader
@@ -14,7 +15,9 @@ from clients.importers.tum import TumReader
 
 FORMATS: dict[str, type[DatasetReader]] = {
     reader.format_name: reader
-    for reader in (ScanNetReader, ReplicaReader, TumReader, SevenScenesReader, Open3dLogReader, SimReader)
+    for reader in (
+        ScanNetReader, ReplicaReader, TumReader, SevenScenesReader, Open3dLogReader, SimReader, RosbagReader
+    )
 }
 
 ALIASES: dict[str, str] = {"icl": "open3d"}

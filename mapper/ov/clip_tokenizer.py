@@ -3,9 +3,10 @@
 A faithful re-implementation of OpenAI CLIP's ``simple_tokenizer.py`` (the same algorithm
 open_clip ships), so token ids match the ones the released CLIP text towers were trained on:
 
-1. clean the text: ``ftfy.fix_text`` when ftfy is installed (optional; without it only the HTML
-   unescape and whitespace steps below run, which is identical for plain ASCII/UTF-8 prompts),
-   HTML-unescape twice, collapse whitespace, lower-case;
+1. clean the text: ``ftfy.fix_text`` when ftfy is installed (optional; without it only the
+   steps below run, which is identical for plain ASCII/UTF-8 prompts), Unicode NFC normalisation
+   (what ``ftfy.fix_text`` does last, so a decomposed "cafe\\u0301" tokenises as "café" with or
+   without ftfy), HTML-unescape twice, collapse whitespace, lower-case;
 2. split with CLIP's regex (contractions, runs of letters, single digits, runs of punctuation);
 3. map every UTF-8 byte of a piece to a printable unicode character (``bytes_to_unicode``),
    mark the end of the word with ``</w>`` and apply the BPE merges in rank order;
@@ -38,12 +39,16 @@ from __future__ import annotations
 
 import gzip
 import html
+import unicodedata
 from collections.abc import Sequence
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-import regex
+
+from govnesf._extras import require
+
+regex = require("regex", "clip", "the CLIP tokenizer")
 
 #: Merges the released CLIP models use: 49152 - 256 - 2 (vocabulary 49408 = 2 * 256 + 48894 + 2).
 CLIP_MAX_MERGES = 49152 - 256 - 2
@@ -83,13 +88,14 @@ def _pairs(word: tuple[str, ...]) -> set[tuple[str, str]]:
 
 
 def clean_text(text: str) -> str:
-    """CLIP's text cleanup: ftfy (if installed), double HTML unescape, collapsed whitespace, lower case."""
+    """CLIP's text cleanup: ftfy (if installed), NFC, HTML unescape x2, whitespace collapsed, lower case."""
     try:
         import ftfy  # optional
     except ImportError:  # pragma: no cover - depends on the environment
         ftfy = None
     if ftfy is not None:  # pragma: no cover - ftfy is not installed in CI
         text = ftfy.fix_text(text)
+    text = unicodedata.normalize("NFC", text)  # ftfy's last step; composed and decomposed text agree
     text = html.unescape(html.unescape(text)).strip()
     return _WHITESPACE.sub(" ", text).strip().lower()
 
