@@ -5,7 +5,7 @@ export PYTHONUNBUFFERED := 1
 export HF_HUB_OFFLINE := 1
 export TRANSFORMERS_OFFLINE := 1
 
-.PHONY: setup demo test lint typecheck unit bench clean
+.PHONY: setup demo test lint typecheck unit bench wheel platforms clean
 
 setup:
 	@bash scripts/setup.sh
@@ -14,7 +14,7 @@ demo: setup
 	$(PY) -m clients.demo $(DEMO_ARGS)
 
 lint: setup
-	$(VENV)/bin/ruff check protocol mapper clients tests benchmarks
+	$(VENV)/bin/ruff check protocol mapper clients govnesf tests benchmarks setup.py
 
 typecheck: setup
 	$(VENV)/bin/mypy
@@ -27,5 +27,13 @@ test: lint typecheck unit
 bench: setup
 	$(PY) benchmarks/ingest_rate.py
 
+# the installable wheel (core + extras, docs/INSTALL.md) into dist/
+wheel: setup
+	$(VENV)/bin/pip wheel --no-deps --no-build-isolation --no-index -w dist .
+
+# pip download of the core for aarch64 Linux and macOS arm64 (PLATFORM_ARGS=--dry-run: metadata only)
+platforms: setup
+	bash scripts/check_platforms.sh $(PLATFORM_ARGS)
+
 clean:
-	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build dist

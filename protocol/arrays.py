@@ -15,7 +15,6 @@ import struct
 from collections.abc import Collection, Sequence
 from typing import Any
 
-import cv2
 import numpy as np
 
 from protocol.errors import ProtocolError
@@ -152,6 +151,8 @@ def encode_image(rgb: np.ndarray, encoding: str = "rgb8", *, jpeg_quality: int =
         raise ValueError(f"unknown image encoding {encoding!r}; allowed: {', '.join(IMAGE_ENCODINGS)}")
     if not 0 <= jpeg_quality <= 100:
         raise ValueError(f"jpeg_quality {jpeg_quality} out of range 0..100")
+    import cv2  # a core dependency, loaded on the first compressed image (`import protocol` stays light)
+
     bgr = np.ascontiguousarray(rgb[:, :, ::-1])
     if encoding == "jpeg":
         ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
@@ -237,6 +238,8 @@ def decode_image(obj: Any, *, width: int, height: int, field: str = "rgb") -> np
         raise _bad(field, f"data is not a decodable {encoding} image ({len(data)} bytes)")
     if size != (width, height):
         raise _bad(field, f"{encoding} image is {size[0]}x{size[1]} but the message says {width}x{height}")
+    import cv2  # a core dependency, loaded on the first compressed image
+
     buf = np.frombuffer(data, dtype=np.uint8)
     try:
         bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR)

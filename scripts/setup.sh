@@ -21,10 +21,12 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 
 STAMP="$VENV/.govnesf-installed"
-if [ ! -f "$STAMP" ] || [ pyproject.toml -nt "$STAMP" ] || [ constraints.txt -nt "$STAMP" ]; then
+if [ ! -f "$STAMP" ] || [ pyproject.toml -nt "$STAMP" ] || [ setup.py -nt "$STAMP" ] \
+        || [ constraints.txt -nt "$STAMP" ] || [ govnesf/__init__.py -nt "$STAMP" ]; then
     echo "[setup] installing pinned packages into $VENV (about a minute on a cold machine)"
     start=$(date +%s)
-    "$VENV/bin/python" -m pip install -q --disable-pip-version-check -c constraints.txt -e '.[dev]'
+    # every extra (docs/INSTALL.md): the demo needs [sim], the tests cover [rerun], [import], [clip]
+    "$VENV/bin/python" -m pip install -q --disable-pip-version-check -c constraints.txt -e '.[all,dev]'
     echo "[setup] installed in $(( $(date +%s) - start )) s"
     touch "$STAMP"
 fi

@@ -35,6 +35,7 @@ import numpy as np
 from clients.sim.raycast import RenderedView, SceneRenderer
 from clients.sim.robot import default_intrinsics, obstacle_distance_field, robot_trajectory
 from clients.sim.scenes import CLASS_NAMES, LABEL_OF, SCANNET20, STYLES, Scene, generate_scene
+from govnesf._extras import require
 from protocol.messages import Frame
 
 OV_SPACE = "minilm-l6-v2"
@@ -269,7 +270,7 @@ def _save_png(path: Path, image: np.ndarray) -> None:
 
 def write_ply(path: Path, scene: Scene) -> None:
     """The mesh as PLY with per-vertex colours from the label palette (vertices unshared)."""
-    import trimesh
+    trimesh = require("trimesh", "sim", "the simulator's mesh export (trimesh)")
 
     v = scene.vertices[scene.triangles].reshape(-1, 3)
     faces = np.arange(len(v), dtype=np.int64).reshape(-1, 3)

@@ -20,9 +20,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 
 from clients.sim.scenes import Scene, Texture
+from govnesf._extras import require
+
+o3d = require("open3d", "sim", "the simulator's ray casting (Open3D)")
 
 
 @dataclass

@@ -32,7 +32,6 @@ import os
 import subprocess
 import sys
 import time
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,6 +40,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
+from govnesf._compat import tomllib
 from mapper.model.checkpoint import load_training_state, save_checkpoint
 from mapper.model.config import ModelConfig, get_preset
 from mapper.model.field import GovNeSF, SourceViews, render_rays
