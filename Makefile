@@ -14,7 +14,7 @@ demo: setup
 	$(PY) -m clients.demo $(DEMO_ARGS)
 
 lint: setup
-	$(VENV)/bin/ruff check protocol mapper clients govnesf tests benchmarks setup.py
+	$(VENV)/bin/ruff check protocol mapper clients govnesf tests benchmarks examples setup.py
 
 typecheck: setup
 	$(VENV)/bin/mypy
