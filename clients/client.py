@@ -6,6 +6,11 @@ late reply of the dead socket) and the requests in flight are sent again, up to 
 times, after which a :class:`TimeoutError` says which endpoint did not answer. A frame sent
 twice this way is handled twice by the node (the second copy is usually just ``accepted``).
 
+With CurveZMQ (a node served with ``--curve-dir``; docs/SECURITY.md) pass
+``curve=load_client_keys(DIR, NAME)`` (or ``--curve-dir DIR --client NAME`` on every CLI command,
+:func:`add_curve_arguments`): every socket is then a CURVE client of the node. A client the node
+does not allow gets no reply at all, so it sees a :class:`TimeoutError`.
+
 Frames go over one DEALER socket and may be pipelined (:meth:`MapperClient.send_frames`,
 ``window`` frames in flight). Replies are paired with requests by the echoed ``id`` (the client
 gives every :class:`Frame` and request one); raw frame bytes without an id are paired in order,
@@ -22,6 +27,7 @@ Example (needs a running node)::
 
 from __future__ import annotations
 
+import argparse
 import copy
 import itertools
 import time
@@ -34,6 +40,7 @@ from typing import TypeVar
 import numpy as np
 import zmq
 
+from protocol.curve import ClientCurveKeys, CurveKeyError, load_client_keys
 from protocol.errors import ProtocolError, RemoteError
 from protocol.messages import (
     MAX_MESSAGE_BYTES,
@@ -79,9 +86,12 @@ class FrameResult:
 class _Channel:
     """One lazily created DEALER socket to one endpoint, re-created after a timeout."""
 
-    def __init__(self, context: zmq.Context[zmq.Socket[bytes]], endpoint: str) -> None:
+    def __init__(
+        self, context: zmq.Context[zmq.Socket[bytes]], endpoint: str, curve: ClientCurveKeys | None = None
+    ) -> None:
         self.context = context
         self.endpoint = endpoint
+        self.curve = curve
         self._socket: zmq.Socket[bytes] | None = None
 
     @property
@@ -89,6 +99,8 @@ class _Channel:
         if self._socket is None:
             sock: zmq.Socket[bytes] = self.context.socket(zmq.DEALER)
             sock.setsockopt(zmq.LINGER, 0)
+            if self.curve is not None:
+                self.curve.apply(sock)
             sock.connect(self.endpoint)
             self._socket = sock
         return self._socket
@@ -186,6 +198,32 @@ class _Channel:
                 self.reset()
 
 
+def add_curve_arguments(parser: argparse.ArgumentParser) -> None:
+    """The connection options every CLI command shares for a node served with CurveZMQ:
+    ``--curve-dir DIR --client NAME`` (read back with :func:`curve_from_args`)."""
+    group = parser.add_argument_group("CurveZMQ (a node served with --curve-dir; docs/SECURITY.md)")
+    group.add_argument(
+        "--curve-dir", metavar="DIR", default=None,
+        help="curve directory holding server.key and clients/NAME.key_secret (from `govnesf keys`)",
+    )
+    group.add_argument("--client", metavar="NAME", default=None, help="this client's key name in DIR")
+
+
+def curve_from_args(args: argparse.Namespace) -> ClientCurveKeys | None:
+    """The CURVE keys named by :func:`add_curve_arguments`' options (None when not given).
+    Raises ``ProtocolError`` (``bad_request``) with a clear message when only one is given or a
+    key file is missing: CLI commands report it like any invalid argument (exit code 2)."""
+    curve_dir, name = getattr(args, "curve_dir", None), getattr(args, "client", None)
+    if curve_dir is None and name is None:
+        return None
+    if curve_dir is None or name is None:
+        raise ProtocolError("bad_request", "--curve-dir DIR and --client NAME go together")
+    try:
+        return load_client_keys(curve_dir, name)
+    except CurveKeyError as exc:
+        raise ProtocolError("bad_request", f"CurveZMQ keys: {exc}") from None
+
+
 @dataclass
 class _InFlight:
     index: int
@@ -217,6 +255,7 @@ class MapperClient:
         retries: int = 2,
         max_reply_bytes: int = MAX_MESSAGE_BYTES,
         context: zmq.Context[zmq.Socket[bytes]] | None = None,
+        curve: ClientCurveKeys | None = None,
     ) -> None:
         """
         Args:
@@ -225,6 +264,8 @@ class MapperClient:
             retries: how many times to re-create the socket and resend before giving up (>= 0).
             max_reply_bytes: replies larger than this are refused (``too_large``).
             context: a ZeroMQ context to share; by default the client makes (and terminates) its own.
+            curve: CurveZMQ keys (:func:`protocol.curve.load_client_keys`) for a node served with
+                ``curve_dir``; None = plain ZeroMQ.
         """
         if timeout_s <= 0 or retries < 0:
             raise ValueError(f"timeout_s must be > 0 and retries >= 0, got {timeout_s} and {retries}")
@@ -233,8 +274,8 @@ class MapperClient:
         self.max_reply_bytes = max_reply_bytes
         self._own_context = context is None
         self._context: zmq.Context[zmq.Socket[bytes]] = context if context is not None else zmq.Context()
-        self._ingest = _Channel(self._context, ingest)
-        self._query = _Channel(self._context, query)
+        self._ingest = _Channel(self._context, ingest, curve)
+        self._query = _Channel(self._context, query, curve)
         self._ids = itertools.count(1)
 
     # -- lifecycle ----------------------------------------------------------------------------

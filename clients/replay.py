@@ -23,7 +23,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from clients.client import DEFAULT_INGEST, FrameResult, MapperClient
+from clients.client import DEFAULT_INGEST, FrameResult, MapperClient, add_curve_arguments, curve_from_args
 from protocol.errors import ProtocolError
 from protocol.messages import Ack, Frame, decode
 from protocol.recording import read_recording
@@ -166,6 +166,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--rerun-every", type=int, default=1, metavar="N", help="log every Nth frame only (default 1: all)"
     )
+    from clients.rerun_log import CONNECT_HELP  # no rerun import: only the help text
+
+    parser.add_argument("--rerun-connect", metavar="ADDR", help=CONNECT_HELP)
+    add_curve_arguments(parser)
     return parser
 
 
@@ -202,22 +206,27 @@ def main(argv: list[str] | None = None) -> int:
     if args.rate < 0 or args.window < 1 or args.timeout <= 0 or args.retries < 0 or args.rerun_every < 1:
         parser.error("need --rate >= 0, --window >= 1, --timeout > 0, --retries >= 0, --rerun-every >= 1")
     rlog = None
-    if args.rerun:  # checked before anything is read or sent
-        from clients.rerun_log import RerunLog, RerunLogError, check_rrd_path
+    from clients.rerun_log import RerunLog, RerunLogError, check_rerun_outputs  # rerun itself: lazily
 
+    if args.rerun or args.rerun_connect:  # checked before anything is read or sent
         try:
-            check_rrd_path(args.rerun)
+            check_rerun_outputs(args.rerun, args.rerun_connect)
         except RerunLogError as exc:
             parser.error(str(exc))
     try:
         with contextlib.ExitStack() as stack:
             read_recording(args.recording)  # an unreadable recording fails here: no .rrd is written
-            if args.rerun:
+            if args.rerun or args.rerun_connect:
                 name = f"govnesf replay {Path(args.recording).name}"
-                rlog = stack.enter_context(RerunLog(args.rerun, recording_name=name))
+                rlog = stack.enter_context(
+                    RerunLog(args.rerun, connect=args.rerun_connect, recording_name=name)
+                )
             logger = FrameLogger(rlog, args.rerun_every) if rlog is not None else None
             client = stack.enter_context(
-                MapperClient(ingest=args.ingest, timeout_s=args.timeout, retries=args.retries)
+                MapperClient(
+                    ingest=args.ingest, timeout_s=args.timeout, retries=args.retries,
+                    curve=curve_from_args(args),
+                )
             )
             summary = replay(
                 args.recording, client, rate_hz=args.rate, window=args.window, progress=not args.no_progress,
@@ -229,10 +238,14 @@ def main(argv: list[str] | None = None) -> int:
     except ProtocolError as exc:
         print(f"govnesf replay: cannot replay {args.recording}: {exc}", file=sys.stderr)
         return 2
+    except RerunLogError as exc:  # the live viewer did not take the data (raised on close)
+        print(f"govnesf replay: {exc}", file=sys.stderr)
+        return 1
     print("\n".join(summary.lines()))
     if rlog is not None and logger is not None:
         skipped = f", {logger.skipped} undecodable skipped" if logger.skipped else ""
-        print(f"wrote {args.rerun}: {rlog.frames_logged} frames logged (every {args.rerun_every}){skipped}")
+        where = " and ".join(([args.rerun] if args.rerun else []) + ([rlog.url] if rlog.url else []))
+        print(f"wrote {where}: {rlog.frames_logged} frames logged (every {args.rerun_every}){skipped}")
     if summary.unreachable:
         print(f"govnesf replay: node unreachable: {summary.unreachable}", file=sys.stderr)
         return 1

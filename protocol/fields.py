@@ -15,11 +15,17 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from collections.abc import Callable, Mapping
 from dataclasses import MISSING, dataclass, field, fields
-from typing import Any, ClassVar, TypeVar, dataclass_transform
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
+
+if sys.version_info >= (3, 11):
+    from typing import dataclass_transform
+else:  # Python 3.10 (ROS 2 Humble)
+    from typing_extensions import dataclass_transform
 
 from protocol.arrays import IMAGE_ENCODINGS, decode_image, decode_nd, encode_image, encode_nd
 from protocol.errors import ProtocolError
@@ -41,7 +47,10 @@ def bad(what: str) -> ProtocolError:
 
 
 def short(value: Any) -> str:
-    text = repr(value)
+    try:
+        text = repr(value)
+    except RecursionError:  # a hostile, deeply nested value (found by benchmarks/fuzz.py)
+        text = f"<{type_name(value)} nested too deeply to show>"
     return text if len(text) <= 60 else text[:57] + "..."
 
 

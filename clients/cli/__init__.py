@@ -1,13 +1,18 @@
 """The `govnesf` command: a thin dispatcher to the subcommands' own entry points.
 
 Each subcommand lives in its own module and exposes ``main(argv: list[str]) -> int``.
-Modules are imported lazily so that ``govnesf replay`` does not import torch.
+Modules are imported lazily so that ``govnesf replay`` does not import torch. ``govnesf --version``
+prints the distribution's version; a subcommand that needs an uninstalled extra (``govnesf sim``
+without ``govnesf[sim]``) exits with code 2 and a message naming the extra.
 """
 
 from __future__ import annotations
 
 import importlib
 import sys
+
+from govnesf import __version__
+from govnesf._extras import MissingExtraError
 
 # subcommand -> (module, function, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
@@ -20,13 +25,15 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "import": ("clients.importers.cli", "main", "convert a dataset folder to .govrec"),
     "sim": ("clients.sim.cli", "main", "simulated robot: record or stream procedural rooms"),
     "render": ("clients.cli.render", "main", "render a view from a node"),
+    "keys": ("clients.cli.keys", "main", "make CurveZMQ keys for a node and its clients"),
+    "bench": ("clients.cli.bench", "main", "start a node, measure it, write JSON + Markdown"),
     "evaluate": ("mapper.training.cli_eval", "main", "evaluate the model against baselines"),
     "train": ("mapper.training.cli_train", "main", "train the GOV-NeSF model"),
 }
 
 
 def _usage() -> str:
-    lines = ["usage: govnesf <command> [options]", "", "commands:"]
+    lines = ["usage: govnesf <command> [options]   (govnesf --version)", "", "commands:"]
     for name, (_, _, help_) in SUBCOMMANDS.items():
         lines.append(f"  {name:<10} {help_}")
     lines.append("")
@@ -39,13 +46,20 @@ def main(argv: list[str] | None = None) -> int:
     if not args or args[0] in ("-h", "--help"):
         print(_usage())
         return 0 if args else 2
+    if args[0] in ("-V", "--version"):
+        print(f"govnesf {__version__}")
+        return 0
     name, rest = args[0], args[1:]
     if name not in SUBCOMMANDS:
         print(f"govnesf: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
     module_name, func_name, _ = SUBCOMMANDS[name]
-    func = getattr(importlib.import_module(module_name), func_name)
-    return int(func(rest) or 0)
+    try:
+        func = getattr(importlib.import_module(module_name), func_name)
+        return int(func(rest) or 0)
+    except MissingExtraError as exc:
+        print(f"govnesf {name}: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -1,11 +1,12 @@
 """``govnesf status | save | load | query``: one-shot requests to a node's query endpoint.
 
-Exit codes: 0 success, 1 the node did not answer, 2 invalid arguments, 3 the node answered
-with an error.
+Exit codes: 0 success, 1 the node did not answer (or an ``--out`` file could not be written),
+2 invalid arguments, 3 the node answered with an error.
 
 ``govnesf query "find the chair" --out chair.ply --json chair.json`` prints the object candidates
-(text, centroid, score, points), writes the matching points as a PLY (Open3D; coloured by score
-with the viridis colormap, dark = low, yellow = high) and the objects as JSON; ``--rerun F.rrd``
+(text, centroid, score, points), writes the matching points as a binary PLY (float32 xyz, a float32
+``score`` property, coloured by score with the viridis colormap, dark = low, yellow = high; an empty
+answer gives a valid PLY with 0 points; ``clients/ply.py``) and the objects as JSON; ``--rerun F.rrd``
 logs both for the Rerun viewer (``clients/rerun_log.py``, docs/RERUN.md).
 """
 
@@ -20,8 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from clients.client import DEFAULT_QUERY, MapperClient
-from clients.colors import score_colours
+from clients.client import DEFAULT_QUERY, MapperClient, add_curve_arguments, curve_from_args
 from protocol.errors import ProtocolError, RemoteError
 from protocol.messages import Message, Ok, Points, Status
 
@@ -39,12 +39,16 @@ def _parser(prog: str, description: str, with_name: bool) -> argparse.ArgumentPa
     parser.add_argument(
         "--retries", type=int, default=1, metavar="N", help="retries before giving up (default 1)"
     )
+    add_curve_arguments(parser)
     return parser
 
 
 def _run(args: argparse.Namespace, call: Callable[[MapperClient], Message], prog: str) -> int:
     try:
-        with MapperClient(query=args.query, timeout_s=args.timeout, retries=args.retries) as client:
+        curve = curve_from_args(args)
+        with MapperClient(
+            query=args.query, timeout_s=args.timeout, retries=args.retries, curve=curve
+        ) as client:
             reply = call(client)
     except TimeoutError as exc:
         print(f"{prog}: node unreachable: {exc}", file=sys.stderr)
@@ -111,17 +115,12 @@ def load_main(argv: list[str] | None = None) -> int:
 # govnesf query
 
 def write_points_ply(path: str | Path, xyz: np.ndarray, score: np.ndarray) -> Path:
-    """Write points (N, 3) coloured by score (N,) as a PLY file with Open3D; returns the path."""
-    import open3d as o3d  # heavy import, only when a PLY is asked for
+    """Write points (N, 3) with their scores (N,) as a binary PLY: float32 x, y, z, a float32
+    ``score`` property and a viridis colour by score (``clients/ply.py``); N = 0 writes a valid
+    empty PLY. Returns the path."""
+    from clients.ply import write_points_ply as write_ply
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    cloud = o3d.geometry.PointCloud()
-    cloud.points = o3d.utility.Vector3dVector(np.asarray(xyz, np.float64).reshape(-1, 3))
-    cloud.colors = o3d.utility.Vector3dVector(score_colours(score))
-    if not o3d.io.write_point_cloud(path, cloud, write_ascii=False):
-        raise OSError(f"Open3D could not write {path}")
-    return path
+    return write_ply(path, np.asarray(xyz).reshape(-1, 3), np.asarray(score).reshape(-1))
 
 
 def objects_as_json(points: Points) -> dict[str, Any]:
@@ -163,24 +162,38 @@ def _report_points(points: Points, args: argparse.Namespace) -> int:
     print(f"{points.xyz.shape[0]} points matched, map version {points.map_version}"
           + (f", {total:.1f} ms on the node" if total is not None else ""))
     if args.out:
-        print(f"wrote {write_points_ply(args.out, points.xyz, points.score)}")
+        try:
+            written = write_points_ply(args.out, points.xyz, points.score)
+        except (OSError, ValueError) as exc:
+            print(f"govnesf query: cannot write --out {args.out}: {exc}", file=sys.stderr)
+            return 1
+        empty = " (no points matched: a valid PLY with 0 points)" if points.xyz.shape[0] == 0 else ""
+        print(f"wrote {written}{empty}")
     if args.json:
         path = Path(args.json)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(objects_as_json(points), indent=1) + "\n")
         print(f"wrote {path}")
-    if args.rerun:
-        from clients.rerun_log import RerunLog
+    if args.rerun or args.rerun_connect:
+        from clients.rerun_log import RerunLog, RerunLogError
 
-        with RerunLog(args.rerun, recording_name="govnesf query " + " ".join(args.texts)) as rlog:
-            rlog.log_query(points, list(args.texts))
-        print(f"wrote {args.rerun} (view it with: rerun {args.rerun})")
+        try:
+            with RerunLog(args.rerun, connect=args.rerun_connect,
+                          recording_name="govnesf query " + " ".join(args.texts)) as rlog:
+                rlog.log_query(points, list(args.texts))
+        except RerunLogError as exc:
+            print(f"govnesf query: {exc}", file=sys.stderr)
+            return 1
+        if args.rerun:
+            print(f"wrote {args.rerun} (view it with: rerun {args.rerun})")
+        if args.rerun_connect:
+            print(f"sent to the Rerun viewer at {rlog.url}")
     return 0
 
 
 def query_main(argv: list[str] | None = None) -> int:
     """``govnesf query TEXT [TEXT...] [--negatives N...] [--min-score S] [--out F.ply] [--json F.json]
-    [--rerun F.rrd]``."""
+    [--rerun F.rrd] [--rerun-connect ADDR]``."""
     parser = _parser("govnesf query", "Find map points and objects matching texts (\"find the chair\").",
                      with_name=False)
     parser.add_argument("texts", nargs="+", metavar="TEXT",
@@ -196,15 +209,18 @@ def query_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--top", type=int, default=10, metavar="K", help="objects to print (default 10)")
     parser.add_argument("--rerun", metavar="FILE.rrd",
                         help="also log the points (by score) and objects (boxes) for the Rerun viewer")
+    from clients.rerun_log import CONNECT_HELP  # no rerun import: only the help text
+
+    parser.add_argument("--rerun-connect", metavar="ADDR", help=CONNECT_HELP)
     parser.set_defaults(timeout=30.0)
     args = parser.parse_args(argv)
     if args.top < 0:
         parser.error(f"--top {args.top} must be >= 0")
-    if args.rerun:  # a bad path is an error before the query is sent
-        from clients.rerun_log import RerunLogError, check_rrd_path
+    if args.rerun or args.rerun_connect:  # a bad path / no viewer is an error before the query is sent
+        from clients.rerun_log import RerunLogError, check_rerun_outputs
 
         try:
-            check_rrd_path(args.rerun)
+            check_rerun_outputs(args.rerun, args.rerun_connect)
         except RerunLogError as exc:
             parser.error(str(exc))
     return _run(

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clients.client import DEFAULT_QUERY, MapperClient
+from clients.client import DEFAULT_QUERY, MapperClient, add_curve_arguments, curve_from_args
 from clients.colors import LABEL_COLORS, colorize_depth, colorize_labels
 from protocol.errors import ProtocolError, RemoteError
 from protocol.messages import RenderResult
@@ -143,6 +143,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--rerun", metavar="FILE.rrd", help="also log the view and its camera for the Rerun viewer"
     )
+    from clients.rerun_log import CONNECT_HELP  # no rerun import: only the help text
+
+    p.add_argument("--rerun-connect", metavar="ADDR", help=CONNECT_HELP)
     p.add_argument(
         "--query", default=DEFAULT_QUERY, metavar="EP", help=f"node query endpoint ({DEFAULT_QUERY})"
     )
@@ -150,6 +153,7 @@ def _parser() -> argparse.ArgumentParser:
         "--timeout", type=float, default=120.0, metavar="S", help="seconds to wait for the render (120)"
     )
     p.add_argument("--retries", type=int, default=0, metavar="N", help="retries before giving up (0)")
+    add_curve_arguments(p)
     return p
 
 
@@ -195,17 +199,20 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"{prog}: {exc}", file=sys.stderr)
         return 2
-    if args.rerun:  # a bad path is an error before the render is asked for
-        from clients.rerun_log import RerunLogError, check_rrd_path
+    if args.rerun or args.rerun_connect:  # a bad path / no viewer is an error before the render
+        from clients.rerun_log import RerunLogError, check_rerun_outputs
 
         try:
-            check_rrd_path(args.rerun)
+            check_rerun_outputs(args.rerun, args.rerun_connect)
         except RerunLogError as exc:
             print(f"{prog}: {exc}", file=sys.stderr)
             return 2
     outputs = ["rgb", "depth"] + (["label", "score"] if args.texts else [])
     try:
-        with MapperClient(query=args.query, timeout_s=args.timeout, retries=args.retries) as client:
+        curve = curve_from_args(args)
+        with MapperClient(
+            query=args.query, timeout_s=args.timeout, retries=args.retries, curve=curve
+        ) as client:
             result = client.render(args.width, args.height, K, world_from_cam, outputs, args.texts)
     except TimeoutError as exc:
         print(f"{prog}: node unreachable or the render took longer than --timeout: {exc}", file=sys.stderr)
@@ -231,12 +238,17 @@ def main(argv: list[str] | None = None) -> int:
                                      ("score", result.score)) if v is not None}  # fmt: skip
         np.savez_compressed(args.npz, **arrays)  # type: ignore[arg-type]
         written.append(args.npz)
-    if args.rerun:
-        from clients.rerun_log import RerunLog
+    if args.rerun or args.rerun_connect:
+        from clients.rerun_log import RerunLog, RerunLogError
 
-        with RerunLog(args.rerun, recording_name="govnesf render") as rlog:
-            rlog.log_render(result, K, world_from_cam, args.texts)
-        written.append(args.rerun)
+        try:
+            with RerunLog(args.rerun, connect=args.rerun_connect, recording_name="govnesf render") as rlog:
+                rlog.log_render(result, K, world_from_cam, args.texts)
+        except RerunLogError as exc:
+            print(f"{prog}: {exc}", file=sys.stderr)
+            return 1
+        written += [args.rerun] if args.rerun else []
+        written += [f"the Rerun viewer at {rlog.url}"] if args.rerun_connect else []
     timing = result.timing_ms.get("handler", result.timing_ms.get("total"))
     print(f"rendered {args.width}x{args.height}" + (f" in {timing:.0f} ms" if timing is not None else ""))
     if result.depth_m is not None and (result.depth_m > 0).any():

@@ -63,7 +63,8 @@ def _record(args: argparse.Namespace) -> int:
 def _stream(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from clients.client import MapperClient
+    from clients.client import MapperClient, curve_from_args
+    from protocol.errors import ProtocolError
     from protocol.messages import Error
 
     if args.rate < 0:
@@ -72,11 +73,15 @@ def _stream(args: argparse.Namespace) -> int:
         raise ValueError(f"--ingest {args.ingest!r} is not a ZeroMQ endpoint (e.g. tcp://127.0.0.1:5555)")
     if args.window < 1 or args.timeout <= 0:
         raise ValueError(f"--window {args.window} must be >= 1 and --timeout {args.timeout} > 0")
+    try:
+        curve = curve_from_args(args)
+    except ProtocolError as exc:
+        raise ValueError(exc.message) from None
     cfg = _config(args, novel_views=0, previews=0)
     stream = SimStream.build(cfg)
     statuses: Counter[str] = Counter()
     t0 = time.perf_counter()
-    with MapperClient(ingest=args.ingest, timeout_s=args.timeout) as client:
+    with MapperClient(ingest=args.ingest, timeout_s=args.timeout, curve=curve) as client:
         frames = (frame for frame, _ in stream.frames())
         results = client.send_frames(frames, window=args.window, rate_hz=args.rate)
         for res in tqdm(results, total=cfg.frames, desc=f"sim stream -> {args.ingest}", unit="frame",
@@ -112,6 +117,9 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--window", type=int, default=1, help="frames in flight before waiting for acks")
     st.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for each ack")
     st.add_argument("--quiet", action="store_true", help="no progress bar")
+    from clients.client import add_curve_arguments
+
+    add_curve_arguments(st)
     return parser
 
 

@@ -1,10 +1,14 @@
 """``govnesf serve``: run the mapper node until SIGINT/SIGTERM.
 
-Configuration comes from a TOML file (``--config``, default ``launch/node.toml`` of the repo, or
-the built-in defaults when that file is absent), then command-line overrides::
+Configuration comes from a TOML file (``--config``, default ``launch/node.toml`` of the repo or of
+the installed wheel, or the built-in defaults when that file is absent), then command-line overrides::
 
     govnesf serve --config launch/node.toml --ingest tcp://127.0.0.1:6000 --map-dir /data/maps \\
         --set window.max_keyframes=20 --set autosave_name=latest
+
+On a robot's network, with CurveZMQ (keys from ``govnesf keys DIR``; docs/SECURITY.md)::
+
+    govnesf serve --config launch/node_robot.toml --curve-dir /etc/govnesf/keys
 """
 
 from __future__ import annotations
@@ -12,9 +16,9 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-import tomllib
 from typing import Any
 
+from govnesf._compat import tomllib
 from mapper.node.config import DEFAULT_CONFIG_PATH, ConfigError, load_config
 
 
@@ -43,6 +47,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--events", metavar="EP", help='events PUB endpoint; "" disables it')
     parser.add_argument("--map-dir", metavar="DIR", help="directory for saved maps")
     parser.add_argument(
+        "--curve-dir", metavar="DIR",
+        help="serve with CurveZMQ: keys made by `govnesf keys DIR`; only clients in DIR/allowed/ get "
+        "through (docs/SECURITY.md)",
+    )
+    parser.add_argument(
+        "--insecure", action="store_true", default=None,
+        help="allow non-loopback binds without --curve-dir (unauthenticated; logged and in status)",
+    )
+    parser.add_argument(
         "--set", metavar="KEY=VALUE", action="append", default=[],
         help="override any config key (dotted for tables), e.g. window.max_keyframes=20; repeatable",
     )
@@ -61,6 +74,8 @@ def serve_main(argv: list[str] | None = None) -> int:
                 "query_endpoint": args.query,
                 "events_endpoint": args.events,
                 "map_dir": args.map_dir,
+                "curve_dir": args.curve_dir,
+                "insecure": args.insecure,
                 "log_level": args.log_level,
             }
         )
@@ -77,11 +92,18 @@ def serve_main(argv: list[str] | None = None) -> int:
     from mapper.node.service import MapperNode  # after logging is set up
 
     node = MapperNode(config)
+    runtime = None
     if config.serve_model:
         from mapper.node.plugins.learned import install_learned_handlers
         from mapper.runtime.model_runtime import ModelRuntime
 
-        install_learned_handlers(node, ModelRuntime(config.model))
+        runtime = ModelRuntime(config.model)
+        install_learned_handlers(node, runtime)
+    if config.triangulation.enabled:
+        from mapper.node.plugins.triangulation import install_triangulation
+
+        # RGB-only keyframes: sparse points for the global map and the model's volume bounds
+        install_triangulation(node, runtime if runtime is not None and runtime.ready else None)
     if config.ov_backend.kind:
         from mapper.node.plugins.ov_features import install_ov_backend
 
