@@ -19,7 +19,14 @@ Usage:
     python benchmarks/error_vs_runtime.py --checkpoint checkpoints/cpu-small.json \\
         --data data/eval/apartment_s2000 data/eval/studio_s2000 [--max-points 10000] \\
         [--views 4 8 16 all] [--samples 16 32 64] [--novel-views 2] [--pixel-stride 2] \\
-        [--out out/eval/error_vs_runtime.json] [--markdown out/eval/error_vs_runtime.md]
+        [--out out/eval/error_vs_runtime.json] [--markdown out/eval/error_vs_runtime.md] \
+        [--plot out/eval/error_vs_runtime.png]
+    python benchmarks/error_vs_runtime.py --plot-from out/eval/error_vs_runtime.json \
+        --plot docs/images/error_vs_runtime.png      # re-plot a saved run (its JSON or Markdown)
+
+The plot (matplotlib): one panel per study (3D, 2D) and style, mIoU against run time (log
+scale), both methods; the Pareto front over both (no other setting is at least as fast and at
+least as accurate) is marked and connected.
 """
 
 from __future__ import annotations
@@ -70,8 +77,8 @@ def parse_views(values: list[str]) -> list[int | None]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", required=True, type=Path)
-    p.add_argument("--data", required=True, nargs="+", type=Path)
+    p.add_argument("--checkpoint", type=Path)
+    p.add_argument("--data", nargs="+", type=Path)
     p.add_argument("--max-points", type=int, default=10000)
     p.add_argument("--views", nargs="+", default=["4", "8", "16", "all"])
     p.add_argument("--samples", nargs="+", type=int, default=[16, 32, 64])
@@ -79,7 +86,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pixel-stride", type=int, default=2)
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--markdown", type=Path, default=None)
+    p.add_argument("--plot", type=Path, default=None, help="write a PNG plot with the Pareto front")
+    p.add_argument("--plot-from", type=Path, default=None,
+                   help="plot a saved run (its --out JSON or --markdown file) instead of running")
     args = p.parse_args(argv)
+    if args.plot_from is not None:
+        if args.plot is None:
+            print("--plot-from needs --plot PATH.png", file=sys.stderr)
+            return 2
+        saved = load_results(args.plot_from)
+        plot_results(saved, args.plot)
+        print(f"wrote {args.plot}")
+        return 0
+    if args.checkpoint is None or not args.data:
+        print("--checkpoint and --data are required (or --plot-from)", file=sys.stderr)
+        return 2
     if args.max_points < 1 or args.novel_views < 1 or args.pixel_stride < 1 or min(args.samples) < 1:
         print("--max-points, --novel-views, --pixel-stride and --samples must be >= 1", file=sys.stderr)
         return 2
@@ -183,7 +204,103 @@ def main(argv: list[str] | None = None) -> int:
     if args.markdown:
         args.markdown.parent.mkdir(parents=True, exist_ok=True)
         args.markdown.write_text(report + "\n")
+    if args.plot:
+        plot_results(out, args.plot)
     return 0
+
+
+def load_results(path: Path) -> dict:
+    """A saved run: the ``--out`` JSON, or the ``--markdown`` tables (the layout this script
+    prints, also used in docs/EVALUATION.md), as ``{"3d": [...], "2d": [...]}``."""
+    text = path.read_text()
+    if path.suffix == ".json":
+        return json.loads(text)
+    out: dict = {"3d": [], "2d": []}
+    header = ""
+    for line in text.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) != 5:
+            header = ""
+            continue
+        if cells[0] == "style":
+            header = line
+            continue
+        try:
+            miou, t = float(cells[3]) / 100.0, float(cells[4])
+        except ValueError:
+            continue
+        if "2D mIoU" in header:
+            out["2d"].append({"style": cells[0], "method": cells[1], "samples": int(cells[2]), "miou": miou,
+                              "seconds_per_frame": t})
+        elif "3D mIoU" in header:
+            out["3d"].append({"style": cells[0], "method": cells[1], "views_per_point": cells[2],
+                              "miou": miou, "seconds_per_100k": t})
+    return out
+
+
+def pareto_front(times: list[float], mious: list[float]) -> list[int]:
+    """Indices of the settings no other setting dominates (at most as slow and at least as accurate,
+    one of them strictly), fastest first.
+
+    >>> pareto_front([1.0, 2.0, 3.0, 1.5], [0.4, 0.5, 0.45, 0.3])
+    [0, 1]
+    """
+    order = sorted(range(len(times)), key=lambda i: (times[i], -mious[i]))
+    front, best = [], -np.inf
+    for i in order:
+        if mious[i] > best:
+            front.append(i)
+            best = mious[i]
+    return front
+
+
+def plot_results(results: dict, path: Path) -> None:
+    """mIoU against run time per study and style, both methods, the Pareto front marked (PNG)."""
+    import matplotlib
+    import matplotlib.ticker
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    studies = [("3d", "seconds_per_100k", "views_per_point", "s per 100k points", "views per point"),
+               ("2d", "seconds_per_frame", "samples", "s per frame", "samples per ray")]
+    styles = sorted({r["style"] for k, *_ in studies for r in results.get(k, [])})
+    panels = [(s, st) for s in studies if results.get(s[0]) for st in styles]
+    if not panels:
+        raise ValueError("nothing to plot: the results hold no 3d or 2d rows")
+    cols = len(styles)
+    rows = len(panels) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.0 * rows), squeeze=False)
+    colours = {"learned blending": "tab:blue", "averaging": "tab:orange"}
+    for n, ((kind, tkey, pkey, tlabel, plabel), style) in enumerate(panels):
+        ax = axes[n // cols][n % cols]
+        items = [r for r in results[kind] if r["style"] == style]
+        times = [float(r[tkey]) for r in items]
+        mious = [100.0 * float(r["miou"]) for r in items]
+        for method in sorted({r["method"] for r in items}):
+            idx = [i for i, r in enumerate(items) if r["method"] == method]
+            ax.plot([times[i] for i in idx], [mious[i] for i in idx], "o-", color=colours.get(method),
+                    label=method, alpha=0.8)
+            for i in idx:
+                ax.annotate(str(items[i][pkey]), (times[i], mious[i]), textcoords="offset points",
+                            xytext=(4, 4), fontsize=8)
+        front = pareto_front(times, mious)
+        ax.plot([times[i] for i in front], [mious[i] for i in front], "k--", drawstyle="steps-post",
+                linewidth=1.0, label="Pareto front")
+        ax.scatter([times[i] for i in front], [mious[i] for i in front], s=140, facecolors="none",
+                   edgecolors="black", linewidths=1.5)
+        ax.set_xscale("log")
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+        ax.set_xlabel(tlabel)
+        ax.set_ylabel(f"{kind.upper()} mIoU (%)")
+        ax.set_title(f"{style}: {kind.upper()}, by {plabel}")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 if __name__ == "__main__":

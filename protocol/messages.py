@@ -32,7 +32,7 @@ from __future__ import annotations
 import re
 from collections.abc import Callable
 from dataclasses import fields
-from typing import Any, ClassVar, Literal, Self, TypeVar
+from typing import Any, ClassVar, Literal, TypeVar
 
 import msgpack
 import numpy as np
@@ -120,6 +120,10 @@ RENDER_OUTPUTS: tuple[str, ...] = ("rgb", "depth", "label", "score")
 
 SEGMENT_METHODS: tuple[str, ...] = ("govnesf", "average", "average_depth")
 """`segment_points` methods."""
+
+ANSWER_SOURCES: tuple[str, ...] = ("none", "window", "map")
+"""Values of the optional `source` of `segmentation` and `render` replies, by code: 0 = no source
+(unlabelled), 1 = the keyframe window, 2 = the global map's fused features."""
 
 ACK_STATUSES: tuple[str, ...] = ("keyframe", "accepted", "rejected")
 """`ack` statuses."""
@@ -283,6 +287,9 @@ def _check_message(obj: Any, type_: str) -> dict[str, Any]:
     return obj
 
 
+_MessageT = TypeVar("_MessageT", bound="Message")  # typing.Self is Python >= 3.11
+
+
 class Message:
     """Base of every wire message: validation, `to_wire` and `from_wire`, all derived from the
     class's field table (`@message` and `wire(...)`, protocol/fields.py). `_check` is the hook
@@ -333,7 +340,7 @@ class Message:
         return fields_to_wire(self, head)
 
     @classmethod
-    def from_wire(cls, obj: Any) -> Self:
+    def from_wire(cls: type[_MessageT], obj: Any) -> _MessageT:
         """Validate a decoded wire map and build the message (see `fields_from_wire`)."""
         if cls.NESTED:
             return cls(**fields_from_wire(cls, check_str_map(cls.TYPE, obj), ""))
@@ -512,10 +519,14 @@ class Segmentation(Message):
 
     TYPE: ClassVar[str] = "segmentation"
 
-    label: np.ndarray = wire(Array("int32", ("N",)), doc="Index into `texts`; -1 where no keyframe sees it.")
+    label: np.ndarray = wire(Array("int32", ("N",)), doc="Index into `texts`; -1 where no source answers.")
     score: np.ndarray = wire(Array("float32", ("N",)), doc="Cosine similarity of the chosen label.")
     timing_ms: dict[str, float] = wire(TIMING, unit="ms", default_factory=dict, doc="Wall time per stage.")
     id: RequestId = wire(ID, default=None)
+    source: np.ndarray | None = wire(
+        Array("uint8", ("N",)), default=None,
+        doc="Per point, what answered: 0 none, 1 window, 2 map (`ANSWER_SOURCES`; extension).",
+    )
 
 
 @message
@@ -569,6 +580,10 @@ class RenderResult(Message):
     )
     timing_ms: dict[str, float] = wire(TIMING, unit="ms", default_factory=dict, doc="Wall time per stage.")
     id: RequestId = wire(ID, default=None)
+    source: np.ndarray | None = wire(
+        Array("uint8", ("H", "W")), default=None,
+        doc="Per pixel, what answered `label`: 0 none, 1 window, 2 map (extension; with `label`).",
+    )
 
     WIRE_ONLY: ClassVar[tuple[WireField, ...]] = (
         wire_only(
@@ -865,8 +880,9 @@ MESSAGE_TYPES: tuple[type[Message], ...] = (
 """Every message class (ObjectCandidate is a part of `Points`, not a message)."""
 
 __all__ = [
-    "ACK_STATUSES", "DEFAULT_DEPTH_SCALE", "MAX_MESSAGE_BYTES", "MESSAGE_TYPES", "ORTHONORMAL_TOL",
-    "PROTOCOL_VERSION", "RENDER_OUTPUTS", "REPLY_TYPES", "REQUEST_TYPES", "SEGMENT_METHODS",
+    "ACK_STATUSES", "ANSWER_SOURCES", "DEFAULT_DEPTH_SCALE", "MAX_MESSAGE_BYTES", "MESSAGE_TYPES",
+    "ORTHONORMAL_TOL", "PROTOCOL_VERSION", "RENDER_OUTPUTS", "REPLY_TYPES", "REQUEST_TYPES",
+    "SEGMENT_METHODS",
     "Ack", "Direction", "Error", "ErrorCode", "Frame", "Load", "MapUpdated", "Message", "ObjectCandidate",
     "Ok", "Points", "QueryPoints", "RecordingHeader", "Render", "RenderResult", "RequestId", "Save",
     "SegmentMethod", "SegmentPoints", "Segmentation", "Status", "StatusRequest", "decode", "decode_as",

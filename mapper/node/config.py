@@ -26,20 +26,23 @@ from __future__ import annotations
 
 import dataclasses
 import ipaddress
-import tomllib
 import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from govnesf._compat import tomllib
+from govnesf.resources import find_data_file
 from mapper.errors import ConfigError
+from mapper.geometry.config import TriangulationConfig
 from mapper.node.store import validate_map_name
 from mapper.ov.config import ClipBackendConfig
 from mapper.runtime.config import ModelRuntimeConfig
 
-#: Where ``govnesf serve`` looks for its config when ``--config`` is not given (relative to the repo).
-DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[2] / "launch" / "node.toml"
+#: Where ``govnesf serve`` looks for its config when ``--config`` is not given: the repo's
+#: ``launch/node.toml``, or the copy an installed wheel carries (:mod:`govnesf.resources`).
+DEFAULT_CONFIG_PATH = find_data_file("launch/node.toml")
 
 
 @dataclass(frozen=True)
@@ -126,7 +129,24 @@ class GlobalMapConfig:
     """Most keyframes waiting for a rendered depth; beyond it the oldest is dropped (counted as
     ``dropped`` in status). 1..100000."""
 
+    learned_features: bool = True
+    """When the node serves the learned model: just before a keyframe leaves the window, the map
+    voxels it saw take the model's blended features (:mod:`mapper.node.map_features`), so the
+    persistent map carries what the model knows, not only plain averages. Off: plain fusion only."""
+
+    learned_features_batch: int = 4
+    """When the window's oldest keyframe is due, it and the next oldest up to this many are done
+    together (one model evaluation for their voxels: the model's cached volume is recomputed once
+    per window change, so one call per keyframe would cost that every keyframe). 1..1000."""
+
+    learned_features_max_pending: int = 64
+    """Most keyframes waiting for that; beyond it the oldest is dropped (``dropped`` in status). 1..100000."""
+
     def validate(self, where: str) -> None:
+        _check_range(
+            where, "global_map.learned_features_max_pending", self.learned_features_max_pending, 1, 100_000
+        )
+        _check_range(where, "global_map.learned_features_batch", self.learned_features_batch, 1, 1000)
         _check_range(where, "global_map.rendered_depth_stride", self.rendered_depth_stride, 1, 64)
         _check_range(where, "global_map.rendered_min_opacity", self.rendered_min_opacity, 0.0, 1.0)
         _check_range(where, "global_map.rendered_weight", self.rendered_weight, 0.0, 1.0)
@@ -166,11 +186,72 @@ class QueryConfig:
     max_objects: int = 32
     """Most object candidates per reply (best first). >= 1."""
 
+    workers: int = 1
+    """Threads that answer heavy requests (``render``, ``segment_points``) off the query socket's
+    thread, so light ones (``status``, ``query_points``, ``save``, ``load``) never wait behind them.
+    0 = answer every request on the query thread, in arrival order (no ``busy``). 0..64."""
+
+    queue_length: int = 4
+    """Heavy requests that may wait for a worker; one more (beyond ``workers`` running and this
+    many waiting) is answered ``busy`` at once. 1..10000."""
+
+    map_radius_voxels: float = 1.5
+    """``segment_points`` / ``render`` answer a point no window keyframe sees from the global
+    map's nearest point with a feature within this many map voxels (``global_map.voxel_size_m``);
+    0 = window only. 0..100."""
+
     def validate(self, where: str) -> None:
+        _check_range(where, "queries.workers", self.workers, 0, 64)
+        _check_range(where, "queries.queue_length", self.queue_length, 1, 10_000)
+        _check_range(where, "queries.map_radius_voxels", self.map_radius_voxels, 0.0, 100.0)
         _check_range(where, "queries.default_max_points", self.default_max_points, 1, 100_000_000)
         _check_range(where, "queries.cluster_radius_m", self.cluster_radius_m, 1e-3, 10.0)
         _check_range(where, "queries.min_object_points", self.min_object_points, 1, 1_000_000)
         _check_range(where, "queries.max_objects", self.max_objects, 1, 10_000)
+
+
+@dataclass(frozen=True)
+class LimitsConfig:
+    """Bounds on what the node queues for its peers (TOML table ``[limits]``; docs/SECURITY.md)."""
+
+    sndhwm: int = 100
+    """ZeroMQ send high-water mark of every node socket (messages queued per peer). A peer that
+    does not read its replies gets at most this many queued; further replies to it are dropped and
+    counted (``replies_dropped`` in status); the PUB socket drops notices to a slow subscriber.
+    1..1000000."""
+
+    rcvhwm: int = 100
+    """ZeroMQ receive high-water mark of every node socket (messages queued per peer before ZeroMQ
+    stops reading from that connection). 1..1000000."""
+
+    events_queue_max: int = 1000
+    """Most ``map_updated`` notices waiting for the events thread; beyond it the oldest is dropped
+    and counted (``events_dropped`` in status). 1..1000000."""
+
+    query_share: float = 0.3
+    """Ingest first: while frames are arriving, each query-serving thread (the query socket's and
+    every ``queries.workers`` thread) pauses after a request so that it computes at most this
+    fraction of the time (a request that took 30 ms is followed by a 70 ms pause at 0.3). 1 = no
+    pauses. 0.05..1."""
+
+    ingest_active_s: float = 0.5
+    """Frames count as arriving when one was handled within this many seconds. 0.01..60."""
+
+    query_pause_max_s: float = 0.5
+    """Longest pause after one request (seconds). 0..10."""
+
+    curve_reload_interval_s: float = 5.0
+    """With ``curve_dir``: how often (seconds) the node checks ``allowed/`` for added or removed
+    client keys. 0.1..3600."""
+
+    def validate(self, where: str) -> None:
+        _check_range(where, "limits.sndhwm", self.sndhwm, 1, 1_000_000)
+        _check_range(where, "limits.rcvhwm", self.rcvhwm, 1, 1_000_000)
+        _check_range(where, "limits.events_queue_max", self.events_queue_max, 1, 1_000_000)
+        _check_range(where, "limits.curve_reload_interval_s", self.curve_reload_interval_s, 0.1, 3600.0)
+        _check_range(where, "limits.query_share", self.query_share, 0.05, 1.0)
+        _check_range(where, "limits.ingest_active_s", self.ingest_active_s, 0.01, 60.0)
+        _check_range(where, "limits.query_pause_max_s", self.query_pause_max_s, 0.0, 10.0)
 
 
 _CLIP_DEFAULTS: dict[str, Any] = {f.name: f.default for f in dataclasses.fields(ClipBackendConfig)}
@@ -287,7 +368,19 @@ class NodeConfig:
 
     allow_remote: bool = False
     """Binding to a non-loopback address (``tcp://*:5555``, ``tcp://0.0.0.0:...``, a LAN address)
-    is refused unless this is true: exposing the node is an explicit choice."""
+    is refused unless this is true (or ``curve_dir`` / ``insecure`` is set): exposing the node is
+    an explicit choice. Even then the node refuses at start-up to serve such a bind without CURVE
+    unless ``insecure`` (see ``curve_dir``)."""
+
+    curve_dir: str | None = None
+    """CurveZMQ key directory made by ``govnesf keys DIR`` (docs/SECURITY.md): ingest, query and
+    events are served with CURVE (authenticated, encrypted) and only clients whose public key is a
+    file in ``DIR/allowed/`` get through; others get no reply. "" (None) = no CURVE."""
+
+    insecure: bool = False
+    """Serve non-loopback endpoints without CURVE anyway (the node logs a warning at start-up and
+    ``status`` reports ``security.mode = "insecure"``). Without it, and without ``curve_dir``, a
+    non-loopback bind is refused at start-up."""
 
     map_dir: str = "maps"
     """Directory for saved maps; save/load never read or write outside it. A relative path is
@@ -342,13 +435,21 @@ class NodeConfig:
     """In-process open-vocabulary backend (TOML table ``[ov_backend]``): features for keyframes
     without ``ov`` and the text encoder of its space. Off (kind = "") by default."""
 
+    triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
+    """Sparse points triangulated from posed RGB for keyframes without depth (TOML table
+    ``[triangulation]``; :mod:`mapper.node.plugins.triangulation`): global-map points and the
+    learned model's volume bounds for RGB-only robots."""
+
+    limits: LimitsConfig = field(default_factory=LimitsConfig)
+    """Socket high-water marks and queue bounds (TOML table ``[limits]``)."""
+
     def validate(self, where: str) -> None:
         """Check ranges and cross-field rules; raise :class:`ConfigError` naming ``where``."""
         for key in ("ingest_endpoint", "query_endpoint", "events_endpoint"):
             endpoint = getattr(self, key)
             if endpoint is None:
                 continue
-            _check_endpoint(where, key, endpoint, self.allow_remote)
+            _check_endpoint(where, key, endpoint, self.allow_remote or bool(self.curve_dir) or self.insecure)
         endpoints = [e for e in (self.ingest_endpoint, self.query_endpoint, self.events_endpoint) if e]
         if len(set(endpoints)) != len(endpoints):
             raise ConfigError(f"{where}: ingest, query and events endpoints must differ, got {endpoints}")
@@ -371,6 +472,8 @@ class NodeConfig:
         self.queries.validate(where)
         self.model.validate(where)
         self.ov_backend.validate(where)
+        self.triangulation.validate(where)
+        self.limits.validate(where)
         if self.ov_backend.kind and self.ov_space is not None and self.ov_space != self.ov_backend.space:
             raise ConfigError(
                 f"{where}: ov_space = {self.ov_space!r} is pinned, but ov_backend.kind = "
@@ -387,7 +490,7 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     """Read a TOML file into a validated :class:`NodeConfig`, then apply ``overrides``.
 
     ``path=None`` uses :data:`DEFAULT_CONFIG_PATH` when it exists and the built-in defaults
-    otherwise (an installed package without the repo's ``launch/`` directory still runs).
+    otherwise (the installed wheel ships the file; a build without it still runs).
     ``overrides`` maps dotted keys (``"window.max_keyframes"``) to values; ``None`` values are
     skipped so that unset command-line options can be passed straight through.
     """
@@ -541,5 +644,5 @@ def _check_endpoint(where: str, key: str, endpoint: str, allow_remote: bool) -> 
         pass
     raise ConfigError(
         f"{where}: {key} {endpoint!r} binds a non-loopback address; "
-        "set allow_remote = true to expose the node"
+        "set curve_dir (authenticated, docs/SECURITY.md) or allow_remote = true to expose the node"
     )

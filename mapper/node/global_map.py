@@ -57,11 +57,13 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 from scipy.sparse import csr_matrix
+from scipy.spatial import cKDTree
 
 from mapper.model.ops.checks import check_shape
 from mapper.node.config import GlobalMapConfig
@@ -87,6 +89,8 @@ _UNKNOWN_NORMAL_COS = 0.5
 _NORMAL_REL_JUMP = 0.1
 """Depth neighbours differing by more than this fraction of the depth are across an edge: no normal."""
 _FORMAT = "global-map-v1"
+_RECENT_INTEGRATES = 1000
+"""``stats`` reports the integrate time percentiles over this many latest keyframes."""
 
 
 class KeyframeLike(Protocol):
@@ -161,6 +165,14 @@ def voxel_keys(
     idx = np.where(ok[:, None], idx, 0).astype(np.int64) + _KEY_OFFSET
     keys = (idx[:, 0] << (2 * _KEY_BITS)) | (idx[:, 1] << _KEY_BITS) | idx[:, 2]
     return keys, ok
+
+
+def _percentiles_ms(prefix: str, seconds: deque[float]) -> dict[str, float | None]:
+    """``{prefix_p50, prefix_p95}`` in ms of ``seconds`` (None when empty)."""
+    if not seconds:
+        return {f"{prefix}_p50": None, f"{prefix}_p95": None}
+    p50, p95 = np.percentile(np.fromiter(seconds, np.float64), [50, 95])
+    return {f"{prefix}_p50": round(1e3 * float(p50), 3), f"{prefix}_p95": round(1e3 * float(p95), 3)}
 
 
 def _check_depth(keyframe: KeyframeLike) -> None:
@@ -243,6 +255,33 @@ class GlobalMapSnapshot:
                 self._cache["unit_f32"] = cached
             return cached
 
+    def nearest_with_feature(
+        self,
+        xyz: np.ndarray,  # (N, 3) float32 world metres
+        radius_m: float,
+    ) -> np.ndarray:
+        """(N,) int64 row of the nearest map point that carries a feature within ``radius_m`` of
+        each point, -1 where there is none. The k-d tree over those points is built once per
+        snapshot (per map version) and shared by later calls."""
+        pts = np.asarray(xyz, np.float64).reshape(-1, 3)
+        out = np.full(pts.shape[0], -1, np.int64)
+        if pts.shape[0] == 0 or radius_m <= 0:
+            return out
+        with self._cache_lock:
+            entry = self._cache.get("feature_tree")
+            if entry is None:
+                rows = np.flatnonzero(self.feat_weight > 0)
+                tree = cKDTree(self.xyz[rows].astype(np.float64)) if rows.size else None
+                entry = (tree, rows)
+                self._cache["feature_tree"] = entry
+        tree, rows = entry
+        if tree is None:
+            return out
+        dist, idx = tree.query(pts, distance_upper_bound=radius_m)
+        hit = np.isfinite(dist)
+        out[hit] = rows[idx[hit]]
+        return out
+
 
 class GlobalSemanticMap:
     """Voxel-hashed surface points with fused OV features; see the module docstring."""
@@ -279,6 +318,10 @@ class GlobalSemanticMap:
         """Voxels dropped by the ``max_points`` bound since start (or the last restore)."""
         self.keyframes_integrated = 0
         self.integrate_seconds_total = 0.0
+        self.points_learned = 0
+        """Voxel feature updates by :meth:`set_features` (a voxel may count once per keyframe)."""
+        self.integrate_recent_s: deque[float] = deque(maxlen=_RECENT_INTEGRATES)
+        """Seconds of the latest integrates (for the p50 / p95 in :meth:`stats`)."""
 
     _ROW_FIELDS = ("_keys", "_xyz", "_weight", "_feat", "_feat_norm", "_feat_weight", "_hits",
                    "_last_seen_ns", "_last_seen_kf")  # fmt: skip
@@ -338,6 +381,8 @@ class GlobalSemanticMap:
                 "global_map_allocated_bytes": self.allocated_bytes,
                 "global_voxel_size_m": self.config.voxel_size_m,
                 "global_keyframes_integrated": self.keyframes_integrated,
+                "global_points_learned": self.points_learned,
+                **_percentiles_ms("global_integrate_ms", self.integrate_recent_s),
                 "global_integrate_ms_mean": round(
                     1e3 * self.integrate_seconds_total / max(self.keyframes_integrated, 1), 3
                 ),
@@ -465,6 +510,7 @@ class GlobalSemanticMap:
             seconds = time.perf_counter() - started
             self.keyframes_integrated += 1
             self.integrate_seconds_total += seconds
+            self.integrate_recent_s.append(seconds)
         return IntegrateStats(len(obs.weight), touched, new, pruned, obs.ov_flat is not None, seconds)
 
     def integrate_features(
@@ -503,6 +549,70 @@ class GlobalSemanticMap:
             return IntegrateStats(0, 0, 0, 0, True, time.perf_counter() - started,
                                   "none of its voxels is in the map any more")
         return IntegrateStats(points, touched, 0, 0, True, time.perf_counter() - started)
+
+    def seen_voxels(self, keyframe: KeyframeLike) -> tuple[np.ndarray, np.ndarray]:
+        """The map voxels a keyframe's observations fall in (those still in the map): (keys (U,)
+        int64, fused positions (U, 3) float32). Empty without depth. No lock held while observing."""
+        obs = self.observe(keyframe)
+        if isinstance(obs, str):
+            return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
+        keys, ok = voxel_keys(obs.xyz, self.config.voxel_size_m)
+        ukeys = np.unique(keys[ok])
+        with self._lock:
+            rows, found = self._rows_of(ukeys)
+            return ukeys[found], self._xyz[rows[found]].copy()
+
+    def _rows_of(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of ``keys`` (U,) and a (U,) bool mask of those in the map (lock held)."""
+        n_sorted = self._sorted_keys.shape[0]
+        pos = np.searchsorted(self._sorted_keys, keys)
+        inside = pos < n_sorted
+        found = np.zeros(keys.shape[0], bool)
+        found[inside] = self._sorted_keys[pos[inside]] == keys[inside]
+        rows = np.zeros(keys.shape[0], np.int64)
+        rows[found] = self._sorted_rows[pos[found]]
+        return rows, found
+
+    def set_features(
+        self,
+        keys: np.ndarray,  # (U,) int64 voxel keys (from seen_voxels)
+        features: np.ndarray,  # (U, D) float features (any norm; zero rows are skipped)
+    ) -> int:
+        """Give voxels the learned model's blended feature of the points a keyframe saw, just
+        before it leaves the window. A voxel with a fused feature takes the equal mix of the two
+        directions, ``normalise(unit(feature) + fused unit)`` (measured better than replacing
+        the fused average: docs/QUERIES.md), and keeps its norm and feature weight, so later
+        observations still fuse as a running weighted mean; a voxel without one takes the
+        feature's direction with norm 1 and its geometric confidence as feature weight. Voxels
+        pruned since are skipped. Returns the number of voxels set. Raises ``ValueError``
+        (nothing changed) on a shape or dimension mismatch."""
+        keys = np.asarray(keys, np.int64).reshape(-1)
+        feats = np.asarray(features, np.float32)
+        if feats.ndim != 2 or feats.shape[0] != keys.shape[0] or feats.shape[1] < 1:
+            raise ValueError(f"features must be (U={keys.shape[0]}, D), got {feats.shape}")
+        dims = {"D": int(feats.shape[1])}
+        norm = np.sqrt(np.einsum("ud,ud->u", feats, feats))
+        good = np.isfinite(norm) & (norm > 1e-8)
+        with self._lock:
+            if self._dim is not None and dims["D"] != self._dim:
+                raise ValueError(f"features have dimension {dims['D']}, the global map's {self._dim}")
+            rows, found = self._rows_of(keys)
+            keep = found & good
+            if not keep.any():
+                return 0
+            self._set_dim(int(dims["D"]))
+            assert self._feat is not None
+            rows = rows[keep]
+            fresh = self._feat_weight[rows] <= 0
+            mixed = feats[keep] / norm[keep, None]
+            mixed[~fresh] += self._feat[rows[~fresh]].astype(np.float32)
+            mixed /= np.maximum(np.sqrt(np.einsum("ud,ud->u", mixed, mixed)), 1e-12)[:, None]
+            self._feat[rows] = mixed.astype(np.float16)
+            self._feat_norm[rows[fresh]] = 1.0
+            self._feat_weight[rows[fresh]] = np.maximum(self._weight[rows[fresh]], 1e-6)
+            self.points_learned += int(rows.shape[0])
+            self._version += 1
+            return int(rows.shape[0])
 
     def _fuse_features(self, obs: Observations) -> tuple[int, int]:
         """Fuse the features of ``obs`` into the voxels that exist (lock held); the same sums as

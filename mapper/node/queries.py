@@ -16,6 +16,13 @@
 
 ``segment_points`` methods ``average`` / ``average_depth`` average the window keyframes' OV
 features at the points (:func:`mapper.model.baselines.average_features`) and pick the best text.
+
+Answers from the whole map (every ``segment_points`` method, and ``render`` labels): where the
+window does not see a point, :func:`fill_from_map` takes the global map's nearest point with a
+fused feature within a radius (``queries.map_radius_voxels`` map voxels); for a render,
+:func:`render_from_map` does the same per pixel (from the rendered surface point, or from a
+z-buffered splat of the map where the render found no surface). Each answer says its source:
+:data:`SOURCE_NONE`, :data:`SOURCE_WINDOW`, :data:`SOURCE_MAP` (``protocol.messages.ANSWER_SOURCES``).
 """
 
 from __future__ import annotations
@@ -40,12 +47,21 @@ __all__ = [
     "DEFAULT_NEGATIVES",
     "NEGATIVE_DROP_SIMILARITY",
     "Cluster",
+    "SOURCE_MAP",
+    "SOURCE_NONE",
+    "SOURCE_WINDOW",
     "cluster_points",
+    "fill_from_map",
     "label_with_texts",
     "normalise_query",
     "query_points",
+    "render_from_map",
     "segment_average",
 ]
+
+SOURCE_NONE, SOURCE_WINDOW, SOURCE_MAP = 0, 1, 2
+"""Codes of the ``source`` array of ``segmentation`` / ``render`` replies (index into
+``protocol.messages.ANSWER_SOURCES``)."""
 
 DEFAULT_NEGATIVES: tuple[str, ...] = ("wall", "floor", "ceiling", "object", "thing", "background")
 """Background prompts used when a request has no ``negatives``: the room structure that covers
@@ -272,3 +288,143 @@ def segment_average(
     label[~seen] = -1
     score[~seen] = 0.0
     return label, score, n
+
+
+def _map_unit_features(snapshot: GlobalMapSnapshot, rows: np.ndarray) -> np.ndarray:
+    """(len(rows), D) float32 unit features of map rows (rows carry a feature)."""
+    assert snapshot.feat is not None
+    f = snapshot.feat[rows].astype(np.float32)
+    f /= np.maximum(np.sqrt(np.einsum("nd,nd->n", f, f)), 1e-12)[:, None]
+    return f
+
+
+def _map_compatible(snapshot: GlobalMapSnapshot, text_emb: np.ndarray) -> bool:
+    feat = snapshot.feat
+    return feat is not None and snapshot.n_with_features > 0 and feat.shape[1] == text_emb.shape[1]
+
+
+def fill_from_map(
+    snapshot: GlobalMapSnapshot,
+    xyz: np.ndarray,  # (N, 3) float32 world metres
+    text_emb: np.ndarray,  # (T, D) float32 unit rows
+    label: np.ndarray,  # (N,) int32 the window's labels (-1 = unseen)
+    score: np.ndarray,  # (N,) float32 the window's scores
+    window_seen: np.ndarray,  # (N,) bool: the window answered the point
+    radius_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Answer the points the window did not from the map: (label (N,) int32, score (N,) float32,
+    source (N,) uint8). A point the window saw keeps the window's answer (``SOURCE_WINDOW``); an
+    unseen one takes the best text of the nearest map point carrying a feature within
+    ``radius_m`` (``SOURCE_MAP``: its cosine as score), else -1 / 0 (``SOURCE_NONE``). A map whose
+    feature dimension is not the texts' answers nothing."""
+    label = np.array(label, np.int32, copy=True)
+    score = np.array(score, np.float32, copy=True)
+    seen = np.asarray(window_seen, bool)
+    source = np.where(seen, SOURCE_WINDOW, SOURCE_NONE).astype(np.uint8)
+    label[~seen] = -1
+    score[~seen] = 0.0
+    todo = np.flatnonzero(~seen)
+    if todo.size == 0 or not _map_compatible(snapshot, text_emb):
+        return label, score, source
+    rows = snapshot.nearest_with_feature(np.asarray(xyz)[todo], radius_m)
+    hit = rows >= 0
+    if hit.any():
+        sims = _map_unit_features(snapshot, rows[hit]) @ text_emb.T  # (n, T)
+        best = np.argmax(sims, axis=1)
+        idx = todo[hit]
+        label[idx] = best.astype(np.int32)
+        score[idx] = sims[np.arange(best.shape[0]), best].astype(np.float32)
+        source[idx] = SOURCE_MAP
+    return label, score, source
+
+
+def _splat_rows(
+    snapshot: GlobalMapSnapshot,
+    K: np.ndarray,  # (4,) [fx, fy, cx, cy]
+    world_from_cam: np.ndarray,  # (4, 4)
+    width: int,
+    height: int,
+) -> np.ndarray:
+    """(H, W) int64 map row of the nearest map point with a feature that projects into each pixel
+    (z-buffer; each point covers about its voxel's footprint, at most 5x5 pixels), -1 = none."""
+    out = np.full(height * width, -1, np.int64)
+    rows = np.flatnonzero(snapshot.feat_weight > 0)
+    if rows.size == 0:
+        return out.reshape(height, width)
+    fx, fy, cx, cy = (float(v) for v in K)
+    rot = np.asarray(world_from_cam, np.float64)[:3, :3]
+    trans = np.asarray(world_from_cam, np.float64)[:3, 3]
+    p_cam = (snapshot.xyz[rows].astype(np.float64) - trans) @ rot  # world -> camera: R^T (x - t)
+    z = p_cam[:, 2]
+    front = z > 1e-3
+    rows, p_cam, z = rows[front], p_cam[front], z[front]
+    u = fx * p_cam[:, 0] / z + cx
+    v = fy * p_cam[:, 1] / z + cy
+    reach = np.clip(np.rint(0.5 * fx * snapshot.voxel_size_m / z), 0, 2).astype(np.int64)
+    inside = (u > -3) & (u < width + 3) & (v > -3) & (v < height + 3)
+    rows, z, reach = rows[inside], z[inside], reach[inside]
+    col, lin = np.floor(u[inside]).astype(np.int64), np.floor(v[inside]).astype(np.int64)
+    pix_parts, z_parts, row_parts = [], [], []
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            m = reach >= max(abs(dx), abs(dy))
+            cc, ll = col[m] + dx, lin[m] + dy
+            ok = (cc >= 0) & (cc < width) & (ll >= 0) & (ll < height)
+            pix_parts.append(ll[ok] * width + cc[ok])
+            z_parts.append(z[m][ok])
+            row_parts.append(rows[m][ok])
+    pix = np.concatenate(pix_parts)
+    if pix.size == 0:
+        return out.reshape(height, width)
+    zz, rr = np.concatenate(z_parts), np.concatenate(row_parts)
+    order = np.lexsort((zz, pix))  # by pixel, nearest first
+    pix, rr = pix[order], rr[order]
+    first = np.ones(pix.shape[0], bool)
+    first[1:] = pix[1:] != pix[:-1]
+    out[pix[first]] = rr[first]
+    return out.reshape(height, width)
+
+
+def render_from_map(
+    snapshot: GlobalMapSnapshot,
+    K: np.ndarray,  # (4,) [fx, fy, cx, cy] for width x height
+    world_from_cam: np.ndarray,  # (4, 4) camera-to-world
+    width: int,
+    height: int,
+    depth_m: np.ndarray | None,  # (H, W) rendered z-depth, 0 = no surface; None = unknown
+    need: np.ndarray,  # (H, W) bool: pixels the window did not label
+    text_emb: np.ndarray,  # (T, D) float32 unit rows
+    radius_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Label the ``need`` pixels of a view from the map: (label (H, W) int32, -1 elsewhere; cos
+    (H, W, T) float32, 0 elsewhere; answered (H, W) bool). A pixel with a rendered surface takes
+    the nearest map point with a feature within ``radius_m`` of that surface point; one without
+    (or without a map point that near) takes the splatted map point that projects into it."""
+    n_texts = text_emb.shape[0]
+    label = np.full((height, width), -1, np.int32)
+    cos = np.zeros((height, width, n_texts), np.float32)
+    answered = np.zeros((height, width), bool)
+    if not need.any() or not _map_compatible(snapshot, text_emb):
+        return label, cos, answered
+    rows = np.full((height, width), -1, np.int64)
+    if depth_m is not None:
+        surf = need & (depth_m > 0)
+        jj, ii = np.nonzero(surf)
+        if jj.size:
+            fx, fy, cx, cy = (float(v) for v in K)
+            z = depth_m[jj, ii].astype(np.float64)
+            p_cam = np.stack([(ii + 0.5 - cx) / fx * z, (jj + 0.5 - cy) / fy * z, z], axis=1)
+            pose = np.asarray(world_from_cam, np.float64)
+            p_world = p_cam @ pose[:3, :3].T + pose[:3, 3]
+            rows[jj, ii] = snapshot.nearest_with_feature(p_world, radius_m)
+    rest = need & (rows < 0)
+    if rest.any():
+        splat = _splat_rows(snapshot, np.asarray(K, np.float64), world_from_cam, width, height)
+        rows[rest] = splat[rest]
+    jj, ii = np.nonzero(need & (rows >= 0))
+    if jj.size:
+        sims = _map_unit_features(snapshot, rows[jj, ii]) @ text_emb.T  # (n, T)
+        cos[jj, ii] = sims.astype(np.float32)
+        label[jj, ii] = np.argmax(sims, axis=1).astype(np.int32)
+        answered[jj, ii] = True
+    return label, cos, answered

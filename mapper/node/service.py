@@ -5,7 +5,12 @@ Threads and sockets (a ZeroMQ socket is only ever used by the thread that create
 - **ingest thread**: ROUTER bound on ``ingest_endpoint``; decodes each ``frame``, updates the
   keyframe window and replies with exactly one ``ack`` or ``error``.
 - **query thread**: ROUTER bound on ``query_endpoint``; dispatches each request through
-  :attr:`MapperNode.query_handlers` (message class -> handler) and replies exactly once.
+  :attr:`MapperNode.query_handlers` (message class -> handler) and replies exactly once. Heavy
+  requests (:attr:`MapperNode.heavy_request_types`: ``render``, ``segment_points``) go to the
+  **query workers** (``queries.workers`` threads, a queue of ``queries.queue_length``; ``busy``
+  beyond it), which hand their replies back through inproc PUSH -> PULL sockets to the query
+  thread, the only user of the ROUTER; so ``status`` / ``query_points`` / ``save`` / ``load``
+  never wait behind a render.
 - **events thread** (optional): PUB bound on ``events_endpoint``; publishes ``map_updated``
   notices handed to it through a queue by whichever thread changed the map.
 - **main thread**: :meth:`MapperNode.run` waits for SIGINT/SIGTERM, does periodic autosaves and,
@@ -17,7 +22,9 @@ lock, held only for the short state updates (decoding, file I/O and replies happ
 Replies on a ROUTER reuse the request's envelope: every frame but the last is routing
 (identities, and the empty delimiter REQ peers add), the last frame is the message. So DEALER
 peers (with or without an empty delimiter) and REQ peers all get their reply. Replies to one
-connection leave in the order its requests arrived (each socket is served by one thread).
+connection leave in the order its requests arrived (each socket is served by one thread), except
+that a heavy request's reply may leave after those of light requests sent after it (replies
+carry the request ``id``; docs/PROTOCOL.md, Transport).
 
 Robustness: every message is handled inside a catch-all; a ``ProtocolError`` becomes its wire
 error, anything else an ``internal`` error (logged with traceback), and the node keeps serving.
@@ -58,6 +65,8 @@ import zmq
 
 from mapper.node.config import NodeConfig, to_dict
 from mapper.node.global_map import GlobalSemanticMap
+from mapper.node.keyframe_queue import KeyframeQueue
+from mapper.node.security import CurveServer, exposure_problem, security_mode
 from mapper.node.store import MapStore, StoreError, StoreWriteError
 from mapper.node.window import Keyframe, KeyframeWindow, keyframes_from_arrays, keyframes_to_arrays
 from protocol.errors import ProtocolError
@@ -178,11 +187,35 @@ class MapperNode:
             "average_depth": lambda msg: self._segment_average(msg, use_depth=True),
         }
         """``segment_points`` methods: name -> handler (the learned model registers "govnesf")."""
+        self.heavy_request_types: set[type[Message]] = {Render, SegmentPoints}
+        """Requests answered by the query worker pool (``queries.workers`` threads, bounded queue:
+        ``busy`` beyond it), so that light requests never wait behind them."""
+        self._heavy_jobs: queue.Queue[tuple[list[bytes], Message, bytes]] = queue.Queue(
+            maxsize=config.queries.queue_length
+        )
+        self._heavy_lock = threading.Lock()
+        self._heavy_running = 0
+        self._heavy_done = 0
+        self._heavy_busy = 0
+        self._reply_endpoint = f"inproc://mapper-query-replies-{id(self):x}"
+        """Workers PUSH ``[*envelope, reply]`` here; the query thread PULLs and sends on its ROUTER."""
         self._warmed_spaces: set[str] = set()
         self._stop = threading.Event()
         self._context = zmq.Context()
         self._threads: list[threading.Thread] = []
-        self._events: queue.SimpleQueue[MapUpdated | None] = queue.SimpleQueue()
+        self._events: KeyframeQueue[MapUpdated] = KeyframeQueue(config.limits.events_queue_max)
+        """``map_updated`` notices for the events thread (bounded: the oldest is dropped, counted)."""
+        self._curve: CurveServer | None = None
+        """CURVE keys and ZAP authenticator when ``curve_dir`` is set (made by :meth:`start`)."""
+        self._last_curve_check = time.monotonic()
+        self._ingest_last = -math.inf
+        """When the ingest endpoint last handled a message (monotonic s; :meth:`_pace_queries`)."""
+        self.frames_duplicate = 0
+        """Frames received again (same seq, stamp, camera, pose and K) while already a keyframe in the
+        window: acked ``accepted`` with a ``duplicate`` reason, not added twice (state lock)."""
+        self.replies_dropped: Counter[str] = Counter()
+        """Replies not sent, by ``"<endpoint>:<why>"``: ``full`` (the peer's queue is at ``sndhwm``:
+        it does not read its replies) or ``gone`` (the peer disconnected)."""
         self._bind_errors: list[str] = []
         self._saved_version: int | None = None
         self._last_warning: dict[str, float] = {}
@@ -215,7 +248,33 @@ class MapperNode:
     def start(self) -> None:
         """Start the socket threads; return once every socket is bound. Raises ``RuntimeError``
         naming the endpoint when a bind fails (e.g. address in use). With ``load_autosave_on_start``
-        the autosaved map is loaded first (see :meth:`load_autosave`)."""
+        the autosaved map is loaded first (see :meth:`load_autosave`).
+
+        Refuses (``RuntimeError``) a non-loopback bind without ``curve_dir`` unless ``insecure``
+        (:func:`mapper.node.security.exposure_problem`); with ``curve_dir`` the key files must load."""
+        cfg = self.config
+        endpoints = [e for e in (cfg.ingest_endpoint, cfg.query_endpoint, cfg.events_endpoint) if e]
+        problem = exposure_problem(endpoints, cfg.curve_dir, cfg.insecure)
+        if problem:
+            self._context.term()
+            self._stopped = True
+            raise RuntimeError(problem)
+        if cfg.curve_dir:
+            try:
+                self._curve = CurveServer(self._context, cfg.curve_dir)
+                self._curve.start()
+            except Exception as exc:  # a key file problem (ConfigError) or the authenticator
+                if self._curve is not None:
+                    self._curve.stop()
+                self._context.term()
+                self._stopped = True
+                raise RuntimeError(f"CurveZMQ (curve_dir {cfg.curve_dir!r}): {exc}") from None
+        elif security_mode(endpoints, None) == "insecure":
+            log.warning(
+                "INSECURE: serving %s without CurveZMQ authentication (insecure = true): anyone who can "
+                "reach these addresses can stream frames, query, save and load maps (docs/SECURITY.md)",
+                ", ".join(e for e in endpoints if security_mode([e], None) == "insecure"),
+            )
         self.load_autosave()
         workers: list[tuple[str, Callable[[threading.Event], None]]] = [
             ("ingest", self._ingest_loop),
@@ -234,19 +293,28 @@ class MapperNode:
             bound.wait(timeout=10.0)
         if self._bind_errors or not all(b.is_set() for b in ready):
             self._stop_threads()
+            if self._curve is not None:
+                self._curve.stop()
             self._context.term()
             self._stopped = True
             raise RuntimeError("; ".join(self._bind_errors) or "socket threads did not start in 10 s")
+        for index in range(self.config.queries.workers):
+            thread = threading.Thread(
+                target=self._heavy_worker, name=f"mapper-query-worker-{index}", daemon=True
+            )
+            thread.start()
+            self._threads.append(thread)
         for name, work in self.workers:
             thread = threading.Thread(target=work, args=(self._stop,), name=f"mapper-{name}", daemon=True)
             thread.start()
             self._threads.append(thread)
         log.info(
-            "serving: ingest %s, query %s, events %s, map_dir %s",
+            "serving: ingest %s, query %s, events %s, map_dir %s, security %s",
             self.config.ingest_endpoint,
             self.config.query_endpoint,
             self.config.events_endpoint or "(off)",
             os.path.abspath(self.config.map_dir),
+            self._security_mode(),
         )
 
     def load_autosave(self) -> bool:
@@ -296,6 +364,7 @@ class MapperNode:
                 self.stop()
                 return 1
             self._maybe_autosave()
+            self._maybe_reload_curve()
             now = time.monotonic()
             if now - last_report >= 30.0:
                 last_report = now
@@ -321,6 +390,8 @@ class MapperNode:
             except StoreError as exc:
                 log.error("final save failed: %s", exc)
                 code = 1
+        if self._curve is not None:
+            self._curve.stop()
         self._context.term()
         with self.state.lock:
             log.info("stopped: %s", self._summary_line())
@@ -328,7 +399,7 @@ class MapperNode:
 
     def _stop_threads(self) -> None:
         self._stop.set()
-        self._events.put(None)  # wakes the events thread
+        self._events.wake.set()  # wakes the events thread
         for thread in self._threads:
             thread.join(timeout=10.0)
             if thread.is_alive():
@@ -348,10 +419,19 @@ class MapperNode:
     # -- socket loops -------------------------------------------------------------------------
 
     def _bind(self, kind: int, endpoint: str, bound: threading.Event) -> zmq.Socket[bytes] | None:
+        """A socket of ``kind`` bound on ``endpoint`` with the node's limits (``[limits]``
+        high-water marks; ROUTERs: the hard size limit and ``ROUTER_MANDATORY``, so a reply to a
+        full or vanished peer fails at once and is counted instead of being dropped silently) and,
+        with ``curve_dir``, as a CURVE server. None (error recorded) when the bind fails."""
         sock: zmq.Socket[bytes] = self._context.socket(kind)
         sock.setsockopt(zmq.LINGER, 1000)  # flush pending replies for up to 1 s on close
+        sock.setsockopt(zmq.SNDHWM, self.config.limits.sndhwm)
+        sock.setsockopt(zmq.RCVHWM, self.config.limits.rcvhwm)
         if kind == zmq.ROUTER:
             sock.setsockopt(zmq.MAXMSGSIZE, HARD_LIMIT_FACTOR * self.config.max_message_bytes)
+            sock.setsockopt(zmq.ROUTER_MANDATORY, 1)
+        if self._curve is not None:
+            self._curve.apply(sock)
         try:
             sock.bind(endpoint)
         except zmq.ZMQError as exc:
@@ -384,18 +464,162 @@ class MapperNode:
                         log.warning("%s: dropped a message without envelope (%d parts)", name, len(parts))
                         continue
                     reply = handle(parts[-1])
-                    try:
-                        sock.send_multipart([*parts[:-1], reply], zmq.NOBLOCK)
-                    except zmq.ZMQError as exc:  # peer gone or its queue full: nothing else to do
-                        log.warning("%s: could not send a reply: %s", name, exc)
+                    self._send_reply(sock, [*parts[:-1], reply], name)
         finally:
             sock.close()
+
+    def _pace_queries(self, started: float, now: float | None = None) -> None:
+        """Ingest first. While frames are arriving (one handled within the last
+        ``limits.ingest_active_s``), a query-serving thread (the query socket's, a heavy worker)
+        that has just spent ``elapsed`` seconds on a request pauses ``elapsed * (1 - share) /
+        share`` (``share`` = ``limits.query_share``; at most ``limits.query_pause_max_s``), so
+        each uses at most that share of the CPU and a query storm cannot starve the ingest thread.
+        Requests wait in ZeroMQ meanwhile (bounded by ``rcvhwm``). Called by the socket loops
+        only, never by :meth:`handle_query`."""
+        limits = self.config.limits
+        if limits.query_share >= 1.0:
+            return
+        now = time.monotonic() if now is None else now
+        if now - self._ingest_last > limits.ingest_active_s:
+            return
+        share = limits.query_share
+        pause = min((now - started) * (1.0 - share) / share, limits.query_pause_max_s)
+        if pause > 0:
+            self._stop.wait(pause)
+
+    def _send_reply(self, sock: zmq.Socket[bytes], parts: list[bytes], name: str) -> bool:
+        """Send ``parts`` on ROUTER ``sock`` without ever blocking; a reply the peer cannot take
+        (its queue at ``limits.sndhwm``: it does not read) or that has no peer any more is dropped
+        and counted in :attr:`replies_dropped`. Returns True when sent."""
+        try:
+            sock.send_multipart(parts, zmq.NOBLOCK)
+            return True
+        except zmq.Again:
+            why = "full"
+        except zmq.ZMQError as exc:
+            why = "gone" if exc.errno == zmq.EHOSTUNREACH else f"error {exc.errno}"
+        with self.state.lock:
+            self.replies_dropped[f"{name}:{why}"] += 1
+            count = self.replies_dropped[f"{name}:{why}"]
+        self._warn_limited(f"{name}:reply-{why}", "%s: dropped a reply (%s; %d so far)", name, why, count)
+        return False
 
     def _ingest_loop(self, bound: threading.Event) -> None:
         self._serve_router(self.config.ingest_endpoint, bound, self.handle_ingest, "ingest")
 
     def _query_loop(self, bound: threading.Event) -> None:
-        self._serve_router(self.config.query_endpoint, bound, self.handle_query, "query")
+        """The query ROUTER. Light requests are answered here, heavy ones
+        (:attr:`heavy_request_types`) go to the worker pool, whose replies come back through an
+        inproc PULL socket this thread owns (each worker has its own PUSH) and leave on the ROUTER,
+        so the ROUTER is only ever used by this thread."""
+        if self.config.queries.workers == 0:
+            self._serve_router(self.config.query_endpoint, bound, self.handle_query, "query")
+            return
+        replies: zmq.Socket[bytes] = self._context.socket(zmq.PULL)
+        replies.setsockopt(zmq.LINGER, 0)
+        replies.bind(self._reply_endpoint)
+        sock = self._bind(zmq.ROUTER, self.config.query_endpoint, bound)
+        if sock is None:
+            replies.close()
+            return
+        poller = zmq.Poller()
+        poller.register(sock, zmq.POLLIN)
+        poller.register(replies, zmq.POLLIN)
+        timeout_ms = int(self.config.poll_interval_s * 1000)
+
+        try:
+            while not self._stop.is_set():
+                ready = dict(poller.poll(timeout_ms))
+                if replies in ready:
+                    while True:
+                        try:
+                            self._send_reply(sock, replies.recv_multipart(zmq.NOBLOCK), "query")
+                        except zmq.Again:
+                            break
+                if sock not in ready:
+                    continue
+                while not self._stop.is_set():
+                    try:
+                        parts = sock.recv_multipart(zmq.NOBLOCK)
+                    except zmq.Again:
+                        break
+                    if len(parts) < 2:  # a ROUTER always prepends the identity; be defensive
+                        log.warning("query: dropped a message without envelope (%d parts)", len(parts))
+                        continue
+                    started = time.monotonic()
+                    reply = self._route_query(parts[:-1], parts[-1])
+                    if reply is not None:
+                        self._send_reply(sock, [*parts[:-1], reply], "query")
+                    self._pace_queries(started)
+        finally:
+            sock.close()
+            replies.close()
+
+    def _route_query(self, envelope: list[bytes], data: bytes) -> bytes | None:
+        """Answer a light request now (its reply), or queue a heavy one for the pool (None: a
+        worker replies), or ``busy`` when the pool's queue is full."""
+        decoded = self._decode_query(data)
+        if isinstance(decoded, bytes):
+            return decoded
+        if type(decoded) not in self.heavy_request_types:
+            return self._answer_query(decoded, data)
+        try:
+            self._heavy_jobs.put_nowait((envelope, decoded, data))
+        except queue.Full:
+            with self._heavy_lock:
+                self._heavy_busy += 1
+                running = self._heavy_running
+            cfg = self.config.queries
+            exc = ProtocolError(
+                "busy",
+                f"{decoded.TYPE}: {running} heavy request(s) running and {cfg.queue_length} waiting "
+                f"(queries.workers = {cfg.workers}, queries.queue_length = {cfg.queue_length}); "
+                "retry later",
+            )
+            return encode(self._error(exc, data, "query"))
+        return None
+
+    def _heavy_worker(self) -> None:
+        """One thread of the heavy-request pool: answer queued requests until stopped; every reply
+        goes back to the query thread through this worker's own PUSH socket."""
+        push: zmq.Socket[bytes] = self._context.socket(zmq.PUSH)
+        push.setsockopt(zmq.LINGER, 0)
+        push.connect(self._reply_endpoint)
+        try:
+            while not self._stop.is_set():
+                try:
+                    envelope, msg, data = self._heavy_jobs.get(timeout=self.config.poll_interval_s)
+                except queue.Empty:
+                    continue
+                with self._heavy_lock:
+                    self._heavy_running += 1
+                started = time.monotonic()
+                try:
+                    reply = self._answer_query(msg, data)  # never raises
+                finally:
+                    with self._heavy_lock:
+                        self._heavy_running -= 1
+                        self._heavy_done += 1
+                try:
+                    push.send_multipart([*envelope, reply])
+                except zmq.ZMQError as exc:  # the context is closing
+                    log.warning("query worker: could not hand back a reply: %s", exc)
+                self._pace_queries(started)
+        finally:
+            push.close()
+
+    def query_pool_stats(self) -> dict[str, int]:
+        """The heavy-request pool, for ``status``: ``workers``, ``queue_length``, ``running``,
+        ``queued``, ``done`` (answered by a worker) and ``busy`` (refused: queue full)."""
+        with self._heavy_lock:
+            return {
+                "workers": self.config.queries.workers,
+                "queue_length": self.config.queries.queue_length,
+                "running": self._heavy_running,
+                "queued": self._heavy_jobs.qsize(),
+                "done": self._heavy_done,
+                "busy": self._heavy_busy,
+            }
 
     def _events_loop(self, bound: threading.Event) -> None:
         assert self.config.events_endpoint
@@ -403,18 +627,23 @@ class MapperNode:
         if sock is None:
             return
         try:
-            while True:
-                event = self._events.get()
-                if event is None or self._stop.is_set():
-                    break
-                try:
-                    sock.send(encode(event), zmq.NOBLOCK)
-                except zmq.ZMQError as exc:
-                    log.debug("events: dropped a notice: %s", exc)
+            while not self._stop.is_set():
+                self._events.wake.wait(timeout=self.config.poll_interval_s)
+                self._events.wake.clear()
+                while not self._stop.is_set():
+                    event = self._events.pop()
+                    if event is None:
+                        break
+                    try:  # PUB never blocks: a subscriber at its high-water mark misses the notice
+                        sock.send(encode(event), zmq.NOBLOCK)
+                    except zmq.ZMQError as exc:
+                        log.debug("events: dropped a notice: %s", exc)
         finally:
             sock.close(linger=0)
 
     def _publish(self, map_version: int, keyframes: int) -> None:
+        """Queue a ``map_updated`` notice (O(1), never blocks; the oldest beyond
+        ``limits.events_queue_max`` is dropped and counted)."""
         if self.config.events_endpoint:
             self._events.put(MapUpdated(map_version=map_version, keyframes=keyframes))
 
@@ -424,6 +653,7 @@ class MapperNode:
         """Handle one message of the ingest endpoint; returns the encoded ``ack`` or ``error``."""
         with self.state.lock:
             self.state.frames_received += 1
+        self._ingest_last = time.monotonic()
         try:
             msg = decode(data, max_bytes=self.config.max_message_bytes, direction="request")
             if not isinstance(msg, Frame):
@@ -443,11 +673,28 @@ class MapperNode:
         return encode(reply)
 
     def handle_query(self, data: bytes) -> bytes:
-        """Handle one message of the query endpoint via :attr:`query_handlers`."""
+        """Handle one message of the query endpoint via :attr:`query_handlers` (on the calling
+        thread; the socket loop sends heavy requests to the worker pool instead)."""
+        decoded = self._decode_query(data)
+        if isinstance(decoded, bytes):
+            return decoded
+        return self._answer_query(decoded, data)
+
+    def _decode_query(self, data: bytes) -> Message | bytes:
+        """The decoded request (counted by type), or the encoded error reply."""
         try:
             msg = decode(data, max_bytes=self.config.max_message_bytes, direction="request")
-            with self.state.lock:
-                self.state.requests_by_type[msg.TYPE] += 1
+        except ProtocolError as exc:
+            return encode(self._error(exc, data, "query"))
+        except Exception as exc:
+            return encode(self._internal(exc, data, "query"))
+        with self.state.lock:
+            self.state.requests_by_type[msg.TYPE] += 1
+        return msg
+
+    def _answer_query(self, msg: Message, data: bytes) -> bytes:
+        """The encoded reply to a decoded request (never raises)."""
+        try:
             handler = self.query_handlers.get(type(msg))
             if handler is None:
                 if isinstance(msg, Frame):
@@ -510,6 +757,17 @@ class MapperNode:
         )
         state = self.state
         with state.lock:
+            for kept in state.window.keyframes:
+                same_id = (kept.seq, kept.stamp_ns, kept.camera) == (frame.seq, frame.stamp_ns, frame.camera)
+                if same_id and np.array_equal(kept.world_from_cam, frame.world_from_cam) and np.array_equal(
+                    kept.K, frame.K
+                ):
+                    # a resent frame (the client's retry after a timeout or a node restart) that is
+                    # already a keyframe (same seq, stamp, camera and pose): acked again, not added twice
+                    state.ack_counts["accepted"] += 1
+                    self.frames_duplicate += 1
+                    return Ack(seq=frame.seq, status="accepted", map_version=state.map_version, id=frame.id,
+                               reason=f"duplicate: frame seq {frame.seq} is already a keyframe of the map")
             if frame.ov is not None:
                 if state.ov_space is not None and frame.ov_space != state.ov_space:
                     raise ProtocolError(
@@ -593,6 +851,16 @@ class MapperNode:
                 "rss_bytes": _rss_bytes(),
                 "serving": sorted(t.TYPE for t, h in self.query_handlers.items() if not _is_not_ready(h)),
                 "segment_methods": sorted(m for m, h in self.segment_methods.items() if not _is_not_ready(h)),
+                "query_pool": self.query_pool_stats(),
+                "security": self._security_status(),
+                "limits": {
+                    "sndhwm": self.config.limits.sndhwm,
+                    "rcvhwm": self.config.limits.rcvhwm,
+                    "events_queue_max": self.config.limits.events_queue_max,
+                },
+                "events_dropped": self._events.dropped,
+                "frames_duplicate": self.frames_duplicate,
+                "replies_dropped": dict(self.replies_dropped),
                 **state.global_map.stats(),
             }
             for key, provider in self.status_providers.items():
@@ -771,7 +1039,8 @@ class MapperNode:
         return handler(msg)
 
     def _segment_average(self, msg: SegmentPoints, use_depth: bool) -> Segmentation:
-        """``average`` / ``average_depth``: OpenScene-2D averaging over the window's keyframes."""
+        """``average`` / ``average_depth``: OpenScene-2D averaging over the window's keyframes where
+        they see a point, the global map's fused features elsewhere (:meth:`answer_from_map`)."""
         from mapper.node.queries import segment_average
 
         started = time.perf_counter()
@@ -784,13 +1053,14 @@ class MapperNode:
             for k in with_ov
             if k.ov is not None and (not use_depth or k.depth_m is not None)
         ]
-        if not with_ov:
+        map_has_features = self.state.global_map.snapshot().n_with_features > 0
+        if not with_ov and not map_has_features:
             raise ProtocolError(
                 "not_ready",
                 f"segment_points method {method!r}: none of the {len(keyframes)} keyframes in the window "
-                "carries ov features; send frames with ov",
+                "carries ov features and the global map has none; send frames with ov",
             )
-        if not views:
+        if not views and not map_has_features:
             raise ProtocolError(
                 "not_ready",
                 f"segment_points method 'average_depth' needs keyframes with both depth and ov: the "
@@ -810,19 +1080,55 @@ class MapperNode:
         text_emb = encoder.encode(list(msg.texts))
         t_text = time.perf_counter()
         xyz = np.asarray(msg.xyz, np.float32)
-        label, score, _ = segment_average(xyz, views, text_emb, use_depth=use_depth)
+        if views:
+            label, score, n_views = segment_average(xyz, views, text_emb, use_depth=use_depth)
+        else:
+            label = np.full(xyz.shape[0], -1, np.int32)
+            score = np.zeros(xyz.shape[0], np.float32)
+            n_views = np.zeros(xyz.shape[0], np.int64)
+        t_avg = time.perf_counter()
+        label, score, source = self.answer_from_map(xyz, text_emb, label, score, n_views > 0)
         t_done = time.perf_counter()
         return Segmentation(
             label=label,
             score=score,
+            source=source,
             timing_ms={
                 "views": 1e3 * (t_views - started),
                 "encode_text": 1e3 * (t_text - t_views),
-                "average": 1e3 * (t_done - t_text),
+                "average": 1e3 * (t_avg - t_text),
+                "map": 1e3 * (t_done - t_avg),
                 "total": 1e3 * (t_done - started),
                 "n_views": float(len(views)),
+                "from_map": float(np.count_nonzero(source == 2)),
             },
         )
+
+    def answer_from_map(
+        self,
+        xyz: np.ndarray,  # (N, 3) float32 world metres
+        text_emb: np.ndarray,  # (T, D) float32 unit rows
+        label: np.ndarray,  # (N,) int32 the window's labels
+        score: np.ndarray,  # (N,) float32 the window's scores
+        window_seen: np.ndarray,  # (N,) bool: the window answered the point
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Fill the points the window did not answer from the global map's snapshot (nearest point
+        with a feature within ``queries.map_radius_voxels`` voxels): (label, score, source (N,)
+        uint8), see :func:`mapper.node.queries.fill_from_map`. Used by every segment method."""
+        from mapper.node.queries import fill_from_map
+
+        return fill_from_map(
+            self.state.global_map.snapshot(), xyz, text_emb, label, score, window_seen, self.map_radius_m
+        )
+
+    @property
+    def map_radius_m(self) -> float:
+        """Radius (metres) of the whole-map lookup: ``queries.map_radius_voxels`` map voxels."""
+        return self.config.queries.map_radius_voxels * self.config.global_map.voxel_size_m
+
+    def text_encoder(self, what: str) -> Any:
+        """The text encoder of the map's ov_space (``not_ready`` naming ``what`` without one)."""
+        return self._text_encoder(what)
 
     @staticmethod
     def _not_ready(type_name: str, what: str) -> QueryHandler:
@@ -837,6 +1143,34 @@ class MapperNode:
         return handler
 
     # -- housekeeping -------------------------------------------------------------------------
+
+    def _security_mode(self) -> str:
+        cfg = self.config
+        endpoints = [e for e in (cfg.ingest_endpoint, cfg.query_endpoint, cfg.events_endpoint) if e]
+        return security_mode(endpoints, cfg.curve_dir if self._curve is not None else None)
+
+    def _security_status(self) -> dict[str, Any]:
+        """``status`` key ``security``: ``mode`` (curve / loopback / insecure), ``curve_dir`` and
+        the number of ``allowed_keys`` (CURVE only)."""
+        out: dict[str, Any] = {"mode": self._security_mode()}
+        if self._curve is not None:
+            out["curve_dir"] = os.path.abspath(self._curve.curve_dir)
+            out["allowed_keys"] = self._curve.allowed_keys
+        return out
+
+    def _maybe_reload_curve(self) -> None:
+        """Pick up client keys added to or removed from ``allowed/`` (main thread)."""
+        if self._curve is None:
+            return
+        now = time.monotonic()
+        if now - self._last_curve_check < self.config.limits.curve_reload_interval_s:
+            return
+        self._last_curve_check = now
+        try:
+            self._curve.reload_if_changed()
+        except Exception:  # an unreadable key file: keep the previous list, say why
+            log.exception("CurveZMQ: could not reload %s; keeping the previous allowed keys",
+                          self._curve.allowed_dir)
 
     def _maybe_autosave(self) -> None:
         cfg = self.config

@@ -8,6 +8,13 @@ registers the handlers on the node's dispatch table:
   every other method falls through to the handler that served ``SegmentPoints`` before (read from
   ``node.query_handlers`` at install time, e.g. the ``average`` baselines).
 
+Answers from the whole map: points (``segment_points``) and pixels (``render`` labels and
+scores) the window's keyframes do not answer are answered from the global map's fused features
+(``MapperNode.answer_from_map``, :func:`mapper.node.queries.render_from_map`); the replies' ``source``
+says which answered. With ``global_map.learned_features``, the map voxels a keyframe saw take the
+model's blended features just before it leaves the window (:mod:`mapper.node.map_features`,
+fed by ``ModelRuntime.point_features``).
+
 The heavy work never holds the node's state lock: the window callbacks only record changes (see
 :mod:`mapper.runtime.model_runtime`), and the handlers compute on the runtime's own state under its own lock.
 Errors: a missing checkpoint, an empty window or missing OV features answer ``not_ready`` with the
@@ -21,6 +28,9 @@ import logging
 import time
 from typing import TYPE_CHECKING
 
+import numpy as np
+
+from mapper.node.map_features import PreEvictionFeatures
 from mapper.node.plugins.depth_points import RenderedDepthPoints
 from mapper.runtime.model_runtime import ModelRuntime, RuntimeNotReady
 from protocol.errors import ProtocolError
@@ -29,13 +39,29 @@ from protocol.messages import Message, Render, RenderResult, Segmentation, Segme
 if TYPE_CHECKING:
     from mapper.node.service import MapperNode, QueryHandler
 
-__all__ = ["install_learned_handlers", "make_render_handler", "make_segment_handler"]
+__all__ = [
+    "install_learned_handlers",
+    "install_pre_eviction_features",
+    "make_render_handler",
+    "make_segment_handler",
+]
 
 log = logging.getLogger("mapper.node.plugins.learned")
 
 
-def make_segment_handler(runtime: ModelRuntime, previous: QueryHandler | None) -> QueryHandler:
-    """A ``SegmentPoints`` handler: ``govnesf`` -> the runtime, other methods -> ``previous``."""
+def _text_emb(node: MapperNode, texts: list[str], what: str) -> np.ndarray | None:
+    """(T, D) unit text embeddings in the map's space, or None when the node has no encoder."""
+    try:
+        return np.asarray(node.text_encoder(what).encode(texts), np.float32)
+    except ProtocolError:
+        return None
+
+
+def make_segment_handler(
+    runtime: ModelRuntime, previous: QueryHandler | None, node: MapperNode | None = None
+) -> QueryHandler:
+    """A ``SegmentPoints`` handler: ``govnesf`` -> the runtime, other methods -> ``previous``.
+    With ``node``, points the window does not see are answered from its global map."""
 
     def handle_segment(msg: Message) -> Message:
         assert isinstance(msg, SegmentPoints)
@@ -51,25 +77,67 @@ def make_segment_handler(runtime: ModelRuntime, previous: QueryHandler | None) -
         except ValueError as exc:
             raise ProtocolError("bad_request", f"segment_points: {exc}") from None
         timing = dict(timing)
+        source = None
+        if node is not None:
+            t_map = time.perf_counter()
+            emb = _text_emb(node, list(msg.texts), "segment_points (govnesf)")
+            seen = label >= 0
+            if emb is not None:
+                label, score, source = node.answer_from_map(
+                    np.asarray(msg.xyz, np.float32), emb, label, score, seen
+                )
+            else:
+                source = seen.astype(np.uint8)  # 1 = window, 0 = none
+            timing["map"] = (time.perf_counter() - t_map) * 1e3
+            timing["from_map"] = float(np.count_nonzero(source == 2))
         timing["handler"] = (time.perf_counter() - started) * 1e3
-        return Segmentation(label=label, score=score, timing_ms=timing, id=msg.id)
+        return Segmentation(label=label, score=score, timing_ms=timing, id=msg.id, source=source)
 
     return handle_segment
 
 
-def make_render_handler(runtime: ModelRuntime) -> QueryHandler:
-    """A ``Render`` handler backed by the runtime."""
+def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -> QueryHandler:
+    """A ``Render`` handler backed by the runtime. With ``node``, pixels the window does not label
+    are answered from its global map (the render then also computes depth and label)."""
 
     def handle_render(msg: Message) -> Message:
         assert isinstance(msg, Render)
         started = time.perf_counter()
+        semantic = "label" in msg.outputs or "score" in msg.outputs
+        outputs = list(msg.outputs)
+        if node is not None and semantic:
+            outputs += [o for o in ("depth", "label") if o not in outputs]
         try:
-            frame = runtime.render(msg.K, msg.world_from_cam, msg.width, msg.height, msg.outputs, msg.texts)
+            frame = runtime.render(msg.K, msg.world_from_cam, msg.width, msg.height, outputs, msg.texts)
         except RuntimeNotReady as exc:
             raise ProtocolError("not_ready", f"render: {exc}") from None
         except ValueError as exc:
             raise ProtocolError("bad_request", f"render: {exc}") from None
         timing = dict(frame.timing_ms)
+        source = None
+        if node is not None and semantic and frame.label is not None and msg.texts:
+            t_map = time.perf_counter()
+            emb = _text_emb(node, list(msg.texts), "render")
+            window = frame.label >= 0
+            source = window.astype(np.uint8)  # 1 = window, 0 = none
+            if emb is not None:
+                from mapper.node.queries import SOURCE_MAP, render_from_map
+
+                lab, cos, answered = render_from_map(
+                    node.state.global_map.snapshot(), np.asarray(msg.K, np.float64), msg.world_from_cam,
+                    msg.width, msg.height, frame.depth_m, ~window, emb, node.map_radius_m,
+                )  # fmt: skip
+                frame.label = np.where(answered, lab, frame.label).astype(np.int32)
+                if frame.score is not None:
+                    frame.score = np.where(answered[..., None], cos, frame.score).astype(np.float32)
+                source[answered] = SOURCE_MAP
+            timing["map"] = (time.perf_counter() - t_map) * 1e3
+            timing["from_map"] = float(np.count_nonzero(source == 2))
+            if "depth" not in msg.outputs:
+                frame.depth_m = None
+            if "label" not in msg.outputs:
+                frame.label = None
+                source = None
         timing["handler"] = (time.perf_counter() - started) * 1e3
         log.debug(
             "render %dx%d %s: %.0f ms, %s", msg.width, msg.height, msg.outputs, timing["handler"], frame.stats
@@ -81,6 +149,7 @@ def make_render_handler(runtime: ModelRuntime) -> QueryHandler:
             score=frame.score,
             timing_ms=timing,
             id=msg.id,
+            source=source,
         )
 
     return handle_render
@@ -100,8 +169,8 @@ def install_learned_handlers(node: MapperNode, runtime: ModelRuntime) -> Rendere
     with node.state.lock:
         runtime.attach(node.state.window)
     previous = node.query_handlers.get(SegmentPoints)
-    segment = make_segment_handler(runtime, previous)
-    render = make_render_handler(runtime)
+    segment = make_segment_handler(runtime, previous, node)
+    render = make_render_handler(runtime, node)
     if runtime.load_error:
         # The status reply's "serving" list leaves out handlers marked not_ready.
         render.not_ready = True  # type: ignore[attr-defined]
@@ -113,8 +182,26 @@ def install_learned_handlers(node: MapperNode, runtime: ModelRuntime) -> Rendere
     node.register_query_handler(Render, render)
     node.memory_providers.append(runtime.memory_bytes)
     node.status_providers["model"] = runtime.stats
+    if not runtime.load_error and node.config.global_map.learned_features:
+        install_pre_eviction_features(node, runtime)
     if runtime.load_error or not node.config.global_map.rendered_depth:
         return None
     points = RenderedDepthPoints(node, runtime)
     points.install()
     return points
+
+
+def install_pre_eviction_features(node: MapperNode, runtime: ModelRuntime) -> PreEvictionFeatures:
+    """Write the model's blended features into the global map before keyframes leave the window
+    (:mod:`mapper.node.map_features`); returns the installed worker (its thread runs from
+    ``node.start()``; :meth:`PreEvictionFeatures.process_pending` runs it in place)."""
+
+    def features(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        try:
+            return runtime.point_features(xyz)
+        except RuntimeNotReady:
+            return None
+
+    worker = PreEvictionFeatures(node, features)
+    worker.install()
+    return worker

@@ -1,0 +1,39 @@
+"""``govnesf bench --quick``: the command starts a real node, runs every phase at tiny sizes and
+writes valid JSON (with the expected keys) and Markdown. No timing is asserted."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from clients.cli import SUBCOMMANDS
+from clients.cli.bench import EXPECTED_KEYS, main
+
+pytestmark = pytest.mark.slow
+
+
+def test_bench_quick_writes_json_and_markdown(tmp_path: Path) -> None:
+    assert SUBCOMMANDS["bench"][0] == "clients.cli.bench"
+    out = tmp_path / "bench"
+    # without the learned model the node starts fast; render / govnesf then record not_ready
+    assert main(["--quick", "--out", str(out), "--node-arg=--set", "--node-arg=serve_model=false"]) == 0
+    result = json.loads(out.with_suffix(".json").read_text())
+    assert set(EXPECTED_KEYS) <= set(result)
+    machine = result["machine"]
+    assert machine["python"] and machine["cpu_count"] and machine["torch"]
+    assert result["ingest"]["frames"] == 12 and sum(result["ingest"]["acks"].values()) == 12
+    assert result["ingest"]["integrate_ms_p50"] is not None
+    for method in ("average", "average_depth"):
+        assert result["segment_points"][method]["error"] is None
+        assert result["segment_points"][method]["per_100k_s"] > 0
+    assert "not_ready" in (result["segment_points"]["govnesf"]["error"] or "")
+    assert set(result["render"]) == {"16x12", "20x15"}
+    assert result["status_during_render"]["status"]["n"] >= 3
+    q = result["query_points"]["1000"]
+    assert q["first"]["n"] == 1 and q["cached"]["n"] == 3 and q["floor_ms"] > 0
+    assert [s["frame"] for s in result["rss"]["samples"]] == [5, 10]
+    assert all(s["rss_bytes"] for s in result["rss"]["samples"])
+    md = out.with_suffix(".md").read_text()
+    assert md.startswith("# govnesf bench (quick)") and "## query_points" in md

@@ -1,0 +1,288 @@
+"""Answers from the whole map: points and pixels the window does not see are answered from the
+global map's fused features (every segment method and render labels), each answer names its source,
+and the learned features reach the map before a keyframe leaves the window.
+
+A node in-process (no sockets) with a window of ONE keyframe and a fake 4-d embedding space whose
+text encoder maps "c0".."c3" to one-hot vectors. Keyframe A looks along +z at the wall z = 2 and
+sees class c0 everywhere; keyframe B looks along +x at the wall x = 2 and sees c1. After B, A has
+left the window, but its wall is in the global map."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from mapper.node.config import GlobalMapConfig, config_from_dict
+from mapper.node.global_map import GlobalMapSnapshot, GlobalSemanticMap
+from mapper.node.map_features import PreEvictionFeatures
+from mapper.node.plugins.learned import make_render_handler, make_segment_handler
+from mapper.node.queries import SOURCE_MAP, SOURCE_NONE, SOURCE_WINDOW, fill_from_map, render_from_map
+from mapper.node.service import MapperNode
+from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
+from mapper.runtime.model_runtime import RenderFrame
+from protocol.messages import (
+    ANSWER_SOURCES,
+    Error,
+    Frame,
+    Render,
+    RenderResult,
+    Segmentation,
+    SegmentPoints,
+    decode,
+    encode,
+)
+
+SPACE = "test-onehot-4"
+D = 4
+W, H = 32, 24
+K = np.array([30.0, 30.0, 16.0, 12.0])
+LOOK_X = np.array([[0, 0, 1, 0], [0, 1, 0, 0], [-1, 0, 0, 0], [0, 0, 0, 1]], float)  # camera +z = world +x
+ON_A = [0.0, 0.0, 2.0]  # on A's wall (z = 2), which B does not see
+ON_B = [2.0, 0.0, 0.0]  # on B's wall (x = 2), in the window
+FAR = [0.0, 9.0, 9.0]  # nowhere
+
+
+class OneHotEncoder:
+    space = SPACE
+    dim = D
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        out = np.zeros((len(texts), D), np.float32)
+        for i, t in enumerate(texts):
+            last = t.strip()[-1:]
+            out[i, int(last) % D if last.isdigit() else 0] = 1.0
+        return out
+
+
+@pytest.fixture(autouse=True)
+def onehot_space() -> Iterator[None]:
+    register_text_encoder(SPACE, OneHotEncoder)
+    yield
+    unregister_text_encoder(SPACE)
+
+
+def _frame(seq: int, pose: np.ndarray, cls: int) -> Frame:
+    ov = np.zeros((6, 8, D), np.float16)
+    ov[..., cls] = 1.0
+    return Frame(seq=seq, stamp_ns=seq, width=W, height=H, K=K, world_from_cam=pose,
+                 rgb=np.zeros((H, W, 3), np.uint8), depth_m=np.full((H, W), 2.0, np.float32), ov=ov,
+                 ov_space=SPACE)  # fmt: skip
+
+
+def _node(tmp_path: Path, **queries: Any) -> MapperNode:
+    config = config_from_dict(
+        {"map_dir": str(tmp_path), "events_endpoint": "", "serve_model": False,
+         "window": {"max_keyframes": 1}, "global_map": {"pixel_stride": 1}, "queries": queries}
+    )  # fmt: skip
+    return MapperNode(config)
+
+
+def _stream(node: MapperNode, frames: Sequence[Frame]) -> None:
+    for f in frames:
+        reply = decode(node.handle_ingest(encode(f)), direction="reply")
+        assert getattr(reply, "status", None) == "keyframe", reply
+
+
+def _segment(node: MapperNode, method: Any, points: list[list[float]]) -> Segmentation:
+    msg = SegmentPoints(xyz=np.array(points, np.float32), texts=["c0", "c1", "c2", "c3"], method=method, id=7)
+    reply = decode(node.handle_query(encode(msg)), direction="reply")
+    assert isinstance(reply, Segmentation), reply
+    return reply
+
+
+@pytest.mark.parametrize("method", ["average", "average_depth"])
+def test_averaging_answers_from_window_and_map_and_names_the_source(tmp_path: Path, method: Any) -> None:
+    node = _node(tmp_path)
+    _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
+    assert len(node.state.window) == 1  # A left the window
+    reply = _segment(node, method, [ON_A, ON_B, FAR])
+    assert reply.label.tolist() == [0, 1, -1]
+    assert reply.source is not None and reply.source.tolist() == [SOURCE_MAP, SOURCE_WINDOW, SOURCE_NONE]
+    assert [ANSWER_SOURCES[s] for s in reply.source] == ["map", "window", "none"]
+    assert reply.score[0] > 0.99 and reply.score[2] == 0.0
+    assert reply.timing_ms["from_map"] == 1.0
+    # the source survives the wire (an optional field) and old-style replies still decode
+    old_style = decode(encode(Segmentation(label=reply.label, score=reply.score)), direction="reply")
+    assert isinstance(old_style, Segmentation) and old_style.source is None
+
+
+def test_map_radius_follows_the_voxel_size_and_zero_means_window_only(tmp_path: Path) -> None:
+    node = _node(tmp_path, map_radius_voxels=0.0)
+    _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
+    assert _segment(node, "average", [ON_A, ON_B]).label.tolist() == [-1, 1]
+    node = _node(tmp_path, map_radius_voxels=2.0)  # 10 cm at 5 cm voxels
+    _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
+    near, off = [0.0, 0.0, 2.07], [0.0, 0.0, 2.2]  # 7 cm and 20 cm behind A's wall
+    assert _segment(node, "average", [near, off]).label.tolist() == [0, -1]
+
+
+def test_map_alone_answers_after_the_window_lost_its_features(tmp_path: Path) -> None:
+    node = _node(tmp_path)
+    no_ov = _frame(1, LOOK_X, 1)
+    no_ov.ov = None
+    no_ov.ov_space = None
+    _stream(node, [_frame(0, np.eye(4), 0), no_ov])  # the window holds a keyframe without ov
+    reply = _segment(node, "average", [ON_A, ON_B])
+    assert reply.source is not None and reply.source.tolist() == [SOURCE_MAP, SOURCE_NONE]
+    assert reply.label.tolist() == [0, -1]
+
+
+def test_empty_map_and_window_still_answer_not_ready(tmp_path: Path) -> None:
+    node = _node(tmp_path)
+    msg = SegmentPoints(xyz=np.zeros((1, 3), np.float32), texts=["c0"], method="average")
+    reply = decode(node.handle_query(encode(msg)), direction="reply")
+    assert isinstance(reply, Error) and reply.code == "not_ready"
+
+
+class StubRuntime:
+    """Stands in for ModelRuntime: the window "sees" only points with x > 1 (B's wall) and renders
+    a surface 2 m ahead whose pixels it leaves unlabelled (or no surface with ``depth=0``)."""
+
+    def __init__(self, depth: float = 2.0) -> None:
+        self.depth = depth
+        self.outputs: list[str] = []
+
+    def segment(self, xyz: np.ndarray, texts: Sequence[str], *, use_depth: bool) -> tuple[Any, Any, dict]:
+        seen = np.asarray(xyz)[:, 0] > 1.0
+        return np.where(seen, 1, -1).astype(np.int32), np.where(seen, 0.9, 0.0).astype(np.float32), {"n": 1.0}
+
+    def render(
+        self, K: Any, pose: Any, width: int, height: int, outputs: Sequence[str], texts: Any
+    ) -> RenderFrame:
+        self.outputs = list(outputs)
+        label = np.full((height, width), -1, np.int32)
+        label[:, : width // 4] = 2  # the window labels the left quarter
+        score = np.zeros((height, width, len(texts)), np.float32)
+        score[:, : width // 4, 2] = 0.8
+        depth = np.full((height, width), self.depth, np.float32)
+        return RenderFrame(depth_m=depth if "depth" in outputs else None, label=label,
+                           score=score if "score" in outputs else None)  # fmt: skip
+
+
+def test_govnesf_segment_falls_back_to_the_map(tmp_path: Path) -> None:
+    node = _node(tmp_path)
+    _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
+    handler = make_segment_handler(StubRuntime(), None, node)  # type: ignore[arg-type]
+    msg = SegmentPoints(xyz=np.array([ON_A, ON_B, FAR], np.float32), texts=["c0", "c1", "c2", "c3"])
+    reply = handler(msg)
+    assert isinstance(reply, Segmentation)
+    assert reply.source is not None and reply.source.tolist() == [2, 1, 0]
+    assert reply.label.tolist() == [0, 1, -1]
+
+
+@pytest.mark.parametrize("depth", [2.0, 0.0], ids=["surface", "splat"])
+def test_render_labels_the_pixels_the_window_leaves_from_the_map(tmp_path: Path, depth: float) -> None:
+    node = _node(tmp_path)
+    _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
+    runtime = StubRuntime(depth)
+    handler = make_render_handler(runtime, node)  # type: ignore[arg-type]
+    msg = Render(width=W, height=H, K=K, world_from_cam=np.eye(4), outputs=["label", "score"],
+                 texts=["c0", "c1", "c2", "c3"], id=3)  # fmt: skip
+    reply = handler(msg)
+    assert isinstance(reply, RenderResult) and reply.depth_m is None  # depth was not asked for
+    assert "depth" in runtime.outputs  # ... but used for the surface points
+    assert reply.label is not None and reply.source is not None and reply.score is not None
+    left = reply.label[:, : W // 4]
+    assert (left == 2).all() and (reply.source[:, : W // 4] == SOURCE_WINDOW).all()
+    right = reply.source[:, W // 4:]
+    assert (right == SOURCE_MAP).mean() > 0.95  # A's wall fills the view, from the map
+    assert (reply.label[:, W // 4:][right == SOURCE_MAP] == 0).all()
+    assert np.allclose(reply.score[:, W // 4:, 0][right == SOURCE_MAP], 1.0, atol=2e-3)
+    assert decode(encode(reply), direction="reply").source.shape == (H, W)  # type: ignore[attr-defined]
+
+
+def test_render_from_map_leaves_pixels_without_map_points_alone() -> None:
+    n = 1
+    snap = GlobalMapSnapshot(
+        version=1, map_version=1, voxel_size_m=0.05, xyz=np.array([[0.0, 0.0, 2.0]], np.float32),
+        feat=np.eye(D, dtype=np.float16)[:1], weight=np.ones(n, np.float32),
+        feat_weight=np.ones(n, np.float32), hits=np.ones(n, np.int32), last_seen_ns=np.zeros(n, np.int64),
+    )  # fmt: skip
+    need = np.ones((H, W), bool)
+    emb = np.eye(D, dtype=np.float32)
+    label, cos, answered = render_from_map(snap, K, np.eye(4), W, H, None, need, emb, 0.075)
+    # one point 2 m ahead covers about its voxel: 0.5 * 30 * 0.05 / 2 < 1 pixel, so just its pixel
+    assert answered.sum() == 1 and answered[12, 16] and label[12, 16] == 0 and cos[12, 16, 0] > 0.99
+    assert (label[~answered] == -1).all() and (cos[~answered] == 0).all()
+    # a point behind the camera is not splatted
+    look_back = np.diag([-1.0, 1.0, -1.0, 1.0])  # camera +z = world -z
+    behind = render_from_map(snap, K, look_back, W, H, None, need, emb, 0.075)[2]
+    assert not behind.any()
+
+
+def test_fill_from_map_keeps_window_answers_and_ignores_other_dimensions() -> None:
+    gmap = GlobalSemanticMap(GlobalMapConfig(voxel_size_m=0.1))
+    snap = gmap.snapshot()  # empty: nothing from the map
+    label, score, source = fill_from_map(snap, np.zeros((2, 3), np.float32), np.eye(2, dtype=np.float32),
+                                         np.array([1, 0], np.int32), np.array([0.5, 0.0], np.float32),
+                                         np.array([True, False]), 0.15)  # fmt: skip
+    assert label.tolist() == [1, -1] and source.tolist() == [SOURCE_WINDOW, SOURCE_NONE] and score[1] == 0.0
+
+
+def test_nearest_with_feature_skips_points_without_features(tmp_path: Path) -> None:
+    node = _node(tmp_path)
+    plain = _frame(0, np.eye(4), 0)
+    plain.ov = None
+    plain.ov_space = None
+    _stream(node, [plain, _frame(1, LOOK_X, 1)])  # A's wall: geometry only
+    snap = node.state.global_map.snapshot()
+    rows = snap.nearest_with_feature(np.array([ON_A, ON_B], np.float32), 0.075)
+    assert rows[0] == -1 and rows[1] >= 0 and snap.has_feature[rows[1]]
+
+
+def test_learned_features_reach_the_map_before_the_keyframe_leaves(tmp_path: Path) -> None:
+    node = _node(tmp_path)
+    calls: list[int] = []
+
+    def learned(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        calls.append(len(xyz))
+        feats = np.zeros((len(xyz), D), np.float32)
+        feats[:, 3] = 2.0  # the "model" says c3 (any norm), against the fused c0:
+        feats[:, 0] = -1.0  # mixed with the fused direction it still points to c3
+        valid = np.ones(len(xyz), bool)
+        valid[0] = False  # one voxel the model cannot answer keeps its fused feature
+        return feats, valid
+
+    worker = PreEvictionFeatures(node, learned)
+    worker.install()
+    _stream(node, [_frame(0, np.eye(4), 0)])  # the window (1) is full: A leaves next, queued now
+    assert worker.stats()["pending"] == 1 and not worker.idle()
+    weight_before = node.state.global_map.snapshot().feat_weight.copy()
+    assert worker.process_pending() == 1 and worker.idle()
+    stats = worker.stats()
+    assert stats["done"] == 1 and stats["late"] == 0 and stats["voxels_set"] == calls[0] - 1
+    snap = node.state.global_map.snapshot()
+    assert snap.feat is not None
+    np.testing.assert_array_equal(snap.feat_weight, weight_before)  # weights kept: still a running mean
+    learned = np.argmax(snap.feat.astype(np.float32), axis=1) == 3
+    assert learned.sum() == calls[0] - 1
+    assert (snap.feat[learned, 0] > 0.4).all()  # mixed with the fused c0, not replaced
+    _stream(node, [_frame(1, LOOK_X, 1)])  # A leaves; B is queued (the window is full again)
+    assert _segment(node, "average", [ON_A]).label.tolist() == [3]  # the map carries the model's answer
+    assert node.state.global_map.stats()["global_points_learned"] == calls[0] - 1
+    # B is processed after it left the window: still written, counted as late
+    with node.state.lock:
+        node.state.window.clear()
+    assert worker.process_pending() == 1 and worker.stats()["late"] == 1
+
+
+def test_set_features_refuses_a_wrong_shape_and_changes_nothing() -> None:
+    gmap = GlobalSemanticMap(GlobalMapConfig())
+    from mapper.node.window import Keyframe
+
+    f = _frame(0, np.eye(4), 0)
+    kf = Keyframe(seq=0, stamp_ns=0, camera="cam0", K=f.K, world_from_cam=f.world_from_cam, rgb=f.rgb,
+                  depth_m=f.depth_m, ov=f.ov, ov_space=SPACE)  # fmt: skip
+    gmap.integrate(kf)
+    keys, xyz = gmap.seen_voxels(kf)
+    assert keys.shape[0] == len(gmap) and xyz.shape == (len(gmap), 3)
+    version = gmap.version
+    with pytest.raises(ValueError, match="dimension 5"):
+        gmap.set_features(keys, np.ones((keys.shape[0], 5), np.float32))
+    with pytest.raises(ValueError, match=r"must be \(U="):
+        gmap.set_features(keys, np.ones((keys.shape[0] + 1, D), np.float32))
+    assert gmap.version == version and gmap.points_learned == 0
