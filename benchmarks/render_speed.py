@@ -27,6 +27,7 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -52,6 +53,68 @@ def _interpolated_pose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return pose
 
 
+LEVERS = ("occupancy_threshold", "min_weight", "stop_transmittance", "termination_block", "appearance_groups")
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise SystemExit(f"--sizes: expected WIDTHxHEIGHT, got {text!r}") from None
+    return w, h
+
+
+def parse_variant(text: str, base: ModelRuntimeConfig) -> dict[str, object]:
+    """``key=value,key=value`` -> runtime config overrides (typed like the field's default)."""
+    out: dict[str, object] = {}
+    for item in filter(None, text.split(",")):
+        key, _, value = item.partition("=")
+        if not hasattr(base, key) or not value:
+            raise SystemExit(f"--variants: {item!r} is not KEY=VALUE with KEY a [model] setting")
+        kind = type(getattr(base, key))
+        out[key] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
+    return out
+
+
+def load_reference(path: Path, K: np.ndarray, pose: np.ndarray) -> RenderFrame | None:
+    """A dense render saved by an earlier run for the same camera (None: missing or another view)."""
+    if not path.exists():
+        return None
+    z = np.load(path)
+    if not (np.allclose(z["K"], K) and np.allclose(z["pose"], pose)):
+        return None
+    return RenderFrame(
+        rgb=z["rgb"], depth_m=z["depth"], label=z["label"], score=z["score"], opacity=z["opacity"],
+        timing_ms={"total": 1e3 * float(z["seconds"])}, stats={"from": str(path)},
+    )  # fmt: skip
+
+
+def psnr(rgb: np.ndarray, truth: np.ndarray) -> float:
+    """PSNR (dB) of two uint8 images."""
+    mse = float(np.mean((rgb.astype(np.float64) / 255.0 - truth.astype(np.float64) / 255.0) ** 2))
+    return 10.0 * float(np.log10(1.0 / max(mse, 1e-12)))
+
+
+def compare(dense: RenderFrame, frame: RenderFrame) -> dict[str, object]:
+    """How far a fast render is from the dense one."""
+    assert dense.rgb is not None and frame.rgb is not None
+    assert dense.depth_m is not None and frame.depth_m is not None
+    assert dense.label is not None and frame.label is not None
+    assert dense.score is not None and frame.score is not None
+    drawn = (dense.depth_m > 0) & (frame.depth_m > 0)
+    rgb_diff = np.abs(dense.rgb.astype(int) - frame.rgb.astype(int))
+    depth_diff = np.abs(dense.depth_m - frame.depth_m)[drawn]
+    return {
+        "rgb_max_abs_of_255": int(rgb_diff.max()),
+        "rgb_mean_abs_of_255": round(float(rgb_diff.mean()), 3),
+        "psnr_vs_dense_db": round(psnr(frame.rgb, dense.rgb), 2),
+        "depth_mean_abs_m": round(float(depth_diff.mean()), 4) if drawn.any() else None,
+        "depth_median_abs_m": round(float(np.median(depth_diff)), 4) if drawn.any() else None,
+        "score_max_abs": round(float(np.abs(dense.score - frame.score).max()), 4),
+        "label_agreement": round(float((dense.label == frame.label).mean()), 4),
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", default="checkpoints/cpu-small.safetensors")
@@ -59,8 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=3, help="scene seed")
     p.add_argument("--frames", type=int, default=60, help="stream frames (keyframes are selected)")
     p.add_argument("--window", type=int, default=16, help="max keyframes")
-    p.add_argument("--width", type=int, default=160)
-    p.add_argument("--height", type=int, default=120)
+    p.add_argument("--sizes", nargs="+", default=["160x120"], metavar="WxH", help="render sizes")
     p.add_argument("--points", type=int, default=100_000)
     p.add_argument("--skip-dense", action="store_true", help="do not time the dense render")
     p.add_argument(
@@ -68,6 +130,21 @@ def main(argv: list[str] | None = None) -> int:
         help="occupancy thresholds (1/m) to time skipping with (default: the runtime's)",
     )  # fmt: skip
     p.add_argument("--min-weight", type=float, default=None, help="appearance pruning weight (runtime's)")
+    p.add_argument(
+        "--variants", nargs="+", default=None, metavar="KEY=VALUE[,KEY=VALUE]",
+        help="[model] overrides for the fast path, each timed and compared with dense "
+        "(e.g. appearance_groups=2,stop_transmittance=0.01); replaces --thresholds",
+    )  # fmt: skip
+    p.add_argument("--repeat", type=int, default=1, help="time each render this often, keep the fastest")
+    p.add_argument(
+        "--reference-dir", default=None, metavar="DIR",
+        help="keep the dense renders in DIR/dense_WxH.npz and reuse them in later runs of the same "
+        "view (a dense 320x240 render takes minutes on 2 cores)",
+    )  # fmt: skip
+    p.add_argument(
+        "--segment-reference", action="store_true",
+        help="also run segment_points with batched_view_groups flipped and report the label agreement",
+    )  # fmt: skip
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     p.add_argument("--json", metavar="FILE", help="also write the numbers as JSON")
     args = p.parse_args(argv)
@@ -131,73 +208,102 @@ def main(argv: list[str] | None = None) -> int:
     results["occupied_fraction"] = float(occupancy.float().mean())
     print(f"sync {results['sync_ms']:.0f} ms, U-Net + occupancy {results['unet_and_occupancy_ms']:.0f} ms, "
           f"volume {bounds.dims} x {bounds.voxel_size_m:.3f} m, "
-          f"occupied {100 * results['occupied_fraction']:.1f}%", flush=True)  # fmt: skip
+          f"occupied {100 * float(results['occupied_fraction']):.1f}%", flush=True)  # type: ignore[arg-type]
 
     k = len(stream.poses) // 2
     pose = _interpolated_pose(stream.poses[k], stream.poses[k + 1])
-    scale = args.width / 160
-    K = np.array([stream.K[0] * scale, stream.K[1] * args.height / 120, args.width / 2, args.height / 2])
     outputs = ["rgb", "depth", "label", "score"]
+    base = runtime.config
+    variants = [parse_variant(v, base) for v in args.variants] if args.variants else [
+        {"occupancy_threshold": t, **({} if args.min_weight is None else {"min_weight": args.min_weight})}
+        for t in (args.thresholds or [base.occupancy_threshold])
+    ]  # fmt: skip
+    renders: list[dict[str, object]] = []
+    for size in args.sizes:
+        width, height = parse_size(size)
+        K = np.array([stream.K[0] * width / 160, stream.K[1] * height / 120, width / 2, height / 2])
+        truth = stream.renderer.render(K, pose, width, height).rgb  # the simulator's image of the view
 
-    def render(skip: bool) -> tuple[RenderFrame, float]:
-        t = time.perf_counter()
-        frame = runtime.render(K, pose, args.width, args.height, outputs, TEXTS, empty_space_skipping=skip)
-        return frame, 1e3 * (time.perf_counter() - t)
+        def render(
+            skip: bool, K: np.ndarray = K, width: int = width, height: int = height
+        ) -> tuple[RenderFrame, float]:
+            best = float("inf")
+            for _ in range(args.repeat):
+                t, c = time.perf_counter(), time.process_time()
+                frame = runtime.render(K, pose, width, height, outputs, TEXTS, empty_space_skipping=skip)
+                wall = 1e3 * (time.perf_counter() - t)
+                if wall < best:
+                    best = wall
+                    # CPU time of this process (all its threads): the load-independent measure
+                    frame.stats["cpu_ms"] = round(1e3 * (time.process_time() - c), 1)
+            return frame, best
 
-    dense = None
-    if not args.skip_dense:
-        dense, dense_ms = render(False)
-        results["render_dense_ms"], results["render_dense_stats"] = dense_ms, dense.stats
-        print(f"render {args.width}x{args.height} dense: {dense_ms / 1e3:.2f} s, {dense.stats}", flush=True)
-    runs = []
-    for threshold in args.thresholds or [runtime.config.occupancy_threshold]:
-        runtime.config = replace(
-            runtime.config,
-            occupancy_threshold=threshold,
-            min_weight=runtime.config.min_weight if args.min_weight is None else args.min_weight,
-        )
-        occupied = float(runtime.occupancy()[1].float().mean())
-        frame, ms = render(True)
-        run: dict[str, object] = {
-            "occupancy_threshold": threshold, "min_weight": runtime.config.min_weight,
-            "occupied_fraction": occupied, "render_ms": ms, "stats": frame.stats,
-        }  # fmt: skip
-        if dense is not None:
-            assert dense.rgb is not None and frame.rgb is not None
-            assert dense.depth_m is not None and frame.depth_m is not None
-            assert dense.label is not None and frame.label is not None
-            assert dense.score is not None and frame.score is not None
-            drawn = (dense.depth_m > 0) & (frame.depth_m > 0)
-            rgb_diff = np.abs(dense.rgb.astype(int) - frame.rgb.astype(int))
-            run["vs_dense"] = {
-                "rgb_max_abs_of_255": int(rgb_diff.max()),
-                "rgb_mean_abs_of_255": round(float(rgb_diff.mean()), 3),
-                "depth_mean_abs_m": round(float(np.abs(dense.depth_m - frame.depth_m)[drawn].mean()), 4)
-                if drawn.any()
-                else None,
-                "depth_median_abs_m": round(float(np.median(np.abs(dense.depth_m - frame.depth_m)[drawn])), 4)
-                if drawn.any()
-                else None,
-                "score_max_abs": round(float(np.abs(dense.score - frame.score).max()), 4),
-                "label_agreement": round(float((dense.label == frame.label).mean()), 4),
-            }
-            run["speedup"] = round(float(results["render_dense_ms"]) / ms, 2)  # type: ignore[arg-type]
-        runs.append(run)
-        print(f"render {args.width}x{args.height} skipping: {run}", flush=True)
-    results["render_skipping"] = runs
+        entry: dict[str, object] = {"width": width, "height": height}
+        dense = None
+        if not args.skip_dense:
+            runtime.config = base
+            cached = Path(args.reference_dir) / f"dense_{width}x{height}.npz" if args.reference_dir else None
+            dense = load_reference(cached, K, pose) if cached is not None else None
+            if dense is None:
+                dense, dense_ms = render(False)
+                if cached is not None:
+                    cached.parent.mkdir(parents=True, exist_ok=True)
+                    arrays = {"rgb": dense.rgb, "depth": dense.depth_m, "label": dense.label,
+                              "score": dense.score, "opacity": dense.opacity}  # fmt: skip
+                    kept: dict[str, Any] = {k: v for k, v in arrays.items() if v is not None}
+                    np.savez(cached, seconds=dense_ms / 1e3, K=K, pose=pose, **kept)
+            else:
+                dense_ms = float(dense.timing_ms["total"])
+                print(f"dense {width}x{height}: the reference render in {cached} (timed when it was made)")
+            assert dense.rgb is not None
+            entry.update(
+                dense_ms=dense_ms, dense_stats=dense.stats, dense_psnr_db=round(psnr(dense.rgb, truth), 3)
+            )
+            print(f"render {width}x{height} dense: {dense_ms / 1e3:.2f} s, PSNR {entry['dense_psnr_db']} dB, "
+                  f"{dense.stats}", flush=True)  # fmt: skip
+        runs = []
+        for variant in variants:
+            runtime.config = replace(base, **variant)
+            occupied = float(runtime.occupancy()[1].float().mean())
+            fast, ms = render(True)
+            assert fast.rgb is not None
+            run: dict[str, object] = {
+                "config": {**variant, **{key: getattr(runtime.config, key) for key in LEVERS}},
+                "occupied_fraction": round(occupied, 4), "render_ms": ms, "stats": fast.stats,
+                "psnr_db": round(psnr(fast.rgb, truth), 3),
+            }  # fmt: skip
+            if dense is not None:
+                run["vs_dense"] = compare(dense, fast)
+                run["psnr_delta_db"] = round(float(run["psnr_db"]) - float(entry["dense_psnr_db"]), 3)  # type: ignore[arg-type]
+                run["speedup"] = round(float(entry["dense_ms"]) / ms, 2)  # type: ignore[arg-type]
+            runs.append(run)
+            print(f"render {width}x{height} fast: {run}", flush=True)
+        runtime.config = base
+        entry["fast"] = runs
+        renders.append(entry)
+    results["renders"] = renders
 
     pts = np.concatenate(surface)
     rng = np.random.default_rng(0)
     pts = pts[rng.choice(len(pts), size=min(args.points, len(pts)), replace=False)].astype(np.float32)
     for use_depth in (False, True):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         label, _, timing = runtime.segment(pts, TEXTS, use_depth=use_depth)
         elapsed = time.perf_counter() - t
+        timing["cpu"] = 1e3 * (time.process_time() - c)
         key = "segment_dgm_ms" if use_depth else "segment_ms"
         results[key] = 1e3 * elapsed
+        results[key + "_per_100k_s"] = round(elapsed * 1e5 / len(pts), 3)
         results[key + "_stages"] = {k: round(v, 1) for k, v in timing.items()}
         print(f"segment {len(pts)} points (use_depth={use_depth}): {elapsed:.2f} s, labelled "
               f"{100 * (label >= 0).mean():.1f}%, stages {results[key + '_stages']}", flush=True)  # fmt: skip
+        if not use_depth and args.segment_reference:
+            runtime.config = replace(base, batched_view_groups=not base.batched_view_groups)
+            ref = runtime.segment(pts, TEXTS)
+            runtime.config = base
+            results["segment_label_agreement"] = round(float((ref[0] == label).mean()), 5)
+            agreement = 100 * float(results["segment_label_agreement"])  # type: ignore[arg-type]
+            print(f"segment labels equal to the reference path: {agreement:.2f}%")
     results["points"] = len(pts)
     results["runtime"] = runtime.stats()
     if args.json:

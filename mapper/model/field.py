@@ -241,6 +241,79 @@ class GovNeSF(nn.Module):
             source_dirs=dirs.transpose(0, 1),
         )
 
+    def sample_views_indexed(
+        self,
+        views: SourceViews,
+        view_idx: Tensor,
+        slot_mask: Tensor,
+        points: Tensor,
+        depth_guided_masking: bool,
+    ) -> PointViewSamples:
+        """Like ``sample_views``, but every point has its own N source views out of ``views``.
+
+        Args:
+            views: M source views (nothing is copied out of their maps).
+            view_idx: (P, N) long, the views of each point (indices into ``views``).
+            slot_mask: (P, N) bool, False for padding slots (masked, as a view that does not see
+                the point; the network then treats the point as if the slot were absent).
+            points: (P, 3).
+
+        Each map is sampled once per view for all the (point, slot) pairs that use it, so a batch
+        of points with different view sets costs one network pass instead of one per view set;
+        the values equal ``sample_views`` on each point's own views.
+        """
+        P, N = view_idx.shape
+        wh = views.image_wh
+        # slot-major pairs (n * P + p): the samples come out P-fastest, the layout of
+        # ``sample_views`` (grid_sample's (N, C, P)) that ``blend``'s fast path wants
+        flat_v = view_idx.T.reshape(-1)
+        pts = points.to(views.K.dtype)[None].expand(N, P, 3).reshape(N * P, 1, 3)
+        cam_from_world = invert_pose(views.world_from_cam)  # (M, 4, 4)
+        uv, z = project_points(pts, views.K[flat_v], cam_from_world[flat_v])  # (N*P, 1, 2), (N*P, 1)
+        uv, z = uv[:, 0], z[:, 0]
+        mask = in_view(uv, z, wh[0], wh[1]) & slot_mask.T.reshape(-1)
+        maps = (views.rgb, views.features, views.ov)
+        bufs = [uv.new_zeros(m.shape[1], N * P) for m in maps]  # (C, N*P) each
+        order = torch.argsort(flat_v, stable=True)
+        counts = torch.bincount(flat_v, minlength=len(views)).tolist()
+        start = 0
+        for m, count in enumerate(counts):
+            if not count:
+                continue
+            sel = order[start : start + count]
+            start += count
+            uv_m = uv[sel]
+            for image, buf in zip(maps, bufs, strict=True):
+                size = uv_m.new_tensor([image.shape[-1], image.shape[-2]])
+                at = scale_uv(uv_m, wh, (image.shape[-1], image.shape[-2]))
+                grid = (2.0 * at / size - 1.0).clamp(-2.0, 2.0)
+                out = F.grid_sample(  # as sample_bilinear, without its transposes: (1, C, 1, L)
+                    image[m : m + 1], grid.to(image.dtype)[None, None], mode="bilinear",
+                    padding_mode="border", align_corners=False,
+                )  # fmt: skip
+                buf.index_copy_(1, sel, out[0, :, 0])
+            if depth_guided_masking and views.depth_m is not None:
+                d_m = views.depth_m[m][None]
+                d_wh = (d_m.shape[-1], d_m.shape[-2])
+                measured = sample_nearest(d_m, scale_uv(uv_m, wh, d_wh))[0][:, 0]
+                has_depth = torch.isfinite(measured) & (measured > 0)
+                agrees = (z[sel] - measured).abs() <= self.cfg.render.depth_mask_ratio * measured
+                mask[sel] = mask[sel] & (agrees | ~has_depth)
+        centres = camera_centers(views.world_from_cam)[flat_v]  # (N*P, 3)
+        dirs = F.normalize(pts[:, 0] - centres, dim=-1, eps=1e-9)
+
+        def per_point(buf: Tensor) -> Tensor:  # (C, N*P) -> (P, N, C), P fastest
+            return buf.reshape(buf.shape[0], N, P).permute(2, 1, 0)
+
+        rgb, feat, ov = (per_point(b) for b in bufs)
+        return PointViewSamples(
+            rgb=rgb,
+            features=feat,
+            ov=ov,
+            mask=mask.reshape(N, P).T,
+            source_dirs=dirs.reshape(N, P, 3).transpose(0, 1),
+        )
+
     def forward(
         self,
         views: SourceViews,
@@ -285,7 +358,17 @@ class GovNeSF(nn.Module):
         Args:
             v: (P, Dv) volume features at the points; view_dirs: (P, 3) unit query directions.
         """
-        samples = self.sample_views(views, points, depth_guided_masking)
+        return self.fuse_samples(self.sample_views(views, points, depth_guided_masking), v, view_dirs)
+
+    def fuse_samples(
+        self, samples: PointViewSamples, v: Tensor, view_dirs: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """FusionNet + blending over sampled views: rgb (P, 3), OV (P, D), valid (P,).
+
+        Args:
+            samples: what P points see in N views (``sample_views`` or ``sample_views_indexed``);
+            v: (P, Dv) volume features; view_dirs: (P, 3) unit query directions.
+        """
         fused = self.fusion(samples.rgb, samples.features, v, samples.source_dirs, samples.mask, view_dirs)
         assert fused.color_weights is not None
         rgb = blend(fused.color_weights, samples.rgb)
@@ -336,6 +419,11 @@ class GovNeSF(nn.Module):
             )
         samples = self.sample_views(views, points, depth_guided_masking)
         v, _ = sample_volume(volume, bounds, points.to(volume.dtype))
+        return self.point_outputs(samples, v)
+
+    def point_outputs(self, samples: PointViewSamples, v: Tensor) -> PointOutputs:
+        """Point mode over sampled views (``sample_views`` or ``sample_views_indexed``) and
+        (P, Dv) volume features: the source-view-agnostic OV feature of each point."""
         fused = self.fusion(samples.rgb, samples.features, v, samples.source_dirs, samples.mask, None)
         if self.distill is not None:
             ov = self.distill(fused.x_att, samples.mask, v) * fused.valid.unsqueeze(-1)

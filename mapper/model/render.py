@@ -17,7 +17,16 @@ differs between them is passed in, never re-implemented:
 * ``sample_mask(points) -> bool``: samples where the density may be non-zero (e.g.
   :func:`occupancy_mask`); the others get density 0 without a network call;
 * ``min_weight``: the appearance runs only for samples whose (detached) weight reaches it; the
-  others contribute 0 colour / OV.
+  others contribute 0 colour / OV;
+* ``stop_transmittance`` (early ray termination): the density runs in steps of
+  ``termination_block`` samples, and a ray whose transmittance has dropped below the threshold
+  after a step is not evaluated any further (its later samples get density 0): opacity, colour and
+  OV change by at most the threshold (times the largest |value|);
+* ``appearance_groups = K`` (coarse-to-fine in weight space): the samples of a ray are cut into at
+  most K runs of consecutive samples with about equal weight mass (:func:`weight_groups`); the
+  appearance runs ONCE per run, at the run's weight-weighted mean position, and the run's value
+  is composited with the run's total weight. Exact for an appearance that is affine in the
+  position along the ray; K >= S evaluates every sample as without it.
 
 The maths per ray (bins, weights, compositing) is ``mapper.model.ops.rendering``.
 
@@ -46,6 +55,7 @@ from mapper.model.ops.rendering import (
     clip_to_box,
     composite,
     expected_depth,
+    optical_depth,
     render_weights,
     sample_along_rays,
 )
@@ -57,6 +67,7 @@ __all__ = [
     "SampleMask",
     "march_rays",
     "occupancy_mask",
+    "weight_groups",
 ]
 
 DensityFn = Callable[[Tensor], tuple[Tensor, Tensor]]
@@ -109,6 +120,70 @@ def occupancy_mask(occupancy: Tensor, bounds: VolumeBounds) -> SampleMask:
     return mask
 
 
+def weight_groups(weights: Tensor, n_groups: int) -> Tensor:
+    """Cut every ray's samples into at most ``n_groups`` runs of about equal weight mass.
+
+    Sample i of a ray goes to group ``floor(K * (C_{i-1} + w_i / 2) / W)`` (clamped to
+    ``[0, K)``), with C the cumulative weight and W the ray's total: the index never decreases
+    along the ray, so each group is a run of consecutive samples, and a group's mass is at most
+    ``W / K`` plus the largest single weight. A ray with no weight is all group 0.
+
+    Args:
+        weights: (R, S) non-negative weights (detached; negative values count as 0).
+        n_groups: K >= 1.
+
+    Returns:
+        (R, S) long group index of each sample.
+    """
+    check_shape(weights, "R S", "weights")
+    if n_groups < 1:
+        raise ValueError(f"n_groups {n_groups} out of range: must be >= 1")
+    w = weights.detach().to(torch.promote_types(weights.dtype, torch.float32)).clamp_min(0.0)
+    total = w.sum(dim=-1, keepdim=True)
+    centre = w.cumsum(dim=-1) - 0.5 * w
+    frac = centre / total.clamp_min(torch.finfo(w.dtype).tiny)
+    return (frac * n_groups).floor().long().clamp_(0, n_groups - 1)
+
+
+def _density_early_stop(
+    flat: Tensor,  # (R * S, 3) sample positions
+    deltas: Tensor,  # (R, S) bin lengths
+    density: DensityFn,
+    evaluate: Tensor | None,  # (R * S,) bool or None (every sample)
+    block: int,
+    stop_transmittance: float,
+) -> tuple[Tensor, Tensor, int]:
+    """sigma (R * S,), features (R * S, Dv) and the number of evaluations, marching ``block``
+    samples at a time and dropping the rays whose transmittance fell below ``stop_transmittance``."""
+    n_rays, S = deltas.shape
+    ids = torch.arange(n_rays * S, device=flat.device).reshape(n_rays, S)
+    active = torch.ones(n_rays, dtype=torch.bool, device=flat.device)
+    selectable = None if evaluate is None else evaluate.reshape(n_rays, S)
+    sigma: Tensor | None = None
+    features: Tensor | None = None
+    evals = 0
+    for s0 in range(0, S, block):
+        s1 = min(S, s0 + block)
+        chosen = active[:, None].expand(n_rays, s1 - s0)
+        if selectable is not None:
+            chosen = chosen & selectable[:, s0:s1]
+        idx = ids[:, s0:s1][chosen]
+        sig, feat = density(flat[idx])
+        if sigma is None or features is None:
+            sigma = sig.new_zeros(n_rays * S)
+            features = feat.new_zeros(n_rays * S, feat.shape[-1])
+        sigma = sigma.index_copy(0, idx, sig)
+        features = features.index_copy(0, idx, feat)
+        evals += int(idx.numel())
+        if s1 < S:
+            tau = optical_depth(sigma.reshape(n_rays, S)[:, :s1].detach(), deltas[:, :s1])
+            active = active & (torch.exp(-tau.sum(dim=-1)) >= stop_transmittance)
+            if not bool(active.any()):
+                break
+    assert sigma is not None and features is not None
+    return sigma, features, evals
+
+
 def march_rays(
     rays: Rays,
     density: DensityFn,
@@ -123,6 +198,9 @@ def march_rays(
     skip_missed: bool = False,
     sample_mask: SampleMask | None = None,
     min_weight: float = 0.0,
+    stop_transmittance: float = 0.0,
+    termination_block: int = 8,
+    appearance_groups: int = 0,
 ) -> MarchOutputs:
     """Volume-render R rays with the given density and appearance.
 
@@ -138,13 +216,25 @@ def march_rays(
         sample_mask: samples outside it get density 0 without a ``density`` call.
         min_weight: > 0: appearance only where the detached weight reaches it (approximate: the
             others render 0 and lose their colour gradient); 0 (default): every evaluated sample.
+        stop_transmittance: in [0, 1): > 0: early ray termination (module docstring); the
+            density runs ``termination_block`` samples at a time. 0 (default): off.
+        appearance_groups: K > 0 and < S: one appearance evaluation per run of about equal
+            weight mass (``weight_groups``), at the run's weighted mean position (its volume
+            features from one more ``density`` call there); 0 (default) or >= S: every sample.
 
-    With neither ``skip_missed``, ``sample_mask`` nor ``min_weight`` every sample goes through
-    ``density`` and ``appearance`` in one call each (the differentiable training path);
-    otherwise the selected samples are gathered, evaluated and scattered back (differentiable too).
+    With neither ``skip_missed``, ``sample_mask``, ``min_weight``, ``stop_transmittance`` nor
+    ``appearance_groups`` every sample goes through ``density`` and ``appearance`` in one call
+    each (the differentiable training path); otherwise the selected samples are gathered,
+    evaluated and scattered back (differentiable too).
     """
     if min_weight < 0:
         raise ValueError(f"min_weight {min_weight} out of range: must be >= 0")
+    if not 0.0 <= stop_transmittance < 1.0:
+        raise ValueError(f"stop_transmittance {stop_transmittance} out of range: must be in [0, 1)")
+    if termination_block < 1:
+        raise ValueError(f"termination_block {termination_block} out of range: must be >= 1")
+    if appearance_groups < 0:
+        raise ValueError(f"appearance_groups {appearance_groups} out of range: must be >= 0")
     if skip_missed and box is None:
         raise ValueError("skip_missed needs a box: it skips the rays that miss the box")
     origins, dirs = rays.origins, rays.directions
@@ -166,7 +256,11 @@ def march_rays(
         occupied = sample_mask(flat)
         evaluate = occupied if evaluate is None else evaluate & occupied
 
-    if evaluate is None:
+    if stop_transmittance > 0 and termination_block < S:
+        sigma, features, density_evals = _density_early_stop(
+            flat, deltas, density, evaluate, termination_block, stop_transmittance
+        )
+    elif evaluate is None:
         sigma, features = density(flat)
         density_evals = P
     else:
@@ -187,19 +281,25 @@ def march_rays(
             heavy = (weights.detach() >= min_weight).reshape(P)
             keep = heavy if keep is None else keep & heavy
         view_dirs = dirs[:, None, :].expand(n_rays, S, 3).reshape(P, 3)
-        if keep is None:
-            rgb_s, ov_s, valid_s = appearance(flat, view_dirs, features)
-            appearance_evals = P
+        if 0 < appearance_groups < S:
+            rgb, ov, valid, appearance_evals, extra = _grouped_appearance(
+                origins, dirs, t, weights, keep, density, appearance, appearance_groups
+            )
+            density_evals += extra
         else:
-            kept = keep.nonzero().squeeze(-1)
-            rgb_k, ov_k, valid_k = appearance(flat[kept], view_dirs[kept], features[kept])
-            rgb_s = rgb_k.new_zeros(P, 3).index_copy(0, kept, rgb_k)
-            ov_s = ov_k.new_zeros(P, ov_k.shape[-1]).index_copy(0, kept, ov_k)
-            valid_s = valid_k.new_zeros(P).index_copy(0, kept, valid_k)
-            appearance_evals = int(kept.numel())
-        rgb = composite(weights, rgb_s.reshape(n_rays, S, 3))
-        ov = composite(weights.detach(), ov_s.reshape(n_rays, S, -1))
-        valid = valid_s.reshape(n_rays, S)
+            if keep is None:
+                rgb_s, ov_s, valid_s = appearance(flat, view_dirs, features)
+                appearance_evals = P
+            else:
+                kept = keep.nonzero().squeeze(-1)
+                rgb_k, ov_k, valid_k = appearance(flat[kept], view_dirs[kept], features[kept])
+                rgb_s = rgb_k.new_zeros(P, 3).index_copy(0, kept, rgb_k)
+                ov_s = ov_k.new_zeros(P, ov_k.shape[-1]).index_copy(0, kept, ov_k)
+                valid_s = valid_k.new_zeros(P).index_copy(0, kept, valid_k)
+                appearance_evals = int(kept.numel())
+            rgb = composite(weights, rgb_s.reshape(n_rays, S, 3))
+            ov = composite(weights.detach(), ov_s.reshape(n_rays, S, -1))
+            valid = valid_s.reshape(n_rays, S)
     return MarchOutputs(
         t=t,
         weights=weights,
@@ -211,3 +311,41 @@ def march_rays(
         density_evals=density_evals,
         appearance_evals=appearance_evals,
     )
+
+
+def _grouped_appearance(
+    origins: Tensor,  # (R, 3)
+    dirs: Tensor,  # (R, 3) unit
+    t: Tensor,  # (R, S) sample distances
+    weights: Tensor,  # (R, S) rendering weights
+    keep: Tensor | None,  # (R * S,) bool: samples whose appearance counts, or None (all)
+    density: DensityFn,
+    appearance: AppearanceFn,
+    n_groups: int,
+) -> tuple[Tensor, Tensor, Tensor, int, int]:
+    """rgb (R, 3), ov (R, D), valid (R, S), appearance evaluations and extra density evaluations
+    of the weight-group appearance (``appearance_groups`` in :func:`march_rays`)."""
+    n_rays, S = t.shape
+    kept = weights if keep is None else weights * keep.reshape(n_rays, S).to(weights.dtype)
+    mass = kept.detach()
+    group = weight_groups(mass, n_groups)  # (R, S)
+    gid = (torch.arange(n_rays, device=t.device)[:, None] * n_groups + group).reshape(-1)
+    zeros = mass.new_zeros(n_rays * n_groups)
+    group_mass = zeros.index_add(0, gid, mass.reshape(-1))
+    group_t = zeros.index_add(0, gid, (mass * t.to(mass.dtype)).reshape(-1))
+    live = (group_mass > 0).nonzero().squeeze(-1)  # (G,) groups that carry weight
+    ray = live // n_groups
+    t_rep = (group_t[live] / group_mass[live]).to(origins.dtype)
+    points = origins[ray] + t_rep[:, None] * dirs[ray]
+    _, feat = density(points)
+    rgb_g, ov_g, valid_g = appearance(points, dirs[ray], feat)
+    G = int(live.numel())
+    rgb_all = rgb_g.new_zeros(n_rays * n_groups, 3).index_copy(0, live, rgb_g)
+    ov_all = ov_g.new_zeros(n_rays * n_groups, ov_g.shape[-1]).index_copy(0, live, ov_g)
+    valid_all = valid_g.new_zeros(n_rays * n_groups).index_copy(0, live, valid_g)
+    # The groups' weights (with the gradient of the samples' weights) composite their values.
+    group_w = weights.new_zeros(n_rays * n_groups).index_add(0, gid, kept.reshape(-1))
+    rgb = composite(group_w.reshape(n_rays, n_groups), rgb_all.reshape(n_rays, n_groups, 3))
+    ov = composite(group_w.detach().reshape(n_rays, n_groups), ov_all.reshape(n_rays, n_groups, -1))
+    valid = (valid_all[gid] & (mass.reshape(-1) > 0)).reshape(n_rays, S)
+    return rgb, ov, valid, G, G

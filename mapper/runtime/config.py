@@ -18,7 +18,8 @@ class ModelRuntimeConfig:
 
     checkpoint: str = "checkpoints/cpu-small.safetensors"
     """Checkpoint to load (``NAME``, ``NAME.json`` or ``NAME.safetensors``). A relative path is
-    looked up in the working directory, then in the repository root. Missing -> the node answers
+    looked up in the working directory, then under ``govnesf.resources.data_root()`` (the repository
+    root in a checkout, the packaged data of an installed wheel). Missing -> the node answers
     ``not_ready`` naming this path for ``segment_points`` (govnesf) and ``render``."""
 
     device: str = "auto"
@@ -77,8 +78,11 @@ class ModelRuntimeConfig:
     (D + F + 6) floats). 1..10^7."""
 
     empty_space_skipping: bool = True
-    """Renders skip samples in empty cells of the occupancy grid and the appearance pass for samples
-    whose weight is below ``min_weight``. Off = dense sampling (every sample evaluated)."""
+    """Renders leave out what the scene does not need: samples in empty cells of the occupancy
+    grid, the appearance pass for samples whose weight is below ``min_weight``, early ray
+    termination (``stop_transmittance``) and one appearance evaluation per weight group
+    (``appearance_groups``); each of those has its own switch below. Off = the dense path (every
+    sample evaluated, every lever off; ``render(empty_space_skipping=False)`` asks for it per call)."""
 
     occupancy_threshold: float = 0.05
     """A voxel of the occupancy grid is empty when the density (1/m) at its 2x2x2 sub-samples and in
@@ -86,6 +90,31 @@ class ModelRuntimeConfig:
 
     min_weight: float = 1.0e-4
     """With skipping, samples whose rendering weight is below this skip the appearance pass. 0..1."""
+
+    stop_transmittance: float = 0.0
+    """Early ray termination (with skipping): a ray whose transmittance fell below this is not
+    evaluated further (opacity, colour and OV change by at most this much). 0 = off. 0..0.5."""
+
+    termination_block: int = 8
+    """Samples evaluated per early-termination step (the density runs in steps of this many
+    samples; the transmittance is checked after each). 1..1024."""
+
+    appearance_groups: int = 4
+    """Coarse-to-fine appearance (with skipping): each ray's samples are cut into at most this many
+    runs of about equal rendering weight, and the appearance network runs once per run, at its
+    weighted mean position (``mapper.model.render.weight_groups``). 0 (or >= the samples per ray) =
+    every sample. 0..1024."""
+
+    refine_margin: float = 0.02
+    """Coarse-to-fine labels (with ``appearance_groups``): pixels whose two best text scores differ by
+    less than this are rendered again with every sample's appearance, so the weight groups do not
+    swap near-tied labels. 0 = off. 0..2."""
+
+    batched_view_groups: bool = False
+    """Renders (with skipping) and ``segment_points`` evaluate every point's view group in ONE network
+    pass (each point sampled in its own source views, ``GovNeSF.sample_views_indexed``) instead of
+    one pass per view group; same values up to float rounding. False = one pass per group (the
+    reference path; the dense render always uses it)."""
 
     min_view_support: int = 1
     """Density is forced to 0 where fewer than this many keyframes see the cost-volume voxel (a
@@ -135,6 +164,10 @@ class ModelRuntimeConfig:
         check("chunk_points", self.chunk_points, 1, 10_000_000)
         check("occupancy_threshold", self.occupancy_threshold, 0.0, 1e6)
         check("min_weight", self.min_weight, 0.0, 1.0)
+        check("stop_transmittance", self.stop_transmittance, 0.0, 0.5)
+        check("termination_block", self.termination_block, 1, 1024)
+        check("appearance_groups", self.appearance_groups, 0, 1024)
+        check("refine_margin", self.refine_margin, 0.0, 2.0)
         check("min_view_support", self.min_view_support, 1, 1000)
         check("min_opacity", self.min_opacity, 0.0, 1.0)
         check("max_render_pixels", self.max_render_pixels, 1, 4096 * 4096)

@@ -43,6 +43,7 @@ __all__ = [
     "composite",
     "expected_depth",
     "intersect_aabb",
+    "optical_depth",
     "render_weights",
     "sample_along_rays",
 ]
@@ -149,6 +150,27 @@ def _compute_dtype(x: Tensor) -> torch.dtype:
     return torch.float32 if x.dtype in (torch.float16, torch.bfloat16) else x.dtype
 
 
+def optical_depth(sigma: Tensor, deltas: Tensor) -> Tensor:
+    """Per-bin optical depth ``tau_i = sigma_i * delta_i`` as ``render_weights`` uses it.
+
+    Args:
+        sigma: (R, S) densities (1/m), negative = 0; deltas: (R, S) bin lengths (m).
+
+    Returns:
+        (R, S) tau in ``[0, TAU_MAX]``, in float32 for half-precision inputs (else their dtype);
+        ``exp(-sum_{j < i} tau_j)`` is the transmittance in front of bin i.
+    """
+    if sigma.shape != deltas.shape:
+        raise ValueError(
+            f"sigma {tuple(sigma.shape)} and deltas {tuple(deltas.shape)} must have the same shape"
+        )
+    work = _compute_dtype(sigma)
+    # Finite caps on both factors keep every product (and its gradient, e.g. 0 * inf) finite,
+    # also for densities that overflowed to inf in half precision.
+    tau = sigma.to(work).clamp(0.0, _FACTOR_MAX) * deltas.to(work).clamp(0.0, _FACTOR_MAX)
+    return tau.clamp_max(TAU_MAX)
+
+
 def render_weights(sigma: Tensor, deltas: Tensor) -> tuple[Tensor, Tensor]:
     """Volume-rendering weights of samples along rays.
 
@@ -165,11 +187,7 @@ def render_weights(sigma: Tensor, deltas: Tensor) -> tuple[Tensor, Tensor]:
             f"sigma {tuple(sigma.shape)} and deltas {tuple(deltas.shape)} must have the same shape"
         )
     out_dtype = sigma.dtype
-    work = _compute_dtype(sigma)
-    # Finite caps on both factors keep every product (and its gradient, e.g. 0 * inf) finite,
-    # also for densities that overflowed to inf in half precision.
-    tau = sigma.to(work).clamp(0.0, _FACTOR_MAX) * deltas.to(work).clamp(0.0, _FACTOR_MAX)
-    tau = tau.clamp_max(TAU_MAX)
+    tau = optical_depth(sigma, deltas)
     alpha = -torch.expm1(-tau)
     # Exclusive cumulative sum by shifting (not inclusive minus own term, which loses the small
     # prefix next to a huge tau to rounding).
