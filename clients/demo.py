@@ -15,7 +15,12 @@ Steps, each printed as it happens:
    without Depth Guided Masking when the node has its model, ``average_depth`` and
    ``average``) at ground-truth surface points with the class names as texts, plus the global
    map's own labels (``query_points`` with every class name), each as mIoU;
-6. save the map, stop the node with SIGINT and check that it exited cleanly (exit code 0).
+6. save the map, stop the node with SIGINT and check that it exited cleanly (exit code 0);
+7. RGB-only (skip with ``--no-rgb-only``): the same robot WITHOUT a depth camera (rgb, pose and
+   SimLSeg features) streams into a fresh node; once its background workers (points triangulated
+   from the posed RGB, ``mapper/node/plugins/triangulation.py``, and rendered depth) are idle,
+   "find the chair" must again lie within 0.5 m of a real chair, and ``segment_points`` mIoU
+   (``govnesf`` and ``average``) is printed (docs/RGB_ONLY.md).
 
 Outputs under ``out/demo/`` (override with ``--out``): ``*.ply`` / ``*.json`` per query,
 ``segmentation.json``, ``scene.ply`` (the ground-truth mesh), the node log and the map directory.
@@ -52,23 +57,25 @@ from clients.harness import (
     mean_iou,
     sim_stream,
 )
+from govnesf._extras import MissingExtraError, require
 from protocol.messages import Error, Frame
 
 DEMO_QUERIES = (("find the chair", "chair"), ("a place to sleep", "sleep"), ("where is the table", "table"))
-N_STEPS = 6
+N_STEPS = 7
 
 
 def _step(n: int, text: str) -> None:
     print(f"\n[demo {n}/{N_STEPS}] {text}", flush=True)
 
 
-def _open_rerun(path: str | None, name: str) -> AbstractContextManager[Any]:
-    """A :class:`clients.rerun_log.RerunLog` on ``path`` (closed on exit), or ``None`` without one."""
-    if path is None:
+def _open_rerun(path: str | None, name: str, connect: str | None = None) -> AbstractContextManager[Any]:
+    """A :class:`clients.rerun_log.RerunLog` on ``path`` and/or the live viewer at ``connect``
+    (closed on exit), or ``None`` without either."""
+    if path is None and connect is None:
         return nullcontext(None)
     from clients.rerun_log import RerunLog
 
-    return RerunLog(path, recording_name=name)
+    return RerunLog(path, connect=connect, recording_name=name)
 
 
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -85,16 +92,21 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--rerun", metavar="FILE.rrd", default=None,
                         help="also log the streamed frames, the map, the queries and the render for the "
                              "Rerun viewer (off by default)")
+    parser.add_argument("--no-rgb-only", dest="rgb_only", action="store_false",
+                        help="skip step 7 (the RGB-only pass without depth)")
     parser.add_argument("--rerun-every", type=int, default=1, metavar="N",
                         help="with --rerun: log every Nth streamed frame (default 1: all)")
+    from clients.rerun_log import CONNECT_HELP  # no rerun import: only the help text
+
+    parser.add_argument("--rerun-connect", metavar="ADDR", default=None, help=CONNECT_HELP)
     args = parser.parse_args(argv)
     if args.rerun_every < 1:
         parser.error(f"--rerun-every {args.rerun_every} must be >= 1")
-    if args.rerun:  # a bad path is an error before any work
-        from clients.rerun_log import RerunLogError, check_rrd_path
+    if args.rerun or args.rerun_connect:  # a bad path / no viewer is an error before any work
+        from clients.rerun_log import RerunLogError, check_rerun_outputs
 
         try:
-            check_rrd_path(args.rerun)
+            check_rerun_outputs(args.rerun, args.rerun_connect)
         except RerunLogError as exc:
             parser.error(str(exc))
     return args
@@ -226,12 +238,15 @@ def _queries(client: MapperClient, out: Path, scene: Any, rlog: Any, failures: l
 
 
 def _segment_points(client: MapperClient, xyz: np.ndarray, gt: np.ndarray, texts: list[str],
-                    extra: dict[str, Any], report: dict[str, Any]) -> None:
-    """Step 5, first part: ``segment_points`` with each method at the seen samples (mIoU)."""
+                    extra: dict[str, Any], report: dict[str, Any], with_depth: bool = True) -> None:
+    """Step 5, first part: ``segment_points`` with each method at the seen samples (mIoU);
+    ``with_depth=False`` (step 7, no depth anywhere): ``govnesf`` and ``average`` only."""
     methods = [("govnesf", False), ("govnesf", True), ("average_depth", False), ("average", False)]
+    if not with_depth:
+        methods = [("govnesf", False), ("average", False)]
     if "govnesf" not in extra.get("segment_methods", []):
         print("  (the node serves no learned model: govnesf rows skipped; see the node log)")
-        methods = methods[2:]
+        methods = [m for m in methods if m[0] != "govnesf"]
     for method_name, use_depth in methods:
         method = method_name + ("+DGM" if use_depth else "")
         seg = client.segment_points(
@@ -301,6 +316,84 @@ def _render_view(client: MapperClient, args: argparse.Namespace, out: Path, room
           f"in {result.timing_ms.get('handler', 0):.0f} ms on the node")
 
 
+def _wait_for_workers(client: MapperClient, timeout_s: float = 900.0) -> dict[str, Any]:
+    """Poll ``status`` until the triangulation and rendered-depth workers have nothing pending."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        extra = client.status().extra
+        workers = ("triangulation", "rendered_depth")
+        pending = sum(int((extra.get(k) or {}).get("pending", 0)) for k in workers)
+        if pending == 0 or time.monotonic() > deadline:
+            return extra
+        time.sleep(1.0)
+
+
+def _rgb_only_pass(args: argparse.Namespace, out: Path, room: _Room, failures: list[str]) -> None:
+    """Step 7: the same room and path without depth into a fresh node; chair check and mIoU."""
+    from tqdm import tqdm
+
+    from clients.sim.scenes import CLASS_NAMES
+
+    _step(7, "RGB-only: the same robot WITHOUT a depth camera (rgb + pose + SimLSeg ov), a fresh node")
+    rgb_out = out / "rgb_only"
+    rgb_out.mkdir(parents=True, exist_ok=True)
+    stream = sim_stream(args.seed, args.frames, args.width, args.height, depth=False)
+    node = NodeProcess(
+        rgb_out / "maps", log_path=rgb_out / "node.log",
+        extra_args=["--set", f"window.max_keyframes={args.window}", "--set", "autosave_name=demo-rgb-only",
+                    "--set", "load_autosave_on_start=false"],
+    )  # fmt: skip
+    with node:
+        node.wait_ready()
+        with node.client(timeout_s=60.0) as client:
+            statuses: dict[str, int] = {}
+            t_stream = time.monotonic()
+            frames = (frame for frame, _ in stream.frames())
+            results = client.send_frames(frames, window=4)
+            for res in tqdm(results, total=args.frames, desc="  stream", unit="frame"):
+                key = f"error:{res.reply.code}" if isinstance(res.reply, Error) else res.reply.status
+                statuses[key] = statuses.get(key, 0) + 1
+            dt = time.monotonic() - t_stream
+            print(f"  {args.frames} frames in {dt:.1f} s ({args.frames / max(dt, 1e-9):.1f} Hz): "
+                  + ", ".join(f"{k} {v}" for k, v in sorted(statuses.items())))
+            if any(k.startswith("error") for k in statuses):
+                failures.append("RGB-only: some frames got errors")
+            t_wait = time.monotonic()
+            extra = _wait_for_workers(client)
+            tri = extra.get("triangulation") or {}
+            print(f"  background workers idle after {time.monotonic() - t_wait:.0f} s more; triangulated "
+                  f"{tri.get('keyframes', 0)} keyframes: {tri.get('points_per_keyframe', 0)} points and "
+                  f"{tri.get('mean_ms', 0)} ms per keyframe (off the ack path), {tri.get('points', 0)} "
+                  f"points kept, {tri.get('global_map_points', 0)} into the global map")
+            bounds = (extra.get("model") or {}).get("bounds")
+            if bounds:
+                print(f"  cost volume bounds: {bounds}")
+            chair = client.query_points(["find the chair"], timeout_s=120.0)
+            report: dict[str, Any] = {"triangulation": tri}
+            if not chair.objects:
+                failures.append('RGB-only: "find the chair" returned no object')
+                print("  RGB-only chair check: FAILED (no object)")
+            else:
+                top = chair.objects[0]
+                dist = chair_distance(top.centroid, room.scene)
+                ok = dist <= 0.5
+                report["chair_m"] = dist
+                where = ", ".join(f"{v:.2f}" for v in top.centroid)
+                print(f"  RGB-only chair check: top object at ({where}) is {dist:.2f} m from the nearest "
+                      f"real chair -> {'CORRECT' if ok else 'WRONG'} (<= 0.5 m)")
+                if not ok:
+                    failures.append(f"RGB-only: top chair object is {dist:.2f} m from a real chair")
+            seen = room.gt_views > 0  # the same poses as step 3: the same seen samples
+            texts = list(CLASS_NAMES)
+            _segment_points(client, room.gt_xyz[seen], room.gt_label[seen].astype(np.int64), texts,
+                            extra, report, with_depth=False)
+            (rgb_out / "segmentation.json").write_text(json.dumps(report, indent=1) + "\n")
+        code = node.signal(signal.SIGINT)
+        print(f"  RGB-only node exited with code {code}")
+        if code != 0:
+            failures.append(f"RGB-only node exit code {code} (see {node.log_path})")
+
+
 def _stop_node(node: NodeProcess, failures: list[str]) -> None:
     """Step 6, after the save: SIGINT, and the node must exit with code 0."""
     code = node.signal(signal.SIGINT)
@@ -323,6 +416,11 @@ def _finish(args: argparse.Namespace, out: Path, started: float, failures: list[
 
 def main(argv: list[str] | None = None) -> int:
     args = _parse_args(argv)
+    try:  # before anything is written: the simulated room needs the [sim] extra
+        require("open3d", "sim", "the demo's simulated robot and room (Open3D ray casting)")
+    except MissingExtraError as exc:
+        print(f"demo: {exc}", file=sys.stderr)
+        return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
@@ -330,7 +428,7 @@ def main(argv: list[str] | None = None) -> int:
     node = _node_process(args, out)
     failures: list[str] = []
     # the node: started here and killed on the way out whatever happens; the .rrd: closed (complete)
-    with node, _open_rerun(args.rerun, f"govnesf demo seed {args.seed}") as rlog:
+    with node, _open_rerun(args.rerun, f"govnesf demo seed {args.seed}", args.rerun_connect) as rlog:
         _wait_for_node(node)
         with node.client(timeout_s=60.0) as client:
             extra = _stream(client, args, room, rlog, failures)
@@ -341,6 +439,8 @@ def main(argv: list[str] | None = None) -> int:
             ok_msg = client.save("demo")
             print(f"  {ok_msg.message}")
         _stop_node(node, failures)
+    if args.rgb_only:
+        _rgb_only_pass(args, out, room, failures)
     return _finish(args, out, started, failures)
 
 

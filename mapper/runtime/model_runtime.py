@@ -15,7 +15,9 @@ Streaming updates (``attach(window)``):
   size), and its features are added to the :class:`~mapper.model.ops.cost_volume.CostVolume` with
   ``add_view`` (only the voxels it sees); an evicted keyframe is removed with ``remove_view``.
 * The volume's bounds follow what the window observed: every keyframe contributes extent points
-  (its depth back-projected when it has depth, else its camera frustum up to ``max_range_m``).
+  (its depth back-projected when it has depth, else its camera frustum up to ``max_range_m``, or up
+  the points :meth:`ModelRuntime.set_view_extent` gave it: RGB-only keyframes get their
+  triangulated points, :mod:`mapper.node.plugins.triangulation`).
   When a new keyframe's points leave the current bounds (more than ``rebuild_outside_fraction`` of
   them outside), the bounds are recomputed from the whole window (recentred / grown, or moved with
   the robot) and the volume is rebuilt from the stored views. This is the ONE non-incremental step;
@@ -56,6 +58,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from govnesf.resources import data_root
 from mapper.errors import RuntimeNotReady
 from mapper.model.field import GovNeSF, SourceViews, default_device
 from mapper.model.ops.cost_volume import (
@@ -90,7 +93,6 @@ __all__ = [
 log = logging.getLogger("mapper.runtime.model_runtime")
 
 
-_REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 @dataclass
@@ -120,10 +122,14 @@ class _ViewEntry:
     K: Tensor  # (4,) for the working size
     world_from_cam: Tensor  # (4, 4)
     extent: Tensor  # (M, 3) world points of what the keyframe observed
+    key: tuple[str, int, int] = ("", -1, -1)  # (camera, seq, stamp_ns): matches set_view_extent
+    observed: Tensor | None = None  # (N, 3) set_view_extent's points behind ``extent`` (no depth)
+    depth_prior: Tensor | None = None  # (H, W) set_view_depth_prior's sparse z-depth, 0 = none
 
     @property
     def nbytes(self) -> int:
-        tensors = [self.rgb, self.features, self.ov, self.depth_m, self.K, self.world_from_cam, self.extent]
+        tensors = [self.rgb, self.features, self.ov, self.depth_m, self.K, self.world_from_cam, self.extent,
+                   self.depth_prior]
         return sum(t.numel() * t.element_size() for t in tensors if t is not None)
 
 
@@ -149,11 +155,33 @@ class _Prepared:
         return int(self.rgb.shape[0])
 
 
+def _keyframe_key(keyframe: Any) -> tuple[str, int, int]:
+    """``(camera, seq, stamp_ns)``: a keyframe's identity that survives a swap in the window."""
+    return (str(getattr(keyframe, "camera", "")), int(keyframe.seq), int(keyframe.stamp_ns))
+
+
+def _group_slots(groups: Sequence[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
+    """View groups ``[(point_indices (p,), view_indices (k,)), ...]`` -> the points of every group
+    (G,), each one's views (G, k_max) and slot mask (G, k_max) (False = padding, a masked view)."""
+    k_max = max(int(views.numel()) for _, views in groups)
+    members, view_idx, slots = [], [], []
+    for idx, views in groups:
+        n, k = int(idx.numel()), int(views.numel())
+        padded = torch.zeros(k_max, dtype=torch.long, device=idx.device)
+        padded[:k] = views
+        mask = torch.zeros(k_max, dtype=torch.bool, device=idx.device)
+        mask[:k] = True
+        members.append(idx)
+        view_idx.append(padded.expand(n, k_max))
+        slots.append(mask.expand(n, k_max))
+    return torch.cat(members), torch.cat(view_idx), torch.cat(slots)
+
+
 def _resolve_checkpoint(path: str) -> Path:
     p = Path(path).expanduser()
     if p.is_absolute() or p.exists() or p.with_suffix(".json").exists():
         return p
-    in_repo = _REPO_ROOT / p
+    in_repo = data_root() / p  # the checkout, or the installed wheel's packaged data
     if in_repo.exists() or in_repo.with_suffix(".json").exists():
         return in_repo
     return p
@@ -203,6 +231,10 @@ class ModelRuntime:
         self.views_added = 0
         self.views_removed = 0
         self._attached: list[Any] = []
+        self._view_extents: dict[tuple[str, int, int], Tensor] = {}  # set_view_extent; _pending_lock
+        self._extents_changed: set[tuple[str, int, int]] = set()
+        self._depth_priors: dict[tuple[str, int, int], Tensor] = {}  # set_view_depth_prior; _pending_lock
+        self._priors_changed: set[tuple[str, int, int]] = set()
 
     # -- set-up -------------------------------------------------------------------------------
 
@@ -302,8 +334,12 @@ class ModelRuntime:
         model = self._require_model()
         with self._pending_lock:
             pending, self._pending = self._pending, {}
+            extents_changed, self._extents_changed = self._extents_changed, set()
+            priors_changed, self._priors_changed = self._priors_changed, set()
         if not pending:
-            return 0
+            if not extents_changed and not priors_changed:
+                return 0
+            return self._apply_view_extents(extents_changed) + self._apply_depth_priors(priors_changed)
         with self._lock:
             removed = [key for key, (op, _) in pending.items() if op == "evict"]
             added = [(key, kf) for key, (op, kf) in pending.items() if op == "add"]
@@ -318,7 +354,9 @@ class ModelRuntime:
             new_entries = self._prepare_entries(model, [kf for _, kf in added])
             for (key, _), entry in zip(added, new_entries, strict=True):
                 self._entries[key] = entry
-            self._update_bounds(new_entries, evicted=bool(removed))
+            changed = self._refresh_extents(extents_changed)
+            self._refresh_depth_priors(priors_changed)
+            self._update_bounds([*new_entries, *changed], evicted=bool(removed) or bool(changed))
             assert self._volume is not None or not self._entries
             if self._volume is not None:
                 for (key, _), entry in zip(added, new_entries, strict=True):
@@ -356,6 +394,9 @@ class ModelRuntime:
         for i in range(0, len(rgbs), batch):
             features.append(model.encode(stacked[i : i + batch]))
         feats = torch.cat(features)
+        observed = [self._view_extent(kf) for kf in keyframes]  # set_view_extent (RGB-only keyframes)
+        with self._pending_lock:
+            priors = [self._depth_priors.get(_keyframe_key(kf)) for kf in keyframes]
         entries = []
         for i, kf in enumerate(keyframes):
             pose = torch.tensor(np.array(kf.world_from_cam, dtype=np.float64), device=self.device).float()
@@ -387,14 +428,21 @@ class ModelRuntime:
                     depth_m=depth,
                     K=Ks[i],
                     world_from_cam=pose,
-                    extent=self._extent_points(Ks[i], pose, depth),
+                    extent=self._extent_points(Ks[i], pose, depth, observed[i]),
+                    key=_keyframe_key(kf),
+                    observed=None if depth is not None else observed[i],
+                    depth_prior=None if depth is not None else self._prior_at_working_size(priors[i]),
                 )
             )
         return entries
 
-    def _extent_points(self, K: Tensor, world_from_cam: Tensor, depth_m: Tensor | None) -> Tensor:
+    def _extent_points(
+        self, K: Tensor, world_from_cam: Tensor, depth_m: Tensor | None, observed: Tensor | None = None
+    ) -> Tensor:
         """(M, 3) world points a keyframe observed: depth back-projected (<= max_range_m, up to
-        ~1024 points) when it has enough depth, else its frustum sampled up to max_range_m."""
+        ~1024 points) when it has enough depth, else the ``observed`` points
+        :meth:`set_view_extent` gave it (e.g. triangulated), else its frustum sampled up to
+        max_range_m."""
         width, height = self.image_wh
         cfg = self.config
         if depth_m is not None:
@@ -407,8 +455,127 @@ class ModelRuntime:
                 u, v = cols.float() + 0.5, rows.float() + 0.5
                 cam = torch.stack([(u - K[2]) / K[0] * z, (v - K[3]) / K[1] * z, z], dim=-1)
                 return cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
+        if observed is not None:
+            return torch.cat([observed, world_from_cam[:3, 3][None]])  # the camera is inside too
         near = min(max(cfg.near_m, 0.05), 0.5 * cfg.max_range_m)
         return frustum_points(K, world_from_cam, width, height, near, cfg.max_range_m)
+
+    # -- view extents (bounds that follow the room without depth) --------------------------------
+
+    def set_view_extent(self, key: tuple[str, int, int], points_m: np.ndarray | None) -> None:
+        """Give the keyframe ``key = (camera, seq, stamp_ns)`` the world points it observed,
+        ``points_m`` (N, 3) metres, N >= 1 (None: back to its frustum up to ``max_range_m``).
+
+        For keyframes without depth only: the volume's bounds then cover these points (and the
+        camera) instead of the frustum up to the fixed ``max_range_m``, so the volume follows what
+        the sparse geometry (:mod:`mapper.node.plugins.triangulation`) found, growing with the
+        room within the voxel budget. Thread-safe; applied by the next :meth:`sync`, which re-checks
+        the bounds and rebuilds the volume when they moved. Extents of keyframes that left the
+        window are dropped at the next change. Raises ``ValueError`` (nothing changed) on a bad array."""
+        pts = None
+        if points_m is not None:
+            arr = np.asarray(points_m, np.float64)
+            if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] < 1 or not np.isfinite(arr).all():
+                raise ValueError(f"points_m must be a finite (N >= 1, 3) array, got shape {arr.shape}")
+            pts = torch.tensor(arr, dtype=torch.float32, device=self.device)
+        with self._pending_lock:
+            if pts is None:
+                self._view_extents.pop(key, None)
+            else:
+                self._view_extents[key] = pts
+            self._extents_changed.add(key)
+
+    def _view_extent(self, keyframe: Any) -> Tensor | None:
+        with self._pending_lock:
+            return self._view_extents.get(_keyframe_key(keyframe))
+
+    def _refresh_extents(self, keys: set[tuple[str, int, int]]) -> list[_ViewEntry]:
+        """Recompute the extent of the depth-less entries whose observed points changed."""
+        if not keys:
+            return []
+        live = {e.key for e in self._entries.values()}
+        with self._pending_lock:
+            observed = {k: self._view_extents.get(k) for k in keys}
+            for k in list(self._view_extents):  # drop extents of keyframes that left the window
+                if k not in live and k not in keys:
+                    del self._view_extents[k]
+        changed = []
+        for entry in self._entries.values():
+            if entry.key in observed and entry.depth_m is None and observed[entry.key] is not entry.observed:
+                entry.observed = observed[entry.key]
+                entry.extent = self._extent_points(entry.K, entry.world_from_cam, None, entry.observed)
+                changed.append(entry)
+        return changed
+
+    def set_view_depth_prior(self, key: tuple[str, int, int], depth_m: np.ndarray | None) -> None:
+        """Give the keyframe ``key = (camera, seq, stamp_ns)`` a sparse z-depth prior ``depth_m``
+        (H, W) metres, 0 = none, any size covering the image (None: remove it).
+
+        For keyframes without depth only, and only for Depth Guided Masking (``segment_points``
+        with ``use_depth``): a view is masked for a point where the prior exists and disagrees
+        with the point's depth, and kept where it has no prior, as DGM treats a depth map's holes.
+        Resized to the working size with nearest lookup. Thread-safe; applied by the next
+        :meth:`sync`. Raises ``ValueError`` (nothing changed) on a bad array."""
+        prior = None
+        if depth_m is not None:
+            arr = np.asarray(depth_m, np.float32)
+            if arr.ndim != 2 or arr.size == 0 or not np.isfinite(arr).all() or (arr < 0).any():
+                raise ValueError(f"depth_m must be a finite, non-negative (H, W) array, got {arr.shape}")
+            prior = torch.tensor(arr, device=self.device)
+        with self._pending_lock:
+            if prior is None:
+                self._depth_priors.pop(key, None)
+            else:
+                self._depth_priors[key] = prior
+            self._priors_changed.add(key)
+
+    def _prior_at_working_size(self, prior: Tensor | None) -> Tensor | None:
+        if prior is None:
+            return None
+        width, height = self.image_wh
+        if tuple(prior.shape) != (height, width):
+            prior = F.interpolate(prior[None, None], size=(height, width), mode="nearest-exact")[0, 0]
+        return prior
+
+    def _refresh_depth_priors(self, keys: set[tuple[str, int, int]]) -> int:
+        """Set the depth prior of the depth-less entries whose prior changed; returns how many."""
+        if not keys:
+            return 0
+        live = {e.key for e in self._entries.values()}
+        with self._pending_lock:
+            priors = {k: self._depth_priors.get(k) for k in keys}
+            for k in list(self._depth_priors):  # drop priors of keyframes that left the window
+                if k not in live and k not in keys:
+                    del self._depth_priors[k]
+        changed = 0
+        for entry in self._entries.values():
+            if entry.key in priors and entry.depth_m is None:
+                entry.depth_prior = self._prior_at_working_size(priors[entry.key])
+                changed += 1
+        return changed
+
+    def _apply_depth_priors(self, keys: set[tuple[str, int, int]]) -> int:
+        """:meth:`sync` without window changes: new depth priors change the cached views."""
+        with self._lock:
+            changed = self._refresh_depth_priors(keys)
+            if changed:
+                self.version += 1
+                self._prepared = None
+            return changed
+
+    @torch.no_grad()
+    def _apply_view_extents(self, keys: set[tuple[str, int, int]]) -> int:
+        """:meth:`sync` without window changes: new view extents may move the bounds."""
+        with self._lock:
+            changed = self._refresh_extents(keys)
+            if not changed or self._volume is None:
+                return len(changed)
+            rebuilds = self.rebuilds
+            self._update_bounds(changed, evicted=True)
+            if self.rebuilds != rebuilds:
+                self.version += 1
+                self._prepared = None
+            return len(changed)
 
     def _target_bounds(self) -> VolumeBounds:
         model = self._require_model()
@@ -531,13 +698,15 @@ class ModelRuntime:
                     for e in entries
                 ]
             )
-        has_depth = any(e.depth_m is not None for e in entries)
+        has_depth = any(e.depth_m is not None or e.depth_prior is not None for e in entries)
         depth = None
-        if has_depth:
+        if has_depth:  # input depth, else the sparse prior (set_view_depth_prior), else none (0)
             w, h = self.image_wh
             depth = torch.stack(
                 [
-                    e.depth_m if e.depth_m is not None else torch.zeros(h, w, device=self.device)
+                    e.depth_m if e.depth_m is not None
+                    else e.depth_prior if e.depth_prior is not None
+                    else torch.zeros(h, w, device=self.device)
                     for e in entries
                 ]
             )
@@ -661,6 +830,16 @@ class ModelRuntime:
                 out.append((idx, candidates[torch.tensor(views, device=self.device)]))
         return out
 
+    def _all_views(self, prep: _Prepared, need_ov: bool, use_depth: bool) -> SourceViews:
+        """Every view of the window as one SourceViews (no copies), for ``sample_views_indexed``."""
+        if need_ov:
+            assert prep.ov is not None
+            ov = prep.ov
+        else:  # the OV branch is not needed: a 1-channel dummy keeps sampling cheap
+            ov = torch.zeros(len(prep), 1, 1, 1, device=self.device)
+        depth = prep.depth_m if use_depth else None
+        return SourceViews(prep.rgb, prep.features, ov, prep.K, prep.world_from_cam, depth)
+
     def _source_views(self, prep: _Prepared, view_idx: Tensor, need_ov: bool, use_depth: bool) -> SourceViews:
         if need_ov:
             assert prep.ov is not None
@@ -745,20 +924,72 @@ class ModelRuntime:
             groups = self._view_groups(prep, pts, prep.has_ov)
             t3 = time.perf_counter()
             timing["view_selection"] = (t3 - t2) * 1e3
-            for idx, views_idx in groups:
+            def answer(sub: Tensor, out: Any) -> None:
+                cos = F.normalize(out.ov, dim=-1) @ emb.T  # (p, T)
+                best, arg = cos.max(dim=-1)
+                label[sub] = torch.where(out.valid, arg.to(torch.int32), label[sub])
+                score[sub] = torch.where(out.valid, best, score[sub])
+
+            if self.config.batched_view_groups and groups:
+                # one network pass over every view group (each point with its own views)
+                members, view_idx, slots = _group_slots(groups)
+                views = self._all_views(prep, need_ov=True, use_depth=use_depth)
+                for i in range(0, members.numel(), self.config.chunk_points):
+                    sel = slice(i, i + self.config.chunk_points)
+                    sub = members[sel]
+                    samples = model.sample_views_indexed(
+                        views, view_idx[sel], slots[sel], pts[sub], use_depth
+                    )
+                    v, _ = sample_volume(prep.volume, prep.bounds, pts[sub].to(prep.volume.dtype))
+                    answer(sub, model.point_outputs(samples, v))
+            for idx, views_idx in groups if not self.config.batched_view_groups else []:
+                views = self._source_views(prep, views_idx, need_ov=True, use_depth=use_depth)
+                for i in range(0, idx.numel(), self.config.chunk_points):
+                    sub = idx[i : i + self.config.chunk_points]
+                    answer(sub, model.query_points(
+                        views, prep.volume, prep.bounds, pts[sub], depth_guided_masking=use_depth
+                    ))  # fmt: skip
+            timing["network"] = (time.perf_counter() - t3) * 1e3
+        timing["total"] = (time.perf_counter() - t0) * 1e3
+        return label.cpu().numpy(), score.cpu().numpy(), timing
+
+    @torch.no_grad()
+    def point_features(
+        self,
+        points: np.ndarray,  # (N, 3) float32 world points (m)
+        *,
+        use_depth: bool = False,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The learned blended OV feature at world points, with the same per-point view selection
+        as :meth:`segment` (used to write the model's features into the global map before a
+        keyframe leaves the window).
+
+        Returns:
+            features: (N, D) float32 (zero rows where not valid);
+            valid: (N,) bool, False where no keyframe with OV sees the point.
+        Raises :class:`RuntimeNotReady` without a model or without OV features in the window.
+        """
+        pts = torch.tensor(np.array(points, dtype=np.float32)).reshape(-1, 3).to(self.device)
+        if not bool(torch.isfinite(pts).all()):
+            raise ValueError("points must be finite (got NaN or Inf)")
+        model = self._require_model()
+        with self._lock:
+            prep = self._prepare()
+            if prep.ov is None or not bool(prep.has_ov.any()):
+                raise RuntimeNotReady("no keyframe in the window carries 'ov'")
+            n = pts.shape[0]
+            feats = torch.zeros(n, prep.ov.shape[1], dtype=torch.float32, device=self.device)
+            valid = torch.zeros(n, dtype=torch.bool, device=self.device)
+            for idx, views_idx in self._view_groups(prep, pts, prep.has_ov):
                 views = self._source_views(prep, views_idx, need_ov=True, use_depth=use_depth)
                 for i in range(0, idx.numel(), self.config.chunk_points):
                     sub = idx[i : i + self.config.chunk_points]
                     out = model.query_points(
                         views, prep.volume, prep.bounds, pts[sub], depth_guided_masking=use_depth
                     )
-                    cos = F.normalize(out.ov, dim=-1) @ emb.T  # (p, T)
-                    best, arg = cos.max(dim=-1)
-                    label[sub] = torch.where(out.valid, arg.to(torch.int32), label[sub])
-                    score[sub] = torch.where(out.valid, best, score[sub])
-            timing["network"] = (time.perf_counter() - t3) * 1e3
-        timing["total"] = (time.perf_counter() - t0) * 1e3
-        return label.cpu().numpy(), score.cpu().numpy(), timing
+                    feats[sub] = torch.where(out.valid[:, None], out.ov.float(), feats[sub])
+                    valid[sub] = out.valid | valid[sub]
+        return feats.cpu().numpy(), valid.cpu().numpy()
 
     @torch.no_grad()
     def render(
@@ -847,11 +1078,33 @@ class ModelRuntime:
             for i in range(0, n_rays, self.config.chunk_rays):
                 sl = slice(i, i + self.config.chunk_rays)
                 part = self._render_rays(
-                    model, prep, origins[sl], dirs[sl], occupancy, semantic, allowed, stats, appearance
-                )
+                    model, prep, origins[sl], dirs[sl], occupancy, semantic, allowed, stats, appearance,
+                    appearance_groups=self.config.appearance_groups if skip else 0,
+                    stop_transmittance=self.config.stop_transmittance if skip else 0.0,
+                    batched=self.config.batched_view_groups and skip,
+                )  # fmt: skip
                 rgb[sl], ray_depth[sl], opacity[sl], covered[sl] = part[0], part[1], part[2], part[4]
                 if ov is not None and part[3] is not None:
                     ov[sl] = part[3]
+            if skip and ov is not None and emb is not None and self._refines(emb.shape[0]):
+                # coarse-to-fine labels: pixels whose best two texts are close get every sample's
+                # appearance (their weight groups could have swapped the two)
+                top2 = (F.normalize(ov, dim=-1) @ emb.T).topk(2, dim=-1).values
+                redo = (top2[:, 0] - top2[:, 1] < self.config.refine_margin).nonzero().squeeze(-1)
+                stats["refined_rays"] = int(redo.numel())
+                again = {"samples": 0, "density_evals": 0, "appearance_evals": 0, "view_groups": 0}
+                for i in range(0, redo.numel(), self.config.chunk_rays):
+                    sub = redo[i : i + self.config.chunk_rays]
+                    part = self._render_rays(
+                        model, prep, origins[sub], dirs[sub], occupancy, semantic, allowed, again, appearance,
+                        appearance_groups=0, stop_transmittance=self.config.stop_transmittance,
+                        batched=self.config.batched_view_groups,
+                    )  # fmt: skip
+                    rgb[sub], ray_depth[sub], opacity[sub], covered[sub] = part[0], part[1], part[2], part[4]
+                    if part[3] is not None:
+                        ov[sub] = part[3]
+                for key in ("density_evals", "appearance_evals", "view_groups"):
+                    stats[key] += again[key]  # "samples" stays the image's
             timing["render"] = (time.perf_counter() - t2) * 1e3
         hw = (int(height), int(width))
         drawn = opacity >= self.config.min_opacity
@@ -881,6 +1134,11 @@ class ModelRuntime:
         frame.timing_ms = timing
         return frame
 
+    def _refines(self, n_texts: int) -> bool:
+        """Whether a skipping render re-renders its ambiguous pixels (``refine_margin``)."""
+        cfg = self.config
+        return cfg.refine_margin > 0 and n_texts > 1 and 0 < cfg.appearance_groups < self.samples_per_ray
+
     def _render_rays(
         self,
         model: GovNeSF,
@@ -892,6 +1150,10 @@ class ModelRuntime:
         allowed: Tensor,  # (M,) bool views usable as sources
         stats: dict[str, int],
         appearance: bool = True,
+        *,
+        appearance_groups: int = 0,
+        stop_transmittance: float = 0.0,
+        batched: bool = False,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor]:
         """rgb (R, 3), ray distance (R,), opacity (R,), ov (R, D) | None and covered (R,) (the
         opacity of samples some source view sees) for one chunk of rays.
@@ -900,7 +1162,10 @@ class ModelRuntime:
         (view-support mask), its view-grouped appearance, ``samples_per_ray`` bins on
         ``[near, far]`` clipped to the volume box (density is exactly 0 outside it; rays that miss
         the box render nothing). Dense mode evaluates every sample; skipping evaluates the density
-        only in occupied voxels and the appearance only where the weight reaches ``min_weight``.
+        only in occupied voxels and the appearance only where the weight reaches ``min_weight``;
+        ``stop_transmittance`` > 0 ends a ray's density evaluation once its transmittance fell below
+        it, and ``appearance_groups`` > 0 evaluates the appearance once per weight group (both
+        ``march_rays`` options; 0 = off, as in dense mode).
         ``appearance=False`` (a depth-only render) skips the appearance pass: rgb and covered are 0;
         depth and opacity are exactly those of a full render (they depend on the density only).
         """
@@ -909,7 +1174,7 @@ class ModelRuntime:
         out = march_rays(
             Rays(origins, dirs),
             lambda points: self._density(model, prep, points),
-            self._appearance(model, prep, need_ov, allowed, stats) if appearance else None,
+            self._appearance(model, prep, need_ov, allowed, stats, batched) if appearance else None,
             n_samples=self.samples_per_ray,
             near_m=cfg.near_m,
             far_m=cfg.far_m,
@@ -917,6 +1182,9 @@ class ModelRuntime:
             skip_missed=True,
             sample_mask=occupancy_mask(occupancy, b) if occupancy is not None else None,
             min_weight=cfg.min_weight if occupancy is not None else 0.0,  # pruning only with skipping
+            stop_transmittance=stop_transmittance,
+            termination_block=cfg.termination_block,
+            appearance_groups=appearance_groups,
         )
         stats["samples"] += out.t.numel()
         stats["density_evals"] += out.density_evals
@@ -927,10 +1195,18 @@ class ModelRuntime:
         return rgb, out.depth_m, out.opacity, ov, covered
 
     def _appearance(
-        self, model: GovNeSF, prep: _Prepared, need_ov: bool, allowed: Tensor, stats: dict[str, int]
+        self,
+        model: GovNeSF,
+        prep: _Prepared,
+        need_ov: bool,
+        allowed: Tensor,
+        stats: dict[str, int],
+        batched: bool = False,
     ) -> AppearanceFn:
         """The marcher's appearance: each sample with the source views of its view group
-        (``_view_groups``), in chunks of ``chunk_points``; samples no allowed view sees get 0."""
+        (``_view_groups``), in chunks of ``chunk_points``; samples no allowed view sees get 0.
+        ``batched``: every view group in one network pass (``GovNeSF.sample_views_indexed``), else
+        one pass per group (the reference)."""
         d_ov = prep.ov.shape[1] if (need_ov and prep.ov is not None) else 0
         chunk = self.config.chunk_points
 
@@ -941,6 +1217,18 @@ class ModelRuntime:
             valid = torch.zeros(n, dtype=torch.bool, device=points.device)
             groups = self._view_groups(prep, points, allowed)
             stats["view_groups"] += len(groups)
+            if batched and groups:  # one network pass over every view group
+                members, view_idx, slots = _group_slots(groups)
+                views = self._all_views(prep, need_ov=d_ov > 0, use_depth=False)
+                for j in range(0, members.numel(), chunk):
+                    sel = slice(j, j + chunk)
+                    sub = members[sel]
+                    samples = model.sample_views_indexed(views, view_idx[sel], slots[sel], points[sub], False)
+                    rgb_k, ov_k, valid_k = model.fuse_samples(samples, v[sub], view_dirs[sub])
+                    rgb[sub], valid[sub] = rgb_k, valid_k
+                    if d_ov:
+                        ov[sub] = ov_k
+                return rgb, ov, valid
             for local, view_idx in groups:
                 views = self._source_views(prep, view_idx, need_ov=d_ov > 0, use_depth=False)
                 for j in range(0, local.numel(), chunk):

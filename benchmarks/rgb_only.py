@@ -1,0 +1,203 @@
+"""RGB-only robots: sparse triangulated geometry, volume bounds, 3D mIoU and "find the chair".
+
+Streams a simulated room into an in-process node (the node's real plugins: the learned model's
+handlers, rendered-depth map points, and :mod:`mapper.node.plugins.triangulation`) three times:
+
+* ``depth``: frames with depth (the reference: what a robot with a depth camera gets);
+* ``rgb, fixed range``: frames WITHOUT depth, triangulation off (the node before issue 13: volume
+  bounds from the frusta up to ``model.max_range_m``, map points from rendered depth only);
+* ``rgb + triangulation``: frames WITHOUT depth, triangulation on (bounds follow the points, and
+  the points join the global map).
+
+Reported per run (``--json`` writes them all):
+
+* ack rate of the ingest path (in-process ``handle_ingest`` time only; the background workers run
+  between frames, timed separately);
+* triangulation: keyframes, points per keyframe, cost per keyframe (mean and p90, ms), and the
+  points' distance to the true surface (nearest of ``--gt-samples`` samples of the scene's
+  surfaces: about 1 cm apart in the demo room; median, p90, share within 5 cm);
+* the cost volume's bounds (extent, voxel size);
+* 3D mIoU of ``segment_points`` at the ground-truth surface samples the stream saw: ``govnesf``
+  (learned; with depth also +DGM) and ``average`` (plain averaging), same points, class names as texts;
+* "find the chair": the top object's distance to the nearest real chair;
+* rendered depth at held-out poses (``clients.sim.export.novel_view_poses``): median relative error.
+
+Usage::
+
+    python benchmarks/rgb_only.py --seed 3 --style apartment            # the demo room
+    python benchmarks/rgb_only.py --seed 9 --style studio               # 7.8 x 6.7 m, held-out style
+    python benchmarks/rgb_only.py --modes rgb+tri --frames 120          # one run, shorter
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from clients.harness import chair_distance, mean_iou, sim_stream
+from clients.sim.export import count_views, novel_view_poses
+from clients.sim.scenes import CLASS_NAMES, LABEL_OF
+from mapper.node.config import config_from_dict
+from mapper.node.plugins.learned import install_learned_handlers
+from mapper.node.plugins.triangulation import install_triangulation
+from mapper.node.service import MapperNode
+from mapper.runtime.model_runtime import ModelRuntime
+from protocol.messages import Points, QueryPoints, Segmentation, SegmentPoints, decode, encode
+
+MODES = {"depth": (True, True), "rgb": (False, False), "rgb+tri": (False, True)}
+"""mode -> (frames carry depth, triangulation on)."""
+
+
+def _query(node: MapperNode, msg: Any) -> Any:
+    return decode(node.handle_query(encode(msg)), direction="reply")
+
+
+def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
+    with_depth, triangulate = MODES[mode]
+    stream = sim_stream(args.seed, args.frames, args.width, args.height, depth=with_depth, style=args.style)
+    scene = stream.scene
+    config = config_from_dict({
+        "map_dir": "/tmp/govnesf-bench-maps", "autosave_name": "", "save_on_exit": False,
+        "window": {"max_keyframes": args.window},
+        "model": {"checkpoint": str(args.checkpoint), "device": args.device},
+        "triangulation": {"enabled": triangulate},
+    })
+    node = MapperNode(config)
+    runtime = ModelRuntime(config.model)
+    if not runtime.ready:
+        raise SystemExit(runtime.load_error)
+    rendered = install_learned_handlers(node, runtime)
+    tri = install_triangulation(node, runtime)
+    n_gt = args.gt_samples
+    gt_xyz, gt_label, _ = scene.sample_surface(n_gt, seed=args.seed, exclude_labels=(LABEL_OF["ceiling"],))
+    surface, _, _ = scene.sample_surface(args.gt_samples * 4, seed=args.seed + 1)
+    gt_views = np.zeros(len(gt_xyz), np.int32)
+    ack_s = worker_tri_s = worker_depth_s = 0.0
+    for k, (frame, view) in enumerate(stream.frames()):
+        count_views(gt_xyz, stream.K, stream.poses[k], view.depth_m, gt_views)
+        data = encode(frame)
+        t0 = time.perf_counter()
+        node.handle_ingest(data)
+        ack_s += time.perf_counter() - t0
+        if (k + 1) % args.process_every == 0:  # the workers, inline between frames (timed apart)
+            t0 = time.perf_counter()
+            if tri is not None:
+                tri.process_pending()
+            worker_tri_s += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            if rendered is not None:
+                rendered.process_pending()
+            worker_depth_s += time.perf_counter() - t0
+    t0 = time.perf_counter()
+    if tri is not None:
+        tri.process_pending()
+    worker_tri_s += time.perf_counter() - t0
+    t0 = time.perf_counter()
+    if rendered is not None:
+        rendered.process_pending()
+    worker_depth_s += time.perf_counter() - t0
+    row: dict[str, Any] = {
+        "mode": mode, "seed": args.seed, "style": args.style, "frames": args.frames,
+        "room_m": [round(float(v), 2) for v in scene.room_max - scene.room_min],
+        "keyframes": len(node.state.window) + node.state.keyframes_evicted,
+        "acks_per_s": args.frames / max(ack_s, 1e-9),
+        "rendered_depth_worker_s": worker_depth_s,
+    }
+    if tri is not None:
+        stats = tri.stats()
+        xyz, sigma = tri.points()
+        dist = cKDTree(surface).query(xyz)[0] if len(xyz) else np.zeros(0)
+        row.update({
+            "tri_keyframes": stats["keyframes"], "tri_points": int(len(xyz)),
+            "tri_points_per_keyframe": stats["points_per_keyframe"], "tri_ms_mean": stats["mean_ms"],
+            "tri_ms_p90": stats["p90_ms"], "tri_worker_s": worker_tri_s,
+            "tri_median_dist_m": float(np.median(dist)) if len(dist) else None,
+            "tri_p90_dist_m": float(np.percentile(dist, 90)) if len(dist) else None,
+            "tri_within_5cm": float((dist <= 0.05).mean()) if len(dist) else None,
+            "tri_median_sigma_m": float(np.median(sigma)) if len(sigma) else None,
+            "tri_global_map_points": stats["global_map_points"],
+        })
+    runtime.sync()
+    b = runtime.bounds
+    assert b is not None
+    row["bounds_extent_m"] = [round(n * b.voxel_size_m, 2) for n in b.dims]
+    row["voxel_size_m"] = round(b.voxel_size_m, 4)
+    seen = gt_views > 0
+    pts, gt = gt_xyz[seen].astype(np.float32), gt_label[seen].astype(np.int64)
+    texts = list(CLASS_NAMES)
+    methods = [("govnesf", False), ("average", False)]
+    if with_depth or triangulate:  # DGM: input depth, or the sparse prior from the triangulated points
+        methods.append(("govnesf", True))
+    for method, use_depth in methods:
+        seg = _query(node, SegmentPoints(xyz=pts, texts=texts, method=method, use_depth=use_depth))  # type: ignore[arg-type]
+        assert isinstance(seg, Segmentation), seg
+        name = f"miou_{method}{'+dgm' if use_depth else ''}"
+        row[name] = mean_iou(seg.label.astype(np.int64), gt, len(texts))[0]
+    reply = _query(node, QueryPoints(texts=["find the chair"], objects=True))
+    row["chair_m"] = (chair_distance(reply.objects[0].centroid, scene)
+                      if isinstance(reply, Points) and reply.objects else None)
+    poses, _ = novel_view_poses(stream, args.novel_views, seed=args.seed)
+    rel = []
+    for pose in poses:
+        truth = stream.renderer.render(stream.K, pose, args.width, args.height).depth_m
+        out = runtime.render(stream.K, pose, args.width, args.height, outputs=("depth",))
+        ok = (truth > 0) & np.isfinite(truth)
+        assert out.depth_m is not None
+        rel.append(np.abs(out.depth_m[ok] - truth[ok]) / truth[ok])
+    row["render_depth_median_rel_err"] = float(np.median(np.concatenate(rel)))
+    row["global_map_points"] = len(node.state.global_map.snapshot())
+    node.stop()
+    return row
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.3f}" if abs(v) < 10 else f"{v:.0f}"
+    return str(v)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--style", default="apartment")
+    p.add_argument("--frames", type=int, default=240)
+    p.add_argument("--width", type=int, default=160)
+    p.add_argument("--height", type=int, default=120)
+    p.add_argument("--window", type=int, default=160)
+    p.add_argument("--modes", default="depth,rgb,rgb+tri", help="comma-separated: " + ", ".join(MODES))
+    p.add_argument("--gt-samples", type=int, default=250_000, help="ground-truth surface samples")
+    p.add_argument("--novel-views", type=int, default=4)
+    p.add_argument("--checkpoint", type=Path, default=Path("checkpoints/cpu-small.json"))
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--process-every", type=int, default=10, help="frames between worker passes")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--json", type=Path, default=None, help="also write the rows as JSON")
+    args = p.parse_args(argv)
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    torch.set_num_threads(args.threads)
+    rows = []
+    for mode in args.modes.split(","):
+        started = time.perf_counter()
+        row = run(args, mode.strip())
+        row["wall_s"] = time.perf_counter() - started
+        rows.append(row)
+        print(json.dumps({k: _fmt(v) for k, v in row.items()}), flush=True)
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    print("\n| " + " | ".join(keys) + " |\n|" + "---|" * len(keys))
+    for r in rows:
+        print("| " + " | ".join(_fmt(r.get(k, "")) for k in keys) + " |")
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

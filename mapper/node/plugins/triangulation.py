@@ -1,0 +1,386 @@
+"""Sparse geometry for RGB-only keyframes: points triangulated from posed RGB, off the ack path.
+
+A robot without a depth camera sends frames without ``depth_m``. :class:`SparseTriangulation`
+triangulates each such keyframe against a few earlier keyframes with the pure geometry of
+:mod:`mapper.geometry.triangulation` (features, partners by frustum overlap and baseline, epipolar
+filtering from the known poses, ``cv2.triangulatePoints``, cheirality / reprojection / parallax /
+multi-view checks, an uncertainty per point) and uses the points three ways:
+
+* **sparse map**: kept per keyframe, bounded by ``triangulation.max_points`` (the oldest
+  keyframes' points go first); :meth:`SparseTriangulation.points` returns them all;
+* **volume bounds**: with a learned-model runtime, a keyframe's extent for the cost volume's
+  bounds becomes its points (``ModelRuntime.set_view_extent``, with at least
+  ``bounds_min_points``; fewer: its frustum up to the depth recent keyframes' points reach)
+  instead of its frustum up to the fixed ``model.max_range_m``: the volume grows (or shrinks)
+  with the room, within the voxel budget;
+* **sparse depth prior**: with a runtime, each keyframe's points splatted into a sparse depth map
+  (``depth_prior_radius_px``; ``ModelRuntime.set_view_depth_prior``) for Depth-Guided-Masking-like
+  view masking in ``segment_points`` with ``use_depth`` where the points exist;
+* **global map**: the points are fused into the global semantic map with the keyframe's OV
+  features (a sparse depth map through the map's public ``integrate``), at
+  ``global_map_weight`` times a confidence that falls with the uncertainty.
+
+Scheduling: :meth:`SparseTriangulation.on_keyframe` runs on the ingest thread after the keyframe
+entered the window and only queues it (O(1)); the worker (``mapper-triangulation``) detects,
+matches and triangulates. The features of the last ``candidate_keyframes`` keyframes (with or
+without depth) stay in memory as partner candidates; a map load (a new global map) clears them
+and the sparse map. Beyond ``max_pending`` waiting keyframes the oldest is dropped and counted.
+Errors never reach the ingest thread: they are logged (rate limited) and counted in ``failed``.
+
+Example (in-process; ``node`` a :class:`mapper.node.service.MapperNode`)::
+
+    tri = SparseTriangulation(node)
+    tri.install()            # listener + worker + status "triangulation"
+    ...                      # frames without depth arrive
+    tri.process_pending()    # or let the worker do it; returns keyframes triangulated
+    xyz, sigma = tri.points()
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict, deque
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol
+
+import cv2
+import numpy as np
+
+from mapper.geometry.config import TriangulationConfig
+from mapper.geometry.triangulation import (
+    FeatureExtractor,
+    Features,
+    PosedView,
+    SparsePoints,
+    frustum_points,
+    select_partners,
+    triangulate_keyframe,
+)
+from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker
+
+if TYPE_CHECKING:
+    from mapper.node.global_map import GlobalSemanticMap
+    from mapper.node.service import MapperNode
+
+__all__ = ["SparseTriangulation", "TriangulatedKeyframe", "install_triangulation", "keyframe_key"]
+
+log = logging.getLogger("mapper.node.plugins.triangulation")
+
+KeyframeKey = tuple[str, int, int]
+
+
+class ExtentSink(Protocol):
+    """What the plugin needs of the learned-model runtime (``ModelRuntime.set_view_extent``)."""
+
+    def set_view_extent(self, key: KeyframeKey, points_m: np.ndarray | None) -> None: ...
+
+    def set_view_depth_prior(self, key: KeyframeKey, depth_m: np.ndarray | None) -> None: ...
+
+
+def keyframe_key(keyframe: Any) -> KeyframeKey:
+    """``(camera, seq, stamp_ns)``: a keyframe's identity that survives a swap in the window."""
+    return (str(getattr(keyframe, "camera", "")), int(keyframe.seq), int(keyframe.stamp_ns))
+
+
+@dataclass(frozen=True)
+class TriangulatedKeyframe:
+    """A keyframe's triangulated points as a sparse depth map, shaped like ``KeyframeLike``."""
+
+    stamp_ns: int
+    K: np.ndarray  # (4,) [fx, fy, cx, cy] of the keyframe
+    world_from_cam: np.ndarray  # (4, 4)
+    rgb: np.ndarray  # (H, W, 3) uint8 the keyframe's image (the map uses its shape)
+    depth_m: np.ndarray  # (H, W) float32 z-depth at the points' pixels, 0 elsewhere
+    ov: np.ndarray | None  # (h_ov, w_ov, D) the keyframe's OV map
+    confidence: np.ndarray  # (H, W) float32 in [0, 1]
+
+
+def sparse_depth_keyframe(
+    keyframe: Any, points: SparsePoints, config: TriangulationConfig
+) -> TriangulatedKeyframe:
+    """The points as a sparse depth map of ``keyframe`` (the most certain point per pixel)."""
+    height, width = keyframe.rgb.shape[:2]
+    depth = np.zeros((height, width), np.float32)
+    conf = np.zeros((height, width), np.float32)
+    cols = np.clip(np.floor(points.uv[:, 0]).astype(np.int64), 0, width - 1)
+    rows = np.clip(np.floor(points.uv[:, 1]).astype(np.int64), 0, height - 1)
+    order = np.argsort(-points.sigma_m)  # least certain first: the most certain is written last
+    certainty = np.clip(1.0 - points.sigma_m / config.max_sigma_m, 0.1, 1.0)
+    depth[rows[order], cols[order]] = points.depth_m[order]
+    conf[rows[order], cols[order]] = config.global_map_weight * certainty[order]
+    return TriangulatedKeyframe(
+        stamp_ns=int(keyframe.stamp_ns), K=np.asarray(keyframe.K, np.float64),
+        world_from_cam=np.asarray(keyframe.world_from_cam, np.float64), rgb=keyframe.rgb,
+        depth_m=depth, ov=keyframe.ov, confidence=conf,
+    )
+
+
+def depth_prior(sparse: TriangulatedKeyframe, radius_px: int) -> np.ndarray:
+    """(H, W) float32: the sparse depth splatted over discs of ``radius_px`` (max where they meet)."""
+    if radius_px <= 0:
+        return sparse.depth_m
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
+    return np.asarray(cv2.dilate(sparse.depth_m, kernel), np.float32)
+
+
+@dataclass
+class _Candidate:
+    """A recent keyframe as a partner candidate; its features are detected on first use (keyframes
+    with depth are never triangulated, so their features are only computed when chosen)."""
+
+    key: KeyframeKey
+    view: PosedView
+    rgb: np.ndarray | None  # (H, W, 3) uint8 until the features are detected
+    features: Features | None = None
+
+    def detected(self, extractor: FeatureExtractor) -> Features:
+        if self.features is None:
+            assert self.rgb is not None
+            self.features = extractor.detect(np.asarray(self.rgb))
+            self.rgb = None
+        return self.features
+
+
+class SparseTriangulation:
+    """Triangulates ``node``'s keyframes without depth in a background worker.
+
+    Args:
+        node: the mapper node (its ``state.global_map`` is read at integrate time).
+        config: defaults to ``node.config.triangulation``.
+        runtime: the learned-model runtime whose volume bounds follow the points (optional).
+    """
+
+    def __init__(
+        self, node: MapperNode, config: TriangulationConfig | None = None, runtime: ExtentSink | None = None
+    ) -> None:
+        self.node = node
+        self.config = config or node.config.triangulation
+        self.runtime = runtime
+        self.extractor = FeatureExtractor(self.config)
+        self._lock = threading.Lock()  # guards the sparse map (points read from other threads)
+        self._work_lock = threading.Lock()  # one process_pending at a time
+        self._queue: KeyframeQueue[tuple[Any, GlobalSemanticMap]] = KeyframeQueue(self.config.max_pending)
+        self._candidates: deque[_Candidate] = deque(maxlen=self.config.candidate_keyframes)
+        self._points: OrderedDict[KeyframeKey, SparsePoints] = OrderedDict()
+        self._n_points = 0
+        self._map: GlobalSemanticMap | None = None  # the map the candidates and points belong to
+        self._room_depths: deque[float] = deque(maxlen=self.config.candidate_keyframes)
+        self._without_extent: deque[tuple[KeyframeKey, PosedView]] = deque(
+            maxlen=self.config.candidate_keyframes
+        )  # keyframes waiting for the room's depth (no points of their own yet)
+        self.processed = 0
+        self.points_total = 0
+        self.points_evicted = 0
+        self.integrated_points = 0
+        self.partners_total = 0
+        self.stale = 0
+        self.failed = 0
+        self.seconds: deque[float] = deque(maxlen=1000)
+        self.seconds_total = 0.0
+        self._log = LimitedLog(log)
+
+    # -- wiring -------------------------------------------------------------------------------
+
+    def install(self) -> None:
+        """Listen to the node's new keyframes, report in its status (``"triangulation"``) and run
+        the worker with the node (started by ``node.start()``)."""
+        self.node.keyframe_listeners.append(self.on_keyframe)
+        self.node.workers.append(("triangulation", self.run))
+        self.node.status_providers["triangulation"] = self.stats
+
+    def on_keyframe(self, keyframe: Any, map_version: int) -> None:
+        """Queue every keyframe (ingest thread; O(1), never raises): those without depth are
+        triangulated, those with depth only become partner candidates."""
+        if self.config.enabled:
+            self._queue.put((keyframe, self.node.state.global_map))
+
+    # -- work -----------------------------------------------------------------------------------
+
+    @property
+    def pending(self) -> int:
+        return len(self._queue)
+
+    def process_pending(self) -> int:
+        """Triangulate every keyframe pending now; returns the keyframes triangulated (those with
+        depth only join the candidates). Safe to call from any thread."""
+        if not self._work_lock.acquire(blocking=False):
+            return 0
+        try:
+            return sum(self._process_one(kf, target) for kf, target in self._queue.drain())
+        finally:
+            self._work_lock.release()
+
+    def _process_one(self, keyframe: Any, target: GlobalSemanticMap) -> int:
+        started = time.perf_counter()
+        if target is not self._map:  # a map load: the old map's keyframes are no partners
+            if self._map is not None:
+                self._reset()
+            self._map = target
+        try:
+            height, width = keyframe.rgb.shape[:2]
+            pose = np.asarray(keyframe.world_from_cam, np.float64)
+            view = PosedView(np.asarray(keyframe.K, np.float64), pose, int(width), int(height))
+            candidates = list(self._candidates)
+            if keyframe.depth_m is not None:
+                self._candidates.append(_Candidate(keyframe_key(keyframe), view, keyframe.rgb))
+                return 0
+            features = self.extractor.detect(np.asarray(keyframe.rgb))
+            self._candidates.append(_Candidate(keyframe_key(keyframe), view, None, features))
+            chosen = select_partners(view, [c.view for c in candidates], self.config)
+            partners = [(candidates[i].view, candidates[i].detected(self.extractor)) for i in chosen]
+            points = triangulate_keyframe(self.extractor, view, features, partners, self.config)
+        except Exception as exc:  # bad input, OpenCV errors (cv2.error): count, never kill the worker
+            self._failed(keyframe, exc)
+            return 0
+        self._store(keyframe_key(keyframe), points)
+        if self.runtime is not None and self.config.bounds:
+            self._set_extent(keyframe_key(keyframe), view, points)
+        if self.runtime is not None and self.config.depth_prior_radius_px > 0 and len(points):
+            sparse = sparse_depth_keyframe(keyframe, points, self.config)
+            self.runtime.set_view_depth_prior(keyframe_key(keyframe),
+                                              depth_prior(sparse, self.config.depth_prior_radius_px))
+        self._integrate(keyframe, points, target)
+        seconds = time.perf_counter() - started
+        self.processed += 1
+        self.points_total += len(points)
+        self.partners_total += points.partners
+        with self._lock:  # stats() copies it from the query thread
+            self.seconds.append(seconds)
+        self.seconds_total += seconds
+        log.debug("triangulation: %d points (%d partners, %d matches) for keyframe at stamp %d in %.0f ms",
+                  len(points), points.partners, points.matches, keyframe.stamp_ns, 1e3 * seconds)
+        return 1
+
+    def _reset(self) -> None:
+        """Forget the candidates, points and room depth of a map that was replaced."""
+        with self._lock:
+            self._points.clear()
+            self._n_points = 0
+        self._candidates.clear()
+        self._room_depths.clear()
+        self._without_extent.clear()
+
+    def _set_extent(self, key: KeyframeKey, view: PosedView, points: SparsePoints) -> None:
+        """The keyframe's extent for the volume bounds (see the module docstring)."""
+        assert self.runtime is not None
+        if len(points) >= self.config.bounds_min_points:
+            self.runtime.set_view_extent(key, points.xyz)
+            first = not self._room_depths
+            self._room_depths.append(float(np.quantile(points.depth_m, self.config.bounds_depth_quantile)))
+            if first:  # the keyframes seen before any depth was known get the room's depth now
+                while self._without_extent:
+                    self._set_frustum_extent(*self._without_extent.popleft())
+            return
+        if self._room_depths:
+            self._set_frustum_extent(key, view)
+        else:
+            self._without_extent.append((key, view))
+
+    def _set_frustum_extent(self, key: KeyframeKey, view: PosedView) -> None:
+        assert self.runtime is not None
+        far = float(np.median(self._room_depths))
+        near = min(self.config.min_depth_m, 0.5 * far)
+        self.runtime.set_view_extent(key, frustum_points(view, near, far))
+
+    def _failed(self, keyframe: Any, exc: BaseException) -> None:
+        self.failed += 1
+        self._log.warning("failed", "triangulation of keyframe at stamp %d failed: %s",
+                          keyframe.stamp_ns, exc)
+
+    def _store(self, key: KeyframeKey, points: SparsePoints) -> None:
+        with self._lock:
+            old = self._points.pop(key, None)
+            if old is not None:
+                self._n_points -= len(old)
+            self._points[key] = points
+            self._n_points += len(points)
+            while self._n_points > self.config.max_points and len(self._points) > 1:
+                _, dropped = self._points.popitem(last=False)
+                self._n_points -= len(dropped)
+                self.points_evicted += len(dropped)
+
+    def _integrate(self, keyframe: Any, points: SparsePoints, target: GlobalSemanticMap) -> None:
+        if self.config.global_map_weight <= 0.0 or not len(points):
+            return
+        if target is not self.node.state.global_map:
+            self.stale += 1  # a map load replaced the map this keyframe belonged to
+            return
+        try:
+            sparse = sparse_depth_keyframe(keyframe, points, self.config)
+            stats = target.integrate(sparse, map_version=None, pixel_stride=1,
+                                     confidence=sparse.confidence, count_keyframe=False)
+        except (ValueError, RuntimeError) as exc:
+            self._failed(keyframe, exc)
+            return
+        self.integrated_points += stats.points
+
+    def points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every kept point: ``(xyz (N, 3) float64 world, sigma_m (N,) float64)``."""
+        with self._lock:
+            kept = list(self._points.values())
+        if not kept:
+            return np.zeros((0, 3)), np.zeros(0)
+        return np.concatenate([p.xyz for p in kept]), np.concatenate([p.sigma_m for p in kept])
+
+    def keyframe_points(self, keyframe: Any) -> SparsePoints | None:
+        """The points triangulated for ``keyframe`` (None when it was not, or they were dropped)."""
+        with self._lock:
+            return self._points.get(keyframe_key(keyframe))
+
+    def memory_bytes(self) -> int:
+        """Bytes of the sparse map and the candidates' features (reported in ``status`` under
+        ``triangulation``; not in the node's ``memory_bytes``, which counts map data, as a load
+        restores it)."""
+        with self._lock:
+            pts = sum(p.xyz.nbytes + p.sigma_m.nbytes * 5 + p.uv.nbytes for p in self._points.values())
+        feats = 0
+        for c in list(self._candidates):
+            f = c.features
+            if f is not None:
+                feats += f.uv.nbytes + f.descriptors.nbytes + (0 if f.gray is None else f.gray.nbytes)
+            elif c.rgb is not None:
+                feats += c.rgb.nbytes  # a view of the keyframe's image (shared with the window)
+        return int(pts + feats)
+
+    def run(self, stop: threading.Event) -> None:
+        """Worker loop: process the pending keyframes whenever new ones arrive, until ``stop``."""
+        run_worker(stop, self._queue.wake, self.process_pending, self._unexpected)
+
+    def _unexpected(self, exc: BaseException) -> None:
+        self.failed += 1
+        log.error("triangulation worker: unexpected error (continuing)", exc_info=exc)
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for the node's status reply (points and cost per triangulated keyframe)."""
+        with self._lock:
+            recent = sorted(self.seconds)
+        return {
+            "enabled": self.config.enabled,
+            "detector": self.config.detector,
+            "pending": self.pending,
+            "queued": self._queue.queued,
+            "dropped": self._queue.dropped,
+            "keyframes": self.processed,
+            "points": self._n_points,
+            "points_evicted": self.points_evicted,
+            "points_per_keyframe": round(self.points_total / max(self.processed, 1), 1),
+            "partners_per_keyframe": round(self.partners_total / max(self.processed, 1), 2),
+            "global_map_points": self.integrated_points,
+            "mean_ms": round(1e3 * self.seconds_total / max(self.processed, 1), 1),
+            "p90_ms": round(1e3 * recent[int(0.9 * (len(recent) - 1))], 1) if recent else 0.0,
+            "stale": self.stale,
+            "failed": self.failed,
+            "memory_bytes": self.memory_bytes(),
+        }
+
+
+def install_triangulation(node: MapperNode, runtime: ExtentSink | None = None) -> SparseTriangulation | None:
+    """Install :class:`SparseTriangulation` on ``node`` when ``triangulation.enabled`` (returned;
+    None otherwise). ``runtime``: the learned-model runtime whose bounds follow the points."""
+    if not node.config.triangulation.enabled:
+        return None
+    tri = SparseTriangulation(node, runtime=runtime)
+    tri.install()
+    return tri

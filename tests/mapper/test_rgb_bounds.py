@@ -1,0 +1,130 @@
+"""The learned model's volume bounds follow the room without depth: ``ModelRuntime.set_view_extent``
+(fed by mapper.node.plugins.triangulation) replaces the fixed ``model.max_range_m`` frustum of
+RGB-only keyframes by their observed points, within the voxel budget."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mapper.model.field import GovNeSF
+from mapper.node.config import WindowConfig
+from mapper.node.plugins.triangulation import keyframe_key
+from mapper.node.window import KeyframeWindow
+from mapper.runtime.model_runtime import ModelRuntime
+from tests.mapper.test_runtime import TINY, keyframe, make_runtime, orbit
+
+
+@pytest.fixture(scope="module")
+def model() -> GovNeSF:
+    torch.manual_seed(0)
+    return GovNeSF(TINY).eval()
+
+
+def _extent(runtime: ModelRuntime) -> np.ndarray:
+    b = runtime.bounds
+    assert b is not None
+    return np.asarray(b.max_corner_m) - np.asarray(b.origin_m)
+
+
+def _room_points(half_x: float, half_y: float, n: int = 400, seed: int = 0) -> np.ndarray:
+    """(n, 3) points on the walls of a room [-half_x, half_x] x [-half_y, half_y] x [0, 2.5]."""
+    rng = np.random.default_rng(seed)
+    t = rng.uniform(-1.0, 1.0, n)
+    side = rng.integers(0, 4, n)
+    x = np.where(side < 2, np.where(side == 0, -half_x, half_x), t * half_x)
+    y = np.where(side < 2, t * half_y, np.where(side == 2, -half_y, half_y))
+    return np.column_stack([x, y, rng.uniform(0.0, 2.5, n)])
+
+
+def test_view_extents_grow_and_shrink_the_volume_of_rgb_only_keyframes(model: GovNeSF) -> None:
+    runtime = make_runtime(model, max_range_m=3.0, bounds_margin_m=0.0)
+    window = KeyframeWindow(WindowConfig(max_keyframes=8, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    kfs = [keyframe(i, orbit(i, radius=1.0), depth_m=None) for i in range(4)]
+    for kf in kfs:
+        window.consider(kf)
+    runtime.sync()
+    base, rebuilds, version = _extent(runtime), runtime.rebuilds, runtime.version
+    assert runtime.sync() == 0  # nothing recorded: nothing to do
+    big = _room_points(4.0, 3.0)  # the points say the room is 8 x 6 m: beyond the 3 m frusta
+    for kf in kfs:
+        runtime.set_view_extent(keyframe_key(kf), big)
+    assert runtime.sync() == 4
+    grown = _extent(runtime)
+    assert runtime.rebuilds == rebuilds + 1 and runtime.version == version + 1
+    assert grown[0] >= 8.0 and grown[1] >= 6.0 and grown.prod() > base.prod()
+    assert runtime.bounds is not None
+    assert runtime.bounds.num_voxels <= TINY.volume.max_voxels  # the budget holds: coarser voxels
+    small = _room_points(1.5, 1.2)
+    for kf in kfs:
+        runtime.set_view_extent(keyframe_key(kf), small)  # a small room
+    runtime.sync()
+    shrunk = _extent(runtime)
+    assert 3.0 <= shrunk[0] < 4.0 and 2.4 <= shrunk[1] < 3.5 and shrunk.prod() < 0.5 * base.prod()
+    for kf in kfs:
+        runtime.set_view_extent(keyframe_key(kf), None)  # back to the frusta up to max_range_m
+    runtime.sync()
+    np.testing.assert_allclose(_extent(runtime), base)
+
+
+def test_an_extent_set_before_the_keyframe_is_applied_is_used_and_depth_keyframes_ignore_it(
+    model: GovNeSF,
+) -> None:
+    window = KeyframeWindow(WindowConfig(max_keyframes=8, min_translation_m=0.05, min_rotation_deg=5))
+    early, late = make_runtime(model, max_range_m=3.0), make_runtime(model, max_range_m=3.0)
+    early.attach(window)
+    late.attach(window)
+    kfs = [keyframe(i, orbit(i), depth_m=None) for i in range(3)]
+    big = _room_points(4.0, 3.0)
+    for kf in kfs:
+        window.consider(kf)
+        early.set_view_extent(keyframe_key(kf), big)  # before the runtime applied the keyframe
+    early.sync()
+    late.sync()
+    for kf in kfs:
+        late.set_view_extent(keyframe_key(kf), big)
+    late.sync()
+    assert early.bounds == late.bounds
+    with_depth = make_runtime(model, max_range_m=3.0)
+    w2 = KeyframeWindow(WindowConfig(max_keyframes=8, min_translation_m=0.05, min_rotation_deg=5))
+    with_depth.attach(w2)
+    dkfs = [keyframe(i, orbit(i), depth_m=2.0) for i in range(3)]
+    for kf in dkfs:
+        w2.consider(kf)
+    with_depth.sync()
+    before = with_depth.bounds
+    for kf in dkfs:
+        with_depth.set_view_extent(keyframe_key(kf), big)
+    assert with_depth.sync() == 0 and with_depth.bounds == before
+    for bad in (np.zeros((0, 3)), np.zeros((4, 2)), np.full((2, 3), np.nan)):
+        with pytest.raises(ValueError, match="points_m"):
+            with_depth.set_view_extent(keyframe_key(dkfs[0]), bad)
+
+
+def test_a_sparse_depth_prior_masks_views_only_where_it_exists(model: GovNeSF) -> None:
+    runtime = make_runtime(model, source_views=3, view_cell_m=0.25)
+    window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    kfs = [keyframe(i, orbit(i), depth_m=None) for i in range(5)]
+    for kf in kfs:
+        window.consider(kf)
+    rng = np.random.default_rng(0)
+    pts = rng.uniform([-0.4, -0.4, 0.3], [0.4, 0.4, 0.7], (200, 3)).astype(np.float32)
+    plain, plain_score, _ = runtime.segment(pts, ["a", "b", "c"])
+    no_prior, no_prior_score, _ = runtime.segment(pts, ["a", "b", "c"], use_depth=True)  # nothing to mask
+    np.testing.assert_array_equal(plain, no_prior)
+    for kf in kfs:  # an empty prior: holes everywhere, so no view is masked
+        runtime.set_view_depth_prior(keyframe_key(kf), np.zeros((30, 40), np.float32))
+    empty, empty_score, _ = runtime.segment(pts, ["a", "b", "c"], use_depth=True)
+    np.testing.assert_array_equal(empty, plain)
+    np.testing.assert_allclose(empty_score, plain_score, atol=1e-6)
+    for kf in kfs:  # a prior that contradicts every point (a surface 5 cm in front of every camera)
+        runtime.set_view_depth_prior(keyframe_key(kf), np.full((15, 20), 0.05, np.float32))
+    masked, masked_score, _ = runtime.segment(pts, ["a", "b", "c"], use_depth=True)
+    assert (masked == -1).all() and (masked_score == 0).all()
+    unmasked, _, _ = runtime.segment(pts, ["a", "b", "c"])  # without use_depth the prior is unused
+    np.testing.assert_array_equal(unmasked, plain)
+    with pytest.raises(ValueError, match="depth_m"):
+        runtime.set_view_depth_prior(keyframe_key(kfs[0]), np.full((3, 4), -1.0, np.float32))
