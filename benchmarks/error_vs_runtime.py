@@ -256,11 +256,12 @@ def pareto_front(times: list[float], mious: list[float]) -> list[int]:
 
 def plot_results(results: dict, path: Path) -> None:
     """mIoU against run time per study and style, both methods, the Pareto front marked (PNG)."""
-    import matplotlib
-    import matplotlib.ticker
+    from govnesf._extras import require
 
+    matplotlib = require("matplotlib", "bench")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker  # noqa: F401  (the tick locators used below, as matplotlib.ticker.*)
 
     studies = [("3d", "seconds_per_100k", "views_per_point", "s per 100k points", "views per point"),
                ("2d", "seconds_per_frame", "samples", "s per frame", "samples per ray")]

@@ -246,7 +246,9 @@ class Soak:
 
 
 def plot(data: dict[str, Any], path: Path) -> None:
-    import matplotlib
+    from govnesf._extras import require
+
+    matplotlib = require("matplotlib", "bench")
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -19,6 +19,7 @@ EXTRAS: dict[str, str] = {
     "rerun": "logging to the Rerun viewer (--rerun FILE.rrd)",
     "import": "dataset and bag importers beyond the core's image formats",
     "clip": "the in-process CLIP feature backend (its BPE tokenizer)",
+    "bench": "the benchmarks' PNG plots (matplotlib)",
 }
 """Extra name -> what it adds (the keys are ``[project.optional-dependencies]`` of pyproject.toml)."""
 
