@@ -5,13 +5,16 @@ bilinearly and averaged; with ``use_depth`` only views whose measured depth at t
 with the point's depth (|depth - z| <= 0.25 * depth, nearest-pixel lookup) count. The mapper's
 ``average`` and ``average_depth`` segmentation methods call ``average_features``.
 
-Chunked over points (views are streamed per chunk), so 100k points x 100 views stays within a
-few hundred MB.
+Chunked over points. Per chunk the points are projected into every view at once (torch, as
+before); the samples of all views are then gathered as one weighted sum per point with
+``embedding_bag`` over the views' flattened (h * w, D) maps (bilinear corners and weights
+computed exactly as ``grid_sample`` with border padding does), so the (m, D) samples are never
+materialised per view. ``average_features_reference`` is the previous per-view implementation.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -21,6 +24,7 @@ from torch import Tensor
 
 from mapper.model.ops.checks import check_shape
 from mapper.model.ops.geometry import (
+    DEFAULT_EPS,
     in_view,
     invert_pose,
     project_points,
@@ -29,7 +33,7 @@ from mapper.model.ops.geometry import (
     scale_uv,
 )
 
-__all__ = ["OVView", "average_features"]
+__all__ = ["OVView", "average_features", "average_features_reference", "average_similarities"]
 
 
 class OVView(NamedTuple):
@@ -54,7 +58,7 @@ def _as_tensor(x: np.ndarray | Tensor, dtype: torch.dtype, device: torch.device)
     return torch.from_numpy(np.require(x, requirements=["C", "W"])).to(device=device, dtype=dtype)
 
 
-def average_features(
+def average_features_reference(
     points: np.ndarray | Tensor,
     views: Sequence[OVView | tuple],
     *,
@@ -66,7 +70,10 @@ def average_features(
     view_weights: np.ndarray | Tensor | None = None,
     device: str | torch.device = "cpu",
 ) -> tuple[Tensor, Tensor]:
-    """Multi-view average of OV features at 3D points (OpenScene-2D baseline).
+    """The previous implementation of :func:`average_features` (per view and chunk: ``grid_sample``
+    of the whole (D, h, w) map and ``index_add_`` of (m, D) rows), kept as the reference the
+    tests and ``benchmarks/bench_averaging.py`` compare the fast path with. Same arguments and
+    results (up to float rounding).
 
     Args:
         points: (N, 3) world points (m).
@@ -168,3 +175,295 @@ def average_features(
         feats[start:start + chunk] = F.normalize(acc, dim=1) * seen[:, None]
         n_views[start:start + chunk] = count
     return feats, n_views
+
+
+def average_features(
+    points: np.ndarray | Tensor,
+    views: Sequence[OVView | tuple],
+    *,
+    use_depth: bool,
+    border_px: float = 10.0,
+    depth_rel_tol: float = 0.25,
+    chunk: int = 16384,
+    distance_power: float = 0.0,
+    view_weights: np.ndarray | Tensor | None = None,
+    device: str | torch.device = "cpu",
+    max_table_bytes: int = 256 << 20,
+) -> tuple[Tensor, Tensor]:
+    """Multi-view average of OV features at 3D points (OpenScene-2D baseline).
+
+    Args:
+        points: (N, 3) world points (m).
+        views: V views, each ``OVView`` or a tuple ``(ov (h, w, D), K (4,), world_from_cam
+            (4, 4), (W, H), depth_m (H', W') | None)``; all ``ov`` share D.
+        use_depth: keep a view only where |depth - z| <= depth_rel_tol * depth at the point's
+            pixel (nearest pixel; depth 0 = unknown fails the test). Views without depth are
+            then skipped entirely.
+        border_px: points projecting closer than this (full-image pixels) to the edge are out.
+        depth_rel_tol: relative depth tolerance of the depth test (0.25 in OpenScene/GOV-NeSF).
+        chunk: points per chunk (bounds memory: the projections of a chunk into every view).
+        distance_power: weight each view by z ** -distance_power (0 = plain mean); the
+            "visible views weighted by distance" oracle of the reference numbers uses > 0.
+        view_weights: optional (V, N) float >= 0 (or bool): multiplies view v's weight for point
+            n; 0 / False excludes it on top of the other tests (e.g. a ray-cast visibility
+            oracle, or an oracle weighting by known view quality). Rows follow ``views``.
+        device: torch device for the computation.
+        max_table_bytes: the views' float32 (h * w, D) maps are gathered from tables of at most
+            about this size (views are taken in groups; one view larger than this is one group).
+
+    Returns:
+        features: (N, D) float32, L2-normalised weighted mean (zero rows where no view counts).
+        n_views: (N,) int64, number of views that counted for each point.
+    """
+    n_pts, dim, chunks = _average_chunks(
+        points, views, use_depth=use_depth, border_px=border_px, depth_rel_tol=depth_rel_tol, chunk=chunk,
+        distance_power=distance_power, view_weights=view_weights, device=device,
+        max_table_bytes=max_table_bytes)
+    device = torch.device(device)
+    feats = torch.empty(n_pts, dim, dtype=torch.float32, device=device)
+    n_views = torch.zeros(n_pts, dtype=torch.int64, device=device)
+    for start, acc, count in chunks:
+        out = feats[start:start + count.shape[0]]
+        if acc is None:
+            out.zero_()
+        else:  # F.normalize (eps 1e-12), in place into the result
+            norm = torch.linalg.vector_norm(acc, dim=1, keepdim=True).clamp_min_(1e-12)
+            torch.div(acc, norm, out=out)
+        n_views[start:start + count.shape[0]] = count
+    return feats, n_views
+
+
+def average_similarities(
+    points: np.ndarray | Tensor,
+    views: Sequence[OVView | tuple],
+    text_emb: np.ndarray | Tensor,
+    *,
+    use_depth: bool,
+    border_px: float = 10.0,
+    depth_rel_tol: float = 0.25,
+    chunk: int = 16384,
+    device: str | torch.device = "cpu",
+    max_table_bytes: int = 256 << 20,
+) -> tuple[Tensor, Tensor]:
+    """Cosines between :func:`average_features` and texts, without keeping the (N, D) features.
+
+    Args:
+        points, views, use_depth, border_px, depth_rel_tol, chunk, device, max_table_bytes: as in
+            :func:`average_features`.
+        text_emb: (T, D) float32 text embeddings (unit rows for cosines).
+
+    Returns:
+        similarities: (N, T) float32, ``average_features(...)[0] @ text_emb.T`` (zero rows where no
+            view counts).
+        n_views: (N,) int64, number of views that counted for each point.
+    """
+    device = torch.device(device)
+    texts = _as_tensor(text_emb, torch.float32, device)
+    check_shape(texts, "T D", "text_emb must have shape (T texts, D)")
+    n_pts, dim, chunks = _average_chunks(
+        points, views, use_depth=use_depth, border_px=border_px, depth_rel_tol=depth_rel_tol, chunk=chunk,
+        distance_power=0.0, view_weights=None, device=device, max_table_bytes=max_table_bytes)
+    if dim and texts.shape[1] != dim:
+        raise ValueError(f"text_emb has dimension {texts.shape[1]}, the views' features {dim}")
+    sims = torch.zeros(n_pts, texts.shape[0], dtype=torch.float32, device=device)
+    n_views = torch.zeros(n_pts, dtype=torch.int64, device=device)
+    for start, acc, count in chunks:
+        stop = start + count.shape[0]
+        if acc is not None:
+            norm = torch.linalg.vector_norm(acc, dim=1, keepdim=True).clamp_min_(1e-12)
+            sims[start:stop] = (acc @ texts.T) / norm
+        n_views[start:stop] = count
+    return sims, n_views
+
+
+def _average_chunks(
+    points: np.ndarray | Tensor,
+    views: Sequence[OVView | tuple],
+    *,
+    use_depth: bool,
+    border_px: float,
+    depth_rel_tol: float,
+    chunk: int,
+    distance_power: float,
+    view_weights: np.ndarray | Tensor | None,
+    device: str | torch.device,
+    max_table_bytes: int,
+) -> tuple[int, int, Iterator[tuple[int, Tensor | None, Tensor]]]:
+    """Validates the inputs (raising at once) and returns (N, D, chunks); each chunk is
+    ``(start, acc (n, D) weighted mean or None when no view counts, count (n,) int64)``."""
+    if depth_rel_tol < 0:
+        raise ValueError(f"depth_rel_tol {depth_rel_tol} must be >= 0")
+    if chunk < 1:
+        raise ValueError(f"chunk {chunk} must be >= 1")
+    if border_px < 0:
+        raise ValueError(f"border_px {border_px} must be >= 0")
+    if max_table_bytes < 1:
+        raise ValueError(f"max_table_bytes {max_table_bytes} must be >= 1")
+    device = torch.device(device)
+    pts = _as_tensor(points, torch.float32, device)
+    check_shape(pts, "N 3", "points must have shape (N points, xyz)")
+    parsed = [OVView(*v) for v in views]
+    for i, v in enumerate(parsed):
+        check_shape(v.ov, "h w D", f"view {i}: ov")
+        if len(v.image_wh) != 2 or min(v.image_wh) < 1:
+            raise ValueError(f"view {i}: image_wh must be (W, H) >= 1, got {v.image_wh}")
+    dims = {int(v.ov.shape[-1]) for v in parsed}
+    if len(dims) > 1:
+        raise ValueError(f"views have OV features of different dimensions {sorted(dims)}")
+    dim = dims.pop() if dims else 0
+    n_pts = pts.shape[0]
+    view_ids = [i for i, v in enumerate(parsed) if not use_depth or v.depth_m is not None]
+    vw = None
+    if view_weights is not None:
+        vw = _as_tensor(view_weights, torch.float32, device)
+        check_shape(vw, "V N", "view_weights must have shape (V views, N points)",
+                    {"V": len(parsed), "N": n_pts})
+        if not bool((vw >= 0).all()):
+            raise ValueError("view_weights must be >= 0")
+        vw = vw[view_ids]
+    parsed = [parsed[i] for i in view_ids]
+    if not parsed or n_pts == 0:
+        empty = [(start, None, torch.zeros(min(chunk, n_pts - start), dtype=torch.int64, device=device))
+                 for start in range(0, n_pts, chunk)]
+        return n_pts, dim, iter(empty)
+    return n_pts, dim, _chunks(
+        pts, parsed, use_depth=use_depth, border_px=border_px, depth_rel_tol=depth_rel_tol, chunk=chunk,
+        distance_power=distance_power, vw=vw, dim=dim, device=device, max_table_bytes=max_table_bytes)
+
+
+def _chunks(
+    pts: Tensor,  # (N, 3)
+    parsed: list[OVView],
+    *,
+    use_depth: bool,
+    border_px: float,
+    depth_rel_tol: float,
+    chunk: int,
+    distance_power: float,
+    vw: Tensor | None,  # (V, N) or None
+    dim: int,
+    device: torch.device,
+    max_table_bytes: int,
+) -> Iterator[tuple[int, Tensor | None, Tensor]]:
+    # The projection (one batched op per chunk) and the gather (one embedding_bag per chunk and
+    # group) run in torch; the per-view selection, depth test and corner weights are small
+    # float32 numpy ops (the same IEEE arithmetic as the torch ops of the reference): many tiny
+    # torch ops, each a parallel region, slow down badly when the cores are shared.
+    n_pts = pts.shape[0]
+    cam_from_world = invert_pose(torch.stack([_as_tensor(v.world_from_cam, torch.float32, device)
+                                              for v in parsed]))  # (V, 4, 4)
+    Ks = torch.stack([_as_tensor(v.K, torch.float32, device) for v in parsed])  # (V, 4)
+    depths = [np.asarray(v.depth_m.cpu().numpy() if isinstance(v.depth_m, Tensor) else v.depth_m, np.float32)
+              if use_depth and v.depth_m is not None else None for v in parsed]  # (H', W') each
+    vw_np = None if vw is None else vw.cpu().numpy()  # (V, N) float32
+    # Groups of views whose flattened maps form one gather table of <= max_table_bytes.
+    groups: list[list[int]] = []
+    size = 0
+    for i, v in enumerate(parsed):
+        nbytes = int(v.ov.shape[0]) * int(v.ov.shape[1]) * dim * 4
+        if not groups or size + nbytes > max_table_bytes:
+            groups.append([])
+            size = 0
+        groups[-1].append(i)
+        size += nbytes
+    tables: list[Tensor | None] = [None] * len(groups)  # (sum h * w, D) float32, built when first hit
+    offsets: list[int] = [0] * len(parsed)
+    for group in groups:
+        off = 0
+        for i in group:
+            offsets[i] = off
+            off += int(parsed[i].ov.shape[0]) * int(parsed[i].ov.shape[1])
+    eps = np.float32(DEFAULT_EPS)
+
+    for start in range(0, n_pts, chunk):
+        p = pts[start:start + chunk]  # (n, 3)
+        n = p.shape[0]
+        wsum = np.zeros(n, np.float32)
+        count = np.zeros(n, np.int64)
+        uv_t, z_t = project_points(p, Ks, cam_from_world)  # (V, n, 2), (V, n)
+        uv_all, z_all = uv_t.cpu().numpy(), z_t.cpu().numpy()
+        # per group: point index (S,), table row (S, 4), weight (S, 4) of every counted sample
+        samples: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = [[] for _ in groups]
+        for g, group in enumerate(groups):
+            for i in group:
+                v = parsed[i]
+                width, height = int(v.image_wh[0]), int(v.image_wh[1])
+                uv, z = uv_all[i], z_all[i]
+                u_px, v_px = uv[:, 0], uv[:, 1]
+                ok = ((z > eps) & (u_px >= border_px) & (u_px <= width - border_px)
+                      & (v_px >= border_px) & (v_px <= height - border_px))  # in_view, (n,)
+                if vw_np is not None:
+                    ok &= vw_np[i, start:start + chunk] > 0
+                idx = np.flatnonzero(ok)
+                if idx.size == 0:
+                    continue
+                uv_ok, z_ok = uv[idx], z[idx]
+                depth = depths[i]
+                if depth is not None:
+                    dh, dw = depth.shape
+                    duv = uv_ok * np.array([dw / width, dh / height], np.float32)  # scale_uv
+                    col = np.clip(np.floor(duv[:, 0]), 0, dw - 1).astype(np.int64)  # sample_nearest
+                    row = np.clip(np.floor(duv[:, 1]), 0, dh - 1).astype(np.int64)
+                    d = depth[row, col]
+                    keep = (d > 0) & (np.abs(d - z_ok) <= depth_rel_tol * d)
+                    idx, uv_ok, z_ok = idx[keep], uv_ok[keep], z_ok[keep]
+                    if idx.size == 0:
+                        continue
+                h_ov, w_ov = int(v.ov.shape[0]), int(v.ov.shape[1])
+                fuv = uv_ok * np.array([w_ov / width, h_ov / height], np.float32)
+                corner, bw = _bilinear_corners_np(fuv, w_ov, h_ov)  # (m, 4), (m, 4)
+                if distance_power:
+                    w = np.maximum(z_ok, np.float32(1e-6)) ** np.float32(-distance_power)
+                else:
+                    w = np.ones_like(z_ok)
+                if vw_np is not None:
+                    w = w * vw_np[i, start:start + chunk][idx]
+                wsum[idx] += w  # idx is unique within a view
+                count[idx] += 1
+                samples[g].append((idx, corner + offsets[i], bw * w[:, None]))
+        seen = count > 0
+        inv = np.zeros(n, np.float32)
+        inv[seen] = np.float32(1.0) / wsum[seen]
+        acc: Tensor | None = None  # (n, D) weighted means; rows without samples are zero
+        for g, group in enumerate(groups):
+            if not samples[g]:
+                continue
+            table = tables[g]
+            if table is None:
+                table = torch.cat([
+                    _as_tensor(parsed[i].ov, torch.float32, device).reshape(-1, dim) for i in group
+                ])
+                tables[g] = table
+            rows = np.concatenate([s[0] for s in samples[g]])  # (S,)
+            order = np.argsort(rows, kind="stable")
+            rows = rows[order]
+            cols = np.concatenate([s[1] for s in samples[g]])[order].reshape(-1)  # (S * 4,)
+            wts = (np.concatenate([s[2] for s in samples[g]])[order] * inv[rows, None]).reshape(-1)
+            bag_len = np.bincount(rows, minlength=n) * 4  # (n,)
+            bag_off = np.cumsum(bag_len) - bag_len
+            part = F.embedding_bag(
+                torch.from_numpy(cols).to(device), table, torch.from_numpy(bag_off).to(device),
+                mode="sum", per_sample_weights=torch.from_numpy(wts).to(device),
+            )  # (n, D)
+            acc = part if acc is None else acc.add_(part)
+        yield start, acc, torch.from_numpy(count).to(device)
+
+
+def _bilinear_corners_np(
+    fuv: np.ndarray, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Corners and weights of ``grid_sample(mode="bilinear", padding_mode="border",
+    align_corners=False)`` at float32 pixel coordinates ``fuv`` (m, 2) of a (height, width) map:
+    flat indices (m, 4) int64 into the row-major map and float32 weights (m, 4)."""
+    size = np.array([width, height], np.float32)
+    grid = np.clip(2.0 * fuv / size - 1.0, -2.0, 2.0)
+    # grid_sample's unnormalisation (align_corners=False) and border padding (clip the coordinate)
+    ix = np.clip(((grid[:, 0] + 1.0) * width - 1.0) / 2.0, 0.0, width - 1.0)
+    iy = np.clip(((grid[:, 1] + 1.0) * height - 1.0) / 2.0, 0.0, height - 1.0)
+    x0f, y0f = np.floor(ix), np.floor(iy)
+    tx, ty = ix - x0f, iy - y0f
+    x0, y0 = x0f.astype(np.int64), y0f.astype(np.int64)
+    x1, y1 = np.minimum(x0 + 1, width - 1), np.minimum(y0 + 1, height - 1)
+    idx = np.stack([y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1], axis=1)
+    w = np.stack([(1 - tx) * (1 - ty), tx * (1 - ty), (1 - tx) * ty, tx * ty], axis=1)
+    return idx, w

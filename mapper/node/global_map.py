@@ -90,6 +90,37 @@ _NORMAL_REL_JUMP = 0.1
 """Depth neighbours differing by more than this fraction of the depth are across an edge: no normal."""
 _FORMAT = "global-map-v1"
 _RECENT_INTEGRATES = 1000
+
+UNIT_BLOCK_ROWS = 16384
+"""Rows per block of a snapshot's normalised fp32 features: a new snapshot reuses the blocks of the
+previous one whose fp16 rows did not change (:meth:`GlobalMapSnapshot.unit_feature_blocks`)."""
+
+
+def _unit_rows(feat: np.ndarray) -> np.ndarray:
+    """(n, D) float32 L2-normalised rows of ``feat`` (n, D) (zero rows stay zero)."""
+    out = feat.astype(np.float32)
+    out /= np.maximum(np.sqrt(np.einsum("nd,nd->n", out, out)), 1e-12)[:, None]
+    return out
+
+
+def _row_words(a: np.ndarray) -> np.ndarray:
+    """The bytes of each row of ``a`` (n, D) as (n, k) unsigned words (8-byte words when a row's
+    size allows), for an exact row-by-row comparison."""
+    a = np.ascontiguousarray(a)
+    row_bytes = a.dtype.itemsize * (a.shape[1] if a.ndim > 1 else 1)
+    word = np.uint64 if row_bytes % 8 == 0 else np.uint8
+    return a.view(np.uint8).reshape(a.shape[0], row_bytes).view(word)
+
+
+class _UnitSource:
+    """The fp16 features and fp32 unit blocks of the latest snapshot that computed its blocks,
+    shared by the snapshots of one map (so a new snapshot normalises only the changed blocks)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.version = -1
+        self.feat: np.ndarray | None = None  # (M, D) float16, read-only
+        self.blocks: list[np.ndarray] = []  # (<= UNIT_BLOCK_ROWS, D) float32 each, read-only
 """``stats`` reports the integrate time percentiles over this many latest keyframes."""
 
 
@@ -226,6 +257,8 @@ class GlobalMapSnapshot:
     last_seen_ns: np.ndarray  # (N,) int64
     _cache: dict[str, Any] = field(default_factory=dict, repr=False)
     _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _unit_source: _UnitSource | None = field(default=None, repr=False)
+    """Set by the map: earlier snapshots' unit blocks, reused where the fp16 rows are equal."""
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -239,21 +272,85 @@ class GlobalMapSnapshot:
     def n_with_features(self) -> int:
         return int(np.count_nonzero(self.feat_weight > 0))
 
+    def unit_feature_blocks(self) -> list[np.ndarray]:
+        """The (N, D) float32 L2-normalised features (zero rows where none) as consecutive
+        read-only blocks of ``UNIT_BLOCK_ROWS`` rows, computed once per snapshot (per map version).
+        A block whose fp16 rows equal those of the map's previous computed snapshot (same rows,
+        same bytes) is shared with it instead of normalised again; in a block with a few changed
+        rows only those are normalised (into a copy), so after an integrate only the touched rows
+        cost time. No rows: an empty list."""
+        with self._cache_lock:
+            blocks = self._cache.get("unit_blocks")
+            if blocks is not None:
+                return blocks
+            n = len(self)
+            if self.feat is None:
+                blocks = [np.zeros((min(UNIT_BLOCK_ROWS, n - lo), 0), np.float32)
+                          for lo in range(0, n, UNIT_BLOCK_ROWS)]
+            else:
+                prev_feat, prev_blocks = None, []
+                if self._unit_source is not None:
+                    with self._unit_source.lock:
+                        prev_feat, prev_blocks = self._unit_source.feat, self._unit_source.blocks
+                same_dim = (prev_feat is not None and prev_feat.shape[1] == self.feat.shape[1]
+                            and prev_feat.dtype == self.feat.dtype)
+                blocks = []
+                for b, lo in enumerate(range(0, n, UNIT_BLOCK_ROWS)):
+                    hi = min(lo + UNIT_BLOCK_ROWS, n)
+                    cur = self.feat[lo:hi]
+                    if (same_dim and prev_feat is not None and b < len(prev_blocks)
+                            and prev_blocks[b].shape[0] == hi - lo and prev_feat.shape[0] >= hi):
+                        # rows whose bytes changed since the previous blocks were computed
+                        changed = (_row_words(prev_feat[lo:hi]) != _row_words(cur)).any(axis=1)
+                        if not changed.any():
+                            blocks.append(prev_blocks[b])
+                            continue
+                        if np.count_nonzero(changed) * 4 < hi - lo:  # few rows: copy and patch them
+                            block = prev_blocks[b].copy()
+                            block[changed] = _unit_rows(cur[changed])
+                            block.setflags(write=False)
+                            blocks.append(block)
+                            continue
+                    block = _unit_rows(cur)
+                    block.setflags(write=False)
+                    blocks.append(block)
+                if self._unit_source is not None:
+                    with self._unit_source.lock:
+                        if self.version >= self._unit_source.version:
+                            self._unit_source.version = self.version
+                            self._unit_source.feat, self._unit_source.blocks = self.feat, blocks
+            self._cache["unit_blocks"] = blocks
+            return blocks
+
     def unit_features_f32(self) -> np.ndarray:
-        """(N, D) float32 L2-normalised features (zero rows where none), computed once per snapshot
-        (i.e. per map version): a text query is then one matrix product."""
+        """(N, D) float32 L2-normalised features (zero rows where none) in one read-only array,
+        computed once per snapshot (the blocks of :meth:`unit_feature_blocks`, joined; queries use
+        :meth:`similarities`, which needs no joined copy)."""
+        blocks = self.unit_feature_blocks()
         with self._cache_lock:
             cached = self._cache.get("unit_f32")
             if cached is None:
-                if self.feat is None:
-                    cached = np.zeros((len(self), 0), np.float32)
+                if len(blocks) == 1:
+                    cached = blocks[0]
+                elif blocks:
+                    cached = np.concatenate(blocks)
                 else:
-                    cached = self.feat.astype(np.float32)
-                    norms = np.sqrt(np.einsum("nd,nd->n", cached, cached))
-                    cached /= np.maximum(norms, 1e-12)[:, None]
+                    cached = np.zeros((0, 0 if self.feat is None else self.feat.shape[1]), np.float32)
                 cached.setflags(write=False)
                 self._cache["unit_f32"] = cached
             return cached
+
+    def similarities(self, emb: np.ndarray) -> np.ndarray:
+        """(N, K) float32 cosines of the unit features with ``emb`` (K, D) float32 rows: one
+        product per block of :meth:`unit_feature_blocks`."""
+        blocks = self.unit_feature_blocks()
+        out = np.empty((len(self), emb.shape[0]), np.float32)
+        lo = 0
+        emb_t = np.ascontiguousarray(emb.T, dtype=np.float32)
+        for block in blocks:
+            np.matmul(block, emb_t, out=out[lo:lo + block.shape[0]])
+            lo += block.shape[0]
+        return out
 
     def nearest_with_feature(
         self,
@@ -292,6 +389,7 @@ class GlobalSemanticMap:
         """The feature fusion rule (replaceable by the learned model)."""
         self._lock = threading.Lock()
         self._snapshot: GlobalMapSnapshot | None = None
+        self._unit_source = _UnitSource()
         self._version = 0
         self._reset(dim=None)
 
@@ -771,6 +869,7 @@ class GlobalSemanticMap:
                 feat_weight=frozen(self._feat_weight),
                 hits=frozen(self._hits),
                 last_seen_ns=frozen(self._last_seen_ns),
+                _unit_source=self._unit_source,
             )
             self._snapshot = snap
             return snap

@@ -9,13 +9,16 @@
    that is (nearly) one of the texts, so that asking for "wall" still works;
 2. score = cosine of each point's fused feature to its best text; a point is labelled with that
    text only if the score beats every negative's cosine and ``min_score``; the snapshot caches
-   the normalised fp32 feature matrix, so this is one matrix product per query;
+   the normalised fp32 features in blocks (a new map version renormalises only the blocks whose
+   rows changed), so this is one matrix product per block and query;
 3. ``max_points`` keeps the best scores; object candidates are the connected components (points
-   closer than ``cluster_radius_m``) of each text's points with at least ``min_object_points``
-   points, scored by the mean of their top half scores, sorted best first.
+   at most ``cluster_radius_m`` apart, :func:`radius_components`: a cell hash, not every point
+   pair) of each text's points with at least ``min_object_points`` points, scored by the mean of
+   their top half scores, sorted best first.
 
 ``segment_points`` methods ``average`` / ``average_depth`` average the window keyframes' OV
-features at the points (:func:`mapper.model.baselines.average_features`) and pick the best text.
+features at the points and pick the best text (:func:`mapper.model.baselines.average_similarities`:
+the cosines of the averaged features, computed per chunk without keeping the (N, D) features).
 
 Answers from the whole map (every ``segment_points`` method, and ``render`` labels): where the
 window does not see a point, :func:`fill_from_map` takes the global map's nearest point with a
@@ -27,6 +30,7 @@ z-buffered splat of the map where the render found no surface). Each answer says
 
 from __future__ import annotations
 
+import itertools
 import re
 import time
 from collections.abc import Sequence
@@ -52,6 +56,7 @@ __all__ = [
     "SOURCE_WINDOW",
     "cluster_points",
     "fill_from_map",
+    "label_from_similarities",
     "label_with_texts",
     "normalise_query",
     "query_points",
@@ -121,16 +126,147 @@ class Cluster:
     score: float
 
 
+_CELL_OFFSETS = sorted(
+    (d for d in itertools.product(range(-2, 3), repeat=3) if d > (0, 0, 0)),
+    key=lambda d: (d[0] ** 2 + d[1] ** 2 + d[2] ** 2, d),
+)
+"""Half of the cell offsets whose cells (side radius / sqrt(3)) can hold points within the radius
+(3 cells apart along an axis are >= 2 sides = 1.15 radius apart), nearest first."""
+
+_DENSE_TABLE_ENTRIES = 1 << 22
+"""Cell grids up to this many cells (or 8x the occupied cells) find neighbours in a dense table."""
+
+_DENSE_POINTS_PER_CELL = 24.0
+"""Above this mean number of points per cell, the point-pair test between cells costs more than
+the k-d tree's pair search: :func:`radius_components` uses the latter."""
+
+
+def _pair_components(pts: np.ndarray, radius_m: float) -> tuple[int, np.ndarray]:
+    """(n_components, (N,) component) of the graph linking points within ``radius_m``, from the
+    k-d tree's point pairs (the reference for :func:`radius_components`)."""
+    pairs = cKDTree(pts).query_pairs(radius_m, output_type="ndarray")  # (P, 2)
+    n = pts.shape[0]
+    graph = coo_matrix((np.ones(pairs.shape[0], np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    n_comp, comp = connected_components(graph, directed=False)
+    return int(n_comp), comp
+
+
+def radius_components(pts: np.ndarray, radius_m: float) -> tuple[int, np.ndarray]:
+    """Connected components of the graph linking points (N, 3) float64 at most ``radius_m``
+    apart: (n_components, (N,) int component id). Points are hashed into cubic cells of side
+    ``radius_m / sqrt(3)`` (all points of a cell are linked to each other); neighbouring cells
+    are joined when some pair of their points is within the radius, testing only cell pairs
+    that are not already in one component (nearest offsets first, so a dense surface is joined
+    after a few offsets). The same components as linking every point pair (``_pair_components``)."""
+    n = pts.shape[0]
+    if n == 0:
+        return 0, np.zeros(0, np.int32)
+    side = radius_m / np.sqrt(3.0) * (1.0 - 1e-9)
+    cell = np.floor(pts / side).astype(np.int64)
+    cell -= cell.min(axis=0) - 2  # >= 2: offsets of -2 stay non-negative
+    dims = cell.max(axis=0) + 3
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    ukeys, point_cell = np.unique(key, return_inverse=True)
+    point_cell = point_cell.ravel()
+    n_cells = ukeys.shape[0]
+    if n > _DENSE_POINTS_PER_CELL * n_cells:
+        return _pair_components(pts, radius_m)
+    order = np.argsort(point_cell, kind="stable")  # points grouped by cell
+    counts = np.bincount(point_cell, minlength=n_cells)
+    starts = np.cumsum(counts) - counts
+    cells = np.arange(n_cells)
+    cell_comp = cells.copy()  # component of each cell, labels 0 .. n_comp - 1
+    r2 = radius_m * radius_m
+    n_comp = n_cells
+    # neighbour lookup: a dense key -> cell table when the grid is small, else a binary search
+    table = None
+    if int(np.prod(dims)) <= max(_DENSE_TABLE_ENTRIES, 8 * n_cells):
+        table = np.full(int(np.prod(dims)), -1, np.int64)
+        table[ukeys] = cells
+    for dx, dy, dz in _CELL_OFFSETS:
+        if n_comp == 1:
+            break
+        target = ukeys + (dx * dims[1] + dy) * dims[2] + dz
+        if table is not None:
+            pos = table[target]
+            hit = pos >= 0
+        else:
+            pos = np.minimum(np.searchsorted(ukeys, target), n_cells - 1)
+            hit = ukeys[pos] == target
+        a, b = cells[hit], pos[hit]
+        differ = cell_comp[a] != cell_comp[b]
+        a, b = a[differ], b[differ]
+        if a.size == 0:
+            continue
+        # every point pair of each cell pair: (pair, i in a, j in b)
+        na, nb = counts[a], counts[b]
+        total = na * nb
+        pair = np.repeat(np.arange(a.size), total)
+        local = np.arange(int(total.sum())) - np.repeat(np.cumsum(total) - total, total)
+        ia = order[starts[a][pair] + local // nb[pair]]
+        ib = order[starts[b][pair] + local % nb[pair]]
+        diff = pts[ia] - pts[ib]
+        close = np.einsum("pk,pk->p", diff, diff) <= r2
+        linked = np.flatnonzero(np.bincount(pair[close], minlength=a.size))
+        if linked.size == 0:
+            continue
+        # join the components the new cell links connect (a graph over the current components)
+        ca, cb = cell_comp[a[linked]], cell_comp[b[linked]]
+        graph = coo_matrix((np.ones(ca.size, np.int8), (ca, cb)), shape=(n_comp, n_comp))
+        n_comp, relabel = connected_components(graph, directed=False)
+        cell_comp = relabel[cell_comp]
+    return int(n_comp), cell_comp[point_cell]
+
+
 def cluster_points(
     xyz: np.ndarray,  # (N, 3) float32 world metres
     score: np.ndarray,  # (N,) float32
     label: np.ndarray,  # (N,) int labels (>= 0)
     radius_m: float,
     min_points: int,
+    *,
+    reference: bool = False,
 ) -> list[Cluster]:
-    """Connected components per label (points closer than ``radius_m`` are linked), keeping the
+    """Connected components per label (points at most ``radius_m`` apart are linked), keeping the
     components with at least ``min_points`` points; each scored by the mean of its top half of
-    scores. Sorted by score, best first."""
+    scores. Sorted by score, best first. The components come from :func:`radius_components`;
+    ``reference=True`` takes them from every point pair of a k-d tree, as before (for tests)."""
+    out: list[Cluster] = []
+    if reference:
+        return _cluster_points_reference(xyz, score, label, radius_m, min_points)
+    for lab in np.unique(label):
+        idx = np.flatnonzero(label == lab)
+        if idx.size < min_points:
+            continue
+        pts = xyz[idx].astype(np.float64)
+        n_comp, comp = radius_components(pts, radius_m)
+        sizes = np.bincount(comp, minlength=n_comp)
+        big = sizes >= min_points
+        if not big.any():
+            continue
+        keep = big[comp]
+        members_all = np.flatnonzero(keep)
+        members_all = members_all[np.argsort(comp[members_all], kind="stable")]  # by component, ascending
+        bounds = np.cumsum(sizes[big])
+        for members in np.split(members_all, bounds[:-1]):
+            p = pts[members]
+            s = np.sort(score[idx[members]])[::-1]
+            top = s[: max(1, (s.size + 1) // 2)]
+            out.append(Cluster(
+                int(lab), idx[members], p.mean(axis=0), p.min(axis=0), p.max(axis=0), float(top.mean())
+            ))
+    out.sort(key=lambda c: (-c.score, -c.indices.size))
+    return out
+
+
+def _cluster_points_reference(
+    xyz: np.ndarray,  # (N, 3) float32 world metres
+    score: np.ndarray,  # (N,) float32
+    label: np.ndarray,  # (N,) int labels (>= 0)
+    radius_m: float,
+    min_points: int,
+) -> list[Cluster]:
+    """The previous :func:`cluster_points` (k-d tree point pairs, one pass per component)."""
     out: list[Cluster] = []
     for lab in np.unique(label):
         idx = np.flatnonzero(label == lab)
@@ -163,11 +299,19 @@ def label_with_texts(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Best text per point, its cosine, and whether it beats every negative:
     (label (N,) int64, score (N,) float32, beats_negatives (N,) bool)."""
-    n_texts = text_emb.shape[0]
     sims = features @ np.concatenate([text_emb, negative_emb]).T  # (N, T + Q): one product
+    return label_from_similarities(sims, text_emb.shape[0])
+
+
+def label_from_similarities(
+    sims: np.ndarray,  # (N, T + Q) float32 cosines to the T texts, then the Q negatives
+    n_texts: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`label_with_texts` from the cosines: (label (N,) int64, score (N,) float32,
+    beats_negatives (N,) bool)."""
     label = np.argmax(sims[:, :n_texts], axis=1)
     score = sims[np.arange(sims.shape[0]), label].astype(np.float32)
-    if negative_emb.shape[0]:
+    if sims.shape[1] > n_texts:
         beats = score > sims[:, n_texts:].max(axis=1)
     else:
         beats = np.ones(score.shape[0], bool)
@@ -213,9 +357,10 @@ def query_points(
         neg_emb = neg_emb[keep_neg]
     t1 = time.perf_counter()
 
-    feats = snapshot.unit_features_f32()  # cached per map version
+    snapshot.unit_feature_blocks()  # cached per map version; unchanged blocks shared with the last
     t2 = time.perf_counter()
-    label, score, beats = label_with_texts(feats, text_emb, neg_emb)
+    sims = snapshot.similarities(np.concatenate([text_emb, neg_emb]))  # (N, T + Q): one product per block
+    label, score, beats = label_from_similarities(sims, text_emb.shape[0])
     ok = beats & snapshot.has_feature
     if min_score is not None:
         ok &= score >= min_score
@@ -274,14 +419,13 @@ def segment_average(
     """OpenScene-2D averaging baseline: (label (N,) int32, -1 where no view counts; score (N,)
     float32 cosine of the chosen label, 0 where -1; n_views (N,) int64). ``views`` are
     ``(ov (h, w, D), K (4,), world_from_cam (4, 4), (W, H), depth_m (H, W) | None)``."""
-    from mapper.model.baselines import average_features  # torch-heavy; imported when first used
+    from mapper.model.baselines import average_similarities  # torch-heavy; imported when first used
 
-    feats, n_views = average_features(xyz, list(views), use_depth=use_depth)
-    f = feats.numpy()
+    sims_t, n_views = average_similarities(xyz, list(views), text_emb, use_depth=use_depth)
+    sims = sims_t.numpy()  # (N, T) cosines of the averaged features (zero rows where no view counts)
     n = n_views.numpy()
-    if f.shape[0] == 0:
+    if sims.shape[0] == 0:
         return np.zeros(0, np.int32), np.zeros(0, np.float32), n
-    sims = f @ text_emb.T  # (N, T)
     label = np.argmax(sims, axis=1).astype(np.int32)
     score = np.take_along_axis(sims, label[:, None].astype(np.int64), axis=1)[:, 0].astype(np.float32)
     seen = n > 0

@@ -1,0 +1,94 @@
+"""The gather-based averaging (``average_features`` / ``average_similarities``) against the previous
+per-view ``grid_sample`` implementation (``average_features_reference``) on random scenes."""
+
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from mapper.model.baselines import OVView, average_features, average_features_reference, average_similarities
+from mapper.node.queries import segment_average
+
+
+def random_scene(seed: int, n_points: int = 3000, n_views: int = 7) -> tuple[np.ndarray, list[OVView]]:
+    """Points in a box in front of randomly placed cameras with ov maps of mixed resolutions,
+    depth maps (some with holes, one view without) and points on and off the image borders."""
+    rng = np.random.default_rng(seed)
+    pts = (rng.random((n_points, 3)) * [4.0, 3.0, 2.0] - [2.0, 1.5, -1.0]).astype(np.float32)
+    views = []
+    for i in range(n_views):
+        width, height = int(rng.integers(40, 90)), int(rng.integers(30, 70))
+        K = np.array([rng.uniform(20, 60), rng.uniform(20, 60), width / 2, height / 2])
+        angle = rng.uniform(-0.4, 0.4)
+        world_from_cam = np.eye(4)
+        c, s = np.cos(angle), np.sin(angle)
+        world_from_cam[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+        world_from_cam[:3, 3] = rng.normal(0, 0.3, 3) - [0, 0, 0.5]
+        h, w = int(rng.integers(1, 12)), int(rng.integers(1, 16))  # includes 1-pixel-wide maps
+        ov = rng.standard_normal((h, w, 24)).astype(np.float16 if i % 2 else np.float32)
+        if i == n_views - 1:
+            depth = None
+        else:
+            depth = rng.uniform(0.5, 4.0, (height // 2, width // 2)).astype(np.float32)
+            depth[rng.random(depth.shape) < 0.2] = 0.0
+        views.append(OVView(ov, K, world_from_cam, (width, height), depth))
+    return pts, views
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("use_depth", [False, True])
+def test_fast_average_equals_the_reference(seed: int, use_depth: bool) -> None:
+    pts, views = random_scene(seed)
+    options: list[dict[str, Any]] = [{}, {"border_px": 0.0}, {"distance_power": 1.5, "chunk": 500},
+                                     {"depth_rel_tol": 0.6}]
+    for kwargs in options:
+        f_ref, n_ref = average_features_reference(pts, views, use_depth=use_depth, **kwargs)
+        f, n = average_features(pts, views, use_depth=use_depth, **kwargs)
+        assert torch.equal(n, n_ref)
+        assert int((n > 0).sum()) > 100  # the scene exercises the averaging
+        assert torch.allclose(f, f_ref, atol=1e-5, rtol=0)
+
+
+def test_view_weights_and_table_groups_equal_the_reference() -> None:
+    pts, views = random_scene(3)
+    vw = np.random.default_rng(3).random((len(views), pts.shape[0])).astype(np.float32)
+    vw[vw < 0.3] = 0.0
+    f_ref, n_ref = average_features_reference(pts, views, use_depth=False, view_weights=vw)
+    # a tiny table bound puts every view in its own gather table
+    f, n = average_features(pts, views, use_depth=False, view_weights=vw, max_table_bytes=1, chunk=700)
+    assert torch.equal(n, n_ref)
+    assert torch.allclose(f, f_ref, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("use_depth", [False, True])
+def test_similarities_and_segment_average_match_the_reference(use_depth: bool) -> None:
+    pts, views = random_scene(4)
+    texts = np.random.default_rng(4).standard_normal((5, 24)).astype(np.float32)
+    texts /= np.linalg.norm(texts, axis=1, keepdims=True)
+    f_ref, n_ref = average_features_reference(pts, views, use_depth=use_depth)
+    sims_ref = f_ref.numpy() @ texts.T
+    sims, n = average_similarities(pts, views, texts, use_depth=use_depth, chunk=1000)
+    assert torch.equal(n, n_ref)
+    np.testing.assert_allclose(sims.numpy(), sims_ref, atol=1e-5, rtol=0)
+    label, score, n_seg = segment_average(pts, views, texts, use_depth=use_depth)  # type: ignore[arg-type]
+    seen = n_ref.numpy() > 0
+    np.testing.assert_array_equal(n_seg, n_ref.numpy())
+    assert (label[~seen] == -1).all() and (score[~seen] == 0).all()
+    # labels equal wherever the best text is not a near tie
+    top2 = np.sort(sims_ref, axis=1)[:, -2:]
+    clear = seen & (top2[:, 1] - top2[:, 0] > 1e-4)
+    np.testing.assert_array_equal(label[clear], np.argmax(sims_ref, axis=1)[clear])
+    np.testing.assert_allclose(score[seen], sims_ref[seen].max(axis=1), atol=1e-5)
+
+
+def test_no_views_and_bad_input() -> None:
+    pts, views = random_scene(5, n_points=50)
+    f, n = average_features(pts, [], use_depth=False)
+    assert f.shape == (50, 0) and int(n.sum()) == 0
+    f, n = average_features(pts, [views[-1]], use_depth=True)  # the one view without depth
+    assert f.shape == (50, 24) and int(n.sum()) == 0 and float(f.abs().sum()) == 0.0
+    with pytest.raises(ValueError, match="max_table_bytes"):
+        average_features(pts, views, use_depth=False, max_table_bytes=0)
+    with pytest.raises(ValueError, match="dimension"):
+        average_similarities(pts, views, np.ones((2, 7), np.float32), use_depth=False)

@@ -1,0 +1,67 @@
+"""The faster query paths against the previous ones: cell-hash radius components against every
+k-d tree point pair, and the object clusters of ``query_points`` against the previous
+``cluster_points`` on random maps."""
+
+import numpy as np
+import pytest
+
+from mapper.node.queries import _pair_components, cluster_points, radius_components
+
+
+def same_partition(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two component labelings group the points identically."""
+    if a.shape != b.shape:
+        return False
+    pairs = np.unique(np.stack([a, b], axis=1), axis=0)
+    return len(pairs) == len(np.unique(a)) == len(np.unique(b))
+
+
+def blobs(seed: int, n: int, spread: float, n_blobs: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(0, 5, (n_blobs, 3))
+    return centres[rng.integers(0, n_blobs, n)] + rng.normal(0, spread, (n, 3))
+
+
+@pytest.mark.parametrize(
+    "pts",
+    [
+        blobs(0, 3000, 0.15, 40),  # many components of mixed sizes
+        blobs(1, 2000, 0.05, 5),  # dense: the k-d tree path
+        np.random.default_rng(2).uniform(0, 3, (2500, 3)),  # near the percolation threshold
+        np.random.default_rng(3).uniform(-1, 1, (800, 3)) * [10, 0.01, 0.01],  # almost on a line
+        np.stack(np.meshgrid(*[np.arange(12) * 0.11] * 3, indexing="ij"), -1).reshape(-1, 3),  # grid < r
+        np.stack(np.meshgrid(*[np.arange(10) * 0.125] * 3, indexing="ij"), -1).reshape(-1, 3),  # grid, > r
+        np.zeros((30, 3)),  # one repeated point
+        np.array([[1.0, 2.0, 3.0]]),
+    ],
+)
+def test_radius_components_equal_every_pair(pts: np.ndarray) -> None:
+    for radius in (0.12, 0.3):
+        n_ref, ref = _pair_components(pts, radius)
+        n, comp = radius_components(pts, radius)
+        assert n == n_ref
+        assert same_partition(comp, ref)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_clusters_equal_the_previous_implementation(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    xyz = blobs(seed, 4000, rng.uniform(0.05, 0.3), 30).astype(np.float32)
+    label = np.asarray(rng.integers(0, 3, size=int(xyz.shape[0])))
+    score = np.asarray(rng.random(size=int(xyz.shape[0])), np.float32)
+    for radius, min_points in ((0.12, 15), (0.25, 5), (0.05, 2)):
+        new = cluster_points(xyz, score, label, radius, min_points)
+        ref = cluster_points(xyz, score, label, radius, min_points, reference=True)
+        assert len(new) == len(ref) and len(ref) > 0
+
+        def key(c) -> tuple:  # noqa: ANN001
+            return (c.label, tuple(c.indices.tolist()))
+
+        ref_by_key = {key(c): c for c in ref}
+        for c in new:
+            r = ref_by_key[key(c)]
+            assert c.score == r.score
+            np.testing.assert_array_equal(c.centroid, r.centroid)
+            np.testing.assert_array_equal(c.aabb_min, r.aabb_min)
+            np.testing.assert_array_equal(c.aabb_max, r.aabb_max)
+        assert [c.score for c in new] == [c.score for c in ref]  # the same order up to ties

@@ -1,0 +1,98 @@
+"""Snapshots share the normalised fp32 feature blocks that did not change since the last one:
+the blocks equal a full renormalisation after every kind of change (integrate, features set,
+prune, restore, clear), and unchanged blocks are the same objects."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapper.node import global_map
+from mapper.node.config import GlobalMapConfig
+from mapper.node.global_map import GlobalSemanticMap
+from mapper.node.window import Keyframe
+
+W, H = 32, 24
+K = np.array([30.0, 28.0, 16.0, 12.0])
+
+
+def keyframe(x_m: float, stamp_ns: int, seed: int) -> Keyframe:
+    pose = np.eye(4)
+    pose[:3, 3] = [x_m, 0.0, 0.0]
+    ov = np.random.default_rng(seed).standard_normal((3, 4, 8)).astype(np.float16)
+    return Keyframe(
+        seq=stamp_ns, stamp_ns=stamp_ns, camera="cam0", K=K.copy(), world_from_cam=pose,
+        rgb=np.zeros((H, W, 3), np.uint8), depth_m=np.full((H, W), 2.0, np.float32), ov=ov, ov_space="test",
+    )  # fmt: skip
+
+
+def full_unit(snap: global_map.GlobalMapSnapshot) -> np.ndarray:
+    assert snap.feat is not None
+    f = snap.feat.astype(np.float32)
+    return f / np.maximum(np.sqrt(np.einsum("nd,nd->n", f, f)), 1e-12)[:, None]
+
+
+def check(snap: global_map.GlobalMapSnapshot) -> list[np.ndarray]:
+    blocks = snap.unit_feature_blocks()
+    np.testing.assert_array_equal(np.concatenate(blocks), full_unit(snap))
+    np.testing.assert_array_equal(snap.unit_features_f32(), full_unit(snap))
+    emb = np.random.default_rng(0).standard_normal((3, 8)).astype(np.float32)
+    np.testing.assert_allclose(snap.similarities(emb), full_unit(snap) @ emb.T, rtol=1e-5, atol=1e-6)
+    assert all(not b.flags.writeable for b in blocks)
+    return blocks
+
+
+def test_unchanged_blocks_are_shared_and_every_change_is_seen(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(global_map, "UNIT_BLOCK_ROWS", 16)
+    gmap = GlobalSemanticMap(GlobalMapConfig(pixel_stride=2, max_points=1_000_000))
+    for i in range(4):  # disjoint regions: rows appended block after block
+        gmap.integrate(keyframe(10.0 * i, i + 1, i), map_version=i + 1)
+    first = gmap.snapshot()
+    b1 = check(first)
+    assert len(b1) > 3
+    # a new region: the old full blocks are shared, the appended rows are new
+    gmap.integrate(keyframe(50.0, 10, 10), map_version=6)
+    second = gmap.snapshot()
+    b2 = check(second)
+    n_full = len(first) // 16
+    assert all(b2[i] is b1[i] for i in range(n_full))
+    assert len(b2) > len(b1)
+    # the first region again: its blocks change (fused), the others stay shared
+    gmap.integrate(keyframe(0.0, 11, 11), map_version=7)
+    third = gmap.snapshot()
+    b3 = check(third)
+    changed = [i for i in range(len(b3)) if b3[i] is not b2[i]]
+    assert changed and len(changed) < len(b3)
+    assert not np.array_equal(b3[0], b2[0])
+    # learned features for two voxels: their block is a patched copy, the others are shared
+    keys, _ = gmap.seen_voxels(keyframe(50.0, 12, 12))
+    assert gmap.set_features(keys[:2], np.ones((2, 8), np.float32)) == 2
+    b4 = check(gmap.snapshot())
+    patched = [i for i in range(len(b4)) if b4[i] is not b3[i]]
+    assert 1 <= len(patched) <= 2
+    # learned features for many voxels
+    gmap.set_features(keys, np.ones((keys.shape[0], 8), np.float32))
+    check(gmap.snapshot())
+    # prune (rows move), restore, clear: still equal to a full renormalisation
+    small = GlobalSemanticMap(GlobalMapConfig(pixel_stride=2, max_points=200))
+    for i in range(3):
+        small.integrate(keyframe(10.0 * i, i + 1, i), map_version=i + 1)
+        check(small.snapshot())
+    arrays, manifest = gmap.to_arrays()
+    gmap.restore(arrays, manifest, map_version=20)
+    check(gmap.snapshot())
+    gmap.clear(map_version=21)
+    assert gmap.snapshot().unit_feature_blocks() == []
+    gmap.integrate(keyframe(0.0, 30, 30), map_version=22)
+    check(gmap.snapshot())
+
+
+def test_old_snapshots_keep_their_own_blocks(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(global_map, "UNIT_BLOCK_ROWS", 16)
+    gmap = GlobalSemanticMap(GlobalMapConfig(pixel_stride=2))
+    gmap.integrate(keyframe(0.0, 1, 1), map_version=1)
+    old = gmap.snapshot()
+    gmap.integrate(keyframe(0.0, 2, 2), map_version=2)  # fuses into the same voxels
+    new = gmap.snapshot()
+    check(new)  # computed first: the old snapshot has not published blocks
+    check(old)  # then the old one: its rows differ, it must not take the new blocks
