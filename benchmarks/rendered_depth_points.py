@@ -8,12 +8,16 @@ then come from :mod:`mapper.node.plugins.depth_points`), and reports for each:
 * geometric error of the map points: distance to the nearest ground-truth surface point
   (the simulator's depth of the same frames back-projected), median / p90, and the share within
   10 cm and 25 cm;
-* "find the chair": the top object's distance to the nearest real chair.
+* "find the chair": the top object's distance to the nearest real chair;
+* without depth, with the multi-view consistency filter of rendered-depth points
+  (``global_map.rendered_consistency``) on and/or off (``--consistency``): the pixels checked and
+  rejected. The node's triangulation plugin runs as ``govnesf serve`` installs it (its points are
+  in the map and feed the consistency check).
 
 Usage::
 
     python benchmarks/rendered_depth_points.py [--frames 240] [--seed 3] \
-        [--checkpoint checkpoints/cpu-small.json]
+        [--checkpoint checkpoints/cpu-small.json] [--consistency on,off] [--no-depth-row]
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from scipy.spatial import cKDTree
 from clients.harness import chair_distance, sim_stream
 from mapper.node.config import config_from_dict
 from mapper.node.plugins.learned import install_learned_handlers
+from mapper.node.plugins.triangulation import install_triangulation
 from mapper.node.service import MapperNode
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
 from protocol.messages import Points, QueryPoints, decode, encode
@@ -46,10 +51,11 @@ def backproject(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, stride: int 
     return cam @ pose[:3, :3].T + pose[:3, 3]
 
 
-def run(args: argparse.Namespace, with_depth: bool) -> dict[str, Any]:
+def run(args: argparse.Namespace, with_depth: bool, consistency: bool = True) -> dict[str, Any]:
     stream = sim_stream(args.seed, args.frames, depth=with_depth)
     config = config_from_dict(
-        {"map_dir": "/tmp/govnesf-bench-maps", "autosave_name": "", "save_on_exit": False}
+        {"map_dir": "/tmp/govnesf-bench-maps", "autosave_name": "", "save_on_exit": False,
+         "global_map": {"rendered_consistency": consistency}}
     )
     node = MapperNode(config)
     runtime = ModelRuntime(ModelRuntimeConfig(checkpoint=str(args.checkpoint), device="cpu"))
@@ -57,6 +63,7 @@ def run(args: argparse.Namespace, with_depth: bool) -> dict[str, Any]:
         raise SystemExit(runtime.load_error)
     points = install_learned_handlers(node, runtime)
     assert points is not None
+    tri = install_triangulation(node, runtime)  # as `govnesf serve` does (None when disabled)
     gt_parts = []
     worker_s = 0.0
     started = time.perf_counter()
@@ -64,9 +71,13 @@ def run(args: argparse.Namespace, with_depth: bool) -> dict[str, Any]:
         node.handle_ingest(encode(frame))
         gt_parts.append(backproject(view.depth_m, stream.K, stream.poses[k]))
         if (k + 1) % args.process_every == 0:  # the worker's batching, run inline for a clean timing
+            if tri is not None:
+                tri.process_pending()
             t0 = time.perf_counter()
             points.process_pending()
             worker_s += time.perf_counter() - t0
+    if tri is not None:
+        tri.process_pending()
     t0 = time.perf_counter()
     points.process_pending()
     worker_s += time.perf_counter() - t0
@@ -82,6 +93,10 @@ def run(args: argparse.Namespace, with_depth: bool) -> dict[str, Any]:
     node.stop()
     return {
         "input depth": "yes" if with_depth else "no (rendered)",
+        "consistency": "-" if with_depth else ("on" if consistency else "off"),
+        "rendered px checked": stats["consistency"]["checked"],
+        "rendered px rejected": stats["consistency"]["rejected"],
+        "triangulated points": 0 if tri is None else tri.stats()["global_map_points"],
         "keyframes": len(node.state.window) + node.state.keyframes_evicted,
         "rendered keyframes": stats["integrated"],
         "map points": len(snap),
@@ -102,10 +117,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--checkpoint", type=Path, default=Path("checkpoints/cpu-small.json"))
     p.add_argument("--process-every", type=int, default=10, help="frames between worker passes")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--consistency", default="on,off",
+                   help="rows without depth: rendered_consistency on and/or off (comma separated)")
+    p.add_argument("--no-depth-row", action="store_true", help="skip the row with input depth")
     args = p.parse_args(argv)
+    modes = [m.strip() for m in args.consistency.split(",") if m.strip()]
+    if not modes or any(m not in ("on", "off") for m in modes):
+        p.error("--consistency: a comma-separated list of on / off")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     torch.set_num_threads(args.threads)
-    rows = [run(args, True), run(args, False)]
+    rows = [] if args.no_depth_row else [run(args, True)]
+    rows += [run(args, False, consistency=m == "on") for m in modes]
     keys = list(rows[0])
     print("| " + " | ".join(keys) + " |")
     print("|" + "---|" * len(keys))

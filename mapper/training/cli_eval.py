@@ -74,6 +74,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-oracle", action="store_true", help="3D: skip the GT-visibility averaging row")
     p.add_argument("--no-depth-input-rows", action="store_true",
                    help="3D: skip the rows that use no input depth (frustum bounds, rendered-depth DGM)")
+    p.add_argument("--rgb-only-node", action="store_true",
+                   help="3D: also stream each scene WITHOUT depth through an in-process node serving "
+                   "--checkpoint (the plugins `govnesf serve` installs) and score its segment_points "
+                   "answers (rows 'Node RGB-only: ...')")
+    p.add_argument("--node-config", default=None,
+                   help="node TOML for --rgb-only-node (default: the shipped launch/node.toml)")
     p.add_argument("--training-style", default="apartment", help="style the model was trained on")
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -131,6 +137,7 @@ def main(argv: list[str] | None = None) -> int:
         oracle=not args.no_oracle, clip_to_volume=not args.no_clip,
         pixel_stride=args.pixel_stride, averaging_borders_px=tuple(args.averaging_border_px),
         weight_threshold=args.weight_threshold, no_depth_input=not args.no_depth_input_rows,
+        rgb_only_node=str(args.checkpoint) if args.rgb_only_node else None, node_config=args.node_config,
     )
 
     def log(msg: str) -> None:

@@ -18,7 +18,10 @@ Protocol (the official code's, see DESIGN.md, with our fixes):
   of them), without depth and with Depth Guided Masking; side by side with plain averaging
   (``mapper.model.baselines.average_features``, 10 px border, without depth and with the 25% depth
   test), the Distill baseline and, as headroom references, averaging over the views that truly
-  see the point (ground-truth visibility oracle).
+  see the point (ground-truth visibility oracle). With ``EvalSettings.rgb_only_node``
+  (``govnesf evaluate --rgb-only-node``) also the node's real RGB-only pipeline: the frames
+  streamed without depth through an in-process node, its ``segment_points`` answers scored
+  (:mod:`mapper.training.eval_node`).
 * Scores per scene (classes present in the scene), then averaged over the scenes of a style.
 
 Point queries go through ``blend_points``: the model's own per-point pipeline (projection,
@@ -571,6 +574,15 @@ class EvalSettings:
     frustum_range_m: float = 4.0
     rendered_depth_stride: int = 4
     seed: int = 0
+    rgb_only_node: str | None = None
+    """3D: the checkpoint path to serve in an in-process node that the scene is streamed into
+    WITHOUT depth, with the plugins ``govnesf serve`` installs; its ``segment_points`` answers
+    become the ``Node RGB-only: ...`` rows (:mod:`mapper.training.eval_node`). None: no such rows."""
+    node_config: str | None = None
+    """The node's TOML config for those rows (None: the shipped ``launch/node.toml``)."""
+    node_ov_space: str = "minilm-l6-v2"
+    """Embedding space the frames' ``ov`` is sent in to that node (``govnesf sim record``: SimLSeg
+    features in the MiniLM space); the node encodes the class names in it."""
 
 
 @dataclass
@@ -725,6 +737,15 @@ def _evaluate_3d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
                    invalid=float((~pb.valid).float().mean()), volume_seconds=t_vol)
         if settings.no_depth_input:
             _no_depth_input_rows(scene, model, mname, sp, settings, record, device)
+    if settings.rgb_only_node is not None:
+        from mapper.training.eval_node import NodeEvalSettings, node_rgb_only_rows
+
+        node_rows = node_rgb_only_rows(scene, settings.rgb_only_node, pts.numpy(), gt, NodeEvalSettings(
+            config_path=settings.node_config, device=str(device), ov_space=settings.node_ov_space))
+        for name, (cm, extra) in node_rows.items():
+            res[name] = r = MethodResult(cm, extra)
+            log(f"  3d {scene.name} {name:<34} mIoU {100 * r.scores().miou:5.1f}  "
+                f"({r.extra['stream_seconds']:.1f} s stream, {r.extra['seconds']:.1f} s query)")
     return res
 
 

@@ -10,6 +10,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -70,7 +71,16 @@ def client(node: NodeProcess) -> Iterator[MapperClient]:
 
 
 def _status(client: MapperClient) -> Status:
-    return client.status()
+    """The node's status once every acked keyframe is in the global map (the integrator fuses
+    them shortly after their acks; ``global_map.integrate_queue``), so memory and map counts are
+    settled."""
+    deadline = time.monotonic() + 60.0
+    status = client.status()
+    while (status.extra.get("integration") or {}).get("backlog"):
+        assert time.monotonic() < deadline, f"the integrator's backlog did not drain: {status.extra}"
+        time.sleep(0.02)
+        status = client.status()
+    return status
 
 
 def _raw_frame(changes: dict[str, Any]) -> bytes:
@@ -278,10 +288,12 @@ def test_queries_without_encoder_or_model_answer_not_ready(client: MapperClient)
 def test_save_load_roundtrip_and_traversal_refused(node: NodeProcess, client: MapperClient) -> None:
     for seq in range(0, 20, 4):
         client.send_frame(synthetic_frame(seq, 20, W, H))
-    saved = _status(client)
-    assert saved.keyframes > 0
     assert isinstance(client.save("e2e_map"), Ok)
     assert (node.map_dir / "e2e_map.govmap").is_file()
+    # the status of the map as saved: the integrator may still be fusing the last acked keyframes into
+    # the global map before the save, which waits for them (global_map.integrate_queue)
+    saved = _status(client)
+    assert saved.keyframes > 0
     # change the map, then load it back
     far = synthetic_frame(10, 20, W, H)
     far.world_from_cam = far.world_from_cam.copy()

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -29,9 +30,10 @@ from mapper.geometry.triangulation import (
 )
 from mapper.node.config import ConfigError, config_from_dict
 from mapper.node.global_map import GlobalSemanticMap
+from mapper.node.plugins import triangulation as triangulation_plugin
 from mapper.node.plugins.triangulation import SparseTriangulation, keyframe_key
 from mapper.node.service import MapperNode
-from protocol.messages import Frame, encode
+from protocol.messages import Frame, Load, Ok, Save, Status, StatusRequest, decode, encode
 
 ROOT = Path(__file__).resolve().parents[2]
 K = np.array([100.0, 100.0, 80.0, 60.0])
@@ -393,3 +395,64 @@ def test_a_new_global_map_clears_the_candidates_and_the_sparse_map(
     tri.process_pending()
     assert len(tri._candidates) == 1 and tri.points()[0].shape == (0, 3)  # no partner from the old map
     assert tri.keyframe_points(plane_frame(2, texture)) is None
+
+
+def _query(node: MapperNode, msg: Save | Load | StatusRequest) -> Status | Ok:
+    reply = decode(node.handle_query(encode(msg)), direction="reply")
+    assert isinstance(reply, Status | Ok), reply
+    return reply
+
+
+def test_a_map_load_drops_the_replaced_maps_candidates_and_points_at_once(
+    node: MapperNode, texture: np.ndarray
+) -> None:
+    tri = SparseTriangulation(node)
+    tri.install()
+    node.handle_ingest(encode(plane_frame(0, texture, depth=True)))
+    for i in (1, 2):
+        node.handle_ingest(encode(plane_frame(i, texture)))
+    assert tri.process_pending() == 2 and len(tri.points()[0]) > 0
+    saved = _query(node, StatusRequest())
+    assert isinstance(saved, Status) and isinstance(_query(node, Save(name="m")), Ok)
+    node.handle_ingest(encode(plane_frame(3, texture)))  # acked before the load, still queued
+    assert tri.pending == 1 and tri.stats()["memory_bytes"] > 0
+    assert isinstance(_query(node, Load(name="m")), Ok)
+    # no worker ran since the load: nothing of the replaced map is held or reported any more
+    stats = tri.stats()
+    assert stats["memory_bytes"] == 0 and stats["points"] == 0 and len(tri._candidates) == 0
+    assert tri.points()[0].shape == (0, 3) and tri.keyframe_points(plane_frame(2, texture)) is None
+    loaded = _query(node, StatusRequest())
+    assert isinstance(loaded, Status) and loaded.memory_bytes == saved.memory_bytes
+    points_after_load = len(node.state.global_map)
+    # the keyframe queued for the replaced map: skipped, neither a candidate nor points in the new map
+    assert tri.process_pending() == 0 and tri.stats()["stale"] == 1 and len(tri._candidates) == 0
+    assert len(node.state.global_map) == points_after_load
+    # keyframes acked after the load are the new map's candidates
+    node.handle_ingest(encode(plane_frame(3, texture)))
+    assert tri.process_pending() == 1 and len(tri._candidates) == 1
+    assert tri._map is node.state.global_map
+
+
+def test_a_load_during_a_triangulation_keeps_nothing_of_it(
+    node: MapperNode, texture: np.ndarray, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    tri = SparseTriangulation(node)
+    tri.install()
+    node.handle_ingest(encode(plane_frame(0, texture, depth=True)))
+    node.handle_ingest(encode(plane_frame(1, texture)))
+    assert tri.process_pending() == 1 and isinstance(_query(node, Save(name="m")), Ok)
+    node.handle_ingest(encode(plane_frame(2, texture)))
+    real = triangulation_plugin.triangulate_keyframe
+    found: list[int] = []
+
+    def load_meanwhile(*args: Any, **kwargs: Any) -> SparsePoints:
+        points = real(*args, **kwargs)
+        found.append(len(points))
+        _query(node, Load(name="m"))
+        return points
+
+    monkeypatch.setattr(triangulation_plugin, "triangulate_keyframe", load_meanwhile)
+    assert tri.process_pending() == 0  # triangulated, but for the map the load replaced
+    assert found[0] > 0 and tri.stats()["stale"] == 1 and tri.stats()["failed"] == 0
+    assert tri.stats()["memory_bytes"] == 0 and tri.keyframe_points(plane_frame(2, texture)) is None
+    assert tri.points()[0].shape == (0, 3) and len(tri._candidates) == 0

@@ -11,6 +11,21 @@ exactly as input depth (same voxels, same OV sampling of the keyframe's own ``ov
 quality weights) with the weights scaled by ``rendered_weight * opacity``, so input depth outranks
 rendered depth where both exist.
 
+Multi-view consistency (``rendered_consistency``, :func:`consistency_mask`): an opacity threshold
+alone keeps floaters (a density field fit to few views puts confident surfaces where there are
+none). So a rendered pixel is kept only where it agrees with the geometry from other views: with
+the **triangulated points** (:mod:`mapper.node.plugins.triangulation`) that project within
+``rendered_consistency_radius_px`` of it (their depth in this camera within
+``max(rendered_consistency_sigmas * sigma, rendered_consistency_voxels * voxel_size_m)`` of the
+rendered depth, at least one of them), or, where no triangulated point projects near it, with the
+**rendered depth of at least one other keyframe** (rendered in the same batch or one of the last
+``rendered_consistency_views``, camera centre at least ``rendered_consistency_min_baseline_m``
+away) that sees it: the pixel's 3D point reprojected there lies within
+``rendered_consistency_voxels * voxel_size_m`` of that keyframe's rendered depth. Points behind a
+camera or outside its image are no evidence either way. The triangulated points come from the
+node's installed :class:`~mapper.node.plugins.triangulation.SparseTriangulation` (found at
+render time, so either plugin may be installed first) or from :attr:`RenderedDepthPoints.sparse_source`.
+
 Scheduling: the node calls :meth:`RenderedDepthPoints.on_keyframe` on the ingest thread after a
 keyframe entered the window (O(1): a deque append). A background worker (``mapper-depth-points``)
 renders the pending keyframes in batches: one runtime sync and one 3D U-Net pass serve every
@@ -36,8 +51,10 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -49,7 +66,13 @@ if TYPE_CHECKING:
     from mapper.node.global_map import GlobalSemanticMap
     from mapper.node.service import MapperNode
 
-__all__ = ["RenderedDepthPoints", "RenderedKeyframe"]
+__all__ = [
+    "RenderedDepthPoints",
+    "RenderedKeyframe",
+    "consistency_mask",
+    "sparse_agreement",
+    "view_agreement",
+]
 
 log = logging.getLogger("mapper.node.plugins.depth_points")
 
@@ -95,6 +118,163 @@ def render_keyframe_depth(
     )
 
 
+class DepthView(Protocol):
+    """A z-depth image with its camera (a :class:`RenderedKeyframe`, or any keyframe with depth)."""
+
+    @property
+    def K(self) -> np.ndarray: ...  # (4,) [fx, fy, cx, cy]
+
+    @property
+    def world_from_cam(self) -> np.ndarray: ...  # (4, 4)
+
+    @property
+    def depth_m(self) -> np.ndarray: ...  # (h, w) z-depth, 0 = none
+
+
+def _project(xyz: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World points (N, 3) -> (pixel coordinates (N, 2) with pixel centres at +0.5, z-depth (N,))."""
+    pose = np.asarray(world_from_cam, np.float64)
+    cam = (np.asarray(xyz, np.float64) - pose[:3, 3]) @ pose[:3, :3]  # R^T (x - t), row-wise
+    z = cam[:, 2]
+    safe = np.where(np.abs(z) > 1e-12, z, 1e-12)
+    fx, fy, cx, cy = (float(v) for v in K)
+    uv = np.stack([fx * cam[:, 0] / safe + cx, fy * cam[:, 1] / safe + cy], axis=1)
+    return uv, z
+
+
+def _backproject(view: DepthView) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pixels with depth > 0: (rows (M,), cols (M,), world points (M, 3)), rays through the
+    pixel centres (+0.5)."""
+    depth = np.asarray(view.depth_m, np.float64)
+    rows, cols = np.nonzero(np.isfinite(depth) & (depth > 0))
+    z = depth[rows, cols]
+    fx, fy, cx, cy = (float(v) for v in view.K)
+    cam = np.stack([(cols + 0.5 - cx) / fx * z, (rows + 0.5 - cy) / fy * z, z], axis=1)
+    pose = np.asarray(view.world_from_cam, np.float64)
+    return rows, cols, cam @ pose[:3, :3].T + pose[:3, 3]
+
+
+def sparse_agreement(
+    view: DepthView,
+    xyz: np.ndarray,
+    sigma_m: np.ndarray,
+    *,
+    radius_px: int,
+    sigmas: float,
+    min_tolerance_m: float,
+    min_depth_m: float = 1e-3,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which pixels of ``view`` have triangulated points near them, and which agree with one.
+
+    Args:
+        view: the rendered depth (h, w) with its ``K`` and ``world_from_cam``.
+        xyz: (N, 3) triangulated points, world metres; ``sigma_m`` (N,) their 1-sigma uncertainty.
+        radius_px: a point is a neighbour of every pixel within this (Euclidean, in pixels)
+            distance of the pixel it projects into.
+        sigmas, min_tolerance_m: a neighbour agrees when its z-depth in this camera is within
+            ``max(sigmas * sigma, min_tolerance_m)`` of the pixel's depth.
+        min_depth_m: points closer than this in front of the camera (or behind it) are ignored.
+
+    Returns:
+        ``(neighbour, agrees)``, both (h, w) bool; ``agrees`` implies ``neighbour`` and depth > 0.
+    """
+    depth = np.asarray(view.depth_m)
+    h, w = depth.shape
+    neighbour = np.zeros((h, w), bool)
+    agrees = np.zeros((h, w), bool)
+    if len(xyz) == 0:
+        return neighbour, agrees
+    uv, z = _project(xyz, view.K, view.world_from_cam)
+    ok = z > min_depth_m
+    uv, z = uv[ok], z[ok]
+    tol = np.maximum(sigmas * np.asarray(sigma_m, np.float64)[ok], min_tolerance_m)
+    col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+    has_depth = np.isfinite(depth) & (depth > 0)
+    for dy in range(-radius_px, radius_px + 1):
+        for dx in range(-radius_px, radius_px + 1):
+            if dx * dx + dy * dy > radius_px * radius_px:
+                continue
+            r, c = row + dy, col + dx
+            inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+            r, c = r[inside], c[inside]
+            neighbour[r, c] = True
+            match = has_depth[r, c] & (np.abs(depth[r, c] - z[inside]) <= tol[inside])
+            agrees[r[match], c[match]] = True
+    return neighbour, agrees
+
+
+def view_agreement(
+    view: DepthView,
+    others: Sequence[DepthView],
+    *,
+    tolerance_m: float,
+    min_baseline_m: float,
+    min_depth_m: float = 1e-3,
+) -> np.ndarray:
+    """(h, w) bool: pixels of ``view`` whose 3D point agrees with at least one of ``others``.
+
+    Each pixel with depth is back-projected, reprojected into every other view whose camera centre
+    is at least ``min_baseline_m`` from ``view``'s, and agrees when it lands inside that image, in
+    front of its camera (> ``min_depth_m``), on a pixel with depth within ``tolerance_m`` of the
+    point's z-depth there. Points behind a camera, outside its image or on a pixel without depth
+    are no evidence.
+    """
+    depth = np.asarray(view.depth_m)
+    agrees = np.zeros(depth.shape, bool)
+    rows, cols, xyz = _backproject(view)
+    if len(xyz) == 0:
+        return agrees
+    centre = np.asarray(view.world_from_cam, np.float64)[:3, 3]
+    found = np.zeros(len(xyz), bool)
+    for other in others:
+        if np.linalg.norm(np.asarray(other.world_from_cam, np.float64)[:3, 3] - centre) < min_baseline_m:
+            continue
+        other_depth = np.asarray(other.depth_m)
+        oh, ow = other_depth.shape
+        uv, z = _project(xyz, other.K, other.world_from_cam)
+        c, r = np.floor(uv[:, 0]), np.floor(uv[:, 1])
+        ok = (z > min_depth_m) & (c >= 0) & (c < ow) & (r >= 0) & (r < oh)
+        idx = np.nonzero(ok)[0]
+        d = other_depth[r[idx].astype(np.int64), c[idx].astype(np.int64)]
+        good = np.isfinite(d) & (d > 0) & (np.abs(d - z[idx]) <= tolerance_m)
+        found[idx[good]] = True
+    agrees[rows[found], cols[found]] = True
+    return agrees
+
+
+def consistency_mask(
+    view: DepthView,
+    xyz: np.ndarray,
+    sigma_m: np.ndarray,
+    others: Sequence[DepthView],
+    config: GlobalMapConfig,
+) -> tuple[np.ndarray, dict[str, int]]:
+    """(h, w) bool: the pixels of ``view`` to keep (see the module docstring), and counts
+    ``{"checked", "by_points", "by_views", "rejected"}`` of its pixels with depth."""
+    tol = config.rendered_consistency_voxels * config.voxel_size_m
+    depth = np.asarray(view.depth_m)
+    has_depth = np.isfinite(depth) & (depth > 0)
+    neighbour, agrees = sparse_agreement(
+        view, xyz, sigma_m, radius_px=config.rendered_consistency_radius_px,
+        sigmas=config.rendered_consistency_sigmas, min_tolerance_m=tol,
+    )
+    by_views = view_agreement(view, others, tolerance_m=tol,
+                              min_baseline_m=config.rendered_consistency_min_baseline_m)
+    by_views &= has_depth & ~neighbour
+    keep = (agrees | by_views) & has_depth
+    counts = {
+        "checked": int(has_depth.sum()),
+        "by_points": int(agrees.sum()),
+        "by_views": int(by_views.sum()),
+        "rejected": int(has_depth.sum() - keep.sum()),
+    }
+    return keep, counts
+
+
+SparseSource = Callable[[], tuple[np.ndarray, np.ndarray]]
+"""Returns every triangulated point: ``(xyz (N, 3) world, sigma_m (N,))``."""
+
+
 class RenderedDepthPoints:
     """Adds rendered-depth points to ``node``'s global map for keyframes without input depth.
 
@@ -121,6 +301,12 @@ class RenderedDepthPoints:
         self.stale = 0
         self.failed = 0
         self.seconds_total = 0.0
+        self.sparse_source: SparseSource | None = None
+        """Where the triangulated points come from; None: the node's installed triangulation plugin."""
+        self._recent: deque[tuple[RenderedKeyframe, GlobalSemanticMap]] = deque(
+            maxlen=self.config.rendered_consistency_views
+        )  # unfiltered recent renders, the second views of the consistency check
+        self.consistency = {"checked": 0, "by_points": 0, "by_views": 0, "rejected": 0}
         self._log = LimitedLog(log)
 
     # -- wiring -------------------------------------------------------------------------------
@@ -168,20 +354,72 @@ class RenderedDepthPoints:
                 return 0
             if len(self.runtime) < self.config.rendered_min_views:
                 return 0  # wait for more keyframes; the pending ones stay queued
-            return sum(self._integrate_one(keyframe, target) for keyframe, target in self._queue.drain())
+            batch = [(kf, target, self._render(kf, target)) for kf, target in self._queue.drain()]
+            done = 0
+            for i, (keyframe, target, rendered) in enumerate(batch):
+                if rendered is None:
+                    continue
+                others = [r for j, (_, t, r) in enumerate(batch) if j != i and t is target and r is not None]
+                done += self._integrate_one(keyframe, target, rendered, others)
+            for _, target, rendered in batch:
+                if rendered is not None:
+                    self._recent.append((rendered[0], target))
+            return done
         finally:
             with self._lock:
                 self._busy = False
 
-    def _integrate_one(self, keyframe: Any, target: GlobalSemanticMap) -> int:
+    def _render(self, keyframe: Any, target: GlobalSemanticMap) -> tuple[RenderedKeyframe, float] | None:
+        """The keyframe's rendered depth (unfiltered) and the seconds it took; None when stale or
+        failed (counted)."""
         if target is not self.node.state.global_map:
             self.stale += 1  # a map load replaced the map this keyframe belonged to
-            return 0
+            return None
         started = time.perf_counter()
         if keyframe.ov is None:
             keyframe = self._with_current_features(keyframe)
         try:
             rendered = render_keyframe_depth(self.runtime, keyframe, self.config)
+        except (RuntimeNotReady, ValueError, RuntimeError) as exc:
+            self.failed += 1
+            self._log.warning("failed", "rendered depth for keyframe at stamp %d failed: %s",
+                              keyframe.stamp_ns, exc)
+            return None
+        return rendered, time.perf_counter() - started
+
+    def _sparse_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """The triangulated points (empty when no triangulation plugin is installed)."""
+        source = self.sparse_source
+        if source is None:
+            owner = getattr(self.node.status_providers.get("triangulation"), "__self__", None)
+            source = getattr(owner, "points", None)
+        if source is None:
+            return np.zeros((0, 3)), np.zeros(0)
+        return source()
+
+    def _filtered(self, rendered: RenderedKeyframe, others: list[RenderedKeyframe],
+                  target: GlobalSemanticMap) -> RenderedKeyframe:
+        """``rendered`` with the pixels that fail the consistency check zeroed."""
+        if not self.config.rendered_consistency:
+            return rendered
+        views = others + [r for r, t in self._recent if t is target]
+        xyz, sigma = self._sparse_points()
+        keep, counts = consistency_mask(rendered, xyz, sigma, views, self.config)
+        for key, value in counts.items():
+            self.consistency[key] += value
+        return replace(rendered, depth_m=np.where(keep, rendered.depth_m, 0.0).astype(np.float32),
+                       confidence=np.where(keep, rendered.confidence, 0.0).astype(np.float32))
+
+    def _integrate_one(self, keyframe: Any, target: GlobalSemanticMap,
+                       render: tuple[RenderedKeyframe, float],
+                       others: list[tuple[RenderedKeyframe, float]]) -> int:
+        if target is not self.node.state.global_map:
+            self.stale += 1  # a map load during the batch
+            return 0
+        rendered, render_s = render
+        started = time.perf_counter()
+        try:
+            rendered = self._filtered(rendered, [r for r, _ in others], target)
             stats = target.integrate(
                 rendered,
                 map_version=None,  # the map already carries a version >= this keyframe's
@@ -194,7 +432,7 @@ class RenderedDepthPoints:
             self._log.warning("failed", "rendered depth for keyframe at stamp %d failed: %s",
                               keyframe.stamp_ns, exc)
             return 0
-        seconds = time.perf_counter() - started
+        seconds = render_s + time.perf_counter() - started
         self.integrated += 1
         self.points += stats.points
         self.seconds_total += seconds
@@ -234,4 +472,5 @@ class RenderedDepthPoints:
             "stale": self.stale,
             "failed": self.failed,
             "mean_ms": round(1e3 * self.seconds_total / max(self.integrated, 1), 1),
+            "consistency": {"enabled": self.config.rendered_consistency, **self.consistency},
         }

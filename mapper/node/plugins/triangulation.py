@@ -23,8 +23,10 @@ multi-view checks, an uncertainty per point) and uses the points three ways:
 Scheduling: :meth:`SparseTriangulation.on_keyframe` runs on the ingest thread after the keyframe
 entered the window and only queues it (O(1)); the worker (``mapper-triangulation``) detects,
 matches and triangulates. The features of the last ``candidate_keyframes`` keyframes (with or
-without depth) stay in memory as partner candidates; a map load (a new global map) clears them
-and the sparse map. Beyond ``max_pending`` waiting keyframes the oldest is dropped and counted.
+without depth) stay in memory as partner candidates; a map load clears them and the sparse map at
+once (``node.load_listeners``: nothing of the replaced map is held or reported after the load
+returns), and keyframes acked before the load that the worker meets later are skipped (counted
+in ``stale``). Beyond ``max_pending`` waiting keyframes the oldest is dropped and counted.
 Errors never reach the ingest thread: they are logged (rate limited) and counted in ``failed``.
 
 Example (in-process; ``node`` a :class:`mapper.node.service.MapperNode`)::
@@ -159,13 +161,17 @@ class SparseTriangulation:
         self.config = config or node.config.triangulation
         self.runtime = runtime
         self.extractor = FeatureExtractor(self.config)
-        self._lock = threading.Lock()  # guards the sparse map (points read from other threads)
+        self._lock = threading.Lock()  # guards the sparse map, the candidates and the map they belong to
         self._work_lock = threading.Lock()  # one process_pending at a time
-        self._queue: KeyframeQueue[tuple[Any, GlobalSemanticMap]] = KeyframeQueue(self.config.max_pending)
+        self._queue: KeyframeQueue[tuple[Any, int, GlobalSemanticMap]] = KeyframeQueue(
+            self.config.max_pending
+        )  # (keyframe, its map version, the node's map when it was queued)
         self._candidates: deque[_Candidate] = deque(maxlen=self.config.candidate_keyframes)
         self._points: OrderedDict[KeyframeKey, SparsePoints] = OrderedDict()
         self._n_points = 0
         self._map: GlobalSemanticMap | None = None  # the map the candidates and points belong to
+        self._loaded_version = -1  # map version of the latest load: keyframes up to it are stale
+        self._generation = 0  # +1 on every reset: work begun before it is not kept
         self._room_depths: deque[float] = deque(maxlen=self.config.candidate_keyframes)
         self._without_extent: deque[tuple[KeyframeKey, PosedView]] = deque(
             maxlen=self.config.candidate_keyframes
@@ -184,9 +190,10 @@ class SparseTriangulation:
     # -- wiring -------------------------------------------------------------------------------
 
     def install(self) -> None:
-        """Listen to the node's new keyframes, report in its status (``"triangulation"``) and run
-        the worker with the node (started by ``node.start()``)."""
+        """Listen to the node's new keyframes and map loads, report in its status
+        (``"triangulation"``) and run the worker with the node (started by ``node.start()``)."""
         self.node.keyframe_listeners.append(self.on_keyframe)
+        self.node.load_listeners.append(self.on_map_loaded)
         self.node.workers.append(("triangulation", self.run))
         self.node.status_providers["triangulation"] = self.stats
 
@@ -194,7 +201,16 @@ class SparseTriangulation:
         """Queue every keyframe (ingest thread; O(1), never raises): those without depth are
         triangulated, those with depth only become partner candidates."""
         if self.config.enabled:
-            self._queue.put((keyframe, self.node.state.global_map))
+            self._queue.put((keyframe, int(map_version), self.node.state.global_map))
+
+    def on_map_loaded(self, global_map: GlobalSemanticMap, map_version: int) -> None:
+        """A load replaced the map (the loading thread; quick, never raises): forget the replaced
+        map's candidates, points and room depth now, and skip the keyframes queued for it (those
+        with a map version up to ``map_version``) when the worker meets them."""
+        with self._lock:
+            self._loaded_version = max(self._loaded_version, int(map_version))
+            self._reset_locked()
+            self._map = global_map
 
     # -- work -----------------------------------------------------------------------------------
 
@@ -208,35 +224,48 @@ class SparseTriangulation:
         if not self._work_lock.acquire(blocking=False):
             return 0
         try:
-            return sum(self._process_one(kf, target) for kf, target in self._queue.drain())
+            return sum(self._process_one(kf, version, target) for kf, version, target in self._queue.drain())
         finally:
             self._work_lock.release()
 
-    def _process_one(self, keyframe: Any, target: GlobalSemanticMap) -> int:
+    def _process_one(self, keyframe: Any, map_version: int, target: GlobalSemanticMap) -> int:
         started = time.perf_counter()
-        if target is not self._map:  # a map load: the old map's keyframes are no partners
-            if self._map is not None:
-                self._reset()
-            self._map = target
+        with self._lock:
+            if map_version <= self._loaded_version:  # acked before a load: its map was replaced
+                self.stale += 1
+                return 0
+            if target is not self._map:  # the first keyframe, or a map swapped in without a load
+                if self._map is not None:
+                    self._reset_locked()
+                self._map = target
+            generation = self._generation
+            candidates = list(self._candidates)
         try:
             height, width = keyframe.rgb.shape[:2]
             pose = np.asarray(keyframe.world_from_cam, np.float64)
             view = PosedView(np.asarray(keyframe.K, np.float64), pose, int(width), int(height))
-            candidates = list(self._candidates)
             if keyframe.depth_m is not None:
-                self._candidates.append(_Candidate(keyframe_key(keyframe), view, keyframe.rgb))
+                candidate = _Candidate(keyframe_key(keyframe), view, keyframe.rgb)
+                if not self._add_candidate(generation, candidate):
+                    self.stale += 1  # a load meanwhile
                 return 0
             features = self.extractor.detect(np.asarray(keyframe.rgb))
-            self._candidates.append(_Candidate(keyframe_key(keyframe), view, None, features))
+            if not self._add_candidate(generation, _Candidate(keyframe_key(keyframe), view, None, features)):
+                self.stale += 1  # a load while it was detected
+                return 0
             chosen = select_partners(view, [c.view for c in candidates], self.config)
             partners = [(candidates[i].view, candidates[i].detected(self.extractor)) for i in chosen]
             points = triangulate_keyframe(self.extractor, view, features, partners, self.config)
         except Exception as exc:  # bad input, OpenCV errors (cv2.error): count, never kill the worker
             self._failed(keyframe, exc)
             return 0
-        self._store(keyframe_key(keyframe), points)
-        if self.runtime is not None and self.config.bounds:
-            self._set_extent(keyframe_key(keyframe), view, points)
+        with self._lock:
+            if generation != self._generation:  # a load while it was triangulated: not kept
+                self.stale += 1
+                return 0
+            self._store(keyframe_key(keyframe), points)
+            if self.runtime is not None and self.config.bounds:
+                self._set_extent(keyframe_key(keyframe), view, points)
         if self.runtime is not None and self.config.depth_prior_radius_px > 0 and len(points):
             sparse = sparse_depth_keyframe(keyframe, points, self.config)
             self.runtime.set_view_depth_prior(keyframe_key(keyframe),
@@ -253,14 +282,24 @@ class SparseTriangulation:
                   len(points), points.partners, points.matches, keyframe.stamp_ns, 1e3 * seconds)
         return 1
 
-    def _reset(self) -> None:
-        """Forget the candidates, points and room depth of a map that was replaced."""
+    def _add_candidate(self, generation: int, candidate: _Candidate) -> bool:
+        """Append ``candidate`` unless a reset came after ``generation`` (then False)."""
         with self._lock:
-            self._points.clear()
-            self._n_points = 0
+            if generation != self._generation:
+                return False
+            self._candidates.append(candidate)
+            return True
+
+    def _reset_locked(self) -> None:
+        """Forget the candidates, points and room depth of a map that was replaced (``_lock``
+        held); work begun before it is not kept."""
+        self._generation += 1
+        self._points.clear()
+        self._n_points = 0
         self._candidates.clear()
         self._room_depths.clear()
         self._without_extent.clear()
+        self._map = None
 
     def _set_extent(self, key: KeyframeKey, view: PosedView, points: SparsePoints) -> None:
         """The keyframe's extent for the volume bounds (see the module docstring)."""
@@ -290,16 +329,16 @@ class SparseTriangulation:
                           keyframe.stamp_ns, exc)
 
     def _store(self, key: KeyframeKey, points: SparsePoints) -> None:
-        with self._lock:
-            old = self._points.pop(key, None)
-            if old is not None:
-                self._n_points -= len(old)
-            self._points[key] = points
-            self._n_points += len(points)
-            while self._n_points > self.config.max_points and len(self._points) > 1:
-                _, dropped = self._points.popitem(last=False)
-                self._n_points -= len(dropped)
-                self.points_evicted += len(dropped)
+        """Keep ``points`` for ``key`` within ``max_points`` (``_lock`` held)."""
+        old = self._points.pop(key, None)
+        if old is not None:
+            self._n_points -= len(old)
+        self._points[key] = points
+        self._n_points += len(points)
+        while self._n_points > self.config.max_points and len(self._points) > 1:
+            _, dropped = self._points.popitem(last=False)
+            self._n_points -= len(dropped)
+            self.points_evicted += len(dropped)
 
     def _integrate(self, keyframe: Any, points: SparsePoints, target: GlobalSemanticMap) -> None:
         if self.config.global_map_weight <= 0.0 or not len(points):
@@ -335,8 +374,9 @@ class SparseTriangulation:
         restores it)."""
         with self._lock:
             pts = sum(p.xyz.nbytes + p.sigma_m.nbytes * 5 + p.uv.nbytes for p in self._points.values())
+            candidates = list(self._candidates)
         feats = 0
-        for c in list(self._candidates):
+        for c in candidates:
             f = c.features
             if f is not None:
                 feats += f.uv.nbytes + f.descriptors.nbytes + (0 if f.gray is None else f.gray.nbytes)
