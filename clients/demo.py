@@ -39,7 +39,7 @@ import json
 import signal
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
@@ -63,6 +63,21 @@ from protocol.messages import Error, Frame
 DEMO_QUERIES = (("find the chair", "chair"), ("a place to sleep", "sleep"), ("where is the table", "table"))
 N_STEPS = 7
 
+
+def _send_all(client: MapperClient, frames: Iterable[Frame], n_frames: int) -> bool:
+    """Send ``frames`` (4 in flight) with a progress bar, print the replies by kind; True if any
+    frame got an error reply."""
+    from tqdm import tqdm
+
+    statuses: dict[str, int] = {}
+    t_stream = time.monotonic()
+    for res in tqdm(client.send_frames(frames, window=4), total=n_frames, desc="  stream", unit="frame"):
+        key = f"error:{res.reply.code}" if isinstance(res.reply, Error) else res.reply.status
+        statuses[key] = statuses.get(key, 0) + 1
+    dt = time.monotonic() - t_stream
+    print(f"  {n_frames} frames in {dt:.1f} s ({n_frames / max(dt, 1e-9):.1f} Hz): "
+          + ", ".join(f"{k} {v}" for k, v in sorted(statuses.items())))
+    return any(k.startswith("error") for k in statuses)
 
 def _step(n: int, text: str) -> None:
     print(f"\n[demo {n}/{N_STEPS}] {text}", flush=True)
@@ -181,19 +196,8 @@ def _robot_frames(room: _Room, rlog: Any, rerun_every: int) -> Iterator[Frame]:
 def _stream(client: MapperClient, args: argparse.Namespace, room: _Room, rlog: Any,
             failures: list[str]) -> dict[str, Any]:
     """Step 3: stream the frames with a progress bar; returns the node's ``status.extra`` after."""
-    from tqdm import tqdm
-
     _step(3, f"streaming {args.frames} frames ({args.width}x{args.height}, rgb + depth + SimLSeg ov)")
-    statuses: dict[str, int] = {}
-    t_stream = time.monotonic()
-    results = client.send_frames(_robot_frames(room, rlog, args.rerun_every), window=4)
-    for res in tqdm(results, total=args.frames, desc="  stream", unit="frame"):
-        key = f"error:{res.reply.code}" if isinstance(res.reply, Error) else res.reply.status
-        statuses[key] = statuses.get(key, 0) + 1
-    dt = time.monotonic() - t_stream
-    print(f"  {args.frames} frames in {dt:.1f} s ({args.frames / max(dt, 1e-9):.1f} Hz): "
-          + ", ".join(f"{k} {v}" for k, v in sorted(statuses.items())))
-    if any(k.startswith("error") for k in statuses):
+    if _send_all(client, _robot_frames(room, rlog, args.rerun_every), args.frames):
         failures.append("some frames got errors")
     status = client.status()
     extra = status.extra
@@ -330,8 +334,6 @@ def _wait_for_workers(client: MapperClient, timeout_s: float = 900.0) -> dict[st
 
 def _rgb_only_pass(args: argparse.Namespace, out: Path, room: _Room, failures: list[str]) -> None:
     """Step 7: the same room and path without depth into a fresh node; chair check and mIoU."""
-    from tqdm import tqdm
-
     from clients.sim.scenes import CLASS_NAMES
 
     _step(7, "RGB-only: the same robot WITHOUT a depth camera (rgb + pose + SimLSeg ov), a fresh node")
@@ -346,17 +348,7 @@ def _rgb_only_pass(args: argparse.Namespace, out: Path, room: _Room, failures: l
     with node:
         node.wait_ready()
         with node.client(timeout_s=60.0) as client:
-            statuses: dict[str, int] = {}
-            t_stream = time.monotonic()
-            frames = (frame for frame, _ in stream.frames())
-            results = client.send_frames(frames, window=4)
-            for res in tqdm(results, total=args.frames, desc="  stream", unit="frame"):
-                key = f"error:{res.reply.code}" if isinstance(res.reply, Error) else res.reply.status
-                statuses[key] = statuses.get(key, 0) + 1
-            dt = time.monotonic() - t_stream
-            print(f"  {args.frames} frames in {dt:.1f} s ({args.frames / max(dt, 1e-9):.1f} Hz): "
-                  + ", ".join(f"{k} {v}" for k, v in sorted(statuses.items())))
-            if any(k.startswith("error") for k in statuses):
+            if _send_all(client, (frame for frame, _ in stream.frames()), args.frames):
                 failures.append("RGB-only: some frames got errors")
             t_wait = time.monotonic()
             extra = _wait_for_workers(client)
