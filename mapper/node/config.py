@@ -129,6 +129,33 @@ class GlobalMapConfig:
     """Most keyframes waiting for a rendered depth; beyond it the oldest is dropped (counted as
     ``dropped`` in status). 1..100000."""
 
+    rendered_consistency: bool = True
+    """Multi-view consistency for rendered-depth points (:func:`mapper.node.plugins.depth_points.
+    consistency_mask`): a rendered pixel is kept only where it agrees with the triangulated points
+    projecting near it (within ``rendered_consistency_radius_px``) or, where none do, with the
+    rendered depth of at least one other recent keyframe that sees it. Off: every pixel above
+    ``rendered_min_opacity`` is kept."""
+
+    rendered_consistency_sigmas: float = 3.0
+    """A triangulated point agrees with a rendered depth within this many of its 1-sigma
+    uncertainties (but never less than ``rendered_consistency_voxels`` voxels). 0..100."""
+
+    rendered_consistency_voxels: float = 2.0
+    """Depth tolerance between two keyframes' rendered depths, and the least tolerance against a
+    triangulated point, in ``voxel_size_m`` units. 0..100."""
+
+    rendered_consistency_radius_px: int = 2
+    """Triangulated points projecting within this many pixels (of the rendered depth's size) of a
+    pixel are its neighbours. 0..32."""
+
+    rendered_consistency_views: int = 8
+    """Recent rendered keyframes kept to compare new ones with (besides those rendered together
+    with it). 1..1000."""
+
+    rendered_consistency_min_baseline_m: float = 0.1
+    """Another keyframe counts as a second view only when its camera centre is this far away (a
+    render from nearly the same pose agrees trivially). 0..100."""
+
     learned_features: bool = True
     """When the node serves the learned model: just before a keyframe leaves the window, the map
     voxels it saw take the model's blended features (:mod:`mapper.node.map_features`), so the
@@ -142,7 +169,16 @@ class GlobalMapConfig:
     learned_features_max_pending: int = 64
     """Most keyframes waiting for that; beyond it the oldest is dropped (``dropped`` in status). 1..100000."""
 
+    integrate_queue: int = 16
+    """Keyframes acked but not yet integrated into this map (the node's integrator thread fuses
+    them shortly after the ack; a keyframe is in the window as soon as it is acked). When that many
+    are waiting, the ingest thread waits for room before acking the next keyframe (backpressure,
+    counted in status ``integration.backpressure_waits``): nothing acked is dropped. ``save``
+    first integrates everything acked before it. 0 = integrate on the ingest thread before the
+    ack (the ack then waits for it). 0..100000."""
+
     def validate(self, where: str) -> None:
+        _check_range(where, "global_map.integrate_queue", self.integrate_queue, 0, 100_000)
         _check_range(
             where, "global_map.learned_features_max_pending", self.learned_features_max_pending, 1, 100_000
         )
@@ -152,6 +188,15 @@ class GlobalMapConfig:
         _check_range(where, "global_map.rendered_weight", self.rendered_weight, 0.0, 1.0)
         _check_range(where, "global_map.rendered_min_views", self.rendered_min_views, 1, 1000)
         _check_range(where, "global_map.rendered_max_pending", self.rendered_max_pending, 1, 100_000)
+        _check_range(where, "global_map.rendered_consistency_sigmas",
+                     self.rendered_consistency_sigmas, 0.0, 100.0)
+        _check_range(where, "global_map.rendered_consistency_voxels",
+                     self.rendered_consistency_voxels, 0.0, 100.0)
+        _check_range(where, "global_map.rendered_consistency_radius_px",
+                     self.rendered_consistency_radius_px, 0, 32)
+        _check_range(where, "global_map.rendered_consistency_views", self.rendered_consistency_views, 1, 1000)
+        _check_range(where, "global_map.rendered_consistency_min_baseline_m",
+                     self.rendered_consistency_min_baseline_m, 0.0, 100.0)
         _check_range(where, "global_map.voxel_size_m", self.voxel_size_m, 0.005, 1.0)
         _check_range(where, "global_map.pixel_stride", self.pixel_stride, 1, 64)
         _check_range(where, "global_map.max_points", self.max_points, 1, 100_000_000)

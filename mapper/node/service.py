@@ -4,6 +4,12 @@ Threads and sockets (a ZeroMQ socket is only ever used by the thread that create
 
 - **ingest thread**: ROUTER bound on ``ingest_endpoint``; decodes each ``frame``, updates the
   keyframe window and replies with exactly one ``ack`` or ``error``.
+- **integrator thread** (``global_map.integrate_queue`` > 0, the default): fuses each acked
+  keyframe into the global map, in ack order, shortly after its ack, then calls the keyframe
+  listeners. Its queue is bounded: when it is full the ingest thread waits for room before the
+  next ack (backpressure, counted), so nothing acked is dropped. ``save`` (and the final save)
+  first drains it; ``status`` reports it (``integration``). With 0 the ingest thread integrates
+  before the ack.
 - **query thread**: ROUTER bound on ``query_endpoint``; dispatches each request through
   :attr:`MapperNode.query_handlers` (message class -> handler) and replies exactly once. Heavy
   requests (:attr:`MapperNode.heavy_request_types`: ``render``, ``segment_points``) go to the
@@ -30,8 +36,8 @@ Robustness: every message is handled inside a catch-all; a ``ProtocolError`` bec
 error, anything else an ``internal`` error (logged with traceback), and the node keeps serving.
 A rejected message changes nothing but the counters.
 
-The global semantic point map (:mod:`mapper.node.global_map`) is fed by the ingest thread: after a
-frame became a keyframe (state lock released), it is integrated under the map's own lock. Queries
+The global semantic point map (:mod:`mapper.node.global_map`) is fed by the integrator thread: after
+a frame became a keyframe and was acked, it is integrated under the map's own lock. Queries
 (:mod:`mapper.node.queries`) read the map's immutable per-version snapshot, so a query never waits on an
 integrate (beyond the one copy per map version) and an integrate never waits on a query.
 
@@ -54,7 +60,7 @@ import signal
 import threading
 import time
 import traceback
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import FrameType
@@ -109,6 +115,18 @@ HARD_LIMIT_FACTOR = 4
 """ZeroMQ drops messages above ``HARD_LIMIT_FACTOR * max_message_bytes`` at the transport (the
 peer is disconnected, no reply) so a hostile sender cannot make the node allocate without bound;
 between ``max_message_bytes`` and that, the node answers ``too_large``."""
+
+
+@dataclass(frozen=True)
+class _IntegrateJob:
+    """One acked keyframe waiting for the integrator: the map it goes into (the one current when it
+    was acked: a ``load`` in between leaves the new map alone), its map version and ov space."""
+
+    target: GlobalSemanticMap
+    keyframe: Keyframe
+    map_version: int
+    ov_space: str | None
+    submitted: float  # time.monotonic() at the ack
 
 
 @dataclass(frozen=True)
@@ -226,9 +244,34 @@ class MapperNode:
         self.status_providers: dict[str, Callable[[], Any]] = {}
         """Extra ``status`` keys computed on request (e.g. ``"model"``: the runtime's stats)."""
         self.keyframe_listeners: list[Callable[[Keyframe, int], None]] = []
-        """Called on the ingest thread, outside the state lock, after a new keyframe went into the
-        window and the global map, with the keyframe and its map version. Must be quick (queue the
-        work) and must not raise."""
+        """Called on the integrator thread (the ingest thread when integration is inline), outside
+        the state lock, after a new keyframe went into the window and the global map, with the
+        keyframe and its map version, in ack order. Must be quick (queue the work) and must not
+        raise."""
+        self.load_listeners: list[Callable[[GlobalSemanticMap, int], None]] = []
+        """Called on the thread that loaded a map (``load`` or the autosave at start), outside the
+        state lock, right after the loaded map replaced the window and the global map, with the new
+        global map and its map version: whatever belongs to the replaced map can go now (keyframes
+        acked before the load carry a map version up to the replaced map's, below this one). Must be
+        quick and must not raise."""
+        self._integrate_jobs: queue.Queue[_IntegrateJob] = queue.Queue(
+            maxsize=max(config.global_map.integrate_queue, 1)
+        )
+        """Keyframes acked but not yet integrated into the global map (``global_map.integrate_queue``)."""
+        self._integrate_cond = threading.Condition()
+        """Guards the integration counters below (never held while taking the state lock)."""
+        self._integrate_submitted = 0
+        """Keyframes handed to integration so far (written under the *state* lock, with the window add)."""
+        self._integrate_done = 0
+        self._integrate_errors = 0
+        self._integrate_waits = 0
+        self._integrate_wait_s = 0.0
+        self._integrate_inline = 0
+        self._integrate_lag_s: deque[float] = deque(maxlen=1000)
+        """Ack-to-integrated seconds of recent keyframes (status ``integration.lag_ms_*``)."""
+        self._integrator: threading.Thread | None = None
+        self._inline_lock = threading.RLock()
+        """Serialises integrations done outside the integrator thread (they keep ack order)."""
         self.workers: list[tuple[str, Callable[[threading.Event], None]]] = []
         """Background threads ``(name, target)`` started by :meth:`start` after the sockets are
         bound; ``target(stop_event)`` runs until the event is set and must not raise."""
@@ -276,6 +319,14 @@ class MapperNode:
                 ", ".join(e for e in endpoints if security_mode([e], None) == "insecure"),
             )
         self.load_autosave()
+        if self.config.global_map.integrate_queue > 0:
+            # before the socket threads, so the first keyframe already goes to it; on stop it
+            # finishes its queue (what the ingest thread submits after that is integrated inline)
+            self._integrator = threading.Thread(
+                target=self._integrator_loop, args=(self._stop,), name="mapper-integrator", daemon=True
+            )
+            self._integrator.start()
+            self._threads.append(self._integrator)
         workers: list[tuple[str, Callable[[threading.Event], None]]] = [
             ("ingest", self._ingest_loop),
             ("query", self._query_loop),
@@ -796,18 +847,15 @@ class MapperNode:
                 status = "accepted"
             state.ack_counts[status] += 1
             version = state.map_version
-            space = state.ov_space
-        if update.added:
-            # outside the state lock, under the global map's own lock: queries keep working on their
-            # snapshot; status and save wait for at most this one integrate
-            stats = state.global_map.integrate(keyframe, map_version=version)
-            log.debug("frame seq %d: %d points into the global map (%d new voxels) in %.1f ms%s",
-                      frame.seq, stats.points, stats.voxels_new, 1e3 * stats.seconds,
-                      f" ({stats.skipped})" if stats.skipped else "")
-            if frame.ov is not None and space is not None:
-                self._warm_text_encoder(space)
-            for listener in self.keyframe_listeners:
-                listener(keyframe, version)
+            job = None
+            if update.added:
+                self._integrate_submitted += 1  # with the window add: save's drain target
+                job = _IntegrateJob(state.global_map, keyframe, version, state.ov_space, time.monotonic())
+        if job is not None:
+            # outside the state lock: the integrator thread fuses it into the global map shortly
+            # after this ack (queries keep working on their snapshot meanwhile); inline when
+            # ``global_map.integrate_queue`` is 0 or the integrator is not running
+            self._submit_integration(job)
         log.debug(
             "frame seq %d (%s): %s, moved %.3f m, turned %.1f deg",
             frame.seq,
@@ -817,6 +865,138 @@ class MapperNode:
             update.rotation_deg,
         )
         return Ack(seq=frame.seq, status=status, map_version=version, id=frame.id)
+
+    def _integrator_alive(self) -> bool:
+        return self._integrator is not None and self._integrator.is_alive()
+
+    def _submit_integration(self, job: _IntegrateJob) -> None:
+        """Queue an acked keyframe for the integrator. When ``global_map.integrate_queue``
+        keyframes are already waiting, wait for room (backpressure: the ack waits; counted), so
+        nothing acked is dropped. Inline when the queue is off or the integrator is not running."""
+        if self.config.global_map.integrate_queue == 0 or not self._integrator_alive():
+            self._integrate_now(job)
+            return
+        try:
+            self._integrate_jobs.put_nowait(job)
+            return
+        except queue.Full:
+            pass
+        started = time.monotonic()
+        while True:
+            try:
+                self._integrate_jobs.put(job, timeout=self.config.poll_interval_s)
+                break
+            except queue.Full:
+                if not self._integrator_alive():  # stopped meanwhile: do its work here, in order
+                    self._integrate_now(job)
+                    break
+        with self._integrate_cond:
+            self._integrate_waits += 1
+            self._integrate_wait_s += time.monotonic() - started
+
+    def _integrate_keyframe(self, job: _IntegrateJob) -> None:
+        """Fuse one acked keyframe into its global map, then tell the keyframe listeners (not when a
+        ``load`` replaced that map meanwhile). Never raises: a failure is logged and counted in
+        status ``integration.errors``."""
+        keyframe = job.keyframe
+        try:
+            stats = job.target.integrate(keyframe, map_version=job.map_version)
+            log.debug("frame seq %d: %d points into the global map (%d new voxels) in %.1f ms%s",
+                      keyframe.seq, stats.points, stats.voxels_new, 1e3 * stats.seconds,
+                      f" ({stats.skipped})" if stats.skipped else "")
+            if keyframe.ov is not None and job.ov_space is not None:
+                self._warm_text_encoder(job.ov_space)
+            if job.target is not self.state.global_map:
+                return  # a ``load`` replaced the map (and the window) since this keyframe's ack
+            for listener in self.keyframe_listeners:
+                listener(keyframe, job.map_version)
+        except Exception:
+            log.error("integrating keyframe seq %d failed:\n%s", keyframe.seq, traceback.format_exc())
+            with self._integrate_cond:
+                self._integrate_errors += 1
+        finally:
+            with self._integrate_cond:
+                self._integrate_done += 1
+                self._integrate_lag_s.append(time.monotonic() - job.submitted)
+                self._integrate_cond.notify_all()
+
+    def _integrate_now(self, job: _IntegrateJob) -> None:
+        """Integrate on the calling thread (counted as ``inline``), after anything a stopped
+        integrator left in the queue."""
+        with self._inline_lock:
+            self._integrate_pending_inline()
+            with self._integrate_cond:
+                self._integrate_inline += 1
+            self._integrate_keyframe(job)
+
+    def _integrate_pending_inline(self) -> None:
+        """Integrate whatever waits in the queue on the calling thread (only when the integrator is
+        not running: it and this must not both take jobs)."""
+        with self._inline_lock:
+            while not self._integrator_alive():
+                try:
+                    job = self._integrate_jobs.get_nowait()
+                except queue.Empty:
+                    return
+                self._integrate_keyframe(job)
+
+    def _integrator_loop(self, stop: threading.Event) -> None:
+        """The integrator thread: fuse queued keyframes in ack order until stopped and the queue is
+        empty (so the final save holds everything acked)."""
+        while True:
+            try:
+                job = self._integrate_jobs.get(timeout=self.config.poll_interval_s)
+            except queue.Empty:
+                if stop.is_set():
+                    return
+                continue
+            self._integrate_keyframe(job)
+
+    def drain_integrations(self) -> None:
+        """Return once every keyframe acked so far is integrated into the global map (``save`` does
+        this first). Waits for the integrator, or does its work here when it is not running."""
+        with self.state.lock:
+            target = self._integrate_submitted
+        self._wait_integrated(target)
+
+    def _wait_integrated(self, target: int) -> None:
+        """Until ``target`` keyframes are integrated (the rest may be in the queue, or being
+        integrated inline by the ingest thread right now)."""
+        while True:
+            if not self._integrator_alive():
+                self._integrate_pending_inline()
+            with self._integrate_cond:
+                if self._integrate_done >= target:
+                    return
+                self._integrate_cond.wait(self.config.poll_interval_s)
+
+    def integration_stats(self) -> dict[str, Any]:
+        """The keyframe integrator, for ``status`` (``integration``): ``background`` (False:
+        inline, before the ack), ``queue_length`` (``global_map.integrate_queue``), ``backlog``
+        (acked keyframes not yet in the global map), ``integrated``, ``errors``,
+        ``backpressure_waits`` / ``backpressure_s`` (acks that waited for room in the queue),
+        ``inline`` (integrated on the ingest thread) and ``lag_ms_p50`` / ``lag_ms_p95`` (ack to
+        integrated, recent keyframes). Called with the state lock held."""
+        submitted = self._integrate_submitted
+        with self._integrate_cond:
+            lags = sorted(self._integrate_lag_s)
+            done = self._integrate_done
+
+            def pct(q: float) -> float | None:
+                return round(1e3 * lags[min(len(lags) - 1, int(q * len(lags)))], 3) if lags else None
+
+            return {
+                "background": self._integrator_alive(),
+                "queue_length": self.config.global_map.integrate_queue,
+                "backlog": max(submitted - done, 0),
+                "integrated": done,
+                "errors": self._integrate_errors,
+                "backpressure_waits": self._integrate_waits,
+                "backpressure_s": round(self._integrate_wait_s, 3),
+                "inline": self._integrate_inline,
+                "lag_ms_p50": pct(0.5),
+                "lag_ms_p95": pct(0.95),
+            }
 
     def _reject(self, frame: Frame, reason: str) -> Ack:
         """A rejected ack (called with the lock held)."""
@@ -861,6 +1041,7 @@ class MapperNode:
                 "events_dropped": self._events.dropped,
                 "frames_duplicate": self.frames_duplicate,
                 "replies_dropped": dict(self.replies_dropped),
+                "integration": self.integration_stats(),
                 **state.global_map.stats(),
             }
             for key, provider in self.status_providers.items():
@@ -889,10 +1070,16 @@ class MapperNode:
         return Ok(id=msg.id, message=f"saved map version {version} ({count} keyframes) to {path}")
 
     def _save_to(self, name: str, reason: str) -> tuple[str, int, int]:
-        """Snapshot under the lock, write outside it. Returns (path, map_version, keyframes)."""
+        """Snapshot under the lock, write outside it. Returns (path, map_version, keyframes).
+        Every keyframe acked before the save (at least those in the saved window) is integrated
+        into the saved global map first (the integrator's backlog is drained)."""
         with self.state.lock:
             snap = self.state.snapshot()
-            global_arrays, global_manifest = self.state.global_map.to_arrays()
+            target = self._integrate_submitted
+            global_map = self.state.global_map
+        self._wait_integrated(target)
+        # the map as of now: every keyframe of ``snap`` and perhaps a few acked since (its own lock)
+        global_arrays, global_manifest = global_map.to_arrays()
         arrays, entries = keyframes_to_arrays(snap.keyframes)
         arrays.update(global_arrays)
         manifest = {
@@ -969,6 +1156,8 @@ class MapperNode:
             fresh.retag(version)
             state.global_map = fresh  # a frame being integrated into the old map right now is dropped
             self._publish(version, count)
+        for listener in self.load_listeners:
+            listener(fresh, version)
         points = len(state.global_map)
         log.info("loaded map %r: %d keyframes, %d global points, now map version %d", name, count, points,
                  version)

@@ -58,6 +58,11 @@ def node(tmp_path_factory: pytest.TempPathFactory) -> Iterator[NodeProcess]:
         frames, _ = sim_frames()
         with proc.client(timeout_s=TIMEOUT_S) as client:
             replies = [r.reply for r in client.send_frames(frames, window=4)]
+            # acked keyframes reach the global map shortly after their ack (the node's integrator)
+            deadline = time.monotonic() + TIMEOUT_S
+            while client.status().extra["integration"]["backlog"]:
+                assert time.monotonic() < deadline, "the integrator's backlog did not drain"
+                time.sleep(0.05)
         assert all(not isinstance(r, Error) and r.status != "rejected" for r in replies), replies
         yield proc
 

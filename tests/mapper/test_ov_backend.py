@@ -246,6 +246,7 @@ def test_missing_weights_node_starts_and_semantic_requests_name_the_path(
     node.start()  # serves everything else (inproc endpoints); the worker thread runs idle
     assert any(t.name == "mapper-ov-backend" and t.is_alive() for t in node._threads)
     ack = _ingest(node, _frame(0))
+    node.drain_integrations()  # a started node integrates just after the ack
     assert isinstance(ack, Ack) and ack.status == "keyframe" and len(node.state.global_map) > 0
     assert worker.pending == 0 and worker.queued == 0  # nothing to compute with
     for request in (QueryPoints(texts=["chair"]), _segment("average")):
