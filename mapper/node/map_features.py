@@ -7,7 +7,7 @@ the views that see the point are in the window. :class:`PreEvictionFeatures` wri
 map before it is lost:
 
 * when the window is full, the oldest keyframe is the next to leave; after each new keyframe
-  (``node.keyframe_listeners``, ingest thread, O(1)), if it is not queued yet, it and the next
+  (``node.keyframe_listeners``, integrator thread, O(1)), if it is not queued yet, it and the next
   oldest up to ``global_map.learned_features_batch`` keyframes are queued
   (:class:`KeyframeQueue`: bounded, the oldest dropped beyond ``learned_features_max_pending``);
 * the worker thread (``mapper-map-features``) takes every queued keyframe, the map voxels their
@@ -79,7 +79,7 @@ class PreEvictionFeatures:
         node.workers.append(("map-features", self.run))
         node.status_providers["map_features"] = self.stats
 
-    # -- ingest thread -----------------------------------------------------------------------
+    # -- keyframe-listener thread ----------------------------------------------------------
 
     def on_keyframe(self, keyframe: Keyframe, map_version: int) -> None:
         """After a new keyframe: queue the window's oldest when the window is full (it leaves next)."""

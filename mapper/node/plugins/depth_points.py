@@ -26,15 +26,16 @@ camera or outside its image are no evidence either way. The triangulated points 
 node's installed :class:`~mapper.node.plugins.triangulation.SparseTriangulation` (found at
 render time, so either plugin may be installed first) or from :attr:`RenderedDepthPoints.sparse_source`.
 
-Scheduling: the node calls :meth:`RenderedDepthPoints.on_keyframe` on the ingest thread after a
-keyframe entered the window (O(1): a deque append). A background worker (``mapper-depth-points``)
-renders the pending keyframes in batches: one runtime sync and one 3D U-Net pass serve every
-keyframe pending at that moment. Until the model's window holds ``rendered_min_views`` keyframes
-the pending ones wait (a density field from one or two views is not a surface). Beyond
-``rendered_max_pending`` waiting keyframes the oldest is dropped and counted. A map load replaces
-the global map; keyframes queued for the old map are dropped (counted as ``stale``).
+Scheduling: the node calls :meth:`RenderedDepthPoints.on_keyframe` on the keyframe-listener thread
+(integrator; the ingest thread when integration is inline) after a keyframe entered the window
+(O(1): a deque append). A background worker (``mapper-depth-points``) renders the pending keyframes
+in batches: one runtime sync and one 3D U-Net pass serve every keyframe pending at that moment.
+Until the model's window holds ``rendered_min_views`` keyframes the pending ones wait (a density
+field from one or two views is not a surface). Beyond ``rendered_max_pending`` waiting keyframes the
+oldest is dropped and counted. A map load replaces the global map; keyframes queued for the old map
+are dropped (counted as ``stale``).
 
-Errors never reach the ingest thread: a keyframe whose render fails is logged (rate limited) and
+Errors never reach the listener thread: a keyframe whose render fails is logged (rate limited) and
 counted in ``failed``; the worker keeps running.
 
 Example (in-process; ``node`` a :class:`mapper.node.service.MapperNode`, ``runtime`` a
@@ -319,7 +320,7 @@ class RenderedDepthPoints:
         self.node.status_providers["rendered_depth"] = self.stats
 
     def on_keyframe(self, keyframe: Any, map_version: int) -> None:
-        """Queue ``keyframe`` if it has no input depth (ingest thread; O(1), never raises)."""
+        """Queue ``keyframe`` if it has no input depth (keyframe-listener thread; O(1), never raises)."""
         if keyframe.depth_m is not None or not self.config.rendered_depth:
             return
         self._queue.put((keyframe, self.node.state.global_map))

@@ -14,7 +14,7 @@ Wiring (:func:`install_ov_backend`, called once after the node is built and afte
   ``query_points``, ``segment_points`` and ``render`` texts work in that space. When it does not
   (missing file, bad checkpoint), the node serves everything else; ``status`` shows the error under
   ``ov_backend.error`` and semantic requests answer ``not_ready`` with the reason and the path;
-* :meth:`OvFeatureWorker.on_keyframe` (a node keyframe listener, ingest thread) only queues a new
+* :meth:`OvFeatureWorker.on_keyframe` (a node keyframe listener, integrator thread) only queues a new
   keyframe that has no ``ov`` (O(1)); a keyframe whose frame carried ``ov`` is never re-encoded;
 * the worker thread (``mapper-ov-backend``) computes the dense features, outside every lock (about
   2 s per frame for ViT-B/16 on a CPU), then:
@@ -238,7 +238,7 @@ class OvFeatureWorker:
         return None
 
     def on_keyframe(self, keyframe: Keyframe, map_version: int) -> None:
-        """Queue ``keyframe`` if it has no ``ov`` (ingest thread; O(1), never raises)."""
+        """Queue ``keyframe`` if it has no ``ov`` (keyframe-listener thread; O(1), never raises)."""
         if keyframe.ov is not None:
             with self._lock:
                 self.with_ov += 1

@@ -20,14 +20,15 @@ multi-view checks, an uncertainty per point) and uses the points three ways:
   features (a sparse depth map through the map's public ``integrate``), at
   ``global_map_weight`` times a confidence that falls with the uncertainty.
 
-Scheduling: :meth:`SparseTriangulation.on_keyframe` runs on the ingest thread after the keyframe
-entered the window and only queues it (O(1)); the worker (``mapper-triangulation``) detects,
-matches and triangulates. The features of the last ``candidate_keyframes`` keyframes (with or
-without depth) stay in memory as partner candidates; a map load clears them and the sparse map at
-once (``node.load_listeners``: nothing of the replaced map is held or reported after the load
-returns), and keyframes acked before the load that the worker meets later are skipped (counted
-in ``stale``). Beyond ``max_pending`` waiting keyframes the oldest is dropped and counted.
-Errors never reach the ingest thread: they are logged (rate limited) and counted in ``failed``.
+Scheduling: :meth:`SparseTriangulation.on_keyframe` runs on the keyframe-listener thread
+(integrator; ingest when integration is inline) after the keyframe entered the window and only
+queues it (O(1)); the worker (``mapper-triangulation``) detects, matches and triangulates. The
+features of the last ``candidate_keyframes`` keyframes (with or without depth) stay in memory as
+partner candidates; a map load clears them and the sparse map at once (``node.load_listeners``:
+nothing of the replaced map is held or reported after the load returns), and keyframes acked before
+the load that the worker meets later are skipped (counted in ``stale``). Beyond ``max_pending``
+waiting keyframes the oldest is dropped and counted. Errors never reach the listener thread: they
+are logged (rate limited) and counted in ``failed``.
 
 Example (in-process; ``node`` a :class:`mapper.node.service.MapperNode`)::
 
@@ -198,7 +199,7 @@ class SparseTriangulation:
         self.node.status_providers["triangulation"] = self.stats
 
     def on_keyframe(self, keyframe: Any, map_version: int) -> None:
-        """Queue every keyframe (ingest thread; O(1), never raises): those without depth are
+        """Queue every keyframe (keyframe-listener thread; O(1), never raises): those without depth are
         triangulated, those with depth only become partner candidates."""
         if self.config.enabled:
             self._queue.put((keyframe, int(map_version), self.node.state.global_map))
