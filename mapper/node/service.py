@@ -61,7 +61,7 @@ import threading
 import time
 import traceback
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from types import FrameType
 from typing import Any
@@ -506,14 +506,7 @@ class MapperNode:
             while not self._stop.is_set():
                 if not poller.poll(timeout_ms):
                     continue
-                while not self._stop.is_set():
-                    try:
-                        parts = sock.recv_multipart(zmq.NOBLOCK)
-                    except zmq.Again:
-                        break
-                    if len(parts) < 2:  # a ROUTER always prepends the identity; be defensive
-                        log.warning("%s: dropped a message without envelope (%d parts)", name, len(parts))
-                        continue
+                for parts in self._drain_router(sock, name):
                     reply = handle(parts[-1])
                     self._send_reply(sock, [*parts[:-1], reply], name)
         finally:
@@ -537,6 +530,19 @@ class MapperNode:
         pause = min((now - started) * (1.0 - share) / share, limits.query_pause_max_s)
         if pause > 0:
             self._stop.wait(pause)
+
+    def _drain_router(self, sock: zmq.Socket[bytes], name: str) -> Iterator[list[bytes]]:
+        """The messages waiting on ROUTER ``sock`` (identity frames first), until none is left or
+        the node stops; a message without an envelope is logged and dropped."""
+        while not self._stop.is_set():
+            try:
+                parts = sock.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            if len(parts) < 2:  # a ROUTER always prepends the identity; be defensive
+                log.warning("%s: dropped a message without envelope (%d parts)", name, len(parts))
+                continue
+            yield parts
 
     def _send_reply(self, sock: zmq.Socket[bytes], parts: list[bytes], name: str) -> bool:
         """Send ``parts`` on ROUTER ``sock`` without ever blocking; a reply the peer cannot take
@@ -589,14 +595,7 @@ class MapperNode:
                             break
                 if sock not in ready:
                     continue
-                while not self._stop.is_set():
-                    try:
-                        parts = sock.recv_multipart(zmq.NOBLOCK)
-                    except zmq.Again:
-                        break
-                    if len(parts) < 2:  # a ROUTER always prepends the identity; be defensive
-                        log.warning("query: dropped a message without envelope (%d parts)", len(parts))
-                        continue
+                for parts in self._drain_router(sock, "query"):
                     started = time.monotonic()
                     reply = self._route_query(parts[:-1], parts[-1])
                     if reply is not None:

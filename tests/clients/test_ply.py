@@ -5,18 +5,16 @@ empty answer (a valid PLY with 0 points, not an error)."""
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
-import zmq
 
 from clients.cli import query as query_cli
 from clients.colors import score_colours
-from clients.harness import free_endpoints
 from clients.ply import PLY_VERTEX_DTYPE, PlyError, read_points_ply, write_points_ply
-from protocol.messages import ObjectCandidate, Points, QueryPoints, decode, encode
+from protocol.messages import ObjectCandidate, Points, QueryPoints
+from tests.node_helpers import ScriptedQueryEndpoint
 
 
 def _cloud(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -100,36 +98,11 @@ def test_unwritable_path_is_an_oserror_naming_it(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dir.ply"]
 
 
-class ScriptedQueryNode:
+class ScriptedQueryNode(ScriptedQueryEndpoint[QueryPoints]):
     """A query endpoint on a free TCP port that answers every ``query_points`` with ``answer``."""
 
     def __init__(self, answer: Points) -> None:
-        (self.endpoint,) = free_endpoints(1)
-        self.answer = answer
-        self.requests: list[QueryPoints] = []
-        self._ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context()
-        self._sock = self._ctx.socket(zmq.ROUTER)
-        self._sock.bind(self.endpoint)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, daemon=True)
-        self._thread.start()
-
-    def _serve(self) -> None:
-        while not self._stop.is_set():
-            if not self._sock.poll(20):
-                continue
-            parts = self._sock.recv_multipart()
-            msg = decode(parts[-1], direction="request")
-            assert isinstance(msg, QueryPoints)
-            self.requests.append(msg)
-            self.answer.id = msg.id
-            self._sock.send_multipart([*parts[:-1], encode(self.answer)])
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
-        self._sock.close(linger=0)
-        self._ctx.term()
+        super().__init__(QueryPoints, answer)
 
 
 def _query(answer: Points, out: Path) -> int:

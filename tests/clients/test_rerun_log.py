@@ -16,7 +16,6 @@ import json
 import os
 import subprocess
 import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -24,7 +23,6 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pytest
-import zmq
 
 from clients import replay
 from clients.cli import query as client_cli
@@ -39,7 +37,8 @@ from clients.harness import (
     write_synthetic_recording,
 )
 from clients.rerun_log import APPLICATION_ID, RERUN_PIN, RerunLog, RerunLogError, check_rrd_path
-from protocol.messages import ObjectCandidate, Points, Render, RenderResult, decode, encode
+from protocol.messages import ObjectCandidate, Points, Render, RenderResult
+from tests.node_helpers import ScriptedQueryEndpoint
 
 W, H = 96, 72
 N_FRAMES = 12
@@ -377,37 +376,12 @@ def test_replay_cli_logs_every_nth_frame(node: NodeProcess, tmp_path: Path) -> N
     ]
 
 
-class ScriptedRenderNode:
+class ScriptedRenderNode(ScriptedQueryEndpoint[Render]):
     """A query endpoint on a free TCP port that answers ``render`` requests with a fixed image
     (the learned model is too slow to load for a unit test); records the requests."""
 
     def __init__(self, result: RenderResult) -> None:
-        (self.endpoint,) = free_endpoints(1)
-        self.result = result
-        self.requests: list[Render] = []
-        self._ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context()
-        self._sock = self._ctx.socket(zmq.ROUTER)
-        self._sock.bind(self.endpoint)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, daemon=True)
-        self._thread.start()
-
-    def _serve(self) -> None:
-        while not self._stop.is_set():
-            if not self._sock.poll(20):
-                continue
-            parts = self._sock.recv_multipart()
-            msg = decode(parts[-1], direction="request")
-            assert isinstance(msg, Render)
-            self.requests.append(msg)
-            self.result.id = msg.id
-            self._sock.send_multipart([*parts[:-1], encode(self.result)])
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
-        self._sock.close(linger=0)
-        self._ctx.term()
+        super().__init__(Render, result)
 
 
 def test_render_cli_logs_the_view_and_its_camera(tmp_path: Path) -> None:

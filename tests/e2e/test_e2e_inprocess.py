@@ -11,29 +11,19 @@ import pytest
 
 from clients.client import MapperClient
 from clients.harness import free_endpoints, synthetic_frame
-from mapper.node.config import config_from_dict
+from mapper.node.config import NodeConfig, config_from_dict
 from mapper.node.service import MapperNode
 from mapper.node.window import Keyframe
 from protocol.errors import RemoteError
 from protocol.messages import Message, Ok, QueryPoints, Save, encode
+from tests.node_helpers import in_process_node
 
 W, H = 32, 24
 
 
 @pytest.fixture()
 def node(tmp_path: Path) -> Iterator[MapperNode]:
-    ingest, query = free_endpoints(2)
-    config = config_from_dict(
-        {
-            "ingest_endpoint": ingest,
-            "query_endpoint": query,
-            "events_endpoint": "",
-            "map_dir": str(tmp_path / "maps"),
-            "poll_interval_s": 0.02,
-            "window": {"max_keyframes": 3},
-        }
-    )
-    mapper = MapperNode(config)
+    mapper = in_process_node(tmp_path, window={"max_keyframes": 3})
     mapper.start()
     try:
         yield mapper
@@ -125,19 +115,13 @@ def test_handle_functions_never_raise(node: MapperNode) -> None:
 
 
 def test_periodic_autosave_and_clean_run_exit(tmp_path: Path) -> None:
-    ingest, query = free_endpoints(2)
-    config = config_from_dict(
-        {
-            "ingest_endpoint": ingest,
-            "query_endpoint": query,
-            "events_endpoint": "",
-            "map_dir": str(tmp_path / "maps"),
-            "autosave_name": "auto",
-            "autosave_interval_s": 0.01,
-            "save_on_exit": False,
-        }
+    mapper = in_process_node(
+        tmp_path,
+        poll_interval_s=NodeConfig.poll_interval_s,  # the default poll
+        autosave_name="auto",
+        autosave_interval_s=0.01,
+        save_on_exit=False,
     )
-    mapper = MapperNode(config)
     mapper.start()
     codes: list[int] = []
     runner = threading.Thread(target=lambda: codes.append(mapper.run()))
@@ -205,19 +189,11 @@ def test_without_depth_semantic_requests_are_not_ready(node: MapperNode) -> None
         assert status.extra["global_points"] == 0 and status.keyframes == 3
 
 
-def _config(tmp_path: Path, **extra: object):  # noqa: ANN202
-    ingest, query = free_endpoints(2)
-    return config_from_dict(
-        {"ingest_endpoint": ingest, "query_endpoint": query, "events_endpoint": "",
-         "map_dir": str(tmp_path / "maps"), "poll_interval_s": 0.02, **extra}
-    )  # fmt: skip
-
-
 def test_unreadable_autosave_is_moved_aside_and_the_node_starts_empty(tmp_path: Path) -> None:
     maps = tmp_path / "maps"
     maps.mkdir()
     (maps / "auto.govmap").write_bytes(b"not a map")
-    mapper = MapperNode(_config(tmp_path, autosave_name="auto", save_on_exit=False))
+    mapper = in_process_node(tmp_path, autosave_name="auto", save_on_exit=False)
     mapper.start()
     try:
         with _client(mapper) as client:
@@ -242,7 +218,7 @@ def test_map_without_a_global_section_gets_it_rebuilt_from_its_keyframes(tmp_pat
     arrays, entries = keyframes_to_arrays(keyframes)
     MapStore(tmp_path / "maps").save("old", arrays, {"map_version": 3, "ov_space": frames[0].ov_space,
                                                     "ov_dim": 8, "keyframes": entries})  # fmt: skip
-    mapper = MapperNode(_config(tmp_path))
+    mapper = in_process_node(tmp_path)
     mapper.start()
     try:
         with _client(mapper) as client:

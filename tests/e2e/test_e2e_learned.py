@@ -16,15 +16,14 @@ from PIL import Image
 
 from clients.cli import main as govnesf
 from clients.client import MapperClient
-from clients.harness import free_endpoints
 from mapper.model.field import GovNeSF
-from mapper.node.config import config_from_dict
 from mapper.node.plugins.learned import install_learned_handlers
 from mapper.node.service import MapperNode
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
 from protocol.errors import RemoteError
 from protocol.messages import Frame
 from tests.model_helpers import look_at, tiny_model_config
+from tests.node_helpers import in_process_node
 
 TINY = tiny_model_config()
 SPACE = "e2e-space"
@@ -58,19 +57,7 @@ def frames(n: int) -> Iterator[Frame]:
 
 @pytest.fixture()
 def node(tmp_path: Path) -> Iterator[MapperNode]:
-    ingest, query = free_endpoints(2)
-    config = config_from_dict(
-        {
-            "ingest_endpoint": ingest,
-            "query_endpoint": query,
-            "events_endpoint": "",
-            "map_dir": str(tmp_path / "maps"),
-            "autosave_name": "",
-            "poll_interval_s": 0.02,
-            "window": {"max_keyframes": 4},
-        }
-    )
-    mapper = MapperNode(config)
+    mapper = in_process_node(tmp_path, autosave_name="", window={"max_keyframes": 4})
     torch.manual_seed(0)
     runtime = ModelRuntime(
         ModelRuntimeConfig(device="cpu"), model=GovNeSF(TINY).eval(), text_encoder=lambda space: FakeEncoder()

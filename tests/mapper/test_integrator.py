@@ -12,33 +12,25 @@ from typing import Any
 
 import numpy as np
 
-from clients.harness import free_endpoints, synthetic_frame
-from mapper.node.config import config_from_dict
+from clients.harness import synthetic_frame
 from mapper.node.service import MapperNode
 from mapper.node.store import MapStore
 from mapper.node.window import Keyframe
 from protocol.messages import Ack, Load, Ok, Save, Status, StatusRequest, decode, encode
+from tests.node_helpers import in_process_node
 
 N_FRAMES = 12
 WAIT_S = 20.0  # generous deadline for polling loops (never a pass/fail timing)
 
 
 def _node(tmp_path: Path, integrate_queue: int, **extra: Any) -> MapperNode:
-    ingest, query = free_endpoints(2)
-    config = config_from_dict(
-        {
-            "ingest_endpoint": ingest,
-            "query_endpoint": query,
-            "events_endpoint": "",
-            "map_dir": str(tmp_path / "maps"),
-            "poll_interval_s": 0.02,
-            "serve_model": False,
-            "global_map": {"integrate_queue": integrate_queue},
-            "window": {"min_translation_m": 0.0},  # every frame a keyframe
-            **extra,
-        }
+    return in_process_node(
+        tmp_path,
+        serve_model=False,
+        global_map={"integrate_queue": integrate_queue},
+        window={"min_translation_m": 0.0},  # every frame a keyframe
+        **extra,
     )
-    return MapperNode(config)
 
 
 def _frames() -> list[bytes]:

@@ -12,28 +12,15 @@ import numpy as np
 import pytest
 import zmq
 
-from clients.harness import free_endpoints
-from mapper.node.config import config_from_dict
 from mapper.node.service import MapperNode
 from protocol.messages import Error, Message, Ok, Render, Status, StatusRequest, decode, encode
+from tests.node_helpers import in_process_node
 
 TIMEOUT_MS = 10_000
 
 
 def _node(tmp_path: Path, **queries: Any) -> MapperNode:
-    ingest, query = free_endpoints(2)
-    config = config_from_dict(
-        {
-            "ingest_endpoint": ingest,
-            "query_endpoint": query,
-            "events_endpoint": "",
-            "map_dir": str(tmp_path / "maps"),
-            "poll_interval_s": 0.02,
-            "serve_model": False,
-            "queries": queries,
-        }
-    )
-    return MapperNode(config)
+    return in_process_node(tmp_path, serve_model=False, queries=queries)
 
 
 @pytest.fixture()

@@ -15,23 +15,19 @@ from clients.client import MapperClient
 from mapper.node.config import config_from_dict
 from mapper.node.service import MapperNode, _rss_bytes
 from protocol.messages import Status, StatusRequest, decode, encode
+from tests.node_helpers import in_process_node
 
 GARBAGE = b"\x81\xa1v\x01"  # a msgpack map without a type: every copy gets a small error reply
 
 
 @pytest.fixture()
 def node(tmp_path: Path) -> Iterator[MapperNode]:
-    config = config_from_dict(
-        {
-            "ingest_endpoint": f"ipc://{tmp_path}/ingest.sock",
-            "query_endpoint": f"ipc://{tmp_path}/query.sock",
-            "events_endpoint": "",
-            "map_dir": str(tmp_path / "maps"),
-            "poll_interval_s": 0.02,
-            "limits": {"sndhwm": 8, "rcvhwm": 8},
-        }
+    mapper = in_process_node(
+        tmp_path,
+        ingest_endpoint=f"ipc://{tmp_path}/ingest.sock",
+        query_endpoint=f"ipc://{tmp_path}/query.sock",
+        limits={"sndhwm": 8, "rcvhwm": 8},
     )
-    mapper = MapperNode(config)
     mapper.start()
     try:
         yield mapper
