@@ -58,6 +58,51 @@ def _as_tensor(x: np.ndarray | Tensor, dtype: torch.dtype, device: torch.device)
     return torch.from_numpy(np.require(x, requirements=["C", "W"])).to(device=device, dtype=dtype)
 
 
+
+def _parse_inputs(
+    points: np.ndarray | Tensor,
+    views: Sequence[OVView | tuple],
+    *,
+    use_depth: bool,
+    border_px: float,
+    depth_rel_tol: float,
+    chunk: int,
+    view_weights: np.ndarray | Tensor | None,
+    device: torch.device,
+) -> tuple[Tensor, list[OVView], Tensor | None, int]:
+    """Validate the averaging inputs (raising ``ValueError`` at once) for both implementations.
+    Returns (points (N, 3) float32, the views that count (with depth where ``use_depth``), their
+    (V', N) weights or None, the feature dimension D (0 without views))."""
+    if depth_rel_tol < 0:
+        raise ValueError(f"depth_rel_tol {depth_rel_tol} must be >= 0")
+    if chunk < 1:
+        raise ValueError(f"chunk {chunk} must be >= 1")
+    if border_px < 0:
+        raise ValueError(f"border_px {border_px} must be >= 0")
+    pts = _as_tensor(points, torch.float32, device)
+    check_shape(pts, "N 3", "points must have shape (N points, xyz)")
+    parsed = [OVView(*v) for v in views]
+    for i, v in enumerate(parsed):
+        check_shape(v.ov, "h w D", f"view {i}: ov")
+        if len(v.image_wh) != 2 or min(v.image_wh) < 1:
+            raise ValueError(f"view {i}: image_wh must be (W, H) >= 1, got {v.image_wh}")
+    dims = {int(v.ov.shape[-1]) for v in parsed}
+    if len(dims) > 1:
+        raise ValueError(f"views have OV features of different dimensions {sorted(dims)}")
+    dim = dims.pop() if dims else 0
+    n_pts = pts.shape[0]
+    view_ids = [i for i, v in enumerate(parsed) if not use_depth or v.depth_m is not None]
+    vw = None
+    if view_weights is not None:
+        vw = _as_tensor(view_weights, torch.float32, device)
+        check_shape(vw, "V N", "view_weights must have shape (V views, N points)",
+                    {"V": len(parsed), "N": n_pts})
+        if not bool((vw >= 0).all()):
+            raise ValueError("view_weights must be >= 0")
+        vw = vw[view_ids]
+    parsed = [parsed[i] for i in view_ids]
+    return pts, parsed, vw, dim
+
 def average_features_reference(
     points: np.ndarray | Tensor,
     views: Sequence[OVView | tuple],
@@ -96,37 +141,13 @@ def average_features_reference(
         features: (N, D) float32, L2-normalised weighted mean (zero rows where no view counts).
         n_views: (N,) int64, number of views that counted for each point.
     """
-    if depth_rel_tol < 0:
-        raise ValueError(f"depth_rel_tol {depth_rel_tol} must be >= 0")
-    if chunk < 1:
-        raise ValueError(f"chunk {chunk} must be >= 1")
-    if border_px < 0:
-        raise ValueError(f"border_px {border_px} must be >= 0")
     device = torch.device(device)
-    pts = _as_tensor(points, torch.float32, device)
-    check_shape(pts, "N 3", "points must have shape (N points, xyz)")
-    parsed = [OVView(*v) for v in views]
-    for i, v in enumerate(parsed):
-        check_shape(v.ov, "h w D", f"view {i}: ov")
-        if len(v.image_wh) != 2 or min(v.image_wh) < 1:
-            raise ValueError(f"view {i}: image_wh must be (W, H) >= 1, got {v.image_wh}")
-    dims = {int(v.ov.shape[-1]) for v in parsed}
-    if len(dims) > 1:
-        raise ValueError(f"views have OV features of different dimensions {sorted(dims)}")
-    dim = dims.pop() if dims else 0
+    pts, parsed, vw, dim = _parse_inputs(points, views, use_depth=use_depth, border_px=border_px,
+                                         depth_rel_tol=depth_rel_tol, chunk=chunk,
+                                         view_weights=view_weights, device=device)
     n_pts = pts.shape[0]
     feats = torch.zeros(n_pts, dim, dtype=torch.float32, device=device)
     n_views = torch.zeros(n_pts, dtype=torch.int64, device=device)
-    view_ids = [i for i, v in enumerate(parsed) if not use_depth or v.depth_m is not None]
-    vw = None
-    if view_weights is not None:
-        vw = _as_tensor(view_weights, torch.float32, device)
-        check_shape(vw, "V N", "view_weights must have shape (V views, N points)",
-                    {"V": len(parsed), "N": n_pts})
-        if not bool((vw >= 0).all()):
-            raise ValueError("view_weights must be >= 0")
-        vw = vw[view_ids]
-    parsed = [parsed[i] for i in view_ids]
     if not parsed or n_pts == 0:
         return feats, n_views
 
@@ -291,37 +312,13 @@ def _average_chunks(
 ) -> tuple[int, int, Iterator[tuple[int, Tensor | None, Tensor]]]:
     """Validates the inputs (raising at once) and returns (N, D, chunks); each chunk is
     ``(start, acc (n, D) weighted mean or None when no view counts, count (n,) int64)``."""
-    if depth_rel_tol < 0:
-        raise ValueError(f"depth_rel_tol {depth_rel_tol} must be >= 0")
-    if chunk < 1:
-        raise ValueError(f"chunk {chunk} must be >= 1")
-    if border_px < 0:
-        raise ValueError(f"border_px {border_px} must be >= 0")
     if max_table_bytes < 1:
         raise ValueError(f"max_table_bytes {max_table_bytes} must be >= 1")
     device = torch.device(device)
-    pts = _as_tensor(points, torch.float32, device)
-    check_shape(pts, "N 3", "points must have shape (N points, xyz)")
-    parsed = [OVView(*v) for v in views]
-    for i, v in enumerate(parsed):
-        check_shape(v.ov, "h w D", f"view {i}: ov")
-        if len(v.image_wh) != 2 or min(v.image_wh) < 1:
-            raise ValueError(f"view {i}: image_wh must be (W, H) >= 1, got {v.image_wh}")
-    dims = {int(v.ov.shape[-1]) for v in parsed}
-    if len(dims) > 1:
-        raise ValueError(f"views have OV features of different dimensions {sorted(dims)}")
-    dim = dims.pop() if dims else 0
+    pts, parsed, vw, dim = _parse_inputs(points, views, use_depth=use_depth, border_px=border_px,
+                                         depth_rel_tol=depth_rel_tol, chunk=chunk,
+                                         view_weights=view_weights, device=device)
     n_pts = pts.shape[0]
-    view_ids = [i for i, v in enumerate(parsed) if not use_depth or v.depth_m is not None]
-    vw = None
-    if view_weights is not None:
-        vw = _as_tensor(view_weights, torch.float32, device)
-        check_shape(vw, "V N", "view_weights must have shape (V views, N points)",
-                    {"V": len(parsed), "N": n_pts})
-        if not bool((vw >= 0).all()):
-            raise ValueError("view_weights must be >= 0")
-        vw = vw[view_ids]
-    parsed = [parsed[i] for i in view_ids]
     if not parsed or n_pts == 0:
         empty = [(start, None, torch.zeros(min(chunk, n_pts - start), dtype=torch.int64, device=device))
                  for start in range(0, n_pts, chunk)]
