@@ -56,6 +56,14 @@ MODES = {"depth": (True, True), "rgb": (False, False), "rgb+tri": (False, True)}
 """mode -> (frames carry depth, triangulation on)."""
 
 
+
+def _timed_pending(worker: Any) -> float:
+    """Run a plugin's pending work inline (``None``: nothing); returns the seconds it took."""
+    t0 = time.perf_counter()
+    if worker is not None:
+        worker.process_pending()
+    return time.perf_counter() - t0
+
 def _query(node: MapperNode, msg: Any) -> Any:
     return decode(node.handle_query(encode(msg)), direction="reply")
 
@@ -88,22 +96,10 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         node.handle_ingest(data)
         ack_s += time.perf_counter() - t0
         if (k + 1) % args.process_every == 0:  # the workers, inline between frames (timed apart)
-            t0 = time.perf_counter()
-            if tri is not None:
-                tri.process_pending()
-            worker_tri_s += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            if rendered is not None:
-                rendered.process_pending()
-            worker_depth_s += time.perf_counter() - t0
-    t0 = time.perf_counter()
-    if tri is not None:
-        tri.process_pending()
-    worker_tri_s += time.perf_counter() - t0
-    t0 = time.perf_counter()
-    if rendered is not None:
-        rendered.process_pending()
-    worker_depth_s += time.perf_counter() - t0
+            worker_tri_s += _timed_pending(tri)
+            worker_depth_s += _timed_pending(rendered)
+    worker_tri_s += _timed_pending(tri)
+    worker_depth_s += _timed_pending(rendered)
     row: dict[str, Any] = {
         "mode": mode, "seed": args.seed, "style": args.style, "frames": args.frames,
         "room_m": [round(float(v), 2) for v in scene.room_max - scene.room_min],

@@ -142,6 +142,12 @@ class TriangulationConfig:
             if not lo <= value <= hi:
                 raise ConfigError(f"{where}: triangulation.{key} = {value!r} out of range {lo}..{hi}")
 
+        def exceeds(hi_key: str, lo_key: str) -> None:
+            hi, lo = getattr(self, hi_key), getattr(self, lo_key)
+            if hi <= lo:
+                raise ConfigError(f"{where}: triangulation.{hi_key} = {hi} must exceed "
+                                  f"triangulation.{lo_key} = {lo}")
+
         if self.detector not in DETECTORS:
             raise ConfigError(
                 f"{where}: triangulation.detector = {self.detector!r}; allowed: {', '.join(DETECTORS)}"
@@ -157,21 +163,13 @@ class TriangulationConfig:
         check("min_overlap", self.min_overlap, 0.0, 1.0)
         check("probe_near_m", self.probe_near_m, 1e-3, 1e3)
         check("probe_far_m", self.probe_far_m, 1e-3, 1e3)
-        if self.probe_far_m <= self.probe_near_m:
-            raise ConfigError(
-                f"{where}: triangulation.probe_far_m = {self.probe_far_m} must exceed "
-                f"triangulation.probe_near_m = {self.probe_near_m}"
-            )
+        exceeds("probe_far_m", "probe_near_m")
         check("max_epipolar_px", self.max_epipolar_px, 0.01, 100.0)
         check("max_reprojection_px", self.max_reprojection_px, 0.01, 100.0)
         check("min_parallax_deg", self.min_parallax_deg, 0.01, 90.0)
         check("min_depth_m", self.min_depth_m, 1e-4, 1e3)
         check("max_depth_m", self.max_depth_m, 1e-3, 1e4)
-        if self.max_depth_m <= self.min_depth_m:
-            raise ConfigError(
-                f"{where}: triangulation.max_depth_m = {self.max_depth_m} must exceed "
-                f"triangulation.min_depth_m = {self.min_depth_m}"
-            )
+        exceeds("max_depth_m", "min_depth_m")
         check("pixel_sigma_px", self.pixel_sigma_px, 0.01, 100.0)
         check("max_sigma_m", self.max_sigma_m, 1e-4, 1e3)
         check("agree_sigmas", self.agree_sigmas, 0.1, 100.0)
