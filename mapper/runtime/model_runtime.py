@@ -478,12 +478,7 @@ class ModelRuntime:
             if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] < 1 or not np.isfinite(arr).all():
                 raise ValueError(f"points_m must be a finite (N >= 1, 3) array, got shape {arr.shape}")
             pts = torch.tensor(arr, dtype=torch.float32, device=self.device)
-        with self._pending_lock:
-            if pts is None:
-                self._view_extents.pop(key, None)
-            else:
-                self._view_extents[key] = pts
-            self._extents_changed.add(key)
+        self._set_pending(self._view_extents, self._extents_changed, key, pts)
 
     def _view_extent(self, keyframe: Any) -> Tensor | None:
         with self._pending_lock:
@@ -522,12 +517,17 @@ class ModelRuntime:
             if arr.ndim != 2 or arr.size == 0 or not np.isfinite(arr).all() or (arr < 0).any():
                 raise ValueError(f"depth_m must be a finite, non-negative (H, W) array, got {arr.shape}")
             prior = torch.tensor(arr, device=self.device)
+        self._set_pending(self._depth_priors, self._priors_changed, key, prior)
+
+    def _set_pending(self, store: dict[tuple[str, int, int], Tensor], changed: set[tuple[str, int, int]],
+                     key: tuple[str, int, int], value: Tensor | None) -> None:
+        """Set (or with None remove) ``store[key]`` and mark ``key`` changed for the next sync."""
         with self._pending_lock:
-            if prior is None:
-                self._depth_priors.pop(key, None)
+            if value is None:
+                store.pop(key, None)
             else:
-                self._depth_priors[key] = prior
-            self._priors_changed.add(key)
+                store[key] = value
+            changed.add(key)
 
     def _prior_at_working_size(self, prior: Tensor | None) -> Tensor | None:
         if prior is None:
