@@ -70,7 +70,7 @@ import numpy as np
 import zmq
 
 from mapper.node.config import NodeConfig, to_dict
-from mapper.node.global_map import GlobalSemanticMap
+from mapper.node.global_map import GlobalMapSnapshot, GlobalSemanticMap
 from mapper.node.keyframe_queue import KeyframeQueue
 from mapper.node.security import CurveServer, exposure_problem, security_mode
 from mapper.node.store import MapStore, StoreError, StoreWriteError
@@ -296,7 +296,7 @@ class MapperNode:
         Refuses (``RuntimeError``) a non-loopback bind without ``curve_dir`` unless ``insecure``
         (:func:`mapper.node.security.exposure_problem`); with ``curve_dir`` the key files must load."""
         cfg = self.config
-        endpoints = [e for e in (cfg.ingest_endpoint, cfg.query_endpoint, cfg.events_endpoint) if e]
+        endpoints = self._endpoints()
         problem = exposure_problem(endpoints, cfg.curve_dir, cfg.insecure)
         if problem:
             self._context.term()
@@ -555,9 +555,10 @@ class MapperNode:
             why = "full"
         except zmq.ZMQError as exc:
             why = "gone" if exc.errno == zmq.EHOSTUNREACH else f"error {exc.errno}"
+        key = f"{name}:{why}"
         with self.state.lock:
-            self.replies_dropped[f"{name}:{why}"] += 1
-            count = self.replies_dropped[f"{name}:{why}"]
+            self.replies_dropped[key] += 1
+            count = self.replies_dropped[key]
         self._warn_limited(f"{name}:reply-{why}", "%s: dropped a reply (%s; %d so far)", name, why, count)
         return False
 
@@ -1241,7 +1242,8 @@ class MapperNode:
             for k in with_ov
             if k.ov is not None and (not use_depth or k.depth_m is not None)
         ]
-        map_has_features = self.state.global_map.snapshot().n_with_features > 0
+        map_snap = self.state.global_map.snapshot()  # one snapshot for the check and the fill
+        map_has_features = map_snap.n_with_features > 0
         if not with_ov and not map_has_features:
             raise ProtocolError(
                 "not_ready",
@@ -1275,7 +1277,7 @@ class MapperNode:
             score = np.zeros(xyz.shape[0], np.float32)
             n_views = np.zeros(xyz.shape[0], np.int64)
         t_avg = time.perf_counter()
-        label, score, source = self.answer_from_map(xyz, text_emb, label, score, n_views > 0)
+        label, score, source = self.answer_from_map(xyz, text_emb, label, score, n_views > 0, map_snap)
         t_done = time.perf_counter()
         return Segmentation(
             label=label,
@@ -1299,15 +1301,16 @@ class MapperNode:
         label: np.ndarray,  # (N,) int32 the window's labels
         score: np.ndarray,  # (N,) float32 the window's scores
         window_seen: np.ndarray,  # (N,) bool: the window answered the point
+        snap: GlobalMapSnapshot | None = None,  # the snapshot to use (default: the current one)
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Fill the points the window did not answer from the global map's snapshot (nearest point
         with a feature within ``queries.map_radius_voxels`` voxels): (label, score, source (N,)
         uint8), see :func:`mapper.node.queries.fill_from_map`. Used by every segment method."""
         from mapper.node.queries import fill_from_map
 
-        return fill_from_map(
-            self.state.global_map.snapshot(), xyz, text_emb, label, score, window_seen, self.map_radius_m
-        )
+        if snap is None:
+            snap = self.state.global_map.snapshot()
+        return fill_from_map(snap, xyz, text_emb, label, score, window_seen, self.map_radius_m)
 
     @property
     def map_radius_m(self) -> float:
@@ -1332,10 +1335,13 @@ class MapperNode:
 
     # -- housekeeping -------------------------------------------------------------------------
 
-    def _security_mode(self) -> str:
+    def _endpoints(self) -> list[str]:
+        """The endpoints the node binds (ingest, query and, when set, events)."""
         cfg = self.config
-        endpoints = [e for e in (cfg.ingest_endpoint, cfg.query_endpoint, cfg.events_endpoint) if e]
-        return security_mode(endpoints, cfg.curve_dir if self._curve is not None else None)
+        return [e for e in (cfg.ingest_endpoint, cfg.query_endpoint, cfg.events_endpoint) if e]
+
+    def _security_mode(self) -> str:
+        return security_mode(self._endpoints(), self.config.curve_dir if self._curve is not None else None)
 
     def _security_status(self) -> dict[str, Any]:
         """``status`` key ``security``: ``mode`` (curve / loopback / insecure), ``curve_dir`` and
