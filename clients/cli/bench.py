@@ -558,14 +558,26 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: must be 1 or more")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="govnesf bench", description=__doc__.split("\n")[0])
     parser.add_argument(
         "--out", type=Path, default=Path("out/bench/node"), help="output stem (.json and .md)"
     )
     parser.add_argument("--quick", action="store_true", help="tiny sizes: a smoke run of every phase")
-    parser.add_argument("--frames", type=int, default=300, help="frames of the ingest phase")
-    parser.add_argument("--rss-frames", type=int, default=5000, help="frames of the long stream (RSS)")
+    parser.add_argument("--frames", type=_positive_int, default=300, help="frames of the ingest phase")
+    parser.add_argument(
+        "--rss-frames", type=_positive_int, default=5000, help="frames of the long stream (RSS)"
+    )
     parser.add_argument(
         "--node-arg",
         action="append",
@@ -573,8 +585,14 @@ def main(argv: list[str] | None = None) -> int:
         help="extra argument for `govnesf serve` (repeat; e.g. --node-arg=--set --node-arg=...)",
     )
     args = parser.parse_args(argv)
+    try:  # before the run (minutes): an unwritable --out fails now, not after it
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=args.out.parent):
+            pass
+    except OSError as exc:
+        print(f"govnesf bench: cannot write --out {args.out}: {exc}", file=sys.stderr)
+        return 2
     result = run(args)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     json_path, md_path = args.out.with_suffix(".json"), args.out.with_suffix(".md")
     json_path.write_text(json.dumps(result, indent=1))
     md_path.write_text(to_markdown(result))

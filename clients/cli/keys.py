@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
-from protocol.curve import CurveKeyError, create_client_keys, create_server_keys
+from protocol.curve import SERVER_NAME, CurveKeyError, create_client_keys, create_server_keys
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -39,6 +40,13 @@ def main(argv: list[str] | None = None) -> int:
                 f"next: `govnesf keys {args.dir} --client NAME` per client, then "
                 f"`govnesf serve --curve-dir {args.dir}`"
             )
+        elif not (Path(args.dir) / f"{SERVER_NAME}.key").is_file():
+            print(
+                f"govnesf keys: {args.dir}: no server key (server.key) there; run "
+                f"`govnesf keys {args.dir}` first, then add clients",
+                file=sys.stderr,
+            )
+            return 2
         else:
             paths = create_client_keys(args.dir, args.client)
             note = (

@@ -37,3 +37,17 @@ def test_bench_quick_writes_json_and_markdown(tmp_path: Path) -> None:
     assert all(s["rss_bytes"] for s in result["rss"]["samples"])
     md = out.with_suffix(".md").read_text()
     assert md.startswith("# govnesf bench (quick)") and "## query_points" in md
+
+
+def test_bench_refuses_bad_input_before_the_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A bad --frames is an argparse error; an unwritable --out fails at once, writes nothing."""
+    for bad in (["--frames", "-3"], ["--rss-frames", "0"]):
+        with pytest.raises(SystemExit) as exc:
+            main(bad)
+        assert exc.value.code == 2
+        assert "must be 1 or more" in capsys.readouterr().err
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    assert main(["--out", str(afile / "x")]) == 2
+    assert "cannot write --out" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]

@@ -91,6 +91,11 @@ def test_keys_command_makes_the_zmq_auth_layout(tmp_path: Path, capsys: pytest.C
     assert "invalid" in capsys.readouterr().err
     with pytest.raises(CurveKeyError, match="not found"):
         load_client_keys(root, "nobody")
+    # --client before the server keys: refused, nothing written
+    fresh = tmp_path / "fresh"
+    assert govnesf(["keys", str(fresh), "--client", "robot1"]) == 2
+    assert "run `govnesf keys" in capsys.readouterr().err
+    assert not fresh.exists()
 
 
 def test_allowed_client_streams_queries_and_gets_events(curve_node: MapperNode, tmp_path: Path) -> None:
