@@ -88,11 +88,15 @@ class FusionConfig:
     """sigma = softplus(x) (smooth, gradient never dies, no overflow) or a shifted, clamped exp."""
     density_bias_init: float = -1.0
     """Initial bias of the density output (softplus(-1) = 0.31 / m: semi-transparent start)."""
+    distill_hidden_dim: int = 0
+    """Width of the Distill head's hidden layers (0: ``2 * hidden_dim``, the first checkpoints')."""
+    distill_layers: int = 1
+    """Hidden layers of the Distill head (1: the first checkpoints')."""
 
     def __post_init__(self) -> None:
         if self.attention_dim % self.num_heads:
             raise ValueError(f"num_heads {self.num_heads} must divide attention_dim {self.attention_dim}")
-        if self.ov_dim < 1 or self.hidden_dim < 1:
+        if self.ov_dim < 1 or self.hidden_dim < 1 or self.distill_hidden_dim < 0 or self.distill_layers < 1:
             raise ValueError(f"fusion sizes out of range: {self}")
 
 

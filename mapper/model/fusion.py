@@ -398,11 +398,15 @@ class DistillHead(nn.Module):
 
     def __init__(self, volume_feature_dim: int, cfg: FusionConfig) -> None:
         super().__init__()
-        self.mlp = nn.Sequential(
-            nn.Linear(cfg.attention_dim + volume_feature_dim, 2 * cfg.hidden_dim),
-            nn.ELU(),
-            nn.Linear(2 * cfg.hidden_dim, cfg.ov_dim),
-        )
+        width = cfg.distill_hidden_dim or 2 * cfg.hidden_dim
+        layers: list[nn.Module] = []
+        d_in = cfg.attention_dim + volume_feature_dim
+        for _ in range(cfg.distill_layers):
+            layers += [nn.Linear(d_in, width), nn.ELU()]
+            d_in = width
+        layers.append(nn.Linear(d_in, cfg.ov_dim))
+        # (the default sizes give the same module indices, 0 / 2, as the first checkpoints' head)
+        self.mlp = nn.Sequential(*layers)
 
     def forward(self, x_att: Tensor, mask: Tensor, volume_features: Tensor) -> Tensor:
         """x_att: (P, N, A); mask: (P, N); volume_features: (P, Dv) -> (P, ov_dim)."""

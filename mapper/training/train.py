@@ -32,7 +32,7 @@ import os
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -82,6 +82,10 @@ class TrainConfig:
     """Model preset (``mapper.model.config.PRESETS``); ``fusion.ov_dim`` follows the data."""
     mode: str = "blend"
     """``blend`` (GOV-NeSF) or ``distill`` (the Distill baseline)."""
+    distill_hidden_dim: int = 0
+    """Distill head width (``FusionConfig.distill_hidden_dim``; 0 = the preset's, ``2 * hidden_dim``)."""
+    distill_layers: int = 0
+    """Distill head hidden layers (``FusionConfig.distill_layers``; 0 = the preset's, 1)."""
     train_dir: str = "data/train"
     val_dir: str = "data/val"
     out_dir: str = "out/train/cpu-small"
@@ -170,6 +174,8 @@ class TrainConfig:
     def __post_init__(self) -> None:
         checks = [
             (self.mode in ("blend", "distill"), "mode", "'blend' or 'distill'"),
+            (self.distill_hidden_dim >= 0, "distill_hidden_dim", ">= 0"),
+            (self.distill_layers >= 0, "distill_layers", ">= 0"),
             (self.max_steps >= 1, "max_steps", ">= 1"),
             (self.batch_views >= 1, "batch_views", ">= 1"),
             (self.rays_per_view >= 1, "rays_per_view", ">= 1"),
@@ -593,13 +599,20 @@ class _Data:
     """The ``extra_train_dirs`` scenes (empty when ``extra_train_weight`` is 0)."""
 
 
+def _with_distill_head(mcfg: ModelConfig, cfg: TrainConfig) -> ModelConfig:
+    """The preset with the run's Distill head sizes (0 keeps the preset's)."""
+    pairs = (("distill_hidden_dim", cfg.distill_hidden_dim), ("distill_layers", cfg.distill_layers))
+    sizes = {k: v for k, v in pairs if v}
+    return replace(mcfg, fusion=replace(mcfg.fusion, **sizes)) if sizes else mcfg
+
+
 def _load_data(cfg: TrainConfig, dd: _Dist, model_cfg: ModelConfig | None) -> _Data:
     """Training scenes, the model config (its ``ov_dim`` follows the data), the ray sampler and, on
     rank 0, the validation views and class text embeddings."""
     t_load = time.perf_counter()
     train_scenes = _load_scenes(cfg.train_dir, limit=cfg.max_train_scenes)
     ov_dim = train_scenes[0].ov_dim
-    mcfg = model_cfg or get_preset(cfg.preset, ov_dim=ov_dim)
+    mcfg = model_cfg or _with_distill_head(get_preset(cfg.preset, ov_dim=ov_dim), cfg)
     extra_scenes = _load_extra_scenes(cfg, train_scenes[0], mcfg.fusion.ov_dim)
     sampler = RaySampler(
         train_scenes,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -219,6 +221,29 @@ def test_distill_mode_regresses_ov() -> None:
     assert model.distill is not None and model.distill.mlp[0].weight.grad is not None
     with pytest.raises(ValueError, match="mode 'nope'"):
         GovNeSF(TINY, mode="nope")  # type: ignore[arg-type]
+
+
+def test_distill_head_sizes() -> None:
+    """Default sizes keep the first checkpoints' parameter names; wider / deeper heads regress the
+    same output shape; bad sizes are refused."""
+    default = GovNeSF(TINY, mode="distill").distill
+    assert default is not None
+    names = sorted(n for n, _ in default.named_parameters())
+    assert names == ["mlp.0.bias", "mlp.0.weight", "mlp.2.bias", "mlp.2.weight"]
+    assert default.mlp[0].out_features == 2 * TINY.fusion.hidden_dim
+    big_cfg = replace(TINY, fusion=replace(TINY.fusion, distill_hidden_dim=40, distill_layers=3))
+    torch.manual_seed(0)
+    model = GovNeSF(big_cfg, mode="distill")
+    assert model.distill is not None
+    linears = [m for m in model.distill.mlp if isinstance(m, torch.nn.Linear)]
+    assert [m.out_features for m in linears] == [40, 40, 40, TINY.fusion.ov_dim]
+    views = make_views(model)
+    volume = model.build_volume(views, BOUNDS)
+    out = model.query_points(views, volume, BOUNDS, torch.tensor([[0.0, 0.0, 2.0]]))
+    assert out.ov.shape == (1, TINY.fusion.ov_dim) and torch.isfinite(out.ov).all()
+    for bad in ({"distill_hidden_dim": -1}, {"distill_layers": 0}):
+        with pytest.raises(ValueError, match="fusion sizes"):
+            replace(TINY.fusion, **bad)
 
 
 def test_incremental_cost_volume_feeds_the_same_network_input(model: GovNeSF) -> None:

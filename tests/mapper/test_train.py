@@ -150,6 +150,19 @@ def test_config_errors(tmp_path: Path) -> None:
     assert load_train_config(good, max_steps=9).max_steps == 9
     with pytest.raises(FileNotFoundError):
         load_train_config(tmp_path / "missing.toml")
+    with pytest.raises(ValueError, match="distill_layers"):
+        TrainConfig(distill_layers=-1)
+
+
+def test_distill_head_sizes_reach_the_model_config() -> None:
+    from mapper.model.config import get_preset
+    from mapper.training.train import _with_distill_head
+
+    preset = get_preset("cpu-small", ov_dim=384)
+    assert _with_distill_head(preset, TrainConfig()) is preset
+    sized = _with_distill_head(preset, TrainConfig(mode="distill", distill_hidden_dim=256, distill_layers=2))
+    assert (sized.fusion.distill_hidden_dim, sized.fusion.distill_layers) == (256, 2)
+    assert sized.fusion.ov_dim == 384 and sized.encoder == preset.encoder
 
 
 def test_launch_configs_load() -> None:
