@@ -102,6 +102,9 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--width", type=int, default=160)
     parser.add_argument("--height", type=int, default=120)
     parser.add_argument("--window", type=int, default=160, help="node window.max_keyframes (default 160)")
+    parser.add_argument("--set", dest="node_set", action="append", default=[], metavar="KEY=VALUE",
+                        help="node config override passed to both nodes, as `govnesf serve --set` "
+                             "(repeatable), e.g. --set model.checkpoint=out/train/x/export.safetensors")
     parser.add_argument("--gt-points-per-m2", type=float, default=150.0,
                         help="density of the ground-truth surface samples for the mIoU (default 150)")
     parser.add_argument("--rerun", metavar="FILE.rrd", default=None,
@@ -117,6 +120,15 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if args.rerun_every < 1:
         parser.error(f"--rerun-every {args.rerun_every} must be >= 1")
+    if args.node_set:  # a bad key or value is an error before any work, as `govnesf serve` says it
+        from mapper.errors import ConfigError
+        from mapper.node.cli import _parse_set
+        from mapper.node.config import load_config
+
+        try:
+            load_config(None, _parse_set(args.node_set))
+        except (ConfigError, ValueError) as exc:
+            parser.error(str(exc))
     if args.rerun or args.rerun_connect:  # a bad path / no viewer is an error before any work
         from clients.rerun_log import RerunLogError, check_rerun_outputs
 
@@ -164,13 +176,18 @@ def _generate_room(args: argparse.Namespace, out: Path) -> _Room:
     return _Room(stream, gt_xyz, gt_label, np.zeros(n_gt, np.int32))
 
 
+def _node_sets(args: argparse.Namespace) -> list[str]:
+    """``--set KEY=VALUE`` pairs for the node from the demo's own ``--set`` options."""
+    return [arg for kv in args.node_set for arg in ("--set", kv)]
+
+
 def _node_process(args: argparse.Namespace, out: Path) -> NodeProcess:
     """Step 2 (before start-up): the node, its map directory and log under ``out``."""
     _step(2, "starting `govnesf serve` on free loopback ports")
     return NodeProcess(
         out / "maps", log_path=out / "node.log",
         extra_args=["--set", f"window.max_keyframes={args.window}", "--set", "autosave_name=demo",
-                    "--set", "load_autosave_on_start=false"],
+                    "--set", "load_autosave_on_start=false", *_node_sets(args)],
     )  # fmt: skip
 
 
@@ -343,7 +360,7 @@ def _rgb_only_pass(args: argparse.Namespace, out: Path, room: _Room, failures: l
     node = NodeProcess(
         rgb_out / "maps", log_path=rgb_out / "node.log",
         extra_args=["--set", f"window.max_keyframes={args.window}", "--set", "autosave_name=demo-rgb-only",
-                    "--set", "load_autosave_on_start=false"],
+                    "--set", "load_autosave_on_start=false", *_node_sets(args)],
     )  # fmt: skip
     with node:
         node.wait_ready()

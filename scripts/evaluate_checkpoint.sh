@@ -4,8 +4,9 @@
 # Usage: scripts/evaluate_checkpoint.sh CHECKPOINT OUT_DIR [PARTS...]
 #   CHECKPOINT  e.g. checkpoints/cpu-small.json
 #   OUT_DIR     results: val.txt, results_3d.json / tables_3d.md, results_2d.json / tables_2d.md,
-#               density_visibility.txt, rendered_depth_points.txt, real_sequence.{json,md}
-#   PARTS       any of: val 3d 2d visibility rgbonly real (default: all of them)
+#               density_visibility.txt, rendered_depth_points.txt, real_sequence.{json,md},
+#               results_rgb_node.json / tables_rgb_node.md
+#   PARTS       any of: val 3d 2d visibility rgbonly real rgbnode (default: all of them)
 # Needs the data of scripts/make_train_data.sh (data/val), scripts/make_eval_data.sh (data/eval)
 # and, for `real`, ../shared/data/icl_livingroom1. Env: PYTHON (default .venv/bin/python), DATA (data).
 set -euo pipefail
@@ -18,15 +19,15 @@ CKPT="$1"
 OUT="$2"
 shift 2
 PARTS=("$@")
-if [[ ${#PARTS[@]} -eq 0 ]]; then PARTS=(val 3d 2d visibility rgbonly real); fi
+if [[ ${#PARTS[@]} -eq 0 ]]; then PARTS=(val 3d 2d visibility rgbonly real rgbnode); fi
 PYTHON="${PYTHON:-.venv/bin/python}"
 DATA="${DATA:-data}"
 export HF_HUB_OFFLINE=1 OMP_NUM_THREADS="${OMP_NUM_THREADS:-2}"
 if [[ ! -f "$CKPT" ]]; then echo "evaluate_checkpoint: no checkpoint $CKPT" >&2; exit 2; fi
 for part in "${PARTS[@]}"; do
     case "$part" in
-        val|3d|2d|visibility|rgbonly|real) ;;
-        *) echo "evaluate_checkpoint: unknown part $part (val 3d 2d visibility rgbonly real)" >&2; exit 2 ;;
+        val|3d|2d|visibility|rgbonly|real|rgbnode) ;;
+        *) echo "evaluate_checkpoint: unknown part $part (val 3d 2d visibility rgbonly real rgbnode)" >&2; exit 2 ;;
     esac
 done
 mkdir -p "$OUT"
@@ -48,7 +49,10 @@ for part in "${PARTS[@]}"; do
                      2>&1 | tee "$OUT/rendered_depth_points.txt" ;;
         real) "$PYTHON" benchmarks/real_sequence.py --checkpoint "$CKPT" --max-targets 12 --render-scale 0.5 \
                   --out "$OUT/real_sequence" 2>&1 | tee "$OUT/real_sequence.txt" ;;
-        *) echo "evaluate_checkpoint: unknown part $part (val 3d 2d visibility rgbonly real)" >&2; exit 2 ;;
+        rgbnode) "$PYTHON" -m mapper.training.cli_eval --checkpoint "$CKPT" --data "$DATA/eval" --max-points 20000 \
+                     --no-2d --no-oracle --rgb-only-node --device cpu --quiet \
+                     --out "$OUT/results_rgb_node.json" --markdown "$OUT/tables_rgb_node.md" ;;
+        *) echo "evaluate_checkpoint: unknown part $part (val 3d 2d visibility rgbonly real rgbnode)" >&2; exit 2 ;;
     esac
     echo "[evaluate_checkpoint] $part done in $(( $(date +%s) - start )) s"
 done
