@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import json
 import signal
+import subprocess
 import sys
 import time
 from collections.abc import Iterable, Iterator
@@ -121,14 +122,12 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     if args.rerun_every < 1:
         parser.error(f"--rerun-every {args.rerun_every} must be >= 1")
     if args.node_set:  # a bad key or value is an error before any work, as `govnesf serve` says it
-        from mapper.errors import ConfigError
-        from mapper.node.cli import _parse_set
-        from mapper.node.config import load_config
-
-        try:
-            load_config(None, _parse_set(args.node_set))
-        except (ConfigError, ValueError) as exc:
-            parser.error(str(exc))
+        check = subprocess.run(
+            [sys.executable, "-m", "mapper.node.cli", "--check-config", *_node_sets(args)],
+            capture_output=True, text=True, cwd=REPO_ROOT, check=False,
+        )  # fmt: skip
+        if check.returncode != 0:
+            parser.error(check.stderr.strip().removeprefix("govnesf serve: ") or "invalid --set")
     if args.rerun or args.rerun_connect:  # a bad path / no viewer is an error before any work
         from clients.rerun_log import RerunLogError, check_rerun_outputs
 

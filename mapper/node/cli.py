@@ -60,6 +60,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="override any config key (dotted for tables), e.g. window.max_keyframes=20; repeatable",
     )
     parser.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR"), help="logging level")
+    parser.add_argument(
+        "--check-config", action="store_true",
+        help="validate the config (file and overrides), print 'config ok' and exit without serving",
+    )
     return parser
 
 
@@ -83,6 +87,9 @@ def serve_main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"govnesf serve: {exc}", file=sys.stderr)
         return 2
+    if args.check_config:
+        print("config ok")
+        return 0
     logging.basicConfig(
         level=config.log_level.upper(),
         format="%(asctime)s.%(msecs)03d %(levelname)-7s %(threadName)s %(name)s: %(message)s",

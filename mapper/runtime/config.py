@@ -54,6 +54,12 @@ class ModelRuntimeConfig:
     source_views: int = 0
     """Source views per point (top-k); 0 = the model's ``num_source_views``. 0..256."""
 
+    point_source_views: int = 16
+    """Source views per point for point answers (``segment_points``, the model's features written
+    into the global map), never fewer than ``source_views``; 0 = ``source_views``. Renders keep
+    ``source_views`` (more views cost per pixel). 16: the cpu-small model (trained with 8) blends
+    more views better, as averaging does (docs/EVALUATION.md). 0..256."""
+
     view_selection: str = "nearest"
     """How the top-k views of a cell are ranked after visibility: ``"nearest"`` (camera centre
     closest to the cell) or ``"frontal"`` (optical axis most aligned with the direction to it)."""
@@ -150,6 +156,7 @@ class ModelRuntimeConfig:
         check("max_range_m", self.max_range_m, 0.1, 100.0)
         check("rebuild_outside_fraction", self.rebuild_outside_fraction, 0.0, 1.0)
         check("source_views", self.source_views, 0, 256)
+        check("point_source_views", self.point_source_views, 0, 256)
         if self.view_selection not in ("nearest", "frontal"):
             raise ConfigError(
                 f"{where}: model.view_selection = {self.view_selection!r}; allowed: nearest, frontal"

@@ -285,6 +285,11 @@ class ModelRuntime:
         return self.config.source_views or self._require_model().cfg.num_source_views
 
     @property
+    def point_source_views(self) -> int:
+        """Source views per point for point answers (``segment``, ``point_features``)."""
+        return max(self.config.point_source_views, self.source_views)
+
+    @property
     def samples_per_ray(self) -> int:
         return self.config.samples_per_ray or self._require_model().cfg.render.n_samples
 
@@ -770,15 +775,18 @@ class ModelRuntime:
 
     # -- view selection -----------------------------------------------------------------------
 
-    def _view_groups(self, prep: _Prepared, points: Tensor, allowed: Tensor) -> list[tuple[Tensor, Tensor]]:
+    def _view_groups(
+        self, prep: _Prepared, points: Tensor, allowed: Tensor, k: int | None = None
+    ) -> list[tuple[Tensor, Tensor]]:
         """Split (P, 3) points into groups sharing a source-view set.
 
         Returns ``[(point_indices (p,), view_indices (k,)), ...]``; points no allowed view sees
         are in no group. With at most ``source_views`` allowed views there is one group (views
-        that do not see a point are masked per point by the network).
+        that do not see a point are masked per point by the network). ``k``: views per group
+        (default ``source_views``).
         """
         candidates = allowed.nonzero().squeeze(-1)
-        k = self.source_views
+        k = self.source_views if k is None else k
         n_points = points.shape[0]
         if n_points == 0 or candidates.numel() == 0:
             return []
@@ -921,7 +929,7 @@ class ModelRuntime:
             n = pts.shape[0]
             label = torch.full((n,), -1, dtype=torch.int32, device=self.device)
             score = torch.zeros(n, dtype=torch.float32, device=self.device)
-            groups = self._view_groups(prep, pts, prep.has_ov)
+            groups = self._view_groups(prep, pts, prep.has_ov, self.point_source_views)
             t3 = time.perf_counter()
             timing["view_selection"] = (t3 - t2) * 1e3
             def answer(sub: Tensor, out: Any) -> None:
@@ -980,7 +988,7 @@ class ModelRuntime:
             n = pts.shape[0]
             feats = torch.zeros(n, prep.ov.shape[1], dtype=torch.float32, device=self.device)
             valid = torch.zeros(n, dtype=torch.bool, device=self.device)
-            for idx, views_idx in self._view_groups(prep, pts, prep.has_ov):
+            for idx, views_idx in self._view_groups(prep, pts, prep.has_ov, self.point_source_views):
                 views = self._source_views(prep, views_idx, need_ov=True, use_depth=use_depth)
                 for i in range(0, idx.numel(), self.config.chunk_points):
                     sub = idx[i : i + self.config.chunk_points]

@@ -25,3 +25,12 @@ def test_demo_set_reaches_the_nodes() -> None:
     args = demo._parse_args(["--set", "model.source_views=16", "--set", "queries.workers=2"])
     assert demo._node_sets(args) == ["--set", "model.source_views=16", "--set", "queries.workers=2"]
     assert demo._node_sets(demo._parse_args([])) == []
+
+
+def test_serve_check_config(capsys: pytest.CaptureFixture[str]) -> None:
+    from mapper.node.cli import serve_main
+
+    assert serve_main(["--check-config", "--set", "model.point_source_views=12"]) == 0
+    assert capsys.readouterr().out.strip() == "config ok"
+    assert serve_main(["--check-config", "--set", "window.nope=1"]) == 2
+    assert "unknown config key" in capsys.readouterr().err

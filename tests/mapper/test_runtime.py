@@ -343,3 +343,32 @@ def test_default_checkpoint_loads_and_serves_a_tiny_render() -> None:
         [6.0, 6.0, 4.0, 3.0], look_at((2.2, 0.3, 1.1), (0, 0, 0.5)), 8, 6, ["rgb", "depth"]
     )
     assert frame.rgb is not None and frame.rgb.shape == (6, 8, 3) and frame.depth_m is not None
+
+
+def test_point_source_views_sets_the_views_of_point_answers_only(model: GovNeSF) -> None:
+    """``point_source_views`` 0 or below ``source_views`` answers with ``source_views``; more views give
+    larger view groups for ``segment`` / ``point_features``; renders keep ``source_views``."""
+    rng = np.random.default_rng(1)
+    pts = rng.uniform([-0.4, -0.4, 0.3], [0.4, 0.4, 0.7], (300, 3)).astype(np.float32)
+    answers = {}
+    cases = (("default", {"point_source_views": 0}), ("same", {"point_source_views": 1}),
+             ("more", {"point_source_views": 5}))
+    for name, extra in cases:
+        runtime = make_runtime(model, source_views=2, view_cell_m=0.25, **extra)
+        window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
+        runtime.attach(window)
+        for i in range(6):
+            window.consider(keyframe(i, orbit(i)))
+        runtime.sync()
+        assert runtime.source_views == 2
+        label, score, _ = runtime.segment(pts, ["a", "b", "c"])
+        feats, valid = runtime.point_features(pts)
+        prep = runtime._prepare()
+        groups = runtime._view_groups(prep, torch.from_numpy(pts), prep.has_ov, runtime.point_source_views)
+        answers[name] = (label, score, feats, max(v.numel() for _, v in groups))
+    for a, b in zip(answers["default"][:3], answers["same"][:3], strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert answers["default"][3] == 2 and answers["more"][3] == 5
+    assert not np.array_equal(answers["more"][2], answers["default"][2])  # other views, other features
+    with pytest.raises(ConfigError, match="point_source_views"):
+        ModelRuntimeConfig(point_source_views=300).validate("test")
