@@ -167,7 +167,10 @@ def test_distill_head_sizes_reach_the_model_config() -> None:
 
 def test_launch_configs_load() -> None:
     root = Path(__file__).resolve().parents[2] / "launch"
-    for name in ("train_cpu_small.toml", "train_cpu_small_geo.toml", "train_paper.toml"):
+    names = ("train_cpu_small.toml", "train_cpu_small_geo.toml", "train_cpu_small_paper_loss.toml",
+             "train_cpu_small_distill.toml",
+             "train_paper.toml")
+    for name in names:
         if (root / name).is_file():
             cfg = load_train_config(root / name)
             assert cfg.batch_views >= 1
