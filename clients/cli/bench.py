@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from clients.cli.args import positive_int
 from clients.client import MapperClient
 from clients.harness import REPO_ROOT, NodeProcess, look_at, render_floor
 from protocol.errors import RemoteError
@@ -558,25 +559,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: must be 1 or more")
-    return value
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="govnesf bench", description=__doc__.split("\n")[0])
     parser.add_argument(
         "--out", type=Path, default=Path("out/bench/node"), help="output stem (.json and .md)"
     )
     parser.add_argument("--quick", action="store_true", help="tiny sizes: a smoke run of every phase")
-    parser.add_argument("--frames", type=_positive_int, default=300, help="frames of the ingest phase")
+    parser.add_argument("--frames", type=positive_int, default=300, help="frames of the ingest phase")
     parser.add_argument(
-        "--rss-frames", type=_positive_int, default=5000, help="frames of the long stream (RSS)"
+        "--rss-frames", type=positive_int, default=5000, help="frames of the long stream (RSS)"
     )
     parser.add_argument(
         "--node-arg",

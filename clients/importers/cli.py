@@ -5,20 +5,11 @@ from __future__ import annotations
 import argparse
 import sys
 
+from clients.cli.args import positive_int
 from clients.importers.base import UP_AXES, DatasetReader, ImporterError, ReaderOptions, parse_K
 from clients.importers.convert import RGB_ENCODINGS, convert
 from clients.importers.registry import ALIASES, FORMATS, open_dataset
 from clients.importers.rosbag import POSE_AXES, POSE_INTERP, RosbagOptions, RosbagReader
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
-    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -39,13 +30,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", required=True, metavar="FILE.govrec", help="recording to write")
     parser.add_argument(
         "--stride",
-        type=_positive_int,
+        type=positive_int,
         default=1,
         metavar="N",
         help="take every N-th source frame (default 1)",
     )
     parser.add_argument(
-        "--max-frames", type=_positive_int, default=None, metavar="N", help="stop after writing N frames"
+        "--max-frames", type=positive_int, default=None, metavar="N", help="stop after writing N frames"
     )
     parser.add_argument(
         "--rgb-encoding",
