@@ -493,12 +493,7 @@ class ModelRuntime:
         """Recompute the extent of the depth-less entries whose observed points changed."""
         if not keys:
             return []
-        live = {e.key for e in self._entries.values()}
-        with self._pending_lock:
-            observed = {k: self._view_extents.get(k) for k in keys}
-            for k in list(self._view_extents):  # drop extents of keyframes that left the window
-                if k not in live and k not in keys:
-                    del self._view_extents[k]
+        observed = self._take_pending(self._view_extents, keys)
         changed = []
         for entry in self._entries.values():
             if entry.key in observed and entry.depth_m is None and observed[entry.key] is not entry.observed:
@@ -534,6 +529,18 @@ class ModelRuntime:
                 store[key] = value
             changed.add(key)
 
+    def _take_pending(self, store: dict[tuple[str, int, int], Any], keys: set[tuple[str, int, int]]
+                      ) -> dict[tuple[str, int, int], Any]:
+        """``{key: store.get(key)}`` for the changed ``keys``, under the pending lock; entries of
+        keyframes that left the window (and did not just change) are dropped from ``store``."""
+        live = {e.key for e in self._entries.values()}
+        with self._pending_lock:
+            taken = {k: store.get(k) for k in keys}
+            for k in list(store):
+                if k not in live and k not in keys:
+                    del store[k]
+        return taken
+
     def _prior_at_working_size(self, prior: Tensor | None) -> Tensor | None:
         if prior is None:
             return None
@@ -546,12 +553,7 @@ class ModelRuntime:
         """Set the depth prior of the depth-less entries whose prior changed; returns how many."""
         if not keys:
             return 0
-        live = {e.key for e in self._entries.values()}
-        with self._pending_lock:
-            priors = {k: self._depth_priors.get(k) for k in keys}
-            for k in list(self._depth_priors):  # drop priors of keyframes that left the window
-                if k not in live and k not in keys:
-                    del self._depth_priors[k]
+        priors = self._take_pending(self._depth_priors, keys)
         changed = 0
         for entry in self._entries.values():
             if entry.key in priors and entry.depth_m is None:
