@@ -22,6 +22,7 @@ import time
 import numpy as np
 import torch
 
+from clients.harness import look_at
 from mapper.model.baselines import OVView, average_features, average_features_reference, average_similarities
 
 
@@ -40,14 +41,7 @@ def room_scene(n_points: int, n_views: int, dim: int = 384, seed: int = 0) -> tu
     for i in range(n_views):
         yaw = 2 * np.pi * i / n_views
         centre = np.array([3.0 + 0.5 * np.cos(yaw), 2.5 + 0.5 * np.sin(yaw), 1.5])
-        fwd = np.array([np.cos(yaw), np.sin(yaw), -0.2])
-        fwd /= np.linalg.norm(fwd)
-        right = np.cross(fwd, [0.0, 0.0, 1.0])
-        right /= np.linalg.norm(right)
-        down = np.cross(fwd, right)
-        world_from_cam = np.eye(4)
-        world_from_cam[:3, :3] = np.stack([right, down, fwd], axis=1)
-        world_from_cam[:3, 3] = centre
+        world_from_cam = look_at(centre, centre + np.array([np.cos(yaw), np.sin(yaw), -0.2]))
         cam = (pts - centre) @ world_from_cam[:3, :3]
         z = cam[:, 2]
         front = z > 0.05
