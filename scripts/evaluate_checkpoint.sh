@@ -19,7 +19,8 @@ CKPT="$1"
 OUT="$2"
 shift 2
 PARTS=("$@")
-if [[ ${#PARTS[@]} -eq 0 ]]; then PARTS=(val 3d 2d visibility rgbonly real rgbnode); fi
+ALL_PARTS="val 3d 2d visibility rgbonly real rgbnode"
+if [[ ${#PARTS[@]} -eq 0 ]]; then read -r -a PARTS <<< "$ALL_PARTS"; fi
 PYTHON="${PYTHON:-.venv/bin/python}"
 DATA="${DATA:-data}"
 export HF_HUB_OFFLINE=1 OMP_NUM_THREADS="${OMP_NUM_THREADS:-2}"
@@ -27,7 +28,7 @@ if [[ ! -f "$CKPT" ]]; then echo "evaluate_checkpoint: no checkpoint $CKPT" >&2;
 for part in "${PARTS[@]}"; do
     case "$part" in
         val|3d|2d|visibility|rgbonly|real|rgbnode) ;;
-        *) echo "evaluate_checkpoint: unknown part $part (val 3d 2d visibility rgbonly real rgbnode)" >&2; exit 2 ;;
+        *) echo "evaluate_checkpoint: unknown part $part ($ALL_PARTS)" >&2; exit 2 ;;
     esac
 done
 mkdir -p "$OUT"
@@ -52,7 +53,7 @@ for part in "${PARTS[@]}"; do
         rgbnode) "$PYTHON" -m mapper.training.cli_eval --checkpoint "$CKPT" --data "$DATA/eval" --max-points 20000 \
                      --no-2d --no-oracle --rgb-only-node --device cpu --quiet \
                      --out "$OUT/results_rgb_node.json" --markdown "$OUT/tables_rgb_node.md" ;;
-        *) echo "evaluate_checkpoint: unknown part $part (val 3d 2d visibility rgbonly real rgbnode)" >&2; exit 2 ;;
+        *) echo "evaluate_checkpoint: unknown part $part ($ALL_PARTS)" >&2; exit 2 ;;
     esac
     echo "[evaluate_checkpoint] $part done in $(( $(date +%s) - start )) s"
 done
