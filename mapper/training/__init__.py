@@ -1,2 +1,1 @@
-"""Training and evaluation: data, the training loop, evaluation, metrics and their CLIs.
-"""
+"""Training and evaluation: data, the training loop, evaluation, metrics and their CLIs."""

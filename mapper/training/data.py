@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -115,6 +115,51 @@ class Scene:
     @property
     def ov_dim(self) -> int:
         return int(self.ov.shape[-1])
+
+
+def held_out_positions(num_frames: int, every: int, radius: int) -> np.ndarray:
+    """(F,) bool: True for the frames within ``radius`` positions of a multiple of ``every``
+    (0, every, 2 * every, ...): the held-out targets of ``benchmarks/real_sequence.py`` (every
+    ``--every``-th frame) and their neighbours. ``every`` = 0 holds out nothing.
+
+    >>> np.flatnonzero(held_out_positions(23, 10, 1)).tolist()
+    [0, 1, 9, 10, 11, 19, 20, 21]
+    """
+    if every < 0 or radius < 0:
+        raise ValueError(f"held-out frames: every {every} and radius {radius} must be >= 0")
+    pos = np.arange(num_frames)
+    if every == 0:
+        return np.zeros(num_frames, dtype=bool)
+    offset = pos % every
+    return np.minimum(offset, every - offset) <= radius
+
+
+def drop_frames(scene: Scene, drop: np.ndarray) -> Scene:
+    """The scene without the frames where ``drop`` (F,) bool is True (e.g. the held-out poses of a
+    real sequence that the evaluation renders: :func:`held_out_positions`), in the same order.
+
+    Raises:
+        ValueError: ``drop`` has the wrong length, or fewer than 2 frames would remain.
+    """
+    drop = np.asarray(drop, dtype=bool)
+    if drop.shape != (scene.num_frames,):
+        raise ValueError(f"drop_frames: mask of shape {drop.shape} for {scene.num_frames} frames")
+    keep = np.flatnonzero(~drop)
+    if keep.size < 2:
+        raise ValueError(f"drop_frames: {scene.name} would keep {keep.size} frame(s); training needs 2")
+    if scene.has_ov:
+        ov = scene.ov[keep]
+    else:  # keep the zero maps a read-only broadcast of one frame (no copy)
+        ov = np.broadcast_to(scene.ov[:1], (keep.size, *scene.ov.shape[1:]))
+    return replace(
+        scene,
+        rgb=scene.rgb[keep],
+        depth_m=scene.depth_m[keep],
+        ov=ov,
+        K=scene.K[keep],
+        world_from_cam=scene.world_from_cam[keep],
+        points_m=scene.points_m[keep],
+    )
 
 
 def _backproject_grid(
@@ -392,19 +437,23 @@ def source_batch(
     idx = np.asarray(indices, dtype=np.int64)
     if frustum_range_m is not None:
         w, h = scene.image_wh
-        pts = torch.cat(
-            [
-                frustum_points(
-                    torch.from_numpy(scene.K[i]).double(),
-                    torch.from_numpy(scene.world_from_cam[i]).double(),
-                    w,
-                    h,
-                    min(0.2, 0.5 * frustum_range_m),
-                    frustum_range_m,
-                )
-                for i in idx
-            ]
-        ).float().numpy()
+        pts = (
+            torch.cat(
+                [
+                    frustum_points(
+                        torch.from_numpy(scene.K[i]).double(),
+                        torch.from_numpy(scene.world_from_cam[i]).double(),
+                        w,
+                        h,
+                        min(0.2, 0.5 * frustum_range_m),
+                        frustum_range_m,
+                    )
+                    for i in idx
+                ]
+            )
+            .float()
+            .numpy()
+        )
     else:
         pts = scene.points_m[idx].reshape(-1, 3)
     pts = pts[np.isfinite(pts).all(axis=1)]

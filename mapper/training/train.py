@@ -59,7 +59,9 @@ from mapper.training.data import (
     Scene,
     TrainSample,
     ValidationView,
+    drop_frames,
     find_scenes,
+    held_out_positions,
     load_scene,
     source_batch,
     validation_views,
@@ -169,6 +171,12 @@ class TrainConfig:
     """Probability that an example comes from ``extra_train_dirs`` (0 = never: the run is
     bit-identical to one without them). Those examples train colour, depth, surface and visibility;
     their OV terms get weight 0 (and read 0 in the logged means)."""
+    extra_holdout_every: int = 0
+    """Drop from every ``extra_train_dirs`` scene the frames within ``extra_holdout_radius``
+    positions of every ``extra_holdout_every``-th frame (0 = keep all): the held-out poses that
+    ``benchmarks/real_sequence.py --every N`` renders (default 10) never train."""
+    extra_holdout_radius: int = 2
+    """Neighbours on each side of a held-out frame that are dropped with it."""
     extra: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -213,6 +221,13 @@ class TrainConfig:
                 "a list of folder paths",
             ),
             (0.0 <= self.extra_train_weight <= 1.0, "extra_train_weight", "in [0, 1]"),
+            (self.extra_holdout_every >= 0, "extra_holdout_every", ">= 0"),
+            (self.extra_holdout_radius >= 0, "extra_holdout_radius", ">= 0"),
+            (
+                self.extra_holdout_every == 0 or 2 * self.extra_holdout_radius + 1 < self.extra_holdout_every,
+                "extra_holdout_radius",
+                "< (extra_holdout_every - 1) / 2, so that some frames stay",
+            ),
             (
                 self.extra_train_weight == 0 or bool(self.extra_train_dirs),
                 "extra_train_weight",
@@ -544,9 +559,13 @@ def _load_extra_scenes(cfg: TrainConfig, like: Scene, ov_dim: int) -> list[Scene
                 f"train config: extra_train_dirs: no scene (frames.govrec, or */frames.govrec) in {d}"
             ) from None
     ov_h, ov_w = like.ov.shape[1:3]
-    return [
+    scenes = [
         load_scene(p, require_ov=False, image_wh=like.image_wh, ov_shape=(ov_h, ov_w, ov_dim)) for p in paths
     ]
+    if cfg.extra_holdout_every:
+        every, radius = cfg.extra_holdout_every, cfg.extra_holdout_radius
+        scenes = [drop_frames(s, held_out_positions(s.num_frames, every, radius)) for s in scenes]
+    return scenes
 
 
 def train(
@@ -766,6 +785,7 @@ class _Run:
                 "command": self.base_meta["command"],
                 "train_scenes": len(self.data.train_scenes),
                 "extra_train_scenes": len(self.data.extra_scenes),
+                "extra_train_frames": [s.num_frames for s in self.data.extra_scenes],
                 "val_views": len(self.data.val_views),
             },
         )

@@ -27,7 +27,15 @@ from test_data import (
 )
 
 from mapper.model.field import GovNeSF
-from mapper.training.data import DEFAULT_OV_DIM, RaySampler, TrainSample, load_scene, resize_view
+from mapper.training.data import (
+    DEFAULT_OV_DIM,
+    RaySampler,
+    TrainSample,
+    drop_frames,
+    held_out_positions,
+    load_scene,
+    resize_view,
+)
 from mapper.training.train import TrainConfig, train, train_step
 from protocol.messages import Frame
 from protocol.recording import RecordingWriter
@@ -251,3 +259,48 @@ def test_config_errors_and_a_short_mixed_run(roots: Path, tmp_path: Path) -> Non
     assert result["step"] == 2 and all(np.isfinite(v) for v in result["train"].values())
     start = json.loads((tmp_path / "b" / "log.jsonl").read_text().splitlines()[0])
     assert start["train_scenes"] == 1 and start["extra_train_scenes"] == 2
+
+
+def test_held_out_frames_of_a_real_sequence_never_train(roots: Path, tmp_path: Path) -> None:
+    """``extra_holdout_every`` drops the evaluation's held-out poses (and neighbours) from the mix."""
+    mask = held_out_positions(211, 10, 2)
+    # every multiple of 10 and the two frames on each side of it go; the rest stay
+    assert mask[[0, 1, 2, 8, 9, 10, 12, 208, 210]].all() and not mask[[3, 7, 13, 17, 203, 207]].any()
+    assert mask.sum() == 3 + sum(5 for _ in range(10, 210, 10)) + 3  # 0, 10 .. 200, 210 (edges cut)
+    assert not held_out_positions(7, 0, 2).any()
+    with pytest.raises(ValueError, match="must be >= 0"):
+        held_out_positions(7, -1, 0)
+
+    scene = load_scene(roots / "real" / "room_a", require_ov=False)  # 5 frames
+    kept = drop_frames(scene, held_out_positions(scene.num_frames, 4, 0))  # drops 0 and 4
+    assert kept.num_frames == 3 and not kept.has_ov
+    np.testing.assert_array_equal(kept.world_from_cam, scene.world_from_cam[1:4])
+    np.testing.assert_array_equal(kept.rgb, scene.rgb[1:4])
+    np.testing.assert_array_equal(kept.depth_m, scene.depth_m[1:4])
+    assert kept.ov.shape == (3, *scene.ov.shape[1:]) and not kept.ov.any() and kept.ov.base is not None
+    with pytest.raises(ValueError, match="would keep 1 frame"):
+        drop_frames(scene, np.arange(5) != 2)
+    with pytest.raises(ValueError, match="mask of shape"):
+        drop_frames(scene, np.zeros(4, bool))
+    with pytest.raises(ValueError, match="extra_holdout_radius = 2 out of range"):
+        TrainConfig(extra_holdout_every=4, extra_holdout_radius=2)
+
+    run = TrainConfig(
+        preset="tiny",
+        train_dir=str(roots / "train"),
+        val_dir="",
+        max_steps=1,
+        batch_views=2,
+        rays_per_view=16,
+        warmup_steps=0,
+        threads=1,
+        log_every=1,
+        out_dir=str(tmp_path / "h"),
+        extra_train_dirs=[str(roots / "real")],
+        extra_train_weight=0.5,
+        extra_holdout_every=4,
+        extra_holdout_radius=0,
+    )
+    train(run, model_cfg=tiny_model_config(), progress=False)
+    start = json.loads((tmp_path / "h" / "log.jsonl").read_text().splitlines()[0])
+    assert start["extra_train_frames"] == [3]
