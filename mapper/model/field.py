@@ -28,7 +28,7 @@ from torch import Tensor, nn
 
 from mapper.model.config import ModelConfig
 from mapper.model.encoder2d import ImageEncoder
-from mapper.model.fusion import DensityMLP, DistillHead, FusionNet, blend
+from mapper.model.fusion import DensityMLP, DistillHead, FusionNet, blend, blend_from_maps
 from mapper.model.ops.checks import check_shape
 from mapper.model.ops.cost_volume import VolumeBounds, build_cost_volume, cost_volume_features, sample_volume
 from mapper.model.ops.geometry import (
@@ -48,6 +48,7 @@ from mapper.model.unet3d import VolumeUNet
 __all__ = [
     "FieldOutputs",
     "GovNeSF",
+    "OVMaps",
     "PointOutputs",
     "RenderOutputs",
     "SourceViews",
@@ -126,6 +127,19 @@ class PointViewSamples:
     ov: Tensor  # (P, N, D)
     mask: Tensor  # (P, N) bool: the view sees the point (and passes depth masking)
     source_dirs: Tensor  # (P, N, 3) unit directions source camera -> point
+    uv: Tensor | None = None  # (P, N, 2) pixel coordinates in the source images (sample_views)
+
+
+@dataclass
+class OVMaps:
+    """The source views' OV maps as one gather table, for :meth:`GovNeSF.point_outputs` to blend
+    without sampling them first (``fusion.blend_from_maps``): sample the views with a 1-channel
+    dummy ``ov`` and pass this instead."""
+
+    table: Tensor  # (M * h * w, D) channel-last, view-major
+    map_wh: tuple[int, int]  # (w, h) of each OV map
+    view_idx: Tensor  # (N,) or (P, N) long: the table view behind each sampled slot
+    image_wh: tuple[int, int]  # (W, H) of the images ``uv`` is in
 
 
 @dataclass
@@ -239,6 +253,7 @@ class GovNeSF(nn.Module):
             ov=ov.transpose(0, 1),
             mask=mask.transpose(0, 1),
             source_dirs=dirs.transpose(0, 1),
+            uv=uv.transpose(0, 1),
         )
 
     def sample_views_indexed(
@@ -361,13 +376,14 @@ class GovNeSF(nn.Module):
         return self.fuse_samples(self.sample_views(views, points, depth_guided_masking), v, view_dirs)
 
     def fuse_samples(
-        self, samples: PointViewSamples, v: Tensor, view_dirs: Tensor
+        self, samples: PointViewSamples, v: Tensor, view_dirs: Tensor, *, ov_maps: OVMaps | None = None
     ) -> tuple[Tensor, Tensor, Tensor]:
         """FusionNet + blending over sampled views: rgb (P, 3), OV (P, D), valid (P,).
 
         Args:
             samples: what P points see in N views (``sample_views`` or ``sample_views_indexed``);
             v: (P, Dv) volume features; view_dirs: (P, 3) unit query directions.
+            ov_maps: blend the OV features straight from the maps (as in :meth:`point_outputs`).
         """
         fused = self.fusion(samples.rgb, samples.features, v, samples.source_dirs, samples.mask, view_dirs)
         assert fused.color_weights is not None
@@ -375,8 +391,18 @@ class GovNeSF(nn.Module):
         if self.distill is not None:
             ov = self.distill(fused.x_att, samples.mask, v) * fused.valid.unsqueeze(-1)
         else:
-            ov = blend(fused.ov_weights, samples.ov)
+            ov = self._blend_ov(samples, fused.ov_weights, ov_maps)
         return rgb, ov, fused.valid
+
+    @staticmethod
+    def _blend_ov(samples: PointViewSamples, weights: Tensor, ov_maps: OVMaps | None) -> Tensor:
+        """(P, D) OV blend: from ``samples.ov``, or from ``ov_maps`` at ``samples.uv``."""
+        if ov_maps is None:
+            return blend(weights, samples.ov)
+        if samples.uv is None:
+            raise ValueError("blending from ov_maps needs samples with uv (sample_views)")
+        uv = scale_uv(samples.uv, ov_maps.image_wh, ov_maps.map_wh)
+        return blend_from_maps(ov_maps.table, ov_maps.map_wh, ov_maps.view_idx, uv, weights)
 
     def query_points(
         self,
@@ -421,15 +447,21 @@ class GovNeSF(nn.Module):
         v, _ = sample_volume(volume, bounds, points.to(volume.dtype))
         return self.point_outputs(samples, v)
 
-    def point_outputs(self, samples: PointViewSamples, v: Tensor) -> PointOutputs:
+    def point_outputs(
+        self, samples: PointViewSamples, v: Tensor, *, ov_maps: OVMaps | None = None
+    ) -> PointOutputs:
         """Point mode over sampled views (``sample_views`` or ``sample_views_indexed``) and
-        (P, Dv) volume features: the source-view-agnostic OV feature of each point."""
+        (P, Dv) volume features: the source-view-agnostic OV feature of each point.
+
+        ``ov_maps``: blend the OV features straight from the views' maps at ``samples.uv``
+        (``sample_views``' samples; their ``ov`` is then ignored) instead of from ``samples.ov``:
+        the same result up to float rounding, without the (P, N, D) samples."""
         fused = self.fusion(samples.rgb, samples.features, v, samples.source_dirs, samples.mask, None)
         if self.distill is not None:
             ov = self.distill(fused.x_att, samples.mask, v) * fused.valid.unsqueeze(-1)
             weights = None
         else:
-            ov = blend(fused.ov_weights, samples.ov)
+            ov = self._blend_ov(samples, fused.ov_weights, ov_maps)
             weights = fused.ov_weights
         return PointOutputs(ov=ov, valid=fused.valid, num_views=samples.mask.sum(dim=1), ov_weights=weights)
 

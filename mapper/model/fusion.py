@@ -22,6 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mapper.model.config import FusionConfig
+from mapper.model.ops.geometry import bilinear_corners
 
 __all__ = [
     "CrossViewAttention",
@@ -30,6 +31,7 @@ __all__ = [
     "FusionNet",
     "FusionOutputs",
     "blend",
+    "blend_from_maps",
     "masked_mean_var",
     "masked_softmax",
 ]
@@ -104,6 +106,41 @@ def blend(weights: Tensor, values: Tensor) -> Tensor:
             out = torch.addcmul(out, per_view[n], w_t[n])
         return out.T
     return torch.einsum("pn,pnc->pc", w, values)
+
+
+def blend_from_maps(
+    table: Tensor,  # (M * h * w, C) the views' maps, channel-last, view-major
+    map_wh: tuple[int, int],  # (w, h) of every map
+    view_idx: Tensor,  # (P, N) or (N,) long: the view (0..M-1) behind each slot
+    uv: Tensor,  # (P, N, 2) pixel coordinates in the maps' resolution
+    weights: Tensor,  # (P, N) blending weights (0 for masked slots)
+) -> Tensor:  # (P, C)
+    """``blend(weights, values)`` where ``values[p, n]`` is the bilinear sample of view
+    ``view_idx[p, n]``'s map at ``uv[p, n]`` (``sample_bilinear``), without materialising the
+    (P, N, C) samples: one ``embedding_bag`` over the taps of the slots with a non-zero weight.
+
+    Inference only (no autograd through ``table``'s rows is needed, though it is supported).
+    Equal to sampling then blending up to float rounding (tests/mapper/test_blend_from_maps.py).
+    """
+    w, h = map_wh
+    P, N = weights.shape
+    check = table.shape[0] % (w * h) == 0 and uv.shape == (P, N, 2)
+    if not check:
+        raise ValueError(
+            f"blend_from_maps: table {tuple(table.shape)} is not M x {h} x {w} rows, or uv "
+            f"{tuple(uv.shape)} is not ({P}, {N}, 2)"
+        )
+    view_idx = view_idx.expand(P, N) if view_idx.dim() == 1 else view_idx
+    index, tap = bilinear_corners(uv, w, h)  # (P, N, 4)
+    index = index + (view_idx * (w * h)).unsqueeze(-1)
+    tap_w = (weights.to(tap.dtype).unsqueeze(-1) * tap).reshape(P, N * 4)
+    index = index.reshape(P, N * 4)
+    keep = tap_w != 0
+    counts = keep.sum(dim=1)
+    offsets = torch.cumsum(counts, 0) - counts
+    return F.embedding_bag(
+        index[keep], table, offsets, mode="sum", per_sample_weights=tap_w[keep].to(table.dtype)
+    )
 
 
 class CrossViewAttention(nn.Module):

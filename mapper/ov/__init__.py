@@ -1,2 +1,1 @@
-"""Open-vocabulary embedding spaces: text encoders, the dense CLIP backend and its tokenizer.
-"""
+"""Open-vocabulary embedding spaces: text encoders, the dense CLIP backend and its tokenizer."""

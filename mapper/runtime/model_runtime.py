@@ -48,7 +48,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import Callable, Hashable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -60,7 +60,7 @@ from torch import Tensor
 
 from govnesf.resources import data_root
 from mapper.errors import RuntimeNotReady
-from mapper.model.field import GovNeSF, SourceViews, default_device
+from mapper.model.field import GovNeSF, OVMaps, PointOutputs, SourceViews, default_device
 from mapper.model.ops.cost_volume import (
     CostVolume,
     VolumeBounds,
@@ -91,8 +91,6 @@ __all__ = [
 ]
 
 log = logging.getLogger("mapper.runtime.model_runtime")
-
-
 
 
 @dataclass
@@ -128,8 +126,16 @@ class _ViewEntry:
 
     @property
     def nbytes(self) -> int:
-        tensors = [self.rgb, self.features, self.ov, self.depth_m, self.K, self.world_from_cam, self.extent,
-                   self.depth_prior]
+        tensors = [
+            self.rgb,
+            self.features,
+            self.ov,
+            self.depth_m,
+            self.K,
+            self.world_from_cam,
+            self.extent,
+            self.depth_prior,
+        ]
         return sum(t.numel() * t.element_size() for t in tensors if t is not None)
 
 
@@ -150,6 +156,15 @@ class _Prepared:
     ov_space: str | None
     support: Tensor | None = None  # (1, X, Y, Z) 1 where >= min_view_support views see the voxel
     max_density: Tensor | None = None  # (X, Y, Z) dilated max sub-voxel density (1/m), on first use
+    ov_table: Tensor | None = None  # (M * h_ov * w_ov, D) ``ov`` channel-last, on first use
+
+    def ov_maps(self, view_idx: Tensor, image_wh: tuple[int, int]) -> OVMaps:
+        """The OV maps of ``view_idx`` (N,) as a gather table (built once per version)."""
+        assert self.ov is not None
+        if self.ov_table is None:
+            self.ov_table = self.ov.permute(0, 2, 3, 1).reshape(-1, self.ov.shape[1]).contiguous()
+        h, w = self.ov.shape[-2:]
+        return OVMaps(self.ov_table, (int(w), int(h)), view_idx, image_wh)
 
     def __len__(self) -> int:
         return int(self.rgb.shape[0])
@@ -519,8 +534,13 @@ class ModelRuntime:
             prior = torch.tensor(arr, device=self.device)
         self._set_pending(self._depth_priors, self._priors_changed, key, prior)
 
-    def _set_pending(self, store: dict[tuple[str, int, int], Tensor], changed: set[tuple[str, int, int]],
-                     key: tuple[str, int, int], value: Tensor | None) -> None:
+    def _set_pending(
+        self,
+        store: dict[tuple[str, int, int], Tensor],
+        changed: set[tuple[str, int, int]],
+        key: tuple[str, int, int],
+        value: Tensor | None,
+    ) -> None:
         """Set (or with None remove) ``store[key]`` and mark ``key`` changed for the next sync."""
         with self._pending_lock:
             if value is None:
@@ -529,8 +549,9 @@ class ModelRuntime:
                 store[key] = value
             changed.add(key)
 
-    def _take_pending(self, store: dict[tuple[str, int, int], Any], keys: set[tuple[str, int, int]]
-                      ) -> dict[tuple[str, int, int], Any]:
+    def _take_pending(
+        self, store: dict[tuple[str, int, int], Any], keys: set[tuple[str, int, int]]
+    ) -> dict[tuple[str, int, int], Any]:
         """``{key: store.get(key)}`` for the changed ``keys``, under the pending lock; entries of
         keyframes that left the window (and did not just change) are dropped from ``store``."""
         live = {e.key for e in self._entries.values()}
@@ -711,8 +732,10 @@ class ModelRuntime:
             w, h = self.image_wh
             depth = torch.stack(
                 [
-                    e.depth_m if e.depth_m is not None
-                    else e.depth_prior if e.depth_prior is not None
+                    e.depth_m
+                    if e.depth_m is not None
+                    else e.depth_prior
+                    if e.depth_prior is not None
                     else torch.zeros(h, w, device=self.device)
                     for e in entries
                 ]
@@ -934,6 +957,7 @@ class ModelRuntime:
             groups = self._view_groups(prep, pts, prep.has_ov, self.point_source_views)
             t3 = time.perf_counter()
             timing["view_selection"] = (t3 - t2) * 1e3
+
             def answer(sub: Tensor, out: Any) -> None:
                 cos = F.normalize(out.ov, dim=-1) @ emb.T  # (p, T)
                 best, arg = cos.max(dim=-1)
@@ -953,15 +977,26 @@ class ModelRuntime:
                     v, _ = sample_volume(prep.volume, prep.bounds, pts[sub].to(prep.volume.dtype))
                     answer(sub, model.point_outputs(samples, v))
             for idx, views_idx in groups if not self.config.batched_view_groups else []:
-                views = self._source_views(prep, views_idx, need_ov=True, use_depth=use_depth)
-                for i in range(0, idx.numel(), self.config.chunk_points):
-                    sub = idx[i : i + self.config.chunk_points]
-                    answer(sub, model.query_points(
-                        views, prep.volume, prep.bounds, pts[sub], depth_guided_masking=use_depth
-                    ))  # fmt: skip
+                for sub, out in self._point_outputs(model, prep, pts, idx, views_idx, use_depth):
+                    answer(sub, out)
             timing["network"] = (time.perf_counter() - t3) * 1e3
         timing["total"] = (time.perf_counter() - t0) * 1e3
         return label.cpu().numpy(), score.cpu().numpy(), timing
+
+    def _point_outputs(
+        self, model: GovNeSF, prep: _Prepared, pts: Tensor, idx: Tensor, views_idx: Tensor, use_depth: bool
+    ) -> Iterator[tuple[Tensor, PointOutputs]]:
+        """``model.query_points`` for the points ``pts[idx]`` over the views ``views_idx``, in
+        chunks of ``chunk_points``: yields (point indices, outputs). The OV features are blended
+        straight from the window's maps (``OVMaps``), never sampled per view (nor copied per
+        view group); the same answers as sampling them first, up to float rounding."""
+        views = self._source_views(prep, views_idx, need_ov=False, use_depth=use_depth)
+        ov_maps = prep.ov_maps(views_idx, self.image_wh)
+        for i in range(0, idx.numel(), self.config.chunk_points):
+            sub = idx[i : i + self.config.chunk_points]
+            samples = model.sample_views(views, pts[sub], use_depth)
+            v, _ = sample_volume(prep.volume, prep.bounds, pts[sub].to(prep.volume.dtype))
+            yield sub, model.point_outputs(samples, v, ov_maps=ov_maps)
 
     @torch.no_grad()
     def point_features(
@@ -991,12 +1026,7 @@ class ModelRuntime:
             feats = torch.zeros(n, prep.ov.shape[1], dtype=torch.float32, device=self.device)
             valid = torch.zeros(n, dtype=torch.bool, device=self.device)
             for idx, views_idx in self._view_groups(prep, pts, prep.has_ov, self.point_source_views):
-                views = self._source_views(prep, views_idx, need_ov=True, use_depth=use_depth)
-                for i in range(0, idx.numel(), self.config.chunk_points):
-                    sub = idx[i : i + self.config.chunk_points]
-                    out = model.query_points(
-                        views, prep.volume, prep.bounds, pts[sub], depth_guided_masking=use_depth
-                    )
+                for sub, out in self._point_outputs(model, prep, pts, idx, views_idx, use_depth):
                     feats[sub] = torch.where(out.valid[:, None], out.ov.float(), feats[sub])
                     valid[sub] = out.valid | valid[sub]
         return feats.cpu().numpy(), valid.cpu().numpy()
@@ -1240,10 +1270,15 @@ class ModelRuntime:
                         ov[sub] = ov_k
                 return rgb, ov, valid
             for local, view_idx in groups:
-                views = self._source_views(prep, view_idx, need_ov=d_ov > 0, use_depth=False)
+                # OV blended straight from the window's maps (never sampled or copied per group)
+                views = self._source_views(prep, view_idx, need_ov=False, use_depth=False)
+                ov_maps = prep.ov_maps(view_idx, self.image_wh) if d_ov else None
                 for j in range(0, local.numel(), chunk):
                     sub = local[j : j + chunk]
-                    rgb_k, ov_k, valid_k = model.appearance(views, v[sub], points[sub], view_dirs[sub], False)
+                    samples = model.sample_views(views, points[sub], False)
+                    rgb_k, ov_k, valid_k = model.fuse_samples(
+                        samples, v[sub], view_dirs[sub], ov_maps=ov_maps
+                    )
                     rgb[sub], valid[sub] = rgb_k, valid_k
                     if d_ov:
                         ov[sub] = ov_k

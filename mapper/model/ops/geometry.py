@@ -294,6 +294,33 @@ def sample_bilinear(image: Tensor, uv: Tensor, *, border_px: float = 0.0) -> tup
     return values, inside.expand(*batch, uv.shape[-2])
 
 
+def bilinear_corners(uv: Tensor, width: int, height: int) -> tuple[Tensor, Tensor]:
+    """The four taps of :func:`sample_bilinear` (``grid_sample`` bilinear, border padding,
+    ``align_corners=False``) at pixel coordinates ``uv`` (..., 2) of a (height, width) map.
+
+    Returns:
+        index: (..., 4) int64 row-major pixel indices ``row * width + col`` (always in range);
+        weight: (..., 4) bilinear weights (sum 1), ``uv``'s dtype. Non-finite ``uv`` (a point
+            behind a camera, masked anyway) reads the map's first pixel.
+
+    ``sum_k weight[..., k] * map.flatten()[index[..., k]]`` equals ``sample_bilinear`` up to
+    float rounding (tested).
+    """
+    uv = torch.nan_to_num(uv, nan=0.0, posinf=0.0, neginf=0.0)
+    size = uv.new_tensor([width, height])
+    grid = (2.0 * uv / size - 1.0).clamp(-2.0, 2.0)
+    # grid_sample's unnormalisation (align_corners=False) and border padding (clip the coordinate)
+    ix = (((grid[..., 0] + 1.0) * width - 1.0) / 2.0).clamp(0.0, width - 1.0)
+    iy = (((grid[..., 1] + 1.0) * height - 1.0) / 2.0).clamp(0.0, height - 1.0)
+    x0f, y0f = ix.floor(), iy.floor()
+    tx, ty = ix - x0f, iy - y0f
+    x0, y0 = x0f.long(), y0f.long()
+    x1, y1 = (x0 + 1).clamp_max(width - 1), (y0 + 1).clamp_max(height - 1)
+    index = torch.stack([y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1], dim=-1)
+    weight = torch.stack([(1 - tx) * (1 - ty), tx * (1 - ty), (1 - tx) * ty, tx * ty], dim=-1)
+    return index, weight
+
+
 def sample_nearest(image: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
     """Nearest-pixel lookup (for depth maps, where bilinear blending across edges is wrong).
 

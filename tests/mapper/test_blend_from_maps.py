@@ -1,0 +1,105 @@
+"""Blending OV features straight from the views' maps (``fusion.blend_from_maps``), the fast path
+of ``segment_points`` (method govnesf) and of the learned features written into the global map:
+equal to sampling every view (``sample_bilinear``) then blending (``blend``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mapper.model.field import GovNeSF, OVMaps
+from mapper.model.fusion import blend, blend_from_maps
+from mapper.model.ops.cost_volume import sample_volume
+from mapper.model.ops.geometry import bilinear_corners, sample_bilinear
+from mapper.node.config import WindowConfig
+from mapper.node.window import KeyframeWindow
+from tests.mapper.test_runtime import TINY, keyframe, make_runtime, orbit
+
+
+def _maps(m: int, c: int, h: int, w: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    return torch.randn(m, c, h, w, generator=torch.Generator().manual_seed(m * 100 + c), dtype=dtype)
+
+
+@pytest.mark.parametrize("h, w", [(1, 1), (3, 5), (15, 20)])
+def test_bilinear_corners_reproduce_grid_sample_with_border_padding(h: int, w: int) -> None:
+    img = _maps(1, 2, h, w, torch.float64)[0]
+    gen = torch.Generator().manual_seed(h * w)
+    # inside, on the edges, far outside (border padding) and exact pixel centres
+    size = torch.tensor([w, h], dtype=torch.float64)
+    uv = torch.cat([
+        torch.rand(200, 2, generator=gen, dtype=torch.float64) * size,
+        torch.rand(50, 2, generator=gen, dtype=torch.float64) * 6 * size - 3 * size,
+        torch.tensor([[0.0, 0.0], [w, h], [0.5, 0.5], [w - 0.5, h - 0.5]], dtype=torch.float64),
+    ])  # fmt: skip
+    index, weight = bilinear_corners(uv, w, h)
+    assert index.shape == (uv.shape[0], 4) and int(index.min()) >= 0 and int(index.max()) < h * w
+    torch.testing.assert_close(weight.sum(-1), torch.ones(uv.shape[0], dtype=torch.float64))
+    flat = img.reshape(2, -1)  # (C, h*w)
+    mine = (flat[:, index] * weight).sum(-1).T  # (P, C)
+    ref, _ = sample_bilinear(img, uv)
+    torch.testing.assert_close(mine, ref, rtol=0, atol=1e-12)
+
+
+def test_bilinear_corners_of_non_finite_coordinates_stay_in_range() -> None:
+    uv = torch.tensor([[float("nan"), 1.0], [float("inf"), -float("inf")], [1e30, -1e30]])
+    index, weight = bilinear_corners(uv, 4, 3)
+    assert int(index.min()) >= 0 and int(index.max()) < 12 and torch.isfinite(weight).all()
+
+
+@pytest.mark.parametrize("per_point_views", [False, True])
+def test_blend_from_maps_equals_sampling_then_blending(per_point_views: bool) -> None:
+    m, c, h, w, P, N = 5, 7, 6, 8, 300, 3
+    maps = _maps(m, c, h, w)
+    gen = torch.Generator().manual_seed(1)
+    if per_point_views:
+        view_idx = torch.randint(0, m, (P, N), generator=gen)
+    else:
+        view_idx = torch.tensor([4, 0, 2])
+    uv = torch.rand(P, N, 2, generator=gen) * torch.tensor([w + 4.0, h + 4.0]) - 2.0
+    mask = torch.rand(P, N, generator=gen) > 0.3
+    mask[:10] = False  # points no view sees: all-zero weights -> zero feature
+    weights = torch.softmax(torch.randn(P, N, generator=gen), -1) * mask
+    table = maps.permute(0, 2, 3, 1).reshape(-1, c).contiguous()
+    mine = blend_from_maps(table, (w, h), view_idx, uv, weights)
+    vidx = view_idx.expand(P, N)
+    values = torch.stack([sample_bilinear(maps[vidx[:, n]], uv[:, n, None])[0][:, 0] for n in range(N)], 1)
+    torch.testing.assert_close(mine, blend(weights, values), rtol=1e-5, atol=1e-6)
+    assert torch.equal(mine[:10], torch.zeros(10, c))
+    empty = blend_from_maps(table, (w, h), view_idx[:0] if per_point_views else view_idx, uv[:0], weights[:0])
+    assert empty.shape == (0, c)
+    with pytest.raises(ValueError, match="blend_from_maps"):
+        blend_from_maps(table[:-1], (w, h), view_idx, uv, weights)
+
+
+def test_point_outputs_from_maps_equal_the_sampled_path() -> None:
+    """GovNeSF.point_outputs(..., ov_maps=...) on dummy-ov samples == on fully sampled views."""
+    torch.manual_seed(0)
+    model = GovNeSF(TINY).eval()
+    runtime = make_runtime(model, source_views=3)
+    window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    for i in range(6):
+        window.consider(keyframe(i, orbit(i)))
+    prep = runtime._prepare()
+    seen = np.random.default_rng(2).uniform([-0.6, -0.6, 0.1], [0.6, 0.6, 0.9], (400, 3))
+    unseen = np.array([[0.0, 0.0, 30.0], [50.0, 50.0, 0.0]])  # above / far behind every camera
+    pts = torch.from_numpy(np.concatenate([seen, unseen]).astype(np.float32))
+    views_idx = torch.tensor([5, 1, 3])
+    with torch.no_grad():
+        for use_depth in (False, True):
+            full = runtime._source_views(prep, views_idx, need_ov=True, use_depth=use_depth)
+            ref = model.query_points(full, prep.volume, prep.bounds, pts, depth_guided_masking=use_depth)
+            lean = runtime._source_views(prep, views_idx, need_ov=False, use_depth=use_depth)
+            samples = model.sample_views(lean, pts, use_depth)
+            v, _ = sample_volume(prep.volume, prep.bounds, pts)
+            out = model.point_outputs(samples, v, ov_maps=prep.ov_maps(views_idx, runtime.image_wh))
+            torch.testing.assert_close(out.ov, ref.ov, rtol=1e-5, atol=1e-6)
+            assert torch.equal(out.valid, ref.valid) and torch.equal(out.num_views, ref.num_views)
+            assert bool(ref.valid.any()) and bool((~ref.valid).any())  # both kinds of points
+    # the runtime's own answers use this path
+    label, _, _ = runtime.segment(pts.numpy(), ["a", "b", "c"])
+    assert (label[:400] >= 0).all() and (label[400:] == -1).all()
+    samples.uv = None
+    with pytest.raises(ValueError, match="needs samples with uv"):
+        model.point_outputs(samples, v, ov_maps=OVMaps(prep.ov_table, (1, 1), views_idx, (1, 1)))
