@@ -327,6 +327,7 @@ class GovNeSF(nn.Module):
             ov=ov,
             mask=mask.reshape(N, P).T,
             source_dirs=dirs.reshape(N, P, 3).transpose(0, 1),
+            uv=uv.reshape(N, P, 2).transpose(0, 1),
         )
 
     def forward(

@@ -116,7 +116,7 @@ class ModelRuntimeConfig:
     less than this are rendered again with every sample's appearance, so the weight groups do not
     swap near-tied labels. 0 = off. 0..2."""
 
-    batched_view_groups: bool = False
+    batched_view_groups: bool = True
     """Renders (with skipping) and ``segment_points`` evaluate every point's view group in ONE network
     pass (each point sampled in its own source views, ``GovNeSF.sample_views_indexed``) instead of
     one pass per view group; same values up to float rounding. False = one pass per group (the

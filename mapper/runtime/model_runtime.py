@@ -967,7 +967,7 @@ class ModelRuntime:
             if self.config.batched_view_groups and groups:
                 # one network pass over every view group (each point with its own views)
                 members, view_idx, slots = _group_slots(groups)
-                views = self._all_views(prep, need_ov=True, use_depth=use_depth)
+                views = self._all_views(prep, need_ov=False, use_depth=use_depth)
                 for i in range(0, members.numel(), self.config.chunk_points):
                     sel = slice(i, i + self.config.chunk_points)
                     sub = members[sel]
@@ -975,7 +975,8 @@ class ModelRuntime:
                         views, view_idx[sel], slots[sel], pts[sub], use_depth
                     )
                     v, _ = sample_volume(prep.volume, prep.bounds, pts[sub].to(prep.volume.dtype))
-                    answer(sub, model.point_outputs(samples, v))
+                    ov_maps = prep.ov_maps(view_idx[sel], self.image_wh)
+                    answer(sub, model.point_outputs(samples, v, ov_maps=ov_maps))
             for idx, views_idx in groups if not self.config.batched_view_groups else []:
                 for sub, out in self._point_outputs(model, prep, pts, idx, views_idx, use_depth):
                     answer(sub, out)
@@ -1259,12 +1260,15 @@ class ModelRuntime:
             stats["view_groups"] += len(groups)
             if batched and groups:  # one network pass over every view group
                 members, view_idx, slots = _group_slots(groups)
-                views = self._all_views(prep, need_ov=d_ov > 0, use_depth=False)
+                views = self._all_views(prep, need_ov=False, use_depth=False)
                 for j in range(0, members.numel(), chunk):
                     sel = slice(j, j + chunk)
                     sub = members[sel]
                     samples = model.sample_views_indexed(views, view_idx[sel], slots[sel], points[sub], False)
-                    rgb_k, ov_k, valid_k = model.fuse_samples(samples, v[sub], view_dirs[sub])
+                    ov_maps = prep.ov_maps(view_idx[sel], self.image_wh) if d_ov else None
+                    rgb_k, ov_k, valid_k = model.fuse_samples(
+                        samples, v[sub], view_dirs[sub], ov_maps=ov_maps
+                    )
                     rgb[sub], valid[sub] = rgb_k, valid_k
                     if d_ov:
                         ov[sub] = ov_k
