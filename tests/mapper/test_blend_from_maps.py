@@ -103,3 +103,16 @@ def test_point_outputs_from_maps_equal_the_sampled_path() -> None:
     samples.uv = None
     with pytest.raises(ValueError, match="needs samples with uv"):
         model.point_outputs(samples, v, ov_maps=OVMaps(prep.ov_table, (1, 1), views_idx, (1, 1)))
+
+
+def test_cell_inverse_equals_the_row_wise_unique() -> None:
+    from mapper.runtime.model_runtime import _cell_inverse
+
+    gen = torch.Generator().manual_seed(3)
+    for cells in (
+        torch.randint(-5, 6, (2000, 3), generator=gen),
+        torch.randint(-(2**40), 2**40, (50, 3), generator=gen),  # keys would overflow: fallback
+        torch.zeros(1, 3, dtype=torch.long),
+    ):
+        ref = torch.unique(cells, dim=0, return_inverse=True)[1]
+        assert torch.equal(_cell_inverse(cells), ref)
