@@ -177,10 +177,12 @@ def _keyframe_key(keyframe: Any) -> tuple[str, int, int]:
 
 def _group_slots(groups: Sequence[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
     """View groups ``[(point_indices (p,), view_indices (k,)), ...]`` -> the points of every group
-    (G,), each one's views (G, k_max) and slot mask (G, k_max) (False = padding, a masked view)."""
+    (G,), each one's views (G, k_max) and slot mask (G, k_max) (False = padding, a masked view).
+    Groups come largest view set first, so that a chunk of consecutive points can drop the padding
+    columns none of its points uses (:func:`_chunk_slots`)."""
     k_max = max(int(views.numel()) for _, views in groups)
     members, view_idx, slots = [], [], []
-    for idx, views in groups:
+    for idx, views in sorted(groups, key=lambda g: -int(g[1].numel())):
         n, k = int(idx.numel()), int(views.numel())
         padded = torch.zeros(k_max, dtype=torch.long, device=idx.device)
         padded[:k] = views
@@ -190,6 +192,14 @@ def _group_slots(groups: Sequence[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tenso
         view_idx.append(padded.expand(n, k_max))
         slots.append(mask.expand(n, k_max))
     return torch.cat(members), torch.cat(view_idx), torch.cat(slots)
+
+
+def _chunk_slots(view_idx: Tensor, slots: Tensor, sel: slice) -> tuple[Tensor, Tensor]:
+    """Rows ``sel`` of :func:`_group_slots`' (G, k_max) views and slot mask, without the trailing
+    padding columns that no row of the chunk uses (padding is masked: the answers are the same)."""
+    s = slots[sel]
+    k = max(1, int(s.sum(dim=1).max())) if s.shape[0] else 1
+    return view_idx[sel, :k], s[:, :k]
 
 
 def _cell_inverse(cell: Tensor) -> Tensor:
@@ -983,11 +993,10 @@ class ModelRuntime:
                 for i in range(0, members.numel(), self.config.chunk_points):
                     sel = slice(i, i + self.config.chunk_points)
                     sub = members[sel]
-                    samples = model.sample_views_indexed(
-                        views, view_idx[sel], slots[sel], pts[sub], use_depth
-                    )
+                    chunk_views, chunk_slots = _chunk_slots(view_idx, slots, sel)
+                    samples = model.sample_views_indexed(views, chunk_views, chunk_slots, pts[sub], use_depth)
                     v, _ = sample_volume(prep.volume, prep.bounds, pts[sub].to(prep.volume.dtype))
-                    ov_maps = prep.ov_maps(view_idx[sel], self.image_wh)
+                    ov_maps = prep.ov_maps(chunk_views, self.image_wh)
                     answer(sub, model.point_outputs(samples, v, ov_maps=ov_maps))
             for idx, views_idx in groups if not self.config.batched_view_groups else []:
                 for sub, out in self._point_outputs(model, prep, pts, idx, views_idx, use_depth):
@@ -1276,8 +1285,9 @@ class ModelRuntime:
                 for j in range(0, members.numel(), chunk):
                     sel = slice(j, j + chunk)
                     sub = members[sel]
-                    samples = model.sample_views_indexed(views, view_idx[sel], slots[sel], points[sub], False)
-                    ov_maps = prep.ov_maps(view_idx[sel], self.image_wh) if d_ov else None
+                    chunk_views, chunk_slots = _chunk_slots(view_idx, slots, sel)
+                    samples = model.sample_views_indexed(views, chunk_views, chunk_slots, points[sub], False)
+                    ov_maps = prep.ov_maps(chunk_views, self.image_wh) if d_ov else None
                     rgb_k, ov_k, valid_k = model.fuse_samples(
                         samples, v[sub], view_dirs[sub], ov_maps=ov_maps
                     )
