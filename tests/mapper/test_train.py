@@ -168,12 +168,14 @@ def test_distill_head_sizes_reach_the_model_config() -> None:
 def test_launch_configs_load() -> None:
     root = Path(__file__).resolve().parents[2] / "launch"
     names = ("train_cpu_small.toml", "train_cpu_small_geo.toml", "train_cpu_small_paper_loss.toml",
-             "train_cpu_small_distill.toml",
+             "train_cpu_small_distill.toml", "train_cpu_small_real.toml",
              "train_paper.toml")
     for name in names:
         if (root / name).is_file():
             cfg = load_train_config(root / name)
             assert cfg.batch_views >= 1
+    real = load_train_config(root / "train_cpu_small_real.toml")  # run G: the real mix, held-out poses
+    assert real.extra_train_weight > 0 and real.extra_holdout_every == 10 and real.depth_weight > 0
 
 
 def test_geometry_and_visibility_supervision_terms(data_root: Path) -> None:
