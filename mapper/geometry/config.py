@@ -145,9 +145,8 @@ class TriangulationConfig:
         def exceeds(hi_key: str, lo_key: str) -> None:
             hi, lo = getattr(self, hi_key), getattr(self, lo_key)
             if hi <= lo:
-                raise ConfigError(
-                    f"{where}: triangulation.{hi_key} = {hi} must exceed triangulation.{lo_key} = {lo}"
-                )
+                raise ConfigError(f"{where}: triangulation.{hi_key} = {hi} must exceed "
+                                  f"triangulation.{lo_key} = {lo}")
 
         if self.detector not in DETECTORS:
             raise ConfigError(

@@ -141,9 +141,8 @@ class SparsePoints:
     @staticmethod
     def empty(partners: int = 0, matches: int = 0) -> SparsePoints:
         z = np.zeros(0, np.float64)
-        return SparsePoints(
-            np.zeros((0, 3)), z, z, z, np.zeros(0, np.int32), np.zeros((0, 2)), z, partners, matches
-        )
+        return SparsePoints(np.zeros((0, 3)), z, z, z, np.zeros(0, np.int32), np.zeros((0, 2)), z,
+                            partners, matches)
 
 
 # -- camera maths --------------------------------------------------------------------------------
@@ -229,9 +228,8 @@ class FeatureExtractor:
         original = gray.astype(np.float32)
         scale = self.config.detect_upscale
         if scale > 1:
-            gray = cv2.resize(
-                gray, (gray.shape[1] * scale, gray.shape[0] * scale), interpolation=cv2.INTER_CUBIC
-            )
+            gray = cv2.resize(gray, (gray.shape[1] * scale, gray.shape[0] * scale),
+                              interpolation=cv2.INTER_CUBIC)
         keypoints, descriptors = self._detector.detectAndCompute(np.ascontiguousarray(gray), None)
         if descriptors is None or not keypoints:
             dim, dtype = (128, np.float32) if self.config.detector == "sift" else (32, np.uint8)
@@ -251,8 +249,7 @@ class FeatureExtractor:
         pairs = [
             (m[0].queryIdx, m[0].trainIdx)
             for m in ab
-            if len(m) == 2
-            and m[0].distance < self.config.ratio * m[1].distance
+            if len(m) == 2 and m[0].distance < self.config.ratio * m[1].distance
             and back[m[0].trainIdx] == m[0].queryIdx
         ]
         return np.array(pairs, np.int64).reshape(-1, 2)
@@ -289,13 +286,8 @@ def frustum_points(view: PosedView, near_m: float, far_m: float) -> np.ndarray:
 def view_overlap(new: PosedView, other: PosedView, config: TriangulationConfig) -> float:
     """Fraction of ``new``'s probe points that ``other`` sees (inside its image, in front)."""
     uv, z = project(other.K, other.world_from_cam, _probe_points(new, config))
-    inside = (
-        (z > config.min_depth_m)
-        & (uv[:, 0] >= 0)
-        & (uv[:, 0] <= other.width)
-        & (uv[:, 1] >= 0)
-        & (uv[:, 1] <= other.height)
-    )
+    inside = (z > config.min_depth_m) & (uv[:, 0] >= 0) & (uv[:, 0] <= other.width) \
+        & (uv[:, 1] >= 0) & (uv[:, 1] <= other.height)
     return float(inside.mean())
 
 
@@ -325,11 +317,7 @@ def select_partners(
 
 
 def match_pair(
-    extractor: FeatureExtractor,
-    a: PosedView,
-    fa: Features,
-    b: PosedView,
-    fb: Features,
+    extractor: FeatureExtractor, a: PosedView, fa: Features, b: PosedView, fb: Features,
     config: TriangulationConfig,
 ) -> np.ndarray:
     """(M, 2) int64 ``(i_a, i_b)``: descriptor matches (mutual, ratio test) consistent with the
@@ -381,8 +369,7 @@ def triangulate_pair(
     keep = (
         finite
         & np.isfinite(xyz).all(axis=1)
-        & (za >= config.min_depth_m)
-        & (zb >= config.min_depth_m)  # cheirality
+        & (za >= config.min_depth_m) & (zb >= config.min_depth_m)  # cheirality
         & (za <= config.max_depth_m)
         & (reproj <= config.max_reprojection_px)
         & (parallax >= config.min_parallax_deg)
@@ -415,11 +402,8 @@ def triangulate_keyframe(
         if not len(pts):
             continue
         kp = pairs[pts.index, 0].astype(np.float64)
-        rows.append(
-            np.column_stack(
-                [kp, pts.xyz, pts.sigma_m, pts.parallax_deg, pts.reprojection_px, np.full(len(pts), float(p))]
-            )
-        )
+        rows.append(np.column_stack([kp, pts.xyz, pts.sigma_m, pts.parallax_deg, pts.reprojection_px,
+                                     np.full(len(pts), float(p))]))
     if not rows:
         return SparsePoints.empty(len(partners), matches)
     est = np.concatenate(rows)
@@ -448,15 +432,8 @@ def triangulate_keyframe(
     n_views = 1 + np.array([bin(int(m)).count("1") for m in seen], np.int32)
     keep = n_views >= config.min_views
     return SparsePoints(
-        xyz=xyz[keep],
-        sigma_m=res[keep, 4],
-        parallax_deg=res[keep, 5],
-        reprojection_px=res[keep, 6],
-        n_views=n_views[keep],
-        uv=uv[keep],
-        depth_m=depth[keep],
-        partners=len(partners),
-        matches=matches,
+        xyz=xyz[keep], sigma_m=res[keep, 4], parallax_deg=res[keep, 5], reprojection_px=res[keep, 6],
+        n_views=n_views[keep], uv=uv[keep], depth_m=depth[keep], partners=len(partners), matches=matches,
     )
 
 
@@ -467,24 +444,14 @@ def _sample(gray: np.ndarray, uv: np.ndarray) -> np.ndarray:
     padded = np.zeros((-(-n // cols) * cols, 2), np.float32)
     padded[:n] = flat
     maps = padded.reshape(-1, cols, 2)
-    out = cv2.remap(
-        np.ascontiguousarray(gray, np.float32),
-        maps[..., 0].copy(),
-        maps[..., 1].copy(),
-        interpolation=cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
-    )
+    out = cv2.remap(np.ascontiguousarray(gray, np.float32), maps[..., 0].copy(), maps[..., 1].copy(),
+                    interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(-1)[:n].reshape(uv.shape[:-1])
 
 
 def photo_consistent(
-    a: PosedView,
-    gray_a: np.ndarray,
-    b: PosedView,
-    gray_b: np.ndarray,
-    uv_a: np.ndarray,
-    depth_a: np.ndarray,
-    config: TriangulationConfig,
+    a: PosedView, gray_a: np.ndarray, b: PosedView, gray_b: np.ndarray,
+    uv_a: np.ndarray, depth_a: np.ndarray, config: TriangulationConfig,
 ) -> np.ndarray:
     """(N,) bool: the ``ncc_patch_px`` square patch around ``uv_a`` (N, 2) in ``a``, taken as a
     fronto-parallel plane at ``depth_a`` (N,), has a normalised cross-correlation of at least
@@ -498,21 +465,14 @@ def photo_consistent(
     grid = uv_a[:, None, :] + np.stack([du.ravel(), dv.ravel()], axis=-1)[None]  # (N, P, 2)
     fx, fy, cx, cy = (float(v) for v in np.asarray(a.K, np.float64).reshape(4))
     z = depth_a[:, None]
-    cam = np.stack(
-        [(grid[..., 0] - cx) / fx * z, (grid[..., 1] - cy) / fy * z, np.broadcast_to(z, grid.shape[:2])],
-        axis=-1,
-    )
+    cam = np.stack([(grid[..., 0] - cx) / fx * z, (grid[..., 1] - cy) / fy * z,
+                    np.broadcast_to(z, grid.shape[:2])], axis=-1)
     pose = np.asarray(a.world_from_cam, np.float64)
     world = cam.reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
     uv_b, z_b = project(b.K, b.world_from_cam, world)
     uv_b, z_b = uv_b.reshape(n, -1, 2), z_b.reshape(n, -1)
-    inside = (
-        (z_b > config.min_depth_m)
-        & (uv_b[..., 0] >= 0)
-        & (uv_b[..., 0] <= b.width)
-        & (uv_b[..., 1] >= 0)
-        & (uv_b[..., 1] <= b.height)
-    ).all(axis=1)
+    inside = ((z_b > config.min_depth_m) & (uv_b[..., 0] >= 0) & (uv_b[..., 0] <= b.width)
+              & (uv_b[..., 1] >= 0) & (uv_b[..., 1] <= b.height)).all(axis=1)
     pa = _sample(gray_a, grid)
     pb = _sample(gray_b, np.where(np.isfinite(uv_b), uv_b, 0.0))
     pa = pa - pa.mean(axis=1, keepdims=True)

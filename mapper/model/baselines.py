@@ -58,6 +58,7 @@ def _as_tensor(x: np.ndarray | Tensor, dtype: torch.dtype, device: torch.device)
     return torch.from_numpy(np.require(x, requirements=["C", "W"])).to(device=device, dtype=dtype)
 
 
+
 def _parse_inputs(
     points: np.ndarray | Tensor,
     views: Sequence[OVView | tuple],
@@ -94,15 +95,13 @@ def _parse_inputs(
     vw = None
     if view_weights is not None:
         vw = _as_tensor(view_weights, torch.float32, device)
-        check_shape(
-            vw, "V N", "view_weights must have shape (V views, N points)", {"V": len(parsed), "N": n_pts}
-        )
+        check_shape(vw, "V N", "view_weights must have shape (V views, N points)",
+                    {"V": len(parsed), "N": n_pts})
         if not bool((vw >= 0).all()):
             raise ValueError("view_weights must be >= 0")
         vw = vw[view_ids]
     parsed = [parsed[i] for i in view_ids]
     return pts, parsed, vw, dim
-
 
 def average_features_reference(
     points: np.ndarray | Tensor,
@@ -143,16 +142,9 @@ def average_features_reference(
         n_views: (N,) int64, number of views that counted for each point.
     """
     device = torch.device(device)
-    pts, parsed, vw, dim = _parse_inputs(
-        points,
-        views,
-        use_depth=use_depth,
-        border_px=border_px,
-        depth_rel_tol=depth_rel_tol,
-        chunk=chunk,
-        view_weights=view_weights,
-        device=device,
-    )
+    pts, parsed, vw, dim = _parse_inputs(points, views, use_depth=use_depth, border_px=border_px,
+                                         depth_rel_tol=depth_rel_tol, chunk=chunk,
+                                         view_weights=view_weights, device=device)
     n_pts = pts.shape[0]
     feats = torch.zeros(n_pts, dim, dtype=torch.float32, device=device)
     n_views = torch.zeros(n_pts, dtype=torch.int64, device=device)
@@ -160,13 +152,12 @@ def average_features_reference(
         return feats, n_views
 
     # Per-view constants once (small): poses, intrinsics; maps are converted per chunk.
-    cam_from_world = invert_pose(
-        torch.stack([_as_tensor(v.world_from_cam, torch.float32, device) for v in parsed])
-    )  # (V, 4, 4)
+    cam_from_world = invert_pose(torch.stack([_as_tensor(v.world_from_cam, torch.float32, device)
+                                              for v in parsed]))  # (V, 4, 4)
     Ks = torch.stack([_as_tensor(v.K, torch.float32, device) for v in parsed])  # (V, 4)
 
     for start in range(0, n_pts, chunk):
-        p = pts[start : start + chunk]  # (n, 3)
+        p = pts[start:start + chunk]  # (n, 3)
         acc = torch.zeros(p.shape[0], dim, dtype=torch.float32, device=device)
         wsum = torch.zeros(p.shape[0], dtype=torch.float32, device=device)
         count = torch.zeros(p.shape[0], dtype=torch.int64, device=device)
@@ -176,7 +167,7 @@ def average_features_reference(
             uv, z = uv_all[i], z_all[i]
             ok = in_view(uv, z, width, height, border_px=border_px)  # (n,)
             if vw is not None:
-                ok &= vw[i, start : start + chunk] > 0
+                ok &= vw[i, start:start + chunk] > 0
             if not bool(ok.any()):
                 continue
             idx = ok.nonzero().squeeze(1)
@@ -196,14 +187,14 @@ def average_features_reference(
             vals, _ = sample_bilinear(ov, fuv)  # (m, D)
             w = z_ok.clamp_min(1e-6) ** (-distance_power) if distance_power else torch.ones_like(z_ok)
             if vw is not None:
-                w = w * vw[i, start : start + chunk][idx]
+                w = w * vw[i, start:start + chunk][idx]
             acc.index_add_(0, idx, vals * w[:, None])
             wsum.index_add_(0, idx, w)
             count.index_add_(0, idx, torch.ones_like(idx))
         seen = count > 0
         acc[seen] /= wsum[seen, None]
-        feats[start : start + chunk] = F.normalize(acc, dim=1) * seen[:, None]
-        n_views[start : start + chunk] = count
+        feats[start:start + chunk] = F.normalize(acc, dim=1) * seen[:, None]
+        n_views[start:start + chunk] = count
     return feats, n_views
 
 
@@ -246,28 +237,20 @@ def average_features(
         n_views: (N,) int64, number of views that counted for each point.
     """
     n_pts, dim, chunks = _average_chunks(
-        points,
-        views,
-        use_depth=use_depth,
-        border_px=border_px,
-        depth_rel_tol=depth_rel_tol,
-        chunk=chunk,
-        distance_power=distance_power,
-        view_weights=view_weights,
-        device=device,
-        max_table_bytes=max_table_bytes,
-    )
+        points, views, use_depth=use_depth, border_px=border_px, depth_rel_tol=depth_rel_tol, chunk=chunk,
+        distance_power=distance_power, view_weights=view_weights, device=device,
+        max_table_bytes=max_table_bytes)
     device = torch.device(device)
     feats = torch.empty(n_pts, dim, dtype=torch.float32, device=device)
     n_views = torch.zeros(n_pts, dtype=torch.int64, device=device)
     for start, acc, count in chunks:
-        out = feats[start : start + count.shape[0]]
+        out = feats[start:start + count.shape[0]]
         if acc is None:
             out.zero_()
         else:  # F.normalize (eps 1e-12), in place into the result
             norm = torch.linalg.vector_norm(acc, dim=1, keepdim=True).clamp_min_(1e-12)
             torch.div(acc, norm, out=out)
-        n_views[start : start + count.shape[0]] = count
+        n_views[start:start + count.shape[0]] = count
     return feats, n_views
 
 
@@ -299,17 +282,8 @@ def average_similarities(
     texts = _as_tensor(text_emb, torch.float32, device)
     check_shape(texts, "T D", "text_emb must have shape (T texts, D)")
     n_pts, dim, chunks = _average_chunks(
-        points,
-        views,
-        use_depth=use_depth,
-        border_px=border_px,
-        depth_rel_tol=depth_rel_tol,
-        chunk=chunk,
-        distance_power=0.0,
-        view_weights=None,
-        device=device,
-        max_table_bytes=max_table_bytes,
-    )
+        points, views, use_depth=use_depth, border_px=border_px, depth_rel_tol=depth_rel_tol, chunk=chunk,
+        distance_power=0.0, view_weights=None, device=device, max_table_bytes=max_table_bytes)
     if dim and texts.shape[1] != dim:
         raise ValueError(f"text_emb has dimension {texts.shape[1]}, the views' features {dim}")
     sims = torch.zeros(n_pts, texts.shape[0], dtype=torch.float32, device=device)
@@ -341,40 +315,17 @@ def _average_chunks(
     if max_table_bytes < 1:
         raise ValueError(f"max_table_bytes {max_table_bytes} must be >= 1")
     device = torch.device(device)
-    pts, parsed, vw, dim = _parse_inputs(
-        points,
-        views,
-        use_depth=use_depth,
-        border_px=border_px,
-        depth_rel_tol=depth_rel_tol,
-        chunk=chunk,
-        view_weights=view_weights,
-        device=device,
-    )
+    pts, parsed, vw, dim = _parse_inputs(points, views, use_depth=use_depth, border_px=border_px,
+                                         depth_rel_tol=depth_rel_tol, chunk=chunk,
+                                         view_weights=view_weights, device=device)
     n_pts = pts.shape[0]
     if not parsed or n_pts == 0:
-        empty = [
-            (start, None, torch.zeros(min(chunk, n_pts - start), dtype=torch.int64, device=device))
-            for start in range(0, n_pts, chunk)
-        ]
+        empty = [(start, None, torch.zeros(min(chunk, n_pts - start), dtype=torch.int64, device=device))
+                 for start in range(0, n_pts, chunk)]
         return n_pts, dim, iter(empty)
-    return (
-        n_pts,
-        dim,
-        _chunks(
-            pts,
-            parsed,
-            use_depth=use_depth,
-            border_px=border_px,
-            depth_rel_tol=depth_rel_tol,
-            chunk=chunk,
-            distance_power=distance_power,
-            vw=vw,
-            dim=dim,
-            device=device,
-            max_table_bytes=max_table_bytes,
-        ),
-    )
+    return n_pts, dim, _chunks(
+        pts, parsed, use_depth=use_depth, border_px=border_px, depth_rel_tol=depth_rel_tol, chunk=chunk,
+        distance_power=distance_power, vw=vw, dim=dim, device=device, max_table_bytes=max_table_bytes)
 
 
 def _chunks(
@@ -396,16 +347,11 @@ def _chunks(
     # float32 numpy ops (the same IEEE arithmetic as the torch ops of the reference): many tiny
     # torch ops, each a parallel region, slow down badly when the cores are shared.
     n_pts = pts.shape[0]
-    cam_from_world = invert_pose(
-        torch.stack([_as_tensor(v.world_from_cam, torch.float32, device) for v in parsed])
-    )  # (V, 4, 4)
+    cam_from_world = invert_pose(torch.stack([_as_tensor(v.world_from_cam, torch.float32, device)
+                                              for v in parsed]))  # (V, 4, 4)
     Ks = torch.stack([_as_tensor(v.K, torch.float32, device) for v in parsed])  # (V, 4)
-    depths = [
-        np.asarray(v.depth_m.cpu().numpy() if isinstance(v.depth_m, Tensor) else v.depth_m, np.float32)
-        if use_depth and v.depth_m is not None
-        else None
-        for v in parsed
-    ]  # (H', W') each
+    depths = [np.asarray(v.depth_m.cpu().numpy() if isinstance(v.depth_m, Tensor) else v.depth_m, np.float32)
+              if use_depth and v.depth_m is not None else None for v in parsed]  # (H', W') each
     vw_np = None if vw is None else vw.cpu().numpy()  # (V, N) float32
     # Groups of views whose flattened maps form one gather table of <= max_table_bytes.
     groups: list[list[int]] = []
@@ -427,7 +373,7 @@ def _chunks(
     eps = np.float32(DEFAULT_EPS)
 
     for start in range(0, n_pts, chunk):
-        p = pts[start : start + chunk]  # (n, 3)
+        p = pts[start:start + chunk]  # (n, 3)
         n = p.shape[0]
         wsum = np.zeros(n, np.float32)
         count = np.zeros(n, np.int64)
@@ -441,15 +387,10 @@ def _chunks(
                 width, height = int(v.image_wh[0]), int(v.image_wh[1])
                 uv, z = uv_all[i], z_all[i]
                 u_px, v_px = uv[:, 0], uv[:, 1]
-                ok = (
-                    (z > eps)
-                    & (u_px >= border_px)
-                    & (u_px <= width - border_px)
-                    & (v_px >= border_px)
-                    & (v_px <= height - border_px)
-                )  # in_view, (n,)
+                ok = ((z > eps) & (u_px >= border_px) & (u_px <= width - border_px)
+                      & (v_px >= border_px) & (v_px <= height - border_px))  # in_view, (n,)
                 if vw_np is not None:
-                    ok &= vw_np[i, start : start + chunk] > 0
+                    ok &= vw_np[i, start:start + chunk] > 0
                 idx = np.flatnonzero(ok)
                 if idx.size == 0:
                     continue
@@ -473,7 +414,7 @@ def _chunks(
                 else:
                     w = np.ones_like(z_ok)
                 if vw_np is not None:
-                    w = w * vw_np[i, start : start + chunk][idx]
+                    w = w * vw_np[i, start:start + chunk][idx]
                 wsum[idx] += w  # idx is unique within a view
                 count[idx] += 1
                 samples[g].append((idx, corner + offsets[i], bw * w[:, None]))
@@ -486,9 +427,9 @@ def _chunks(
                 continue
             table = tables[g]
             if table is None:
-                table = torch.cat(
-                    [_as_tensor(parsed[i].ov, torch.float32, device).reshape(-1, dim) for i in group]
-                )
+                table = torch.cat([
+                    _as_tensor(parsed[i].ov, torch.float32, device).reshape(-1, dim) for i in group
+                ])
                 tables[g] = table
             rows = np.concatenate([s[0] for s in samples[g]])  # (S,)
             order = np.argsort(rows, kind="stable")
@@ -498,17 +439,16 @@ def _chunks(
             bag_len = np.bincount(rows, minlength=n) * 4  # (n,)
             bag_off = np.cumsum(bag_len) - bag_len
             part = F.embedding_bag(
-                torch.from_numpy(cols).to(device),
-                table,
-                torch.from_numpy(bag_off).to(device),
-                mode="sum",
-                per_sample_weights=torch.from_numpy(wts).to(device),
+                torch.from_numpy(cols).to(device), table, torch.from_numpy(bag_off).to(device),
+                mode="sum", per_sample_weights=torch.from_numpy(wts).to(device),
             )  # (n, D)
             acc = part if acc is None else acc.add_(part)
         yield start, acc, torch.from_numpy(count).to(device)
 
 
-def _bilinear_corners_np(fuv: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+def _bilinear_corners_np(
+    fuv: np.ndarray, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Corners and weights of ``grid_sample(mode="bilinear", padding_mode="border",
     align_corners=False)`` at float32 pixel coordinates ``fuv`` (m, 2) of a (height, width) map:
     flat indices (m, 4) int64 into the row-major map and float32 weights (m, 4)."""

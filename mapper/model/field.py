@@ -367,14 +367,23 @@ class GovNeSF(nn.Module):
         return sigma * inside.to(sigma.dtype), v
 
     def appearance(
-        self, views: SourceViews, v: Tensor, points: Tensor, view_dirs: Tensor, depth_guided_masking: bool
+        self,
+        views: SourceViews,
+        v: Tensor,
+        points: Tensor,
+        view_dirs: Tensor,
+        depth_guided_masking: bool,
+        *,
+        ov_maps: OVMaps | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Blended colour (P, 3), OV feature (P, D) and validity (P,) at (P, 3) points.
 
         Args:
             v: (P, Dv) volume features at the points; view_dirs: (P, 3) unit query directions.
+            ov_maps: blend the OV features from these maps (``views.ov`` may then be a dummy).
         """
-        return self.fuse_samples(self.sample_views(views, points, depth_guided_masking), v, view_dirs)
+        samples = self.sample_views(views, points, depth_guided_masking)
+        return self.fuse_samples(samples, v, view_dirs, ov_maps=ov_maps)
 
     def fuse_samples(
         self, samples: PointViewSamples, v: Tensor, view_dirs: Tensor, *, ov_maps: OVMaps | None = None
@@ -414,10 +423,12 @@ class GovNeSF(nn.Module):
         *,
         depth_guided_masking: bool = False,
         chunk_size: int | None = None,
+        ov_maps: OVMaps | None = None,
     ) -> PointOutputs:
         """Point mode: source-view-agnostic OV feature at (P, 3) points, each a single sample.
 
         ``chunk_size`` bounds memory (about chunk_size x N x (D + F + 6) floats at a time).
+        ``ov_maps``: blend the OV features from these maps (``views.ov`` may then be a dummy).
         """
         if chunk_size is not None:
             if chunk_size < 1:
@@ -429,12 +440,13 @@ class GovNeSF(nn.Module):
                     bounds,
                     points[i : i + chunk_size],
                     depth_guided_masking=depth_guided_masking,
+                    ov_maps=ov_maps,
                 )
                 for i in range(0, points.shape[0], chunk_size)
             ]
             if not parts:
                 return self.query_points(
-                    views, volume, bounds, points, depth_guided_masking=depth_guided_masking
+                    views, volume, bounds, points, depth_guided_masking=depth_guided_masking, ov_maps=ov_maps
                 )
             return PointOutputs(
                 ov=torch.cat([p.ov for p in parts]),
@@ -446,7 +458,7 @@ class GovNeSF(nn.Module):
             )
         samples = self.sample_views(views, points, depth_guided_masking)
         v, _ = sample_volume(volume, bounds, points.to(volume.dtype))
-        return self.point_outputs(samples, v)
+        return self.point_outputs(samples, v, ov_maps=ov_maps)
 
     def point_outputs(
         self, samples: PointViewSamples, v: Tensor, *, ov_maps: OVMaps | None = None

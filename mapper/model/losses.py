@@ -14,7 +14,8 @@ from torch import Tensor
 
 from mapper.model.ops.checks import check_shape
 
-__all__ = ["LossOutputs", "color_loss", "distortion_loss", "govnesf_loss", "ov_cosine_loss"]
+__all__ = [
+    "LossOutputs", "color_loss", "distortion_loss", "govnesf_loss", "ov_cosine_loss"]
 
 
 @dataclass
@@ -101,3 +102,4 @@ def distortion_loss(weights: Tensor, t: Tensor) -> Tensor:
     d = torch.cat([d, d[:, -1:]], dim=-1) if d.shape[-1] else torch.ones_like(s)
     pairwise = (w[:, :, None] * w[:, None, :] * (s[:, :, None] - s[:, None, :]).abs()).sum(dim=(1, 2))
     return (pairwise + (w * w * d).sum(dim=-1) / 3.0).mean()
+

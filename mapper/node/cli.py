@@ -47,28 +47,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--events", metavar="EP", help='events PUB endpoint; "" disables it')
     parser.add_argument("--map-dir", metavar="DIR", help="directory for saved maps")
     parser.add_argument(
-        "--curve-dir",
-        metavar="DIR",
+        "--curve-dir", metavar="DIR",
         help="serve with CurveZMQ: keys made by `govnesf keys DIR`; only clients in DIR/allowed/ get "
         "through (docs/SECURITY.md)",
     )
     parser.add_argument(
-        "--insecure",
-        action="store_true",
-        default=None,
+        "--insecure", action="store_true", default=None,
         help="allow non-loopback binds without --curve-dir (unauthenticated; logged and in status)",
     )
     parser.add_argument(
-        "--set",
-        metavar="KEY=VALUE",
-        action="append",
-        default=[],
+        "--set", metavar="KEY=VALUE", action="append", default=[],
         help="override any config key (dotted for tables), e.g. window.max_keyframes=20; repeatable",
     )
     parser.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR"), help="logging level")
     parser.add_argument(
-        "--check-config",
-        action="store_true",
+        "--check-config", action="store_true",
         help="validate the config (file and overrides), print 'config ok' and exit without serving",
     )
     return parser

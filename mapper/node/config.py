@@ -188,23 +188,15 @@ class GlobalMapConfig:
         _check_range(where, "global_map.rendered_weight", self.rendered_weight, 0.0, 1.0)
         _check_range(where, "global_map.rendered_min_views", self.rendered_min_views, 1, 1000)
         _check_range(where, "global_map.rendered_max_pending", self.rendered_max_pending, 1, 100_000)
-        _check_range(
-            where, "global_map.rendered_consistency_sigmas", self.rendered_consistency_sigmas, 0.0, 100.0
-        )
-        _check_range(
-            where, "global_map.rendered_consistency_voxels", self.rendered_consistency_voxels, 0.0, 100.0
-        )
-        _check_range(
-            where, "global_map.rendered_consistency_radius_px", self.rendered_consistency_radius_px, 0, 32
-        )
+        _check_range(where, "global_map.rendered_consistency_sigmas",
+                     self.rendered_consistency_sigmas, 0.0, 100.0)
+        _check_range(where, "global_map.rendered_consistency_voxels",
+                     self.rendered_consistency_voxels, 0.0, 100.0)
+        _check_range(where, "global_map.rendered_consistency_radius_px",
+                     self.rendered_consistency_radius_px, 0, 32)
         _check_range(where, "global_map.rendered_consistency_views", self.rendered_consistency_views, 1, 1000)
-        _check_range(
-            where,
-            "global_map.rendered_consistency_min_baseline_m",
-            self.rendered_consistency_min_baseline_m,
-            0.0,
-            100.0,
-        )
+        _check_range(where, "global_map.rendered_consistency_min_baseline_m",
+                     self.rendered_consistency_min_baseline_m, 0.0, 100.0)
         _check_range(where, "global_map.voxel_size_m", self.voxel_size_m, 0.005, 1.0)
         _check_range(where, "global_map.pixel_stride", self.pixel_stride, 1, 64)
         _check_range(where, "global_map.max_points", self.max_points, 1, 100_000_000)
@@ -386,7 +378,7 @@ class OvBackendConfig:
         if self.kind not in OV_BACKEND_KINDS:
             raise ConfigError(
                 f"{where}: ov_backend.kind {self.kind!r} is not one of "
-                f'{", ".join(repr(k) for k in OV_BACKEND_KINDS)} ("" = none)'
+                f"{', '.join(repr(k) for k in OV_BACKEND_KINDS)} (\"\" = none)"
             )
         if self.input_size != 0:
             _check_range(where, "ov_backend.input_size", self.input_size, 16, 4096)
@@ -531,7 +523,7 @@ class NodeConfig:
             raise ConfigError(
                 f"{where}: ov_space = {self.ov_space!r} is pinned, but ov_backend.kind = "
                 f"{self.ov_backend.kind!r} produces features in {self.ov_backend.space!r}; set ov_space to "
-                f'{self.ov_backend.space!r} or "", or turn the backend off (ov_backend.kind = "")'
+                f"{self.ov_backend.space!r} or \"\", or turn the backend off (ov_backend.kind = \"\")"
             )
 
 

@@ -121,8 +121,6 @@ class _UnitSource:
         self.version = -1
         self.feat: np.ndarray | None = None  # (M, D) float16, read-only
         self.blocks: list[np.ndarray] = []  # (<= UNIT_BLOCK_ROWS, D) float32 each, read-only
-
-
 """``stats`` reports the integrate time percentiles over this many latest keyframes."""
 
 
@@ -287,31 +285,21 @@ class GlobalMapSnapshot:
                 return blocks
             n = len(self)
             if self.feat is None:
-                blocks = [
-                    np.zeros((min(UNIT_BLOCK_ROWS, n - lo), 0), np.float32)
-                    for lo in range(0, n, UNIT_BLOCK_ROWS)
-                ]
+                blocks = [np.zeros((min(UNIT_BLOCK_ROWS, n - lo), 0), np.float32)
+                          for lo in range(0, n, UNIT_BLOCK_ROWS)]
             else:
                 prev_feat, prev_blocks = None, []
                 if self._unit_source is not None:
                     with self._unit_source.lock:
                         prev_feat, prev_blocks = self._unit_source.feat, self._unit_source.blocks
-                same_dim = (
-                    prev_feat is not None
-                    and prev_feat.shape[1] == self.feat.shape[1]
-                    and prev_feat.dtype == self.feat.dtype
-                )
+                same_dim = (prev_feat is not None and prev_feat.shape[1] == self.feat.shape[1]
+                            and prev_feat.dtype == self.feat.dtype)
                 blocks = []
                 for b, lo in enumerate(range(0, n, UNIT_BLOCK_ROWS)):
                     hi = min(lo + UNIT_BLOCK_ROWS, n)
                     cur = self.feat[lo:hi]
-                    if (
-                        same_dim
-                        and prev_feat is not None
-                        and b < len(prev_blocks)
-                        and prev_blocks[b].shape[0] == hi - lo
-                        and prev_feat.shape[0] >= hi
-                    ):
+                    if (same_dim and prev_feat is not None and b < len(prev_blocks)
+                            and prev_blocks[b].shape[0] == hi - lo and prev_feat.shape[0] >= hi):
                         # rows whose bytes changed since the previous blocks were computed
                         changed = (_row_words(prev_feat[lo:hi]) != _row_words(cur)).any(axis=1)
                         if not changed.any():
@@ -360,7 +348,7 @@ class GlobalMapSnapshot:
         lo = 0
         emb_t = np.ascontiguousarray(emb.T, dtype=np.float32)
         for block in blocks:
-            np.matmul(block, emb_t, out=out[lo : lo + block.shape[0]])
+            np.matmul(block, emb_t, out=out[lo:lo + block.shape[0]])
             lo += block.shape[0]
         return out
 
@@ -656,9 +644,8 @@ class GlobalSemanticMap:
             if map_version is not None:
                 self._map_version = map_version
         if points == 0:
-            return IntegrateStats(
-                0, 0, 0, 0, True, time.perf_counter() - started, "none of its voxels is in the map any more"
-            )
+            return IntegrateStats(0, 0, 0, 0, True, time.perf_counter() - started,
+                                  "none of its voxels is in the map any more")
         return IntegrateStats(points, touched, 0, 0, True, time.perf_counter() - started)
 
     def seen_voxels(self, keyframe: KeyframeLike) -> tuple[np.ndarray, np.ndarray]:
@@ -752,10 +739,7 @@ class GlobalSemanticMap:
         rows = self._sorted_rows[np.searchsorted(self._sorted_keys, ukeys)]
         assert self._feat is not None
         unit, norm, fw = self.fusion(
-            self._feat[rows],
-            self._feat_norm[rows],
-            self._feat_weight[rows],
-            sum_wfeat,
+            self._feat[rows], self._feat_norm[rows], self._feat_weight[rows], sum_wfeat,
             sum_w.astype(np.float32),
         )
         self._feat[rows], self._feat_norm[rows], self._feat_weight[rows] = unit, norm, fw
@@ -784,10 +768,8 @@ class GlobalSemanticMap:
         if cells is not None and bilinear is not None and obs.ov_flat is not None:
             # sum over observations of weight * bilinear(ov) = (U x cells) sparse matrix @ ov cells
             taps = csr_matrix(
-                (
-                    (weight[:, None] * bilinear).ravel().astype(np.float32),
-                    (np.repeat(inverse, 4), cells.ravel()),
-                ),
+                ((weight[:, None] * bilinear).ravel().astype(np.float32),
+                 (np.repeat(inverse, 4), cells.ravel())),
                 shape=(n_u, obs.ov_flat.shape[0]),
             )
             sum_wfeat = np.asarray(taps @ obs.ov_flat, np.float32)  # (U, D)
@@ -821,10 +803,7 @@ class GlobalSemanticMap:
         if sum_wfeat is not None:
             assert self._feat is not None
             unit, norm, fw = self.fusion(
-                self._feat[rows],
-                self._feat_norm[rows],
-                self._feat_weight[rows],
-                sum_wfeat,
+                self._feat[rows], self._feat_norm[rows], self._feat_weight[rows], sum_wfeat,
                 sum_w.astype(np.float32),
             )
             self._feat[rows], self._feat_norm[rows], self._feat_weight[rows] = unit, norm, fw
@@ -855,7 +834,7 @@ class GlobalSemanticMap:
                 continue
             kept = arr[keep]
             arr[: kept.shape[0]] = kept
-            arr[kept.shape[0] :] = 0
+            arr[kept.shape[0]:] = 0
         self._n = int(keep.shape[0])
         order = np.argsort(self._keys[: self._n], kind="stable")
         self._sorted_keys = self._keys[: self._n][order].copy()

@@ -103,7 +103,6 @@ class PreEvictionFeatures:
 
     def run(self, stop: threading.Event) -> None:
         """Worker thread body (``node.workers``)."""
-
         def on_error(exc: BaseException) -> None:
             self._limited.warning("error", "learned map features failed: %r", exc)
 

@@ -252,11 +252,9 @@ def cluster_points(
             p = pts[members]
             s = np.sort(score[idx[members]])[::-1]
             top = s[: max(1, (s.size + 1) // 2)]
-            out.append(
-                Cluster(
-                    int(lab), idx[members], p.mean(axis=0), p.min(axis=0), p.max(axis=0), float(top.mean())
-                )
-            )
+            out.append(Cluster(
+                int(lab), idx[members], p.mean(axis=0), p.min(axis=0), p.max(axis=0), float(top.mean())
+            ))
     out.sort(key=lambda c: (-c.score, -c.indices.size))
     return out
 

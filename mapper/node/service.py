@@ -387,12 +387,8 @@ class MapperNode:
             message = self._load_map(cfg.autosave_name)
         except ProtocolError as exc:
             aside = path.with_name(path.name + ".unreadable")
-            log.error(
-                "cannot load the autosave %s (%s); moved it to %s and starting empty",
-                path,
-                exc.message,
-                aside,
-            )
+            log.error("cannot load the autosave %s (%s); moved it to %s and starting empty", path,
+                      exc.message, aside)
             try:
                 os.replace(path, aside)
             except OSError as move_exc:
@@ -814,22 +810,15 @@ class MapperNode:
         with state.lock:
             for kept in state.window.keyframes:
                 same_id = (kept.seq, kept.stamp_ns, kept.camera) == (frame.seq, frame.stamp_ns, frame.camera)
-                if (
-                    same_id
-                    and np.array_equal(kept.world_from_cam, frame.world_from_cam)
-                    and np.array_equal(kept.K, frame.K)
+                if same_id and np.array_equal(kept.world_from_cam, frame.world_from_cam) and np.array_equal(
+                    kept.K, frame.K
                 ):
                     # a resent frame (the client's retry after a timeout or a node restart) that is
                     # already a keyframe (same seq, stamp, camera and pose): acked again, not added twice
                     state.ack_counts["accepted"] += 1
                     self.frames_duplicate += 1
-                    return Ack(
-                        seq=frame.seq,
-                        status="accepted",
-                        map_version=state.map_version,
-                        id=frame.id,
-                        reason=f"duplicate: frame seq {frame.seq} is already a keyframe of the map",
-                    )
+                    return Ack(seq=frame.seq, status="accepted", map_version=state.map_version, id=frame.id,
+                               reason=f"duplicate: frame seq {frame.seq} is already a keyframe of the map")
             if frame.ov is not None:
                 if state.ov_space is not None and frame.ov_space != state.ov_space:
                     raise ProtocolError(
@@ -912,14 +901,9 @@ class MapperNode:
         keyframe = job.keyframe
         try:
             stats = job.target.integrate(keyframe, map_version=job.map_version)
-            log.debug(
-                "frame seq %d: %d points into the global map (%d new voxels) in %.1f ms%s",
-                keyframe.seq,
-                stats.points,
-                stats.voxels_new,
-                1e3 * stats.seconds,
-                f" ({stats.skipped})" if stats.skipped else "",
-            )
+            log.debug("frame seq %d: %d points into the global map (%d new voxels) in %.1f ms%s",
+                      keyframe.seq, stats.points, stats.voxels_new, 1e3 * stats.seconds,
+                      f" ({stats.skipped})" if stats.skipped else "")
             if keyframe.ov is not None and job.ov_space is not None:
                 self._warm_text_encoder(job.ov_space)
             if job.target is not self.state.global_map:
@@ -1175,9 +1159,8 @@ class MapperNode:
         for listener in self.load_listeners:
             listener(fresh, version)
         points = len(state.global_map)
-        log.info(
-            "loaded map %r: %d keyframes, %d global points, now map version %d", name, count, points, version
-        )
+        log.info("loaded map %r: %d keyframes, %d global points, now map version %d", name, count, points,
+                 version)
         return f"loaded map {name!r}: {count} keyframes, {points} map points, map version {version}"
 
     # -- semantic queries ---------------------------------------------------------------------
@@ -1380,9 +1363,8 @@ class MapperNode:
         try:
             self._curve.reload_if_changed()
         except Exception:  # an unreadable key file: keep the previous list, say why
-            log.exception(
-                "CurveZMQ: could not reload %s; keeping the previous allowed keys", self._curve.allowed_dir
-            )
+            log.exception("CurveZMQ: could not reload %s; keeping the previous allowed keys",
+                          self._curve.allowed_dir)
 
     def _maybe_autosave(self) -> None:
         cfg = self.config

@@ -1,1 +1,2 @@
-"""Open-vocabulary embedding spaces: text encoders, the dense CLIP backend and its tokenizer."""
+"""Open-vocabulary embedding spaces: text encoders, the dense CLIP backend and its tokenizer.
+"""

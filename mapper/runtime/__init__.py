@@ -1,1 +1,2 @@
-"""The learned model inside the node: ModelRuntime (model_runtime.py) and its torch-free config."""
+"""The learned model inside the node: ModelRuntime (model_runtime.py) and its torch-free config.
+"""

@@ -138,7 +138,6 @@ class ModelRuntimeConfig:
 
     def validate(self, where: str = "model") -> None:
         """Raise ``mapper.node.config.ConfigError`` naming ``where``, the key, the value and the range."""
-
         def check(key: str, value: float, lo: float, hi: float) -> None:
             if not (isinstance(value, int | float) and lo <= value <= hi):
                 raise ConfigError(f"{where}: model.{key} = {value!r} out of range {lo}..{hi}")

@@ -93,6 +93,8 @@ __all__ = [
 log = logging.getLogger("mapper.runtime.model_runtime")
 
 
+
+
 @dataclass
 class RenderFrame:
     """What :meth:`ModelRuntime.render` returns; outputs not requested are None."""
@@ -126,16 +128,8 @@ class _ViewEntry:
 
     @property
     def nbytes(self) -> int:
-        tensors = [
-            self.rgb,
-            self.features,
-            self.ov,
-            self.depth_m,
-            self.K,
-            self.world_from_cam,
-            self.extent,
-            self.depth_prior,
-        ]
+        tensors = [self.rgb, self.features, self.ov, self.depth_m, self.K, self.world_from_cam, self.extent,
+                   self.depth_prior]
         return sum(t.numel() * t.element_size() for t in tensors if t is not None)
 
 
@@ -557,13 +551,8 @@ class ModelRuntime:
             prior = torch.tensor(arr, device=self.device)
         self._set_pending(self._depth_priors, self._priors_changed, key, prior)
 
-    def _set_pending(
-        self,
-        store: dict[tuple[str, int, int], Tensor],
-        changed: set[tuple[str, int, int]],
-        key: tuple[str, int, int],
-        value: Tensor | None,
-    ) -> None:
+    def _set_pending(self, store: dict[tuple[str, int, int], Tensor], changed: set[tuple[str, int, int]],
+                     key: tuple[str, int, int], value: Tensor | None) -> None:
         """Set (or with None remove) ``store[key]`` and mark ``key`` changed for the next sync."""
         with self._pending_lock:
             if value is None:
@@ -572,9 +561,8 @@ class ModelRuntime:
                 store[key] = value
             changed.add(key)
 
-    def _take_pending(
-        self, store: dict[tuple[str, int, int], Any], keys: set[tuple[str, int, int]]
-    ) -> dict[tuple[str, int, int], Any]:
+    def _take_pending(self, store: dict[tuple[str, int, int], Any], keys: set[tuple[str, int, int]]
+                      ) -> dict[tuple[str, int, int], Any]:
         """``{key: store.get(key)}`` for the changed ``keys``, under the pending lock; entries of
         keyframes that left the window (and did not just change) are dropped from ``store``."""
         live = {e.key for e in self._entries.values()}
@@ -755,10 +743,8 @@ class ModelRuntime:
             w, h = self.image_wh
             depth = torch.stack(
                 [
-                    e.depth_m
-                    if e.depth_m is not None
-                    else e.depth_prior
-                    if e.depth_prior is not None
+                    e.depth_m if e.depth_m is not None
+                    else e.depth_prior if e.depth_prior is not None
                     else torch.zeros(h, w, device=self.device)
                     for e in entries
                 ]
@@ -979,7 +965,6 @@ class ModelRuntime:
             groups = self._view_groups(prep, pts, prep.has_ov, self.point_source_views)
             t3 = time.perf_counter()
             timing["view_selection"] = (t3 - t2) * 1e3
-
             def answer(sub: Tensor, out: Any) -> None:
                 cos = F.normalize(out.ov, dim=-1) @ emb.T  # (p, T)
                 best, arg = cos.max(dim=-1)
@@ -1016,9 +1001,9 @@ class ModelRuntime:
         ov_maps = prep.ov_maps(views_idx, self.image_wh)
         for i in range(0, idx.numel(), self.config.chunk_points):
             sub = idx[i : i + self.config.chunk_points]
-            samples = model.sample_views(views, pts[sub], use_depth)
-            v, _ = sample_volume(prep.volume, prep.bounds, pts[sub].to(prep.volume.dtype))
-            yield sub, model.point_outputs(samples, v, ov_maps=ov_maps)
+            yield sub, model.query_points(
+                views, prep.volume, prep.bounds, pts[sub], depth_guided_masking=use_depth, ov_maps=ov_maps
+            )
 
     @torch.no_grad()
     def point_features(
@@ -1301,9 +1286,8 @@ class ModelRuntime:
                 ov_maps = prep.ov_maps(view_idx, self.image_wh) if d_ov else None
                 for j in range(0, local.numel(), chunk):
                     sub = local[j : j + chunk]
-                    samples = model.sample_views(views, points[sub], False)
-                    rgb_k, ov_k, valid_k = model.fuse_samples(
-                        samples, v[sub], view_dirs[sub], ov_maps=ov_maps
+                    rgb_k, ov_k, valid_k = model.appearance(
+                        views, v[sub], points[sub], view_dirs[sub], False, ov_maps=ov_maps
                     )
                     rgb[sub], valid[sub] = rgb_k, valid_k
                     if d_ov:

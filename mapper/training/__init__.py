@@ -1,1 +1,2 @@
-"""Training and evaluation: data, the training loop, evaluation, metrics and their CLIs."""
+"""Training and evaluation: data, the training loop, evaluation, metrics and their CLIs.
+"""

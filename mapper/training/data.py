@@ -127,10 +127,9 @@ def held_out_positions(num_frames: int, every: int, radius: int) -> np.ndarray:
     """
     if every < 0 or radius < 0:
         raise ValueError(f"held-out frames: every {every} and radius {radius} must be >= 0")
-    pos = np.arange(num_frames)
     if every == 0:
         return np.zeros(num_frames, dtype=bool)
-    offset = pos % every
+    offset = np.arange(num_frames) % every
     return np.minimum(offset, every - offset) <= radius
 
 
@@ -437,23 +436,19 @@ def source_batch(
     idx = np.asarray(indices, dtype=np.int64)
     if frustum_range_m is not None:
         w, h = scene.image_wh
-        pts = (
-            torch.cat(
-                [
-                    frustum_points(
-                        torch.from_numpy(scene.K[i]).double(),
-                        torch.from_numpy(scene.world_from_cam[i]).double(),
-                        w,
-                        h,
-                        min(0.2, 0.5 * frustum_range_m),
-                        frustum_range_m,
-                    )
-                    for i in idx
-                ]
-            )
-            .float()
-            .numpy()
-        )
+        pts = torch.cat(
+            [
+                frustum_points(
+                    torch.from_numpy(scene.K[i]).double(),
+                    torch.from_numpy(scene.world_from_cam[i]).double(),
+                    w,
+                    h,
+                    min(0.2, 0.5 * frustum_range_m),
+                    frustum_range_m,
+                )
+                for i in idx
+            ]
+        ).float().numpy()
     else:
         pts = scene.points_m[idx].reshape(-1, 3)
     pts = pts[np.isfinite(pts).all(axis=1)]

@@ -112,17 +112,11 @@ def node_rgb_only_rows(
     st = settings or NodeEvalSettings()
     n = len(scene)
     with tempfile.TemporaryDirectory(prefix="govnesf-eval-node-") as map_dir:
-        config = load_config(
-            st.config_path,
-            {
-                "map_dir": map_dir,
-                "autosave_name": "",
-                "save_on_exit": False,
-                "window.max_keyframes": max(n, 1),
-                "model.checkpoint": str(checkpoint),
-                "model.device": st.device,
-            },
-        )
+        config = load_config(st.config_path, {
+            "map_dir": map_dir, "autosave_name": "", "save_on_exit": False,
+            "window.max_keyframes": max(n, 1), "model.checkpoint": str(checkpoint),
+            "model.device": st.device,
+        })
         node = MapperNode(config)
         # the plugins `govnesf serve` installs (mapper/node/cli.py), in the same order
         runtime = ModelRuntime(config.model)
@@ -139,14 +133,10 @@ def node_rgb_only_rows(
             w, h = scene.image_wh
             for k in range(n):
                 frame = Frame(
-                    seq=k,
-                    stamp_ns=(k + 1) * st.frame_interval_ns,
-                    width=w,
-                    height=h,
+                    seq=k, stamp_ns=(k + 1) * st.frame_interval_ns, width=w, height=h,
                     K=np.asarray(scene.K[k], np.float64),
                     world_from_cam=np.asarray(scene.world_from_cam[k], np.float64),
-                    rgb=np.ascontiguousarray(scene.rgb[k]),
-                    ov=np.ascontiguousarray(scene.ov[k]),
+                    rgb=np.ascontiguousarray(scene.rgb[k]), ov=np.ascontiguousarray(scene.ov[k]),
                     ov_space=st.ov_space,
                 )
                 node.handle_ingest(encode(frame))
@@ -179,12 +169,8 @@ def node_rgb_only_rows(
                 scored = np.where(label >= 0, label, (gt_i + 1) % NUM_SCANNET_CLASSES)
                 out[name] = (
                     confusion_matrix(gt_i, scored),
-                    {
-                        "seconds": secs,
-                        "seconds_per_100k": secs * 1e5 / max(len(gt), 1),
-                        "unanswered": float((label < 0).mean()) if len(label) else 0.0,
-                        **extra,
-                    },
+                    {"seconds": secs, "seconds_per_100k": secs * 1e5 / max(len(gt), 1),
+                     "unanswered": float((label < 0).mean()) if len(label) else 0.0, **extra},
                 )
             return out
         finally:

@@ -199,16 +199,11 @@ def load_scene(path: str | Path) -> EvalScene:
         nv = np.load(gt / "novel_views.npz", allow_pickle=False)
         nov_ov = np.load(gt / "novel_ov.npy", allow_pickle=False) if (gt / "novel_ov.npy").is_file() else None
         if nov_ov is not None and nov_ov.shape[0] != nv["K"].shape[0]:
-            raise ValueError(
-                f"{path}: gt/novel_ov.npy has {nov_ov.shape[0]} views, gt/novel_views.npz "
-                f"{nv['K'].shape[0]}; re-run scripts/novel_view_ov.py"
-            )
+            raise ValueError(f"{path}: gt/novel_ov.npy has {nov_ov.shape[0]} views, gt/novel_views.npz "
+                             f"{nv['K'].shape[0]}; re-run scripts/novel_view_ov.py")
         novel = NovelViews(
-            K=nv["K"].astype(np.float64),
-            world_from_cam=nv["world_from_cam"].astype(np.float64),
-            rgb=nv["rgb"],
-            label=nv["label"].astype(np.int64),
-            ov=nov_ov,
+            K=nv["K"].astype(np.float64), world_from_cam=nv["world_from_cam"].astype(np.float64),
+            rgb=nv["rgb"], label=nv["label"].astype(np.int64), ov=nov_ov,
         )
     info: dict[str, Any] = {}
     if (gt / "scene.json").is_file():
@@ -225,14 +220,9 @@ def load_scene(path: str | Path) -> EvalScene:
     )
 
 
-def scene_sources(
-    model: GovNeSF,
-    scene: EvalScene,
-    index: np.ndarray | None = None,
-    *,
-    device: torch.device | str = "cpu",
-    frustum_range_m: float | None = None,
-) -> tuple[SourceViews, VolumeBounds]:
+def scene_sources(model: GovNeSF, scene: EvalScene, index: np.ndarray | None = None,
+                  *, device: torch.device | str = "cpu",
+                  frustum_range_m: float | None = None) -> tuple[SourceViews, VolumeBounds]:
     """Source views (encoded) of the stream frames ``index`` (all when None) and the volume
     bounds over their depth points: exactly what training builds (``mapper.training.data.source_batch``).
     With ``frustum_range_m`` the bounds come from the frames' frusta instead (no depth used), as
@@ -264,16 +254,8 @@ class PointBlend:
 
 
 @torch.no_grad()
-def view_transmittance(
-    model: GovNeSF,
-    volume: Tensor,
-    bounds: VolumeBounds,
-    points: Tensor,
-    centres: Tensor,
-    *,
-    n_samples: int = 16,
-    stop_m: float | None = None,
-) -> Tensor:
+def view_transmittance(model: GovNeSF, volume: Tensor, bounds: VolumeBounds, points: Tensor,
+                       centres: Tensor, *, n_samples: int = 16, stop_m: float | None = None) -> Tensor:
     """Transmittance of the model's density from each camera centre to each point: ``exp(-sum
     sigma delta)`` over ``n_samples`` midpoints of the segment, stopping ``stop_m`` short of the
     point (default 1.5 voxels, so the point's own surface does not occlude it).
@@ -296,9 +278,8 @@ def view_transmittance(
     return torch.exp(-optical)
 
 
-def candidate_views(
-    views: SourceViews, points: Tensor, *, depth_guided_masking: bool, depth_mask_ratio: float = DEPTH_REL_TOL
-) -> tuple[Tensor, Tensor, Tensor]:
+def candidate_views(views: SourceViews, points: Tensor, *, depth_guided_masking: bool,
+                    depth_mask_ratio: float = DEPTH_REL_TOL) -> tuple[Tensor, Tensor, Tensor]:
     """The model's visibility test (``GovNeSF.sample_views``): in front and inside the image and,
     with DGM and depth, |z - depth| <= ratio x depth (views without a measurement pass).
 
@@ -367,24 +348,13 @@ def blend_points(
     if chunk_size < 1:
         raise ValueError(f"chunk_size {chunk_size} out of range: must be >= 1")
     parts = [
-        _blend_chunk(
-            model,
-            views,
-            volume,
-            bounds,
-            points[i : i + chunk_size],
-            depth_guided_masking,
-            views_per_point,
-            view_weight_fn,
-        )
+        _blend_chunk(model, views, volume, bounds, points[i : i + chunk_size], depth_guided_masking,
+                     views_per_point, view_weight_fn)
         for i in range(0, points.shape[0], chunk_size)
     ]
     if not parts:
-        parts = [
-            _blend_chunk(
-                model, views, volume, bounds, points, depth_guided_masking, views_per_point, view_weight_fn
-            )
-        ]
+        parts = [_blend_chunk(model, views, volume, bounds, points, depth_guided_masking, views_per_point,
+                              view_weight_fn)]
     k = max(p.mask.shape[1] for p in parts)
 
     def pad(t: Tensor, value: float | bool) -> Tensor:
@@ -401,23 +371,12 @@ def blend_points(
 
 
 @torch.no_grad()
-def _blend_chunk(
-    model: GovNeSF,
-    views: SourceViews,
-    volume: Tensor,
-    bounds: VolumeBounds,
-    points: Tensor,
-    depth_guided_masking: bool,
-    views_per_point: int | None,
-    view_weight_fn: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None,
-) -> PointBlend:
+def _blend_chunk(model: GovNeSF, views: SourceViews, volume: Tensor, bounds: VolumeBounds, points: Tensor,
+                 depth_guided_masking: bool, views_per_point: int | None,
+                 view_weight_fn: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None) -> PointBlend:
     wh = views.image_wh
-    uv, z, mask = candidate_views(
-        views,
-        points,
-        depth_guided_masking=depth_guided_masking,
-        depth_mask_ratio=model.cfg.render.depth_mask_ratio,
-    )
+    uv, z, mask = candidate_views(views, points, depth_guided_masking=depth_guided_masking,
+                                  depth_mask_ratio=model.cfg.render.depth_mask_ratio)
     pts = points.to(views.K.dtype)
     centres = camera_centers(views.world_from_cam)  # (N, 3)
     dist = torch.cdist(pts, centres)  # (P, N)
@@ -449,23 +408,14 @@ def _blend_chunk(
             total = reweighted.sum(dim=1, keepdim=True)
             weights = torch.where(total > 1e-12, reweighted / total.clamp_min(1e-12), weights)
         out = blend(weights, ov)
-    return PointBlend(
-        ov=out, valid=fused.valid, num_views=sel.sum(dim=1), view_index=idx, mask=sel, weights=weights
-    )
+    return PointBlend(ov=out, valid=fused.valid, num_views=sel.sum(dim=1), view_index=idx, mask=sel,
+                      weights=weights)
 
 
-def nearest_view_selection(
-    points: Tensor,
-    K: Tensor,
-    world_from_cam: Tensor,
-    image_wh: tuple[int, int],
-    k: int,
-    *,
-    border_px: float = AVERAGING_BORDER_PX,
-    depth_m: Tensor | None = None,
-    depth_rel_tol: float = DEPTH_REL_TOL,
-    chunk: int = 16384,
-) -> Tensor:
+def nearest_view_selection(points: Tensor, K: Tensor, world_from_cam: Tensor, image_wh: tuple[int, int],
+                           k: int, *, border_px: float = AVERAGING_BORDER_PX,
+                           depth_m: Tensor | None = None, depth_rel_tol: float = DEPTH_REL_TOL,
+                           chunk: int = 16384) -> Tensor:
     """Averaging's view cap: for each point, its ``k`` nearest views among those that pass the
     averaging tests (inside the image with a border cut; with ``depth_m``, the depth test).
 
@@ -490,15 +440,8 @@ def nearest_view_selection(
     return out
 
 
-def gt_visibility(
-    points: Tensor,
-    K: Tensor,
-    world_from_cam: Tensor,
-    depth_m: Tensor,
-    *,
-    tol_m: float = 0.02,
-    tol_rel: float = 0.02,
-) -> tuple[Tensor, Tensor]:
+def gt_visibility(points: Tensor, K: Tensor, world_from_cam: Tensor, depth_m: Tensor,
+                  *, tol_m: float = 0.02, tol_rel: float = 0.02) -> tuple[Tensor, Tensor]:
     """Ground-truth visibility as in the simulator's ``n_views`` (inside the image, in front,
     z within max(tol_m, tol_rel x depth) of the rendered depth).
 
@@ -517,19 +460,9 @@ def gt_visibility(
     return inside.T, vis.T
 
 
-def render_view(
-    model: GovNeSF,
-    views: SourceViews,
-    volume: Tensor,
-    bounds: VolumeBounds,
-    K: np.ndarray,
-    world_from_cam: np.ndarray,
-    image_wh: tuple[int, int],
-    *,
-    pixel_stride: int = 1,
-    chunk_rays: int = 1024,
-    **render_kwargs: Any,
-) -> tuple[Tensor, Tensor]:
+def render_view(model: GovNeSF, views: SourceViews, volume: Tensor, bounds: VolumeBounds, K: np.ndarray,
+                world_from_cam: np.ndarray, image_wh: tuple[int, int], *, pixel_stride: int = 1,
+                chunk_rays: int = 1024, **render_kwargs: Any) -> tuple[Tensor, Tensor]:
     """Render the centres of every ``pixel_stride``-th pixel (rows and columns, starting at
     ``pixel_stride // 2``) of a view: rgb (h', w', 3) and OV (h', w', D). Stride 1 = the whole image.
 
@@ -540,11 +473,8 @@ def render_view(
     if pixel_stride < 1:
         raise ValueError(f"pixel_stride {pixel_stride} out of range: must be >= 1")
     dev = views.K.device
-    origins, dirs = pixel_rays(
-        torch.as_tensor(K, dtype=torch.float32, device=dev),
-        torch.as_tensor(world_from_cam, dtype=torch.float32, device=dev),
-        *image_wh,
-    )
+    origins, dirs = pixel_rays(torch.as_tensor(K, dtype=torch.float32, device=dev),
+                               torch.as_tensor(world_from_cam, dtype=torch.float32, device=dev), *image_wh)
     off = pixel_stride // 2
     origins = origins[off::pixel_stride, off::pixel_stride]
     dirs = dirs[off::pixel_stride, off::pixel_stride]
@@ -600,9 +530,8 @@ def _labels_2d(ov_hw: Tensor, text: Tensor) -> np.ndarray:
 def upsample_features(ov: np.ndarray | Tensor, image_wh: tuple[int, int]) -> Tensor:
     """(h, w, D) feature map -> (H, W, D) bilinear (pixel centres aligned)."""
     t = torch.as_tensor(np.asarray(ov, dtype=np.float32) if isinstance(ov, np.ndarray) else ov.float())
-    up = F.interpolate(
-        t.permute(2, 0, 1)[None], size=(image_wh[1], image_wh[0]), mode="bilinear", align_corners=False
-    )
+    up = F.interpolate(t.permute(2, 0, 1)[None], size=(image_wh[1], image_wh[0]), mode="bilinear",
+                       align_corners=False)
     return up[0].permute(1, 2, 0)
 
 
@@ -709,9 +638,8 @@ def _uniform_occluded_share(counted: Tensor, occluded: Tensor) -> float:
 
 
 def _subset(scene: EvalScene, settings: EvalSettings) -> np.ndarray:
-    keep = np.flatnonzero(
-        (scene.points_n_views > 1) & (scene.points_label >= 0) & (scene.points_label < NUM_SCANNET_CLASSES)
-    )
+    keep = np.flatnonzero((scene.points_n_views > 1) & (scene.points_label >= 0)
+                          & (scene.points_label < NUM_SCANNET_CLASSES))
     if settings.max_points is not None and keep.size > settings.max_points:
         rng = np.random.default_rng([settings.seed, scene.seed])
         keep = np.sort(rng.choice(keep, settings.max_points, replace=False))
@@ -719,10 +647,8 @@ def _subset(scene: EvalScene, settings: EvalSettings) -> np.ndarray:
 
 
 def _avg_views(scene: EvalScene) -> list[OVView]:
-    return [
-        OVView(scene.ov[k], scene.K[k], scene.world_from_cam[k], scene.image_wh, scene.depth_m[k])
-        for k in range(len(scene))
-    ]
+    return [OVView(scene.ov[k], scene.K[k], scene.world_from_cam[k], scene.image_wh,
+                   scene.depth_m[k]) for k in range(len(scene))]
 
 
 def evaluate_scene(
@@ -755,14 +681,8 @@ def evaluate_scene(
     return out
 
 
-def _evaluate_3d(
-    scene: EvalScene,
-    models: dict[str, GovNeSF],
-    text_emb: Tensor,
-    settings: EvalSettings,
-    log: Callable[[str], None],
-    device: torch.device | str,
-) -> dict[str, MethodResult]:
+def _evaluate_3d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor, settings: EvalSettings,
+                 log: Callable[[str], None], device: torch.device | str) -> dict[str, MethodResult]:
     sp = scene_points(scene, settings)
     gt, pts, K, poses, visible, occluded = sp.gt, sp.xyz, sp.K, sp.world_from_cam, sp.visible, sp.occluded
     res: dict[str, MethodResult] = {}
@@ -770,10 +690,9 @@ def _evaluate_3d(
 
     def record(name: str, feats: Tensor, seconds: float, **extra: float) -> None:
         pred = np.asarray(predict_labels(feats.cpu().float(), text_emb))
-        res[name] = MethodResult(
-            confusion_matrix(gt, pred),
-            {"seconds": seconds, "seconds_per_100k": seconds * 1e5 / max(len(gt), 1), **extra},
-        )
+        res[name] = MethodResult(confusion_matrix(gt, pred),
+                                 {"seconds": seconds, "seconds_per_100k": seconds * 1e5 / max(len(gt), 1),
+                                  **extra})
         s = res[name].scores()
         log(f"  3d {scene.name} {name:<34} mIoU {100 * s.miou:5.1f}  ({seconds:.1f} s)")
 
@@ -785,43 +704,22 @@ def _evaluate_3d(
             t0 = time.perf_counter()
             vw = None
             if vpp is not None:
-                vw = nearest_view_selection(
-                    pts,
-                    K,
-                    poses,
-                    scene.image_wh,
-                    vpp,
-                    border_px=border,
-                    depth_m=depth_t if use_depth else None,
-                )
-            feats, nv = average_features(
-                pts, avg_views, use_depth=use_depth, view_weights=vw, device=device, border_px=border
-            )
+                vw = nearest_view_selection(pts, K, poses, scene.image_wh, vpp, border_px=border,
+                                            depth_m=depth_t if use_depth else None)
+            feats, nv = average_features(pts, avg_views, use_depth=use_depth, view_weights=vw, device=device,
+                                         border_px=border)
             secs = time.perf_counter() - t0
             # Occluded share of the averaging weight (uniform over the views that counted).
-            counted = (
-                vw.T
-                if vw is not None
-                else _averaging_mask(pts, K, poses, scene.image_wh, depth_t if use_depth else None, border)
-            )
+            counted = vw.T if vw is not None else _averaging_mask(pts, K, poses, scene.image_wh,
+                                                                  depth_t if use_depth else None, border)
             name = ("Averaging + depth test" if use_depth else "Averaging (no depth)") + suffix
-            record(
-                name,
-                feats,
-                secs,
-                occluded_weight=_uniform_occluded_share(counted, occluded),
-                invalid=float((nv == 0).float().mean()),
-            )
+            record(name, feats, secs, occluded_weight=_uniform_occluded_share(counted, occluded),
+                   invalid=float((nv == 0).float().mean()))
     if settings.oracle:
         t0 = time.perf_counter()
         feats, nv = average_features(pts, avg_views, use_depth=False, view_weights=visible.T, device=device)
-        record(
-            "Averaging, GT-visible views (oracle)",
-            feats,
-            time.perf_counter() - t0,
-            occluded_weight=0.0,
-            invalid=float((nv == 0).float().mean()),
-        )
+        record("Averaging, GT-visible views (oracle)", feats, time.perf_counter() - t0,
+               occluded_weight=0.0, invalid=float((nv == 0).float().mean()))
 
     for mname, model in models.items():
         t0 = time.perf_counter()
@@ -831,57 +729,29 @@ def _evaluate_3d(
         t_vol = time.perf_counter() - t0
         for dgm in (False, True):
             t0 = time.perf_counter()
-            pb = blend_points(
-                model,
-                views,
-                volume,
-                bounds,
-                pts.to(device),
-                depth_guided_masking=dgm,
-                views_per_point=vpp,
-                chunk_size=settings.chunk_points,
-            )
+            pb = blend_points(model, views, volume, bounds, pts.to(device), depth_guided_masking=dgm,
+                              views_per_point=vpp, chunk_size=settings.chunk_points)
             secs = time.perf_counter() - t0
-            record(
-                f"{mname} + DGM" if dgm else f"{mname} (no depth)",
-                pb.ov,
-                secs,
-                occluded_weight=occluded_share(pb, occluded),
-                invalid=float((~pb.valid).float().mean()),
-                volume_seconds=t_vol,
-            )
+            record(f"{mname} + DGM" if dgm else f"{mname} (no depth)", pb.ov, secs,
+                   occluded_weight=occluded_share(pb, occluded),
+                   invalid=float((~pb.valid).float().mean()), volume_seconds=t_vol)
         if settings.no_depth_input:
             _no_depth_input_rows(scene, model, mname, sp, settings, record, device)
     if settings.rgb_only_node is not None:
         from mapper.training.eval_node import NodeEvalSettings, node_rgb_only_rows
 
-        node_rows = node_rgb_only_rows(
-            scene,
-            settings.rgb_only_node,
-            pts.numpy(),
-            gt,
-            NodeEvalSettings(
-                config_path=settings.node_config, device=str(device), ov_space=settings.node_ov_space
-            ),
-        )
+        node_rows = node_rgb_only_rows(scene, settings.rgb_only_node, pts.numpy(), gt, NodeEvalSettings(
+            config_path=settings.node_config, device=str(device), ov_space=settings.node_ov_space))
         for name, (cm, extra) in node_rows.items():
             res[name] = r = MethodResult(cm, extra)
-            log(
-                f"  3d {scene.name} {name:<34} mIoU {100 * r.scores().miou:5.1f}  "
-                f"({r.extra['stream_seconds']:.1f} s stream, {r.extra['seconds']:.1f} s query)"
-            )
+            log(f"  3d {scene.name} {name:<34} mIoU {100 * r.scores().miou:5.1f}  "
+                f"({r.extra['stream_seconds']:.1f} s stream, {r.extra['seconds']:.1f} s query)")
     return res
 
 
-def _no_depth_input_rows(
-    scene: EvalScene,
-    model: GovNeSF,
-    mname: str,
-    sp: ScenePoints,
-    settings: EvalSettings,
-    record: Callable[..., None],
-    device: torch.device | str,
-) -> None:
+def _no_depth_input_rows(scene: EvalScene, model: GovNeSF, mname: str, sp: ScenePoints,
+                         settings: EvalSettings, record: Callable[..., None],
+                         device: torch.device | str) -> None:
     """Rows without any input depth: frustum bounds; DGM and the averaging depth test with the
     model's rendered depth of the stream frames (see ``EvalSettings.no_depth_input``)."""
     pts, K, poses, occluded = sp.xyz, sp.K, sp.world_from_cam, sp.occluded
@@ -898,71 +768,40 @@ def _no_depth_input_rows(
     t0 = time.perf_counter()
     rendered, _ = render_depth_maps(model, volume, bounds, (K * scale).to(device), poses.to(device), rw, rh)
     t_depth = time.perf_counter() - t0
-    gt_small = F.interpolate(torch.from_numpy(scene.gt_depth_m)[:, None], size=(rh, rw), mode="nearest")[:, 0]
+    gt_small = F.interpolate(torch.from_numpy(scene.gt_depth_m)[:, None], size=(rh, rw),
+                             mode="nearest")[:, 0]
     gt_small = gt_small.to(rendered.device)
     has = (rendered > 0) & (gt_small > 0)
     rel = ((rendered - gt_small).abs() / gt_small.clamp_min(1e-6))[has]
-    depth_stats = {
-        "rendered_depth_seconds": t_depth,
-        "volume_seconds": t_vol,
-        "rendered_depth_coverage": float(has.float().mean()),
-        "rendered_depth_median_rel_err": float(rel.median()) if rel.numel() else float("nan"),
-        "rendered_depth_within_25pct": float((rel <= DEPTH_REL_TOL).float().mean())
-        if rel.numel()
-        else float("nan"),
-    }
+    depth_stats = {"rendered_depth_seconds": t_depth, "volume_seconds": t_vol,
+                   "rendered_depth_coverage": float(has.float().mean()),
+                   "rendered_depth_median_rel_err": float(rel.median()) if rel.numel() else float("nan"),
+                   "rendered_depth_within_25pct": float((rel <= DEPTH_REL_TOL).float().mean()) if rel.numel()
+                   else float("nan")}
     for dgm in (False, True):
         t0 = time.perf_counter()
         v = dataclasses.replace(views, depth_m=rendered) if dgm else views
-        pb = blend_points(
-            model,
-            v,
-            volume,
-            bounds,
-            pts.to(device),
-            depth_guided_masking=dgm,
-            views_per_point=settings.views_per_point,
-            chunk_size=settings.chunk_points,
-        )
+        pb = blend_points(model, v, volume, bounds, pts.to(device), depth_guided_masking=dgm,
+                          views_per_point=settings.views_per_point, chunk_size=settings.chunk_points)
         secs = time.perf_counter() - t0
-        name = (
-            f"{mname} + rendered-depth DGM (no depth input)" if dgm else f"{mname} (no depth, frustum bounds)"
-        )
-        record(
-            name,
-            pb.ov,
-            secs,
-            occluded_weight=occluded_share(pb, occluded),
-            invalid=float((~pb.valid).float().mean()),
-            **depth_stats,
-        )
+        name = (f"{mname} + rendered-depth DGM (no depth input)" if dgm
+                else f"{mname} (no depth, frustum bounds)")
+        record(name, pb.ov, secs, occluded_weight=occluded_share(pb, occluded),
+               invalid=float((~pb.valid).float().mean()), **depth_stats)
     t0 = time.perf_counter()
     rd = rendered.cpu().numpy()
-    views_avg = [
-        OVView(scene.ov[k], scene.K[k], scene.world_from_cam[k], scene.image_wh, rd[k])
-        for k in range(len(scene))
-    ]
+    views_avg = [OVView(scene.ov[k], scene.K[k], scene.world_from_cam[k], scene.image_wh, rd[k])
+                 for k in range(len(scene))]
     feats, nv = average_features(pts, views_avg, use_depth=True, device=device)
     counted = _averaging_mask(pts, K, poses, scene.image_wh, rendered.cpu())
-    record(
-        f"Averaging + {mname} rendered-depth test (no depth input)",
-        feats,
-        time.perf_counter() - t0,
-        occluded_weight=_uniform_occluded_share(counted, occluded),
-        invalid=float((nv == 0).float().mean()),
-        **depth_stats,
-    )
+    record(f"Averaging + {mname} rendered-depth test (no depth input)", feats, time.perf_counter() - t0,
+           occluded_weight=_uniform_occluded_share(counted, occluded),
+           invalid=float((nv == 0).float().mean()), **depth_stats)
 
 
-def _averaging_mask(
-    pts: Tensor,
-    K: Tensor,
-    poses: Tensor,
-    image_wh: tuple[int, int],
-    depth_m: Tensor | None,
-    border_px: float = AVERAGING_BORDER_PX,
-    depth_rel_tol: float = DEPTH_REL_TOL,
-) -> Tensor:
+def _averaging_mask(pts: Tensor, K: Tensor, poses: Tensor, image_wh: tuple[int, int],
+                    depth_m: Tensor | None, border_px: float = AVERAGING_BORDER_PX,
+                    depth_rel_tol: float = DEPTH_REL_TOL) -> Tensor:
     """(P, N) bool: the views ``average_features`` counts for each point."""
     n = K.shape[0]
     uv, z = project_points(pts.unsqueeze(0).expand(n, -1, -1), K, invert_pose(poses))
@@ -975,14 +814,8 @@ def _averaging_mask(
     return ok.T
 
 
-def _evaluate_2d(
-    scene: EvalScene,
-    models: dict[str, GovNeSF],
-    text_emb: Tensor,
-    settings: EvalSettings,
-    log: Callable[[str], None],
-    device: torch.device | str,
-) -> dict[str, MethodResult]:
+def _evaluate_2d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor, settings: EvalSettings,
+                 log: Callable[[str], None], device: torch.device | str) -> dict[str, MethodResult]:
     novel = scene.novel
     assert novel is not None
     keep = list(range(novel.K.shape[0]))
@@ -1013,19 +846,9 @@ def _evaluate_2d(
             with torch.no_grad():
                 volume = model.build_volume(views, bounds)
                 rgb_r, ov_r = render_view(
-                    model,
-                    views,
-                    volume,
-                    bounds,
-                    novel.K[v],
-                    novel.world_from_cam[v],
-                    wh,
-                    pixel_stride=st,
-                    chunk_rays=settings.chunk_rays,
-                    n_samples=settings.n_samples,
-                    clip_to_volume=settings.clip_to_volume,
-                    weight_threshold=settings.weight_threshold,
-                )
+                    model, views, volume, bounds, novel.K[v], novel.world_from_cam[v], wh, pixel_stride=st,
+                    chunk_rays=settings.chunk_rays, n_samples=settings.n_samples,
+                    clip_to_volume=settings.clip_to_volume, weight_threshold=settings.weight_threshold)
             secs = time.perf_counter() - t0
             rgb = rgb_r.clamp(0, 1).cpu().double()
             extra = {"psnr": psnr(rgb, target_rgb), "seconds": secs}
@@ -1035,19 +858,14 @@ def _evaluate_2d(
     for name, cm in cms.items():
         ex = {k: float(np.mean(v)) for k, v in extras.get(name, {}).items()}
         res[name] = MethodResult(np.asarray(cm), ex)
-        log(
-            f"  2d {scene.name} {name:<34} mIoU {100 * res[name].scores().miou:5.1f}"
-            + "".join(f"  {k} {val:.3g}" for k, val in ex.items())
-        )
+        log(f"  2d {scene.name} {name:<34} mIoU {100 * res[name].scores().miou:5.1f}"
+            + "".join(f"  {k} {val:.3g}" for k, val in ex.items()))
     return res
 
 
 # ---- reporting ----------------------------------------------------------------------------------
-def summarise(
-    per_scene: dict[str, dict[str, dict[str, MethodResult]]],
-    styles: dict[str, str],
-    class_names: Sequence[str],
-) -> dict[str, Any]:
+def summarise(per_scene: dict[str, dict[str, dict[str, MethodResult]]], styles: dict[str, str],
+              class_names: Sequence[str]) -> dict[str, Any]:
     """Average per-scene scores over the scenes of each style.
 
     Args:
@@ -1061,15 +879,10 @@ def summarise(
 
     def pack(items: list[MethodResult]) -> dict[str, Any]:
         s = average_over_scenes([m.scores() for m in items])
-        d: dict[str, Any] = {
-            "miou": s.miou,
-            "macc": s.macc,
-            "oacc": s.oacc,
-            "per_class_iou": {
-                n: (None if np.isnan(x) else float(x)) for n, x in zip(names, s.iou, strict=False)
-            },
-            "scenes": len(items),
-        }
+        d: dict[str, Any] = {"miou": s.miou, "macc": s.macc, "oacc": s.oacc,
+                             "per_class_iou": {n: (None if np.isnan(x) else float(x))
+                                               for n, x in zip(names, s.iou, strict=False)},
+                             "scenes": len(items)}
         keys = {k for m in items for k in m.extra}
         for k in sorted(keys):
             vals = [m.extra[k] for m in items if k in m.extra and not math.isnan(m.extra[k])]
@@ -1088,10 +901,8 @@ def summarise(
             block[kind] = {m: pack(v) for m, v in methods.items()}
         out["styles"][style] = block
     for s, kinds in per_scene.items():
-        out["scenes"][s] = {
-            "style": styles[s],
-            **{kind: {m: pack([r]) for m, r in res.items()} for kind, res in kinds.items()},
-        }
+        out["scenes"][s] = {"style": styles[s], **{kind: {m: pack([r]) for m, r in res.items()}
+                                                   for kind, res in kinds.items()}}
     return out
 
 
@@ -1110,33 +921,25 @@ def format_report(summary: dict[str, Any], *, training_style: str = "apartment")
 
     # Table 1: 2D novel views.
     if any(styles[s]["2d"] for s in order):
-        lines += [
-            "### Table 1: 2D semantic segmentation and colour at novel views",
-            "",
-            "| style | method | mIoU | mAcc | oAcc | PSNR (dB) | SSIM | s / view |",
-            "|---|---|---|---|---|---|---|---|",
-        ]
+        lines += ["### Table 1: 2D semantic segmentation and colour at novel views", "",
+                  "| style | method | mIoU | mAcc | oAcc | PSNR (dB) | SSIM | s / view |",
+                  "|---|---|---|---|---|---|---|---|"]
         for s in order:
             for m, r in styles[s]["2d"].items():
                 ps = "-" if r.get("psnr") is None else f"{r['psnr']:.2f}"
                 ss = "-" if r.get("ssim") is None else f"{r['ssim']:.3f}"
                 sec = "-" if r.get("seconds") is None else f"{r['seconds']:.1f}"
-                lines.append(
-                    f"| {label(s)} | {m} | {_pct(r['miou'])} | {_pct(r['macc'])} | "
-                    f"{_pct(r['oacc'])} | {ps} | {ss} | {sec} |"
-                )
+                lines.append(f"| {label(s)} | {m} | {_pct(r['miou'])} | {_pct(r['macc'])} | "
+                             f"{_pct(r['oacc'])} | {ps} | {ss} | {sec} |")
         lines.append("")
     # Tables 2-3: 3D.
     for i, s in enumerate(order):
         res = styles[s]["3d"]
         if not res:
             continue
-        lines += [
-            f"### Table {2 + i}: 3D semantic segmentation at ground-truth points, {label(s)}",
-            "",
-            "| method | mIoU | mAcc | oAcc | weight on occluded views | s / 100k points |",
-            "|---|---|---|---|---|---|",
-        ]
+        lines += [f"### Table {2 + i}: 3D semantic segmentation at ground-truth points, {label(s)}", "",
+                  "| method | mIoU | mAcc | oAcc | weight on occluded views | s / 100k points |",
+                  "|---|---|---|---|---|---|"]
         for m, r in res.items():
             occ = "-" if r.get("occluded_weight") is None else f"{100 * r['occluded_weight']:.1f}%"
             t = "-" if r.get("seconds_per_100k") is None else f"{r['seconds_per_100k']:.1f}"
@@ -1144,27 +947,18 @@ def format_report(summary: dict[str, Any], *, training_style: str = "apartment")
         lines.append("")
     # Ablation: learned blending vs Distill, training vs unseen style.
     if len(order) >= 2:
-        lines += [
-            "### Ablation: learned blending vs Distill across styles (mIoU)",
-            "",
-            "| method | " + " | ".join(label(s) for s in order) + f" | change {order[0]} -> {order[1]} |",
-            "|---|" + "---|" * (len(order) + 1),
-        ]
-        methods = [
-            m for m in styles[order[0]]["3d"] if m in styles[order[1]]["3d"] and not m.startswith("Averaging")
-        ]
+        lines += ["### Ablation: learned blending vs Distill across styles (mIoU)", "",
+                  "| method | " + " | ".join(label(s) for s in order)
+                  + f" | change {order[0]} -> {order[1]} |",
+                  "|---|" + "---|" * (len(order) + 1)]
+        methods = [m for m in styles[order[0]]["3d"] if m in styles[order[1]]["3d"]
+                   and not m.startswith("Averaging")]
         for kind in ("2d", "3d"):
-            for m in (
-                methods
-                if kind == "3d"
-                else [m for m in styles[order[0]]["2d"] if m in styles[order[1]]["2d"]]
-            ):
+            for m in (methods if kind == "3d" else [m for m in styles[order[0]]["2d"]
+                                                    if m in styles[order[1]]["2d"]]):
                 vals = [styles[s][kind][m]["miou"] for s in order]
-                lines.append(
-                    f"| {kind.upper()} {m} | "
-                    + " | ".join(_pct(v) for v in vals)
-                    + f" | {100 * (vals[1] - vals[0]):+.1f} |"
-                )
+                lines.append(f"| {kind.upper()} {m} | " + " | ".join(_pct(v) for v in vals)
+                             + f" | {100 * (vals[1] - vals[0]):+.1f} |")
         lines.append("")
     # Per-class IoU of the key 3D methods.
     cls_methods = ("Averaging (no depth)", "Averaging + depth test")
@@ -1174,13 +968,10 @@ def format_report(summary: dict[str, Any], *, training_style: str = "apartment")
         if not keys:
             continue
         classes = [c for c, v in res[keys[0]]["per_class_iou"].items() if v is not None]
-        lines += [
-            f"### Per-class 3D IoU, {label(s)}",
-            "",
-            "| class | " + " | ".join(keys) + " |",
-            "|---|" + "---|" * len(keys),
-        ]
+        lines += [f"### Per-class 3D IoU, {label(s)}", "",
+                  "| class | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
         for c in classes:
             lines.append(f"| {c} | " + " | ".join(_pct(res[m]["per_class_iou"].get(c)) for m in keys) + " |")
         lines.append("")
     return "\n".join(lines)
+

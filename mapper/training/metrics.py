@@ -103,9 +103,8 @@ def _scores(cm: np.ndarray, gt_count: np.ndarray) -> SegmentationScores:
     )
 
 
-def scores_from_labels(
-    gt: np.ndarray, pred: np.ndarray, num_classes: int = NUM_SCANNET_CLASSES
-) -> SegmentationScores:
+def scores_from_labels(gt: np.ndarray, pred: np.ndarray,
+                       num_classes: int = NUM_SCANNET_CLASSES) -> SegmentationScores:
     """Scores of one scene straight from (N,) ground-truth and (N,) predicted labels."""
     return segmentation_scores(confusion_matrix(gt, pred, num_classes))
 
@@ -145,9 +144,8 @@ class _quiet_nanmean:
         return self._ctx.__exit__(*exc)
 
 
-def predict_labels(
-    features: np.ndarray | torch.Tensor, text_emb: np.ndarray | torch.Tensor, chunk: int = 65536
-) -> np.ndarray | torch.Tensor:
+def predict_labels(features: np.ndarray | torch.Tensor, text_emb: np.ndarray | torch.Tensor,
+                   chunk: int = 65536) -> np.ndarray | torch.Tensor:
     """Label of each feature: argmax cosine similarity against class text embeddings.
 
     Args:
@@ -169,17 +167,14 @@ def predict_labels(
     t = t / t.norm(dim=1, keepdim=True).clamp_min(1e-12)
     out = torch.empty(f.shape[0], dtype=torch.int64, device=f.device)
     for start in range(0, f.shape[0], chunk):
-        part = f[start : start + chunk].float()
+        part = f[start:start + chunk].float()
         # Row norms do not change the argmax of a row; only the text side needs normalising.
-        out[start : start + chunk] = (part @ t.T).argmax(dim=1)
+        out[start:start + chunk] = (part @ t.T).argmax(dim=1)
     return out.numpy() if is_numpy else out
 
 
-def format_scores_table(
-    rows: Sequence[tuple[str, SegmentationScores]],
-    class_names: Sequence[str] | None = None,
-    per_class: bool = False,
-) -> str:
+def format_scores_table(rows: Sequence[tuple[str, SegmentationScores]],
+                        class_names: Sequence[str] | None = None, per_class: bool = False) -> str:
     """Markdown table: one row per (name, scores), mIoU / mAcc / oAcc in percent (and per-class IoU)."""
     header = ["method", "mIoU", "mAcc", "oAcc"]
     if per_class and class_names is not None:

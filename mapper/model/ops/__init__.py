@@ -1,1 +1,2 @@
-"""Pure tensor ops of the model: camera geometry, volume rendering, cost volume, shape checks."""
+"""Pure tensor ops of the model: camera geometry, volume rendering, cost volume, shape checks.
+"""

@@ -78,7 +78,7 @@ def check_shape(x: Any, spec: str, name: str, dims: dict[str, int] | None = None
 
     if len(shape) < len(fixed) or (not star and len(shape) != len(fixed)):
         raise fail()
-    actual = shape[len(shape) - len(fixed) :]
+    actual = shape[len(shape) - len(fixed):]
     bound: dict[str, int] = {}
     for token, size in zip(fixed, actual, strict=True):
         if token[0].isdigit():

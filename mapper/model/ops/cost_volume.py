@@ -332,9 +332,8 @@ class CostVolume:
         """
         if view_id in self._views:
             raise ValueError(f"view {view_id!r} is already in the cost volume; remove it first")
-        check_shape(
-            features, "C h w", f"features must have shape ({self.feature_dim}, h, w)", {"C": self.feature_dim}
-        )
+        check_shape(features, "C h w", f"features must have shape ({self.feature_dim}, h, w)",
+                    {"C": self.feature_dim})
         check_shape(K, "4", "K")
         check_shape(world_from_cam, "4 4", "world_from_cam")
         if len(image_wh) != 2 or min(image_wh) < 1:

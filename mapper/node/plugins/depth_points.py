@@ -77,7 +77,6 @@ __all__ = [
 
 log = logging.getLogger("mapper.node.plugins.depth_points")
 
-
 @dataclass(frozen=True)
 class RenderedKeyframe:
     """A keyframe's rendered depth at the render size, shaped like :class:`KeyframeLike`."""
@@ -91,7 +90,9 @@ class RenderedKeyframe:
     confidence: np.ndarray  # (h, w) float32 in [0, 1]: rendered_weight * opacity
 
 
-def render_keyframe_depth(runtime: ModelRuntime, keyframe: Any, config: GlobalMapConfig) -> RenderedKeyframe:
+def render_keyframe_depth(
+    runtime: ModelRuntime, keyframe: Any, config: GlobalMapConfig
+) -> RenderedKeyframe:
     """Render the model's depth at ``keyframe``'s pose at ``1 / rendered_depth_stride`` of its size.
 
     Raises :class:`RuntimeNotReady` (no model, no keyframes) like the runtime's render.
@@ -255,16 +256,11 @@ def consistency_mask(
     depth = np.asarray(view.depth_m)
     has_depth = np.isfinite(depth) & (depth > 0)
     neighbour, agrees = sparse_agreement(
-        view,
-        xyz,
-        sigma_m,
-        radius_px=config.rendered_consistency_radius_px,
-        sigmas=config.rendered_consistency_sigmas,
-        min_tolerance_m=tol,
+        view, xyz, sigma_m, radius_px=config.rendered_consistency_radius_px,
+        sigmas=config.rendered_consistency_sigmas, min_tolerance_m=tol,
     )
-    by_views = view_agreement(
-        view, others, tolerance_m=tol, min_baseline_m=config.rendered_consistency_min_baseline_m
-    )
+    by_views = view_agreement(view, others, tolerance_m=tol,
+                              min_baseline_m=config.rendered_consistency_min_baseline_m)
     by_views &= has_depth & ~neighbour
     keep = (agrees | by_views) & has_depth
     counts = {
@@ -387,9 +383,8 @@ class RenderedDepthPoints:
             rendered = render_keyframe_depth(self.runtime, keyframe, self.config)
         except (RuntimeNotReady, ValueError, RuntimeError) as exc:
             self.failed += 1
-            self._log.warning(
-                "failed", "rendered depth for keyframe at stamp %d failed: %s", keyframe.stamp_ns, exc
-            )
+            self._log.warning("failed", "rendered depth for keyframe at stamp %d failed: %s",
+                              keyframe.stamp_ns, exc)
             return None
         return rendered, time.perf_counter() - started
 
@@ -403,9 +398,8 @@ class RenderedDepthPoints:
             return np.zeros((0, 3)), np.zeros(0)
         return source()
 
-    def _filtered(
-        self, rendered: RenderedKeyframe, others: list[RenderedKeyframe], target: GlobalSemanticMap
-    ) -> RenderedKeyframe:
+    def _filtered(self, rendered: RenderedKeyframe, others: list[RenderedKeyframe],
+                  target: GlobalSemanticMap) -> RenderedKeyframe:
         """``rendered`` with the pixels that fail the consistency check zeroed."""
         if not self.config.rendered_consistency:
             return rendered
@@ -414,19 +408,12 @@ class RenderedDepthPoints:
         keep, counts = consistency_mask(rendered, xyz, sigma, views, self.config)
         for key, value in counts.items():
             self.consistency[key] += value
-        return replace(
-            rendered,
-            depth_m=np.where(keep, rendered.depth_m, 0.0).astype(np.float32),
-            confidence=np.where(keep, rendered.confidence, 0.0).astype(np.float32),
-        )
+        return replace(rendered, depth_m=np.where(keep, rendered.depth_m, 0.0).astype(np.float32),
+                       confidence=np.where(keep, rendered.confidence, 0.0).astype(np.float32))
 
-    def _integrate_one(
-        self,
-        keyframe: Any,
-        target: GlobalSemanticMap,
-        render: tuple[RenderedKeyframe, float],
-        others: list[tuple[RenderedKeyframe, float]],
-    ) -> int:
+    def _integrate_one(self, keyframe: Any, target: GlobalSemanticMap,
+                       render: tuple[RenderedKeyframe, float],
+                       others: list[tuple[RenderedKeyframe, float]]) -> int:
         if target is not self.node.state.global_map:
             self.stale += 1  # a map load during the batch
             return 0
@@ -443,21 +430,15 @@ class RenderedDepthPoints:
             )
         except (RuntimeNotReady, ValueError, RuntimeError) as exc:
             self.failed += 1
-            self._log.warning(
-                "failed", "rendered depth for keyframe at stamp %d failed: %s", keyframe.stamp_ns, exc
-            )
+            self._log.warning("failed", "rendered depth for keyframe at stamp %d failed: %s",
+                              keyframe.stamp_ns, exc)
             return 0
         seconds = render_s + time.perf_counter() - started
         self.integrated += 1
         self.points += stats.points
         self.seconds_total += seconds
-        log.debug(
-            "rendered depth: %d points for keyframe at stamp %d in %.0f ms (%s)",
-            stats.points,
-            keyframe.stamp_ns,
-            1e3 * seconds,
-            stats.skipped or "ok",
-        )
+        log.debug("rendered depth: %d points for keyframe at stamp %d in %.0f ms (%s)",
+                  stats.points, keyframe.stamp_ns, 1e3 * seconds, stats.skipped or "ok")
         return 1
 
     def _with_current_features(self, keyframe: Any) -> Any:
@@ -467,9 +448,7 @@ class RenderedDepthPoints:
         with self.node.state.lock:
             for current in self.node.state.window.keyframes:
                 if (current.camera, current.seq, current.stamp_ns) == (
-                    keyframe.camera,
-                    keyframe.seq,
-                    keyframe.stamp_ns,
+                    keyframe.camera, keyframe.seq, keyframe.stamp_ns
                 ) and current.ov is not None:
                     return current
         return keyframe

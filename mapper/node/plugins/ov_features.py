@@ -365,27 +365,15 @@ class OvFeatureWorker:
             self.window_updates += int(swapped)
             self.map_points += points
             self.seconds_total += seconds
-        log.debug(
-            "ov backend: keyframe seq %d: %s features, %s, %d map points in %.0f ms",
-            keyframe.seq,
-            feats.shape,
-            "in the window" if swapped else "left the window",
-            points,
-            1e3 * seconds,
-        )
+        log.debug("ov backend: keyframe seq %d: %s features, %s, %d map points in %.0f ms", keyframe.seq,
+                  feats.shape, "in the window" if swapped else "left the window", points, 1e3 * seconds)
         return 1
 
     def _failed(self, keyframe: Keyframe, what: str, exc: Exception) -> int:
         with self._lock:
             self.failed += 1
-        self._log.warning(
-            "failed",
-            "ov backend: %s failed for keyframe seq %d: %s: %s",
-            what,
-            keyframe.seq,
-            type(exc).__name__,
-            exc,
-        )
+        self._log.warning("failed", "ov backend: %s failed for keyframe seq %d: %s: %s", what, keyframe.seq,
+                          type(exc).__name__, exc)
         return 0
 
     def run(self, stop: threading.Event) -> None:
@@ -439,13 +427,8 @@ def install_ov_backend(node: MapperNode, config: OvBackendConfig | None = None) 
         log.error("%s; semantic requests will answer not_ready (everything else is served)", error)
     else:
         assert backend is not None
-        log.info(
-            "ov backend: %s (%d-d) loaded from %s on %s",
-            backend.space,
-            backend.dim,
-            config.weights_path,
-            getattr(backend, "device", "?"),
-        )
+        log.info("ov backend: %s (%d-d) loaded from %s on %s", backend.space, backend.dim,
+                 config.weights_path, getattr(backend, "device", "?"))
     worker = OvFeatureWorker(node, backend, config, load_error=error)
     worker.install()
     return worker

@@ -114,13 +114,9 @@ def sparse_depth_keyframe(
     depth[rows[order], cols[order]] = points.depth_m[order]
     conf[rows[order], cols[order]] = config.global_map_weight * certainty[order]
     return TriangulatedKeyframe(
-        stamp_ns=int(keyframe.stamp_ns),
-        K=np.asarray(keyframe.K, np.float64),
-        world_from_cam=np.asarray(keyframe.world_from_cam, np.float64),
-        rgb=keyframe.rgb,
-        depth_m=depth,
-        ov=keyframe.ov,
-        confidence=conf,
+        stamp_ns=int(keyframe.stamp_ns), K=np.asarray(keyframe.K, np.float64),
+        world_from_cam=np.asarray(keyframe.world_from_cam, np.float64), rgb=keyframe.rgb,
+        depth_m=depth, ov=keyframe.ov, confidence=conf,
     )
 
 
@@ -273,9 +269,8 @@ class SparseTriangulation:
                 self._set_extent(keyframe_key(keyframe), view, points)
         if self.runtime is not None and self.config.depth_prior_radius_px > 0 and len(points):
             sparse = sparse_depth_keyframe(keyframe, points, self.config)
-            self.runtime.set_view_depth_prior(
-                keyframe_key(keyframe), depth_prior(sparse, self.config.depth_prior_radius_px)
-            )
+            self.runtime.set_view_depth_prior(keyframe_key(keyframe),
+                                              depth_prior(sparse, self.config.depth_prior_radius_px))
         self._integrate(keyframe, points, target)
         seconds = time.perf_counter() - started
         self.processed += 1
@@ -284,14 +279,8 @@ class SparseTriangulation:
         with self._lock:  # stats() copies it from the query thread
             self.seconds.append(seconds)
         self.seconds_total += seconds
-        log.debug(
-            "triangulation: %d points (%d partners, %d matches) for keyframe at stamp %d in %.0f ms",
-            len(points),
-            points.partners,
-            points.matches,
-            keyframe.stamp_ns,
-            1e3 * seconds,
-        )
+        log.debug("triangulation: %d points (%d partners, %d matches) for keyframe at stamp %d in %.0f ms",
+                  len(points), points.partners, points.matches, keyframe.stamp_ns, 1e3 * seconds)
         return 1
 
     def _add_candidate(self, generation: int, candidate: _Candidate) -> bool:
@@ -337,9 +326,8 @@ class SparseTriangulation:
 
     def _failed(self, keyframe: Any, exc: BaseException) -> None:
         self.failed += 1
-        self._log.warning(
-            "failed", "triangulation of keyframe at stamp %d failed: %s", keyframe.stamp_ns, exc
-        )
+        self._log.warning("failed", "triangulation of keyframe at stamp %d failed: %s",
+                          keyframe.stamp_ns, exc)
 
     def _store(self, key: KeyframeKey, points: SparsePoints) -> None:
         """Keep ``points`` for ``key`` within ``max_points`` (``_lock`` held)."""
@@ -361,9 +349,8 @@ class SparseTriangulation:
             return
         try:
             sparse = sparse_depth_keyframe(keyframe, points, self.config)
-            stats = target.integrate(
-                sparse, map_version=None, pixel_stride=1, confidence=sparse.confidence, count_keyframe=False
-            )
+            stats = target.integrate(sparse, map_version=None, pixel_stride=1,
+                                     confidence=sparse.confidence, count_keyframe=False)
         except (ValueError, RuntimeError) as exc:
             self._failed(keyframe, exc)
             return
