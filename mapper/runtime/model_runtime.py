@@ -93,8 +93,6 @@ __all__ = [
 log = logging.getLogger("mapper.runtime.model_runtime")
 
 
-
-
 @dataclass
 class RenderFrame:
     """What :meth:`ModelRuntime.render` returns; outputs not requested are None."""
@@ -965,6 +963,7 @@ class ModelRuntime:
             groups = self._view_groups(prep, pts, prep.has_ov, self.point_source_views)
             t3 = time.perf_counter()
             timing["view_selection"] = (t3 - t2) * 1e3
+
             def answer(sub: Tensor, out: Any) -> None:
                 cos = F.normalize(out.ov, dim=-1) @ emb.T  # (p, T)
                 best, arg = cos.max(dim=-1)
