@@ -240,6 +240,26 @@ class QueryConfig:
     """Heavy requests that may wait for a worker; one more (beyond ``workers`` running and this
     many waiting) is answered ``busy`` at once. 1..10000."""
 
+    label_cache_blocks: int = 256
+    """``query_points`` keeps its scoring step (best text, cosine, beats the negatives) per block of
+    16 384 map rows and text set, across map versions (:class:`mapper.node.queries.BlockLabelCache`),
+    so a query after an integrate scores only the blocks whose rows changed. The most blocks kept
+    (about 112 KB each; least recently used dropped first); 0 = score every row each time. 0..100000."""
+
+    answer_max_age_s: float = 1.0
+    """``query_points`` answers the same question (texts, negatives, min_score, max_points,
+    objects) from its last answer when the map has not changed since, or, while the map only grew
+    or was fused into (no ``load``), when that answer is at most this old (seconds since its
+    snapshot was taken); a stale answer is returned at once and recomputed in the background, so a
+    planner asking back to back during a stream is not held up by a recomputation per keyframe
+    (:class:`mapper.node.queries.AnswerCache`; replies carry ``answer_reused`` / ``answer_age_ms``
+    in ``timing_ms``, and ``map_version`` says which version answered). 0 = only answers of the
+    current map version are reused. 0..3600."""
+
+    answer_cache_entries: int = 32
+    """Most distinct ``query_points`` questions whose last answer is kept (least recently asked
+    dropped first); 0 = never reuse an answer. 0..10000."""
+
     map_radius_voxels: float = 1.5
     """``segment_points`` / ``render`` answer a point no window keyframe sees from the global
     map's nearest point with a feature within this many map voxels (``global_map.voxel_size_m``);
@@ -249,6 +269,9 @@ class QueryConfig:
         _check_range(where, "queries.workers", self.workers, 0, 64)
         _check_range(where, "queries.queue_length", self.queue_length, 1, 10_000)
         _check_range(where, "queries.map_radius_voxels", self.map_radius_voxels, 0.0, 100.0)
+        _check_range(where, "queries.label_cache_blocks", self.label_cache_blocks, 0, 100_000)
+        _check_range(where, "queries.answer_max_age_s", self.answer_max_age_s, 0.0, 3600.0)
+        _check_range(where, "queries.answer_cache_entries", self.answer_cache_entries, 0, 10_000)
         _check_range(where, "queries.default_max_points", self.default_max_points, 1, 100_000_000)
         _check_range(where, "queries.cluster_radius_m", self.cluster_radius_m, 1e-3, 10.0)
         _check_range(where, "queries.min_object_points", self.min_object_points, 1, 1_000_000)

@@ -255,6 +255,9 @@ class GlobalMapSnapshot:
     feat_weight: np.ndarray  # (N,) float32
     hits: np.ndarray  # (N,) int32
     last_seen_ns: np.ndarray  # (N,) int64
+    generation: int = 0
+    """Changes when the map is replaced (``restore``, ``clear``), not when it grows or is fused
+    into: answers of an older generation describe another map."""
     _cache: dict[str, Any] = field(default_factory=dict, repr=False)
     _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _unit_source: _UnitSource | None = field(default=None, repr=False)
@@ -391,6 +394,7 @@ class GlobalSemanticMap:
         self._snapshot: GlobalMapSnapshot | None = None
         self._unit_source = _UnitSource()
         self._version = 0
+        self._generation = 0
         self._reset(dim=None)
 
     # -- state -------------------------------------------------------------------------------
@@ -846,6 +850,11 @@ class GlobalSemanticMap:
     def version(self) -> int:
         return self._version
 
+    @property
+    def generation(self) -> int:
+        """Bumped by ``restore`` and ``clear`` (the map was replaced), not by integration or pruning."""
+        return self._generation
+
     def snapshot(self) -> GlobalMapSnapshot:
         """The immutable snapshot of the current version (copied once per version, then cached)."""
         with self._lock:
@@ -869,6 +878,7 @@ class GlobalSemanticMap:
                 feat_weight=frozen(self._feat_weight),
                 hits=frozen(self._hits),
                 last_seen_ns=frozen(self._last_seen_ns),
+                generation=self._generation,
                 _unit_source=self._unit_source,
             )
             self._snapshot = snap
@@ -973,6 +983,7 @@ class GlobalSemanticMap:
             self.points_pruned = pruned if isinstance(pruned, int) else 0
             self._map_version = map_version
             self._version += 1
+            self._generation += 1
             self._prune_if_needed()
 
     def retag(self, map_version: int) -> None:
@@ -988,3 +999,4 @@ class GlobalSemanticMap:
             if map_version is not None:
                 self._map_version = map_version
             self._version += 1
+            self._generation += 1

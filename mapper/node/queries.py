@@ -30,9 +30,13 @@ z-buffered splat of the map where the render found no surface). Each answer says
 
 from __future__ import annotations
 
+import copy
+import hashlib
 import itertools
 import re
+import threading
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -48,8 +52,10 @@ from protocol.errors import ProtocolError
 from protocol.messages import ObjectCandidate, Points
 
 __all__ = [
+    "AnswerCache",
     "DEFAULT_NEGATIVES",
     "NEGATIVE_DROP_SIMILARITY",
+    "BlockLabelCache",
     "Cluster",
     "SOURCE_MAP",
     "SOURCE_NONE",
@@ -157,7 +163,9 @@ def radius_components(pts: np.ndarray, radius_m: float) -> tuple[int, np.ndarray
     ``radius_m / sqrt(3)`` (all points of a cell are linked to each other); neighbouring cells
     are joined when some pair of their points is within the radius, testing only cell pairs
     that are not already in one component (nearest offsets first, so a dense surface is joined
-    after a few offsets). The same components as linking every point pair (``_pair_components``)."""
+    after a few offsets), and for each such pair one representative pair of points first (in a
+    dense surface that links most of them) before every point pair. The same components as
+    linking every point pair (``_pair_components``)."""
     n = pts.shape[0]
     if n == 0:
         return 0, np.zeros(0, np.int32)
@@ -175,6 +183,7 @@ def radius_components(pts: np.ndarray, radius_m: float) -> tuple[int, np.ndarray
     counts = np.bincount(point_cell, minlength=n_cells)
     starts = np.cumsum(counts) - counts
     cells = np.arange(n_cells)
+    rep = pts[order[starts]]  # (n_cells, 3): one point of each cell
     cell_comp = cells.copy()  # component of each cell, labels 0 .. n_comp - 1
     r2 = radius_m * radius_m
     n_comp = n_cells
@@ -198,24 +207,63 @@ def radius_components(pts: np.ndarray, radius_m: float) -> tuple[int, np.ndarray
         a, b = a[differ], b[differ]
         if a.size == 0:
             continue
-        # every point pair of each cell pair: (pair, i in a, j in b)
-        na, nb = counts[a], counts[b]
-        total = na * nb
-        pair = np.repeat(np.arange(a.size), total)
-        local = np.arange(int(total.sum())) - np.repeat(np.cumsum(total) - total, total)
-        ia = order[starts[a][pair] + local // nb[pair]]
-        ib = order[starts[b][pair] + local % nb[pair]]
-        diff = pts[ia] - pts[ib]
-        close = np.einsum("pk,pk->p", diff, diff) <= r2
-        linked = np.flatnonzero(np.bincount(pair[close], minlength=a.size))
+        d_rep = rep[a] - rep[b]
+        by_rep = np.einsum("pk,pk->p", d_rep, d_rep) <= r2  # linked by their representatives
+        rest = np.flatnonzero(~by_rep)
+        linked = np.concatenate([np.flatnonzero(by_rep),
+                                 rest[_cell_pairs_linked(pts, order, starts, counts, a[rest], b[rest], r2)]])
         if linked.size == 0:
             continue
-        # join the components the new cell links connect (a graph over the current components)
-        ca, cb = cell_comp[a[linked]], cell_comp[b[linked]]
-        graph = coo_matrix((np.ones(ca.size, np.int8), (ca, cb)), shape=(n_comp, n_comp))
-        n_comp, relabel = connected_components(graph, directed=False)
+        # join the components the new cell links connect
+        n_comp, relabel = _join_components(n_comp, cell_comp[a[linked]], cell_comp[b[linked]])
         cell_comp = relabel[cell_comp]
     return int(n_comp), cell_comp[point_cell]
+
+
+def _join_components(n: int, ca: np.ndarray, cb: np.ndarray) -> tuple[int, np.ndarray]:
+    """Components of the graph over ``n`` nodes with edges ``ca[i] -- cb[i]``: (count, (n,) label
+    0 .. count - 1, in order of each component's smallest node). Union-find in numpy (hook each
+    edge's larger root under the smaller, then pointer jumping), without the sparse-matrix set-up
+    that ``connected_components`` costs per call."""
+    parent = np.arange(n)
+    while True:
+        ra, rb = parent[ca], parent[cb]
+        differ = ra != rb
+        if not differ.any():
+            break
+        ra, rb = ra[differ], rb[differ]
+        np.minimum.at(parent, np.maximum(ra, rb), np.minimum(ra, rb))
+        while True:  # pointer jumping until every node points at its root
+            grand = parent[parent]
+            if np.array_equal(grand, parent):
+                break
+            parent = grand
+    roots, label = np.unique(parent, return_inverse=True)
+    return int(roots.size), label.ravel()
+
+
+def _cell_pairs_linked(
+    pts: np.ndarray,  # (N, 3) float64
+    order: np.ndarray,  # (N,) point indices grouped by cell
+    starts: np.ndarray,  # (C,) position of each cell's first point in ``order``
+    counts: np.ndarray,  # (C,) points per cell
+    a: np.ndarray,  # (P,) cell ids
+    b: np.ndarray,  # (P,) cell ids
+    r2: float,
+) -> np.ndarray:
+    """(P,) bool: some point of cell ``a[i]`` is within sqrt(``r2``) of some point of cell ``b[i]``
+    (every point pair of each cell pair tested)."""
+    if a.size == 0:
+        return np.zeros(0, bool)
+    na, nb = counts[a], counts[b]
+    total = na * nb
+    pair = np.repeat(np.arange(a.size), total)  # (pair, i in a, j in b) for every point pair
+    local = np.arange(int(total.sum())) - np.repeat(np.cumsum(total) - total, total)
+    ia = order[starts[a][pair] + local // nb[pair]]
+    ib = order[starts[b][pair] + local % nb[pair]]
+    diff = pts[ia] - pts[ib]
+    close = np.einsum("pk,pk->p", diff, diff) <= r2
+    return np.bincount(pair[close], minlength=a.size) > 0
 
 
 def cluster_points(
@@ -318,6 +366,161 @@ def label_from_similarities(
     return label, score, beats
 
 
+class BlockLabelCache:
+    """The scoring step of :func:`query_points` per block of unit features, kept across map
+    versions: (label, score, beats_negatives) of each block of
+    :meth:`GlobalMapSnapshot.unit_feature_blocks` for one set of text + negative embeddings. A new
+    snapshot shares the blocks whose rows did not change, so a query after an integrate scores only
+    the changed blocks, and a repeated query scores nothing. Entries are keyed by the block object
+    (held, so the key stays valid) and the embeddings' bytes; least recently used entries beyond
+    ``max_blocks`` are dropped. Thread-safe; 0 blocks = no caching."""
+
+    def __init__(self, max_blocks: int) -> None:
+        self.max_blocks = max_blocks
+        self._entries: OrderedDict[tuple[int, bytes], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+        self._entries = OrderedDict()
+        self._lock = threading.Lock()
+        self.hits = 0
+        self.misses = 0
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def label(
+        self,
+        snapshot: GlobalMapSnapshot,
+        emb: np.ndarray,  # (T + Q, D) float32 unit rows: the texts, then the negatives
+        n_texts: int,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:func:`label_from_similarities` of the snapshot's cosines with ``emb``: (label (N,)
+        int64, score (N,) float32, beats_negatives (N,) bool), equal to scoring every row now."""
+        emb = np.ascontiguousarray(emb, np.float32)
+        digest = hashlib.blake2b(emb.tobytes() + n_texts.to_bytes(4, "little"), digest_size=16).digest()
+        emb_t = np.ascontiguousarray(emb.T)
+        parts = []
+        for block in snapshot.unit_feature_blocks():
+            key = (id(block), digest)
+            with self._lock:
+                entry = self._entries.get(key)
+                if entry is not None and entry[0] is block:
+                    self._entries.move_to_end(key)
+                    self.hits += 1
+                    parts.append(entry[1:])
+                    continue
+            result = label_from_similarities(np.matmul(block, emb_t), n_texts)  # (rows, T + Q) cosines
+            parts.append(result)
+            with self._lock:
+                self.misses += 1
+                if self.max_blocks > 0:
+                    self._entries[key] = (block, *result)
+                    self._entries.move_to_end(key)
+                    while len(self._entries) > self.max_blocks:
+                        self._entries.popitem(last=False)
+        if not parts:
+            return np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, bool)
+        label, score, beats = (np.concatenate([p[i] for p in parts]) for i in range(3))
+        return label, score, beats
+
+
+AnswerKey = tuple[tuple[str, ...], tuple[str, ...] | None, float | None, int | None, bool]
+"""What makes two ``query_points`` requests the same question: texts, negatives, min_score,
+max_points, objects (:func:`answer_key`)."""
+
+
+def answer_key(
+    texts: Sequence[str],
+    negatives: Sequence[str] | None,
+    min_score: float | None,
+    max_points: int | None,
+    objects: bool,
+) -> AnswerKey:
+    """The :class:`AnswerCache` key of a ``query_points`` request."""
+    negs = None if negatives is None else tuple(negatives)
+    return (tuple(texts), negs, min_score, max_points, bool(objects))
+
+
+@dataclass(frozen=True)
+class _CachedAnswer:
+    points: Points
+    version: int  # GlobalMapSnapshot.version the answer was computed on
+    generation: int  # GlobalMapSnapshot.generation
+    taken_s: float  # monotonic time the snapshot was taken
+
+
+class AnswerCache:
+    """Recent ``query_points`` answers, so that a planner asking the same question again and again
+    while the robot streams is answered at once instead of recomputing per map version.
+
+    :meth:`get` returns a cached answer when it was computed on the current map version (the
+    same answer a new computation would give), or, with ``max_age_s > 0``, on an older version
+    of the same map (same generation: no ``load`` or ``clear`` since) at most ``max_age_s``
+    seconds ago: a *stale* answer, which the node returns at once and recomputes in the
+    background (stale-while-revalidate). Replies say which (``timing_ms``: ``answer_reused``,
+    ``answer_age_ms``; ``map_version`` is the version the answer describes). Least recently used
+    questions beyond ``max_entries`` are dropped. Thread-safe."""
+
+    def __init__(self, max_age_s: float, max_entries: int) -> None:
+        self.max_age_s = max_age_s
+        self.max_entries = max_entries
+        self._entries: OrderedDict[AnswerKey, _CachedAnswer] = OrderedDict()
+        self._lock = threading.Lock()
+        self.counts = {"computed": 0, "reused_same_version": 0, "reused_stale": 0}
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def get(
+        self, key: AnswerKey, version: int, generation: int, now_s: float
+    ) -> tuple[Points, float, bool] | None:
+        """(answer, age_s, stale) for the question ``key`` on the map at ``version`` /
+        ``generation``, or None when it must be computed. The answer is a shallow copy with its
+        own ``id`` (None) and ``timing_ms`` (``answer_reused`` 1, ``answer_age_ms``)."""
+        with self._lock:
+            entry = self._entries.get(key)
+            if entry is None or entry.generation != generation or entry.version > version:
+                return None
+            age = max(0.0, now_s - entry.taken_s)
+            stale = entry.version != version
+            if stale and age > self.max_age_s:
+                return None
+            self._entries.move_to_end(key)
+            self.counts["reused_stale" if stale else "reused_same_version"] += 1
+        out = copy.copy(entry.points)
+        out.id = None
+        out.timing_ms = {
+            **entry.points.timing_ms, "answer_reused": 1.0, "answer_age_ms": 1e3 * age,
+            "computed_total": entry.points.timing_ms.get("total", 0.0),
+        }  # fmt: skip
+        return out, age, stale
+
+    def current(self, key: AnswerKey, version: int, generation: int) -> bool:
+        """Whether the cached answer to ``key`` was computed on this very map version."""
+        with self._lock:
+            entry = self._entries.get(key)
+            return entry is not None and entry.version == version and entry.generation == generation
+
+    def put(self, key: AnswerKey, points: Points, version: int, generation: int, taken_s: float) -> None:
+        """Keep ``points`` (computed on a snapshot taken at ``taken_s``) unless a newer answer to
+        the same question is already cached; marks it ``answer_reused`` 0."""
+        points.timing_ms.setdefault("answer_reused", 0.0)
+        points.timing_ms.setdefault("answer_age_ms", 0.0)
+        with self._lock:
+            self.counts["computed"] += 1
+            if self.max_entries <= 0:
+                return
+            old = self._entries.get(key)
+            if old is not None and old.generation == generation and old.version > version:
+                return  # a refresh that finished after a newer computation
+            self._entries[key] = _CachedAnswer(points, version, generation, taken_s)
+            self._entries.move_to_end(key)
+            while len(self._entries) > self.max_entries:
+                self._entries.popitem(last=False)
+
+    def stats(self) -> dict[str, int]:
+        with self._lock:
+            return {**self.counts, "entries": len(self._entries)}
+
+
 def query_points(
     snapshot: GlobalMapSnapshot,
     encoder: TextEncoder,
@@ -328,8 +531,11 @@ def query_points(
     max_points: int | None,
     objects: bool,
     config: QueryConfig,
+    label_cache: BlockLabelCache | None = None,
 ) -> Points:
-    """Answer a ``query_points`` request on a map snapshot (see the module docstring).
+    """Answer a ``query_points`` request on a map snapshot (see the module docstring). With a
+    ``label_cache`` the scoring reuses the per-block results of earlier queries with the same
+    texts and negatives (the same answer as scoring every row).
 
     Raises:
         ProtocolError("not_ready"): the map has no points with OV features yet.
@@ -359,8 +565,12 @@ def query_points(
 
     snapshot.unit_feature_blocks()  # cached per map version; unchanged blocks shared with the last
     t2 = time.perf_counter()
-    sims = snapshot.similarities(np.concatenate([text_emb, neg_emb]))  # (N, T + Q): one product per block
-    label, score, beats = label_from_similarities(sims, text_emb.shape[0])
+    emb = np.concatenate([text_emb, neg_emb])  # (T + Q, D)
+    if label_cache is not None:  # changed blocks only
+        label, score, beats = label_cache.label(snapshot, emb, text_emb.shape[0])
+    else:
+        sims = snapshot.similarities(emb)  # (N, T + Q): one product per block
+        label, score, beats = label_from_similarities(sims, text_emb.shape[0])
     ok = beats & snapshot.has_feature
     if min_score is not None:
         ok &= score >= min_score

@@ -64,7 +64,7 @@ from collections import Counter, deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from types import FrameType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zmq
@@ -85,6 +85,7 @@ from protocol.messages import (
     MapUpdated,
     Message,
     Ok,
+    Points,
     QueryPoints,
     Render,
     Save,
@@ -97,6 +98,9 @@ from protocol.messages import (
     error_reply,
     peek_id,
 )
+
+if TYPE_CHECKING:
+    from mapper.node.queries import AnswerCache, AnswerKey, BlockLabelCache
 
 log = logging.getLogger("mapper.node.service")
 
@@ -267,6 +271,18 @@ class MapperNode:
         self._integrate_waits = 0
         self._integrate_wait_s = 0.0
         self._integrate_inline = 0
+        self._label_cache: BlockLabelCache | None = None
+        """``query_points``' per-block scoring, reused across map versions (``queries.label_cache_blocks``;
+        made by the first query: :mod:`mapper.node.queries` imports SciPy)."""
+        self._answer_cache: AnswerCache | None = None
+        """``query_points``' recent answers (``queries.answer_max_age_s``); made with the label cache."""
+        self._label_cache_lock = threading.Lock()
+        self._refresh_jobs: queue.Queue[tuple[AnswerKey, QueryPoints]] = queue.Queue(
+            maxsize=max(1, config.queries.answer_cache_entries)
+        )
+        """Stale ``query_points`` answers to recompute (the answer-refresh thread)."""
+        self._refresh_pending: set[AnswerKey] = set()
+        self.answer_refreshes = 0
         self._integrate_lag_s: deque[float] = deque(maxlen=1000)
         """Ack-to-integrated seconds of recent keyframes (status ``integration.lag_ms_*``)."""
         self._integrator: threading.Thread | None = None
@@ -355,6 +371,11 @@ class MapperNode:
             )
             thread.start()
             self._threads.append(thread)
+        thread = threading.Thread(
+            target=self._refresh_loop, args=(self._stop,), name="mapper-answer-refresh", daemon=True
+        )
+        thread.start()
+        self._threads.append(thread)
         for name, work in self.workers:
             thread = threading.Thread(target=work, args=(self._stop,), name=f"mapper-{name}", daemon=True)
             thread.start()
@@ -658,6 +679,18 @@ class MapperNode:
                 self._pace_queries(started)
         finally:
             push.close()
+
+    def answer_stats(self) -> dict[str, int]:
+        """``query_points`` answers: computed, reused (same version / stale), background refreshes,
+        cached questions, label-cache blocks scored and reused."""
+        answers, labels = self._answer_cache, self._label_cache
+        out = answers.stats() if answers is not None else {
+            "computed": 0, "reused_same_version": 0, "reused_stale": 0, "entries": 0
+        }  # fmt: skip
+        out["refreshes"] = self.answer_refreshes
+        out["label_blocks_scored"] = labels.misses if labels is not None else 0
+        out["label_blocks_reused"] = labels.hits if labels is not None else 0
+        return out
 
     def query_pool_stats(self) -> dict[str, int]:
         """The heavy-request pool, for ``status``: ``workers``, ``queue_length``, ``running``,
@@ -1032,6 +1065,7 @@ class MapperNode:
                 "serving": sorted(t.TYPE for t, h in self.query_handlers.items() if not _is_not_ready(h)),
                 "segment_methods": sorted(m for m, h in self.segment_methods.items() if not _is_not_ready(h)),
                 "query_pool": self.query_pool_stats(),
+                "answers": self.answer_stats(),
                 "security": self._security_status(),
                 "limits": {
                     "sndhwm": self.config.limits.sndhwm,
@@ -1201,12 +1235,44 @@ class MapperNode:
         threading.Thread(target=warm, name="mapper-encoder-warmup", daemon=True).start()
 
     def _handle_query_points(self, msg: Message) -> Message:
+        """Answer from :class:`mapper.node.queries.AnswerCache` when it may (same map version, or a
+        stale answer within ``queries.answer_max_age_s``, then recomputed in the background), else
+        compute on the current snapshot."""
         assert isinstance(msg, QueryPoints)
+        from mapper.node.queries import answer_key
+
+        answers = self._query_caches()[1]
+        key = answer_key(msg.texts, msg.negatives, msg.min_score, msg.max_points, msg.objects)
+        gmap = self.state.global_map
+        t0 = time.monotonic()
+        hit = answers.get(key, gmap.version, gmap.generation, t0)
+        if hit is None:
+            return self._compute_answer(key, msg)
+        answer, _age, stale = hit
+        if stale:
+            self._schedule_refresh(key, msg)
+        answer.timing_ms["total"] = 1e3 * (time.monotonic() - t0)
+        return answer
+
+    def _query_caches(self) -> tuple[BlockLabelCache, AnswerCache]:
+        from mapper.node.queries import AnswerCache, BlockLabelCache
+
+        with self._label_cache_lock:
+            if self._label_cache is None or self._answer_cache is None:
+                cfg = self.config.queries
+                self._label_cache = BlockLabelCache(cfg.label_cache_blocks)
+                self._answer_cache = AnswerCache(cfg.answer_max_age_s, cfg.answer_cache_entries)
+            return self._label_cache, self._answer_cache
+
+    def _compute_answer(self, key: AnswerKey, msg: QueryPoints) -> Points:
+        """``query_points`` on the current snapshot; the answer is cached for ``key``."""
         from mapper.node.queries import query_points
 
+        labels, answers = self._query_caches()
         encoder = self._text_encoder("query_points")
+        taken = time.monotonic()
         snapshot = self.state.global_map.snapshot()
-        return query_points(
+        answer = query_points(
             snapshot,
             encoder,
             msg.texts,
@@ -1215,7 +1281,51 @@ class MapperNode:
             max_points=msg.max_points,
             objects=msg.objects,
             config=self.config.queries,
+            label_cache=labels,
         )
+        answers.put(key, answer, snapshot.version, snapshot.generation, taken)
+        return answer
+
+    def _schedule_refresh(self, key: AnswerKey, msg: QueryPoints) -> None:
+        """Queue one background recomputation of ``key`` (none when one is already queued or the
+        queue is full: the next stale request queues it)."""
+        with self._label_cache_lock:
+            if key in self._refresh_pending:
+                return
+            try:
+                self._refresh_jobs.put_nowait((key, msg))
+            except queue.Full:
+                return
+            self._refresh_pending.add(key)
+
+    def _refresh_loop(self, stop: threading.Event) -> None:
+        """The answer-refresh thread: recompute stale ``query_points`` answers on the current map
+        (paced like the query threads: ingest first), so the next request gets a fresh one."""
+        while not stop.is_set():
+            started = time.monotonic()
+            if self.refresh_one(self.config.poll_interval_s):
+                self._pace_queries(started)
+
+    def refresh_one(self, timeout_s: float) -> bool:
+        """Recompute one queued stale answer (waiting up to ``timeout_s`` for one); False when
+        none was queued. Never raises (a failed refresh leaves the next request to compute)."""
+        try:
+            key, msg = self._refresh_jobs.get(timeout=timeout_s)
+        except queue.Empty:
+            return False
+        try:
+            gmap = self.state.global_map
+            if not self._query_caches()[1].current(key, gmap.version, gmap.generation):
+                self._compute_answer(key, msg)
+                self.answer_refreshes += 1
+        except ProtocolError as exc:  # e.g. the map was cleared: the next request says so
+            log.debug("answer refresh: %s", exc.message)
+        except Exception:
+            log.exception("answer refresh failed (the next request computes its answer)")
+        finally:
+            with self._label_cache_lock:
+                self._refresh_pending.discard(key)
+        return True
 
     def _handle_segment_points(self, msg: Message) -> Message:
         assert isinstance(msg, SegmentPoints)
