@@ -11,10 +11,12 @@ What is measured (docs/BENCHMARKS.md explains each number and the targets):
   points (back-projected depth pixels of the stream), and per 100k points;
 * ``render``: 160x120 and 320x240 (rgb, depth, label), the node's stage timings;
 * ``status_during_render``: ``status`` and ``query_points`` latency p50 / p95 while a 320x240
-  render is in flight;
+  render is in flight (``query_points``: a new question each time, computed; ``_repeat``: the same
+  question, from the node's answer cache);
 * ``query_points`` on synthetic 10k / 100k / 1M-point maps (``benchmarks/bench_maps.py`` writes
-  them into the node's map directory, the bench ``load``s them): first query after the map changed
-  and cached, p50 / p95, and the ratio to the floor (the bare fp32 matrix product of the same size:
+  them into the node's map directory, the bench ``load``s them): first query after the map changed,
+  cached (map unchanged, answer computed), a new text, the same question repeated (the answer
+  cache), p50 / p95, and the ratio to the floor (the bare fp32 matrix product of the same size:
   N x 384 by 384 x 7, one text and six negatives, measured here with numpy);
 * ``rss``: the node's RSS (status) along a long stream (frames 1000 ... 5000 by default).
 
@@ -29,6 +31,7 @@ node's Python (``sys.executable``).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -56,6 +59,11 @@ OV_SPACE = "minilm-l6-v2"
 OV_DIM = 384
 OV_CLASSES = ("floor", "chair", "table")
 QUERY_TEXTS = ["find the chair"]
+NEW_QUERY_TEXTS = [f"find the {t}" for t in (
+    "table", "sofa", "bed", "lamp", "desk", "plant", "sink", "toilet", "door", "window", "curtain", "cabinet",
+    "bookshelf", "picture", "counter", "refrigerator", "bathtub", "television", "pillow", "shelf",
+)]  # fmt: skip
+"""Questions asked once each (``query_points`` ``new_text``: the full scoring product and clustering)."""
 SEGMENT_METHODS = ("average", "average_depth", "govnesf")
 SEGMENT_TEXTS = ["floor", "chair", "table", "wall"]
 
@@ -314,13 +322,16 @@ def bench_status_during_render(node: NodeProcess, size: tuple[int, int], min_sam
     thread = threading.Thread(target=renderer, daemon=True)
     status_s: list[float] = []
     query_s: list[float] = []
+    repeat_s: list[float] = []
     with node.client(timeout_s=120.0, retries=0) as client:
         thread.start()
         time.sleep(0.3)  # let the render reach the worker
         while not done.is_set() or len(status_s) < min_samples:
             status_s.append(_timed(client.status)[0])
-            try:
-                query_s.append(_timed(lambda: client.query_points(QUERY_TEXTS, max_points=100))[0])
+            try:  # a new question each time (computed), then the same again (the answer cache)
+                new = 100 + len(query_s)
+                query_s.append(_timed(lambda: client.query_points(QUERY_TEXTS, max_points=new))[0])  # noqa: B023
+                repeat_s.append(_timed(lambda: client.query_points(QUERY_TEXTS, max_points=100))[0])
             except RemoteError:
                 pass
             if done.is_set() and len(status_s) >= min_samples:
@@ -331,6 +342,7 @@ def bench_status_during_render(node: NodeProcess, size: tuple[int, int], min_sam
         "render_s": render_s[0] if render_s else None,
         "status": _pcts(status_s),
         "query_points": _pcts(query_s),
+        "query_points_repeat": _pcts(repeat_s),
     }
 
 
@@ -347,6 +359,10 @@ def matmul_floor_s(n: int, repeats: int) -> float:
 def bench_query_points(
     client: MapperClient, map_dir: Path, sizes: list[int], first_repeats: int, cached_repeats: int
 ) -> dict[str, Any]:
+    """Per map size: ``first`` (right after the ``load``: every cache cold), ``cached`` (the map
+    unchanged, a new question each time by its ``max_points``: computed, the per-block labels
+    reused), ``new_text`` (another text each time: text encoding, the scoring product and the
+    clustering), ``repeat`` (the same question again: the node's answer cache)."""
     script = REPO_ROOT / "benchmarks" / "bench_maps.py"
     env = dict(os.environ, PYTHONPATH=str(REPO_ROOT))
     subprocess.run(
@@ -357,21 +373,29 @@ def bench_query_points(
     )
     out: dict[str, Any] = {}
     for n in sizes:
-        first, cached, node_timing = [], [], {}
+        first, cached, new_text, repeat, node_timing = [], [], [], [], {}
         for _ in range(first_repeats):
             client.load(f"points_{n}", timeout_s=300.0)  # a new map version: caches start cold
             first.append(_timed(lambda: client.query_points(QUERY_TEXTS, timeout_s=300.0))[0])
-        for _ in range(cached_repeats):
-            s, reply = _timed(lambda: client.query_points(QUERY_TEXTS, timeout_s=300.0))
+        for i in range(cached_repeats):
+            ask = functools.partial(client.query_points, QUERY_TEXTS, max_points=10**6 + i, timeout_s=300.0)
+            s, reply = _timed(ask)
             cached.append(s)
             node_timing = reply.timing_ms
+            repeat.append(_timed(lambda: client.query_points(QUERY_TEXTS, timeout_s=300.0))[0])
+        for text in NEW_QUERY_TEXTS[: max(1, cached_repeats)]:
+            new_text.append(_timed(lambda: client.query_points([text], timeout_s=300.0))[0])  # noqa: B023
         floor = matmul_floor_s(n, 20)
         c50 = float(np.percentile(cached, 50)) if cached else math.nan
+        n50 = float(np.percentile(new_text, 50)) if new_text else math.nan
         out[str(n)] = {
             "first": _pcts(first),
             "cached": _pcts(cached),
+            "new_text": _pcts(new_text),
+            "repeat": _pcts(repeat),
             "floor_ms": round(1e3 * floor, 3),
             "cached_p50_over_floor": round(c50 / floor, 2) if floor > 0 else None,
+            "new_text_p50_over_floor": round(n50 / floor, 2) if floor > 0 else None,
             "node_timing_ms": node_timing,
         }
     return out
@@ -477,20 +501,25 @@ def to_markdown(r: dict[str, Any]) -> str:
         f"## Light requests while a {sd['render']} render is in flight",
         "",
         f"status p50 {sd['status']['p50_ms']} ms / p95 {sd['status']['p95_ms']} ms (n={sd['status']['n']}); "
-        f"query_points p50 {sd['query_points']['p50_ms']} ms / p95 {sd['query_points']['p95_ms']} ms; "
-        f"the render took {sd['render_s']} s.",
+        f"query_points (computed) p50 {sd['query_points']['p50_ms']} ms / "
+        f"p95 {sd['query_points']['p95_ms']} ms; "
+        f"repeated (answer cache) p50 {sd['query_points_repeat']['p50_ms']} ms / "
+        f"p95 {sd['query_points_repeat']['p95_ms']} ms; the render took {sd['render_s']} s.",
     ]
     lines += [
         "",
         "## query_points",
         "",
-        "| map points | first p50 / p95 ms | cached p50 / p95 ms | floor ms | cached / floor |",
-        "|---|---|---|---|---|",
+        "| map points | first p50 / p95 ms | cached p50 / p95 ms | new text p50 / p95 ms "
+        "| repeat p50 / p95 ms | floor ms | cached / floor | new text / floor |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for n, q in r["query_points"].items():
         lines.append(
             f"| {int(n):,} | {q['first']['p50_ms']} / {q['first']['p95_ms']} | {q['cached']['p50_ms']} / "
-            f"{q['cached']['p95_ms']} | {q['floor_ms']} | {q['cached_p50_over_floor']} |"
+            f"{q['cached']['p95_ms']} | {q['new_text']['p50_ms']} / {q['new_text']['p95_ms']} | "
+            f"{q['repeat']['p50_ms']} / {q['repeat']['p95_ms']} | {q['floor_ms']} | "
+            f"{q['cached_p50_over_floor']} | {q['new_text_p50_over_floor']} |"
         )
     rss = r["rss"]
     lines += [

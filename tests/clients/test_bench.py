@@ -33,6 +33,7 @@ def test_bench_quick_writes_json_and_markdown(tmp_path: Path) -> None:
     assert result["status_during_render"]["status"]["n"] >= 3
     q = result["query_points"]["1000"]
     assert q["first"]["n"] == 1 and q["cached"]["n"] == 3 and q["floor_ms"] > 0
+    assert q["repeat"]["n"] == 3 and q["new_text"]["n"] == 3
     assert [s["frame"] for s in result["rss"]["samples"]] == [5, 10]
     assert all(s["rss_bytes"] for s in result["rss"]["samples"])
     md = out.with_suffix(".md").read_text()

@@ -89,7 +89,8 @@ def node_with_map(tmp_path: Path, **queries: object) -> MapperNode:
 
 
 def ask(node: MapperNode, max_points: int | None = None) -> Points:
-    reply = decode(node.handle_query(encode(QueryPoints(texts=["chair", "table"], max_points=max_points, id=1))))
+    request = QueryPoints(texts=["chair", "table"], max_points=max_points, id=1)
+    reply = decode(node.handle_query(encode(request)))
     assert isinstance(reply, Points), reply
     assert reply.id == 1
     return reply

@@ -46,8 +46,8 @@ def keyframe(x_m: float, stamp_ns: int, seed: int) -> Keyframe:
 
 def ask(snap: global_map.GlobalMapSnapshot, cache: BlockLabelCache | None, texts: list[str]) -> Points:
     return query_points(
-        snap, HashEncoder(), texts, negatives=["wall", "floor"], min_score=None, max_points=None, objects=True,
-        config=QueryConfig(cluster_radius_m=0.3, min_object_points=2), label_cache=cache,
+        snap, HashEncoder(), texts, negatives=["wall", "floor"], min_score=None, max_points=None,
+        objects=True, config=QueryConfig(cluster_radius_m=0.3, min_object_points=2), label_cache=cache,
     )  # fmt: skip
 
 
@@ -56,7 +56,10 @@ def assert_same(a: Points, b: Points) -> None:
     np.testing.assert_array_equal(a.xyz, b.xyz)
     np.testing.assert_array_equal(a.score, b.score)
     np.testing.assert_array_equal(a.label, b.label)
-    assert [(o.text, o.n_points, o.score) for o in a.objects] == [(o.text, o.n_points, o.score) for o in b.objects]
+    def objects(p: Points) -> list[tuple[str, int, float]]:
+        return [(o.text, o.n_points, o.score) for o in p.objects]
+
+    assert objects(a) == objects(b)
 
 
 def test_cached_answers_equal_scoring_every_row(monkeypatch: pytest.MonkeyPatch) -> None:
