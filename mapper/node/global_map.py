@@ -54,6 +54,7 @@ Example::
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
@@ -110,6 +111,11 @@ def _row_words(a: np.ndarray) -> np.ndarray:
     row_bytes = a.dtype.itemsize * (a.shape[1] if a.ndim > 1 else 1)
     word = np.uint64 if row_bytes % 8 == 0 else np.uint8
     return a.view(np.uint8).reshape(a.shape[0], row_bytes).view(word)
+
+
+_GENERATIONS = itertools.count(1)
+"""Map generations, unique in the process: a new map, a ``restore`` and a ``clear`` each take the
+next, so an answer computed on one map is never taken for another's (``GlobalMapSnapshot.generation``)."""
 
 
 class _UnitSource:
@@ -256,8 +262,9 @@ class GlobalMapSnapshot:
     hits: np.ndarray  # (N,) int32
     last_seen_ns: np.ndarray  # (N,) int64
     generation: int = 0
-    """Changes when the map is replaced (``restore``, ``clear``), not when it grows or is fused
-    into: answers of an older generation describe another map."""
+    """The map's :attr:`GlobalSemanticMap.generation` (unique in the process; a new map,
+    ``restore`` and ``clear`` change it, growing and fusing do not): answers of another generation
+    describe another map."""
     _cache: dict[str, Any] = field(default_factory=dict, repr=False)
     _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _unit_source: _UnitSource | None = field(default=None, repr=False)
@@ -394,7 +401,7 @@ class GlobalSemanticMap:
         self._snapshot: GlobalMapSnapshot | None = None
         self._unit_source = _UnitSource()
         self._version = 0
-        self._generation = 0
+        self._generation = next(_GENERATIONS)
         self._reset(dim=None)
 
     # -- state -------------------------------------------------------------------------------
@@ -852,7 +859,8 @@ class GlobalSemanticMap:
 
     @property
     def generation(self) -> int:
-        """Bumped by ``restore`` and ``clear`` (the map was replaced), not by integration or pruning."""
+        """Unique in the process to this map's content lineage: a new map, ``restore`` and ``clear``
+        take a new one; integration and pruning keep it."""
         return self._generation
 
     def snapshot(self) -> GlobalMapSnapshot:
@@ -983,7 +991,7 @@ class GlobalSemanticMap:
             self.points_pruned = pruned if isinstance(pruned, int) else 0
             self._map_version = map_version
             self._version += 1
-            self._generation += 1
+            self._generation = next(_GENERATIONS)
             self._prune_if_needed()
 
     def retag(self, map_version: int) -> None:
@@ -999,4 +1007,4 @@ class GlobalSemanticMap:
             if map_version is not None:
                 self._map_version = map_version
             self._version += 1
-            self._generation += 1
+            self._generation = next(_GENERATIONS)

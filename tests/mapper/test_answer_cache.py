@@ -13,7 +13,7 @@ import pytest
 
 from mapper.node.queries import AnswerCache, answer_key
 from mapper.node.service import MapperNode
-from protocol.messages import Points, QueryPoints, decode, encode
+from protocol.messages import Load, Ok, Points, QueryPoints, Save, decode, encode
 from tests.mapper.test_label_cache import HashEncoder, keyframe
 from tests.node_helpers import in_process_node
 
@@ -152,6 +152,41 @@ def test_node_recomputes_past_the_age_and_after_a_load(tmp_path: Path) -> None:
     node.state.global_map.restore(arrays, meta, map_version=3)  # a load: the same version number
     after = ask(node)
     assert after.timing_ms["answer_reused"] == 0.0
+
+
+def test_node_never_reuses_across_a_load(tmp_path: Path) -> None:
+    """A ``load`` puts a fresh map object in place, whose versions start again: its generation,
+    unique in the process, keeps the old answers out (even when the version numbers collide)."""
+    node = node_with_map(tmp_path, answer_max_age_s=60.0)
+    node.state.global_map.retag(1)
+    node.handle_query(encode(Save(name="m")))
+    saved_version = node.state.global_map.version
+    before = ask(node)
+    reply = decode(node.handle_query(encode(Load(name="m"))))
+    assert isinstance(reply, Ok), reply
+    while node.state.global_map.version < saved_version:  # make the version numbers collide
+        node.state.global_map.retag(node.state.map_version)
+    assert node.state.global_map.version == saved_version
+    after = ask(node)
+    assert after.timing_ms["answer_reused"] == 0.0
+    same(after, fresh(node))
+    assert before.xyz.shape == after.xyz.shape
+
+
+def test_generations_are_unique_per_process() -> None:
+    from mapper.node.config import GlobalMapConfig
+    from mapper.node.global_map import GlobalSemanticMap
+
+    a, b = GlobalSemanticMap(GlobalMapConfig()), GlobalSemanticMap(GlobalMapConfig())
+    seen = {a.generation, b.generation}
+    a.integrate(keyframe(0.0, 1, 1), map_version=1)
+    assert a.generation in seen and a.snapshot().generation == a.generation
+    a.clear()
+    seen.add(a.generation)
+    arrays, meta = b.to_arrays()
+    b.restore(arrays, meta, map_version=0)
+    seen.add(b.generation)
+    assert len(seen) == 4
 
 
 def test_started_node_refreshes_in_the_background(tmp_path: Path) -> None:
