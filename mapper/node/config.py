@@ -246,7 +246,7 @@ class QueryConfig:
     so a query after an integrate scores only the blocks whose rows changed. The most blocks kept
     (about 112 KB each; least recently used dropped first); 0 = score every row each time. 0..100000."""
 
-    answer_max_age_s: float = 1.0
+    answer_max_age_s: float = 2.0
     """``query_points`` answers the same question (texts, negatives, min_score, max_points,
     objects) from its last answer when the map has not changed since, or, while the map only grew
     or was fused into (no ``load``), when that answer is at most this old (seconds since its
