@@ -78,6 +78,9 @@ def main() -> None:
                       ov_space=SPACE)
         gmap.integrate(kf, map_version=i)
 
+    for i in range(3):  # warm-up: the first integrates after a restore are slower (array growth)
+        change(90 + i)
+        ask(gmap.snapshot())
     for name, cached_labels, previous in (("new", True, False), ("no_label_cache", False, False),
                                           ("previous", False, True)):
         # new: as the node (per-block label cache); no_label_cache: every row scored per query;

@@ -260,6 +260,10 @@ class QueryConfig:
     """Most distinct ``query_points`` questions whose last answer is kept (least recently asked
     dropped first); 0 = never reuse an answer. 0..10000."""
 
+    answer_cache_mb: float = 64.0
+    """Most memory the kept answers' arrays may take (least recently asked dropped first; an
+    answer larger than this is not kept). 0..100000."""
+
     map_radius_voxels: float = 1.5
     """``segment_points`` / ``render`` answer a point no window keyframe sees from the global
     map's nearest point with a feature within this many map voxels (``global_map.voxel_size_m``);
@@ -272,6 +276,7 @@ class QueryConfig:
         _check_range(where, "queries.label_cache_blocks", self.label_cache_blocks, 0, 100_000)
         _check_range(where, "queries.answer_max_age_s", self.answer_max_age_s, 0.0, 3600.0)
         _check_range(where, "queries.answer_cache_entries", self.answer_cache_entries, 0, 10_000)
+        _check_range(where, "queries.answer_cache_mb", self.answer_cache_mb, 0.0, 100_000.0)
         _check_range(where, "queries.default_max_points", self.default_max_points, 1, 100_000_000)
         _check_range(where, "queries.cluster_radius_m", self.cluster_radius_m, 1e-3, 10.0)
         _check_range(where, "queries.min_object_points", self.min_object_points, 1, 1_000_000)

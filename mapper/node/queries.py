@@ -445,6 +445,7 @@ class _CachedAnswer:
     version: int  # GlobalMapSnapshot.version the answer was computed on
     generation: int  # GlobalMapSnapshot.generation
     taken_s: float  # monotonic time the snapshot was taken
+    nbytes: int  # the answer's arrays (and a little per object)
 
 
 class AnswerCache:
@@ -457,12 +458,15 @@ class AnswerCache:
     seconds ago: a *stale* answer, which the node returns at once and recomputes in the
     background (stale-while-revalidate). Replies say which (``timing_ms``: ``answer_reused``,
     ``answer_age_ms``; ``map_version`` is the version the answer describes). Least recently used
-    questions beyond ``max_entries`` are dropped. Thread-safe."""
+    questions beyond ``max_entries`` answers or ``max_bytes`` of their arrays are dropped (an
+    answer larger than ``max_bytes`` is not kept). Thread-safe."""
 
-    def __init__(self, max_age_s: float, max_entries: int) -> None:
+    def __init__(self, max_age_s: float, max_entries: int, max_bytes: int = 64 << 20) -> None:
         self.max_age_s = max_age_s
         self.max_entries = max_entries
+        self.max_bytes = max_bytes
         self._entries: OrderedDict[AnswerKey, _CachedAnswer] = OrderedDict()
+        self._bytes = 0
         self._lock = threading.Lock()
         self.counts = {"computed": 0, "reused_same_version": 0, "reused_stale": 0}
 
@@ -504,21 +508,34 @@ class AnswerCache:
         the same question is already cached; marks it ``answer_reused`` 0."""
         points.timing_ms.setdefault("answer_reused", 0.0)
         points.timing_ms.setdefault("answer_age_ms", 0.0)
+        size = _answer_bytes(points)
         with self._lock:
             self.counts["computed"] += 1
-            if self.max_entries <= 0:
+            if self.max_entries <= 0 or size > self.max_bytes:
+                self._drop(key)
                 return
             old = self._entries.get(key)
             if old is not None and old.generation == generation and old.version > version:
                 return  # a refresh that finished after a newer computation
-            self._entries[key] = _CachedAnswer(points, version, generation, taken_s)
-            self._entries.move_to_end(key)
-            while len(self._entries) > self.max_entries:
-                self._entries.popitem(last=False)
+            self._drop(key)
+            self._entries[key] = _CachedAnswer(points, version, generation, taken_s, size)
+            self._bytes += size
+            while len(self._entries) > self.max_entries or self._bytes > self.max_bytes:
+                self._drop(next(iter(self._entries)))
+
+    def _drop(self, key: AnswerKey) -> None:
+        old = self._entries.pop(key, None)
+        if old is not None:
+            self._bytes -= old.nbytes
 
     def stats(self) -> dict[str, int]:
         with self._lock:
-            return {**self.counts, "entries": len(self._entries)}
+            return {**self.counts, "entries": len(self._entries), "bytes": self._bytes}
+
+
+def _answer_bytes(points: Points) -> int:
+    arrays = points.xyz.nbytes + points.score.nbytes + points.label.nbytes
+    return int(arrays) + 256 * (1 + len(points.objects))
 
 
 def query_points(

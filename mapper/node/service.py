@@ -685,7 +685,7 @@ class MapperNode:
         cached questions, label-cache blocks scored and reused."""
         answers, labels = self._answer_cache, self._label_cache
         out = answers.stats() if answers is not None else {
-            "computed": 0, "reused_same_version": 0, "reused_stale": 0, "entries": 0
+            "computed": 0, "reused_same_version": 0, "reused_stale": 0, "entries": 0, "bytes": 0
         }  # fmt: skip
         out["refreshes"] = self.answer_refreshes
         out["label_blocks_scored"] = labels.misses if labels is not None else 0
@@ -1261,7 +1261,9 @@ class MapperNode:
             if self._label_cache is None or self._answer_cache is None:
                 cfg = self.config.queries
                 self._label_cache = BlockLabelCache(cfg.label_cache_blocks)
-                self._answer_cache = AnswerCache(cfg.answer_max_age_s, cfg.answer_cache_entries)
+                self._answer_cache = AnswerCache(
+                    cfg.answer_max_age_s, cfg.answer_cache_entries, int(cfg.answer_cache_mb * 2**20)
+                )
             return self._label_cache, self._answer_cache
 
     def _compute_answer(self, key: AnswerKey, msg: QueryPoints) -> Points:

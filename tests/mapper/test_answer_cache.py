@@ -44,7 +44,9 @@ def test_same_version_always_stale_only_within_age_never_other_generation() -> N
     assert cache.get(KEY, 5, 1, 10.1) is None
     assert cache.get(KEY, 2, 0, 10.1) is None
     assert cache.get(answer_key(["chair"], None, None, 10, True), 3, 0, 10.1) is None
-    assert cache.stats() == {"computed": 1, "reused_same_version": 1, "reused_stale": 1, "entries": 1}
+    assert cache.stats() == {
+        "computed": 1, "reused_same_version": 1, "reused_stale": 1, "entries": 1, "bytes": 12 + 4 + 4 + 256
+    }  # fmt: skip
 
 
 def test_copies_are_independent_and_newer_answers_win() -> None:
@@ -72,6 +74,18 @@ def test_bounded_and_off() -> None:
     assert len(cache) == 2
     assert cache.get(answer_key(["t4"], None, None, None, True), 1, 0, 0.0) is not None
     assert cache.get(answer_key(["t0"], None, None, None, True), 1, 0, 0.0) is None
+    # the byte budget: a 1-point answer counts its 20 bytes of arrays and 256 for the message
+    size = 12 + 4 + 4 + 256
+    small = AnswerCache(max_age_s=1.0, max_entries=100, max_bytes=3 * size)
+    for i in range(5):
+        small.put(answer_key([f"t{i}"], None, None, None, True), points(1), 1, 0, 0.0)
+    assert len(small) == 3 and small.stats()["bytes"] == 3 * size
+    small.put(KEY, points(1), 1, 0, 0.0)  # replacing an entry does not count it twice
+    small.put(KEY, points(1), 1, 0, 0.0)
+    assert small.stats()["bytes"] == 3 * size
+    tiny = AnswerCache(max_age_s=1.0, max_entries=100, max_bytes=100)  # larger than the budget
+    tiny.put(KEY, points(1), 1, 0, 0.0)
+    assert tiny.get(KEY, 1, 0, 0.0) is None and tiny.stats()["bytes"] == 0
     off = AnswerCache(max_age_s=1.0, max_entries=0)
     off.put(KEY, points(1), 1, 0, 0.0)
     assert off.get(KEY, 1, 0, 0.0) is None and len(off) == 0
