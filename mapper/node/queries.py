@@ -31,11 +31,13 @@ z-buffered splat of the map where the render found no surface). Each answer says
 from __future__ import annotations
 
 import copy
+import functools
 import hashlib
 import itertools
 import re
 import threading
 import time
+import weakref
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -366,25 +368,36 @@ def label_from_similarities(
     return label, score, beats
 
 
+_LabelEntry = tuple["weakref.ReferenceType[np.ndarray]", np.ndarray, np.ndarray, np.ndarray]
+"""A :class:`BlockLabelCache` entry: (the block, label, score, beats_negatives)."""
+
+
 class BlockLabelCache:
     """The scoring step of :func:`query_points` per block of unit features, kept across map
     versions: (label, score, beats_negatives) of each block of
     :meth:`GlobalMapSnapshot.unit_feature_blocks` for one set of text + negative embeddings. A new
     snapshot shares the blocks whose rows did not change, so a query after an integrate scores only
     the changed blocks, and a repeated query scores nothing. Entries are keyed by the block object
-    (held, so the key stays valid) and the embeddings' bytes; least recently used entries beyond
+    (a weak reference: the cache never keeps a block of an old map version alive, and an entry
+    whose block is gone is dropped) and the embeddings' bytes; least recently used entries beyond
     ``max_blocks`` are dropped. Thread-safe; 0 blocks = no caching."""
 
     def __init__(self, max_blocks: int) -> None:
         self.max_blocks = max_blocks
-        self._entries: OrderedDict[tuple[int, bytes], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
-        self._entries = OrderedDict()
-        self._lock = threading.Lock()
+        self._entries: OrderedDict[tuple[int, bytes], _LabelEntry] = OrderedDict()
+        self._lock = threading.RLock()  # reentrant: a weakref callback may run while it is held
         self.hits = 0
         self.misses = 0
 
     def __len__(self) -> int:
         return len(self._entries)
+
+    def _forget(self, key: tuple[int, bytes], ref: weakref.ReferenceType[np.ndarray]) -> None:
+        """A block was freed: drop its entry (unless the key now holds a newer block's)."""
+        with self._lock:
+            entry = self._entries.get(key)
+            if entry is not None and entry[0] is ref:
+                del self._entries[key]
 
     def label(
         self,
@@ -402,7 +415,7 @@ class BlockLabelCache:
             key = (id(block), digest)
             with self._lock:
                 entry = self._entries.get(key)
-                if entry is not None and entry[0] is block:
+                if entry is not None and entry[0]() is block:
                     self._entries.move_to_end(key)
                     self.hits += 1
                     parts.append(entry[1:])
@@ -412,7 +425,7 @@ class BlockLabelCache:
             with self._lock:
                 self.misses += 1
                 if self.max_blocks > 0:
-                    self._entries[key] = (block, *result)
+                    self._entries[key] = (weakref.ref(block, functools.partial(self._forget, key)), *result)
                     self._entries.move_to_end(key)
                     while len(self._entries) > self.max_blocks:
                         self._entries.popitem(last=False)

@@ -139,3 +139,26 @@ def test_join_components_equals_scipy(seed: int) -> None:
     assert count == ref_count
     # same partition, labels in order of each component's smallest node (as connected_components)
     np.testing.assert_array_equal(label, ref)
+
+
+def test_cache_never_keeps_old_blocks_alive(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Entries hold their blocks weakly: once no snapshot uses a block, its entry is gone."""
+    import gc
+
+    monkeypatch.setattr(global_map, "UNIT_BLOCK_ROWS", 16)
+    gmap = GlobalSemanticMap(GlobalMapConfig(pixel_stride=2, max_points=1_000_000))
+    for i in range(3):
+        gmap.integrate(keyframe(10.0 * i, i + 1, i), map_version=i + 1)
+    cache = BlockLabelCache(max_blocks=10_000)
+    for step in range(4):  # every region changes: every block is replaced
+        snap = gmap.snapshot()
+        ask(snap, cache, ["chair"])
+        del snap
+        for i in range(3):
+            n = 10 * step + i + 10
+            gmap.integrate(keyframe(10.0 * i, n, n), map_version=n)
+    gc.collect()
+    ask(gmap.snapshot(), cache, ["chair"])
+    gc.collect()
+    live = {id(b) for b in gmap.snapshot().unit_feature_blocks()}
+    assert len(cache) <= len(live)
