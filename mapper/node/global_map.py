@@ -261,6 +261,10 @@ class GlobalMapSnapshot:
     feat_weight: np.ndarray  # (N,) float32
     hits: np.ndarray  # (N,) int32
     last_seen_ns: np.ndarray  # (N,) int64
+    feat_stamp: np.ndarray | None = None  # (N,) int64: the version that last wrote each row's feature
+    feat_reset: int = 0
+    """Rows moved or were replaced at this version (prune, restore, clear): ``feat_stamp`` says
+    nothing about blocks computed before it."""
     generation: int = 0
     """The map's :attr:`GlobalSemanticMap.generation` (unique in the process; a new map,
     ``restore`` and ``clear`` change it, growing and fusing do not): answers of another generation
@@ -298,10 +302,15 @@ class GlobalMapSnapshot:
                 blocks = [np.zeros((min(UNIT_BLOCK_ROWS, n - lo), 0), np.float32)
                           for lo in range(0, n, UNIT_BLOCK_ROWS)]
             else:
-                prev_feat, prev_blocks = None, []
+                prev_feat, prev_blocks, prev_version = None, [], -1
                 if self._unit_source is not None:
                     with self._unit_source.lock:
                         prev_feat, prev_blocks = self._unit_source.feat, self._unit_source.blocks
+                        prev_version = self._unit_source.version
+                # the rows written since the previous blocks, from the stamps (no row compare) when
+                # those blocks are of an older version of this snapshot's rows
+                stamps = (self.feat_stamp if self.feat_stamp is not None
+                          and self.feat_reset <= prev_version <= self.version else None)
                 same_dim = (prev_feat is not None and prev_feat.shape[1] == self.feat.shape[1]
                             and prev_feat.dtype == self.feat.dtype)
                 blocks = []
@@ -310,8 +319,11 @@ class GlobalMapSnapshot:
                     cur = self.feat[lo:hi]
                     if (same_dim and prev_feat is not None and b < len(prev_blocks)
                             and prev_blocks[b].shape[0] == hi - lo and prev_feat.shape[0] >= hi):
-                        # rows whose bytes changed since the previous blocks were computed
-                        changed = (_row_words(prev_feat[lo:hi]) != _row_words(cur)).any(axis=1)
+                        # rows written (stamps) or whose bytes changed since the previous blocks
+                        if stamps is not None:
+                            changed = stamps[lo:hi] > prev_version
+                        else:
+                            changed = (_row_words(prev_feat[lo:hi]) != _row_words(cur)).any(axis=1)
                         if not changed.any():
                             blocks.append(prev_blocks[b])
                             continue
@@ -419,6 +431,11 @@ class GlobalSemanticMap:
         self._hits = np.zeros(cap, np.int32)
         self._last_seen_ns = np.zeros(cap, np.int64)
         self._last_seen_kf = np.zeros(cap, np.int64)
+        self._feat_stamp = np.zeros(cap, np.int64)
+        """The version whose snapshots first include each row's current feature bytes."""
+        self._feat_reset = self._version + 1
+        """Rows moved or were replaced (prune, restore, clear) in this version: snapshots'
+        ``feat_reset``."""
         self._sorted_keys = np.zeros(0, np.int64)
         self._sorted_rows = np.zeros(0, np.int64)
         self._kf_counter = 0
@@ -433,7 +450,7 @@ class GlobalSemanticMap:
         """Seconds of the latest integrates (for the p50 / p95 in :meth:`stats`)."""
 
     _ROW_FIELDS = ("_keys", "_xyz", "_weight", "_feat", "_feat_norm", "_feat_weight", "_hits",
-                   "_last_seen_ns", "_last_seen_kf")  # fmt: skip
+                   "_last_seen_ns", "_last_seen_kf", "_feat_stamp")  # fmt: skip
 
     def _grow(self, need: int) -> None:
         cap = self._keys.shape[0]
@@ -717,6 +734,7 @@ class GlobalSemanticMap:
             mixed[~fresh] += self._feat[rows[~fresh]].astype(np.float32)
             mixed /= np.maximum(np.sqrt(np.einsum("ud,ud->u", mixed, mixed)), 1e-12)[:, None]
             self._feat[rows] = mixed.astype(np.float16)
+            self._feat_stamp[rows] = self._version + 1
             self._feat_norm[rows[fresh]] = 1.0
             self._feat_weight[rows[fresh]] = np.maximum(self._weight[rows[fresh]], 1e-6)
             self.points_learned += int(rows.shape[0])
@@ -754,6 +772,7 @@ class GlobalSemanticMap:
             sum_w.astype(np.float32),
         )
         self._feat[rows], self._feat_norm[rows], self._feat_weight[rows] = unit, norm, fw
+        self._feat_stamp[rows] = self._version + 1  # integrate_features bumps the version after this
         return int(keys.shape[0]), n_u
 
     def _fuse(self, obs: Observations, stamp_ns: int) -> tuple[int, int, int]:
@@ -818,6 +837,7 @@ class GlobalSemanticMap:
                 sum_w.astype(np.float32),
             )
             self._feat[rows], self._feat_norm[rows], self._feat_weight[rows] = unit, norm, fw
+            self._feat_stamp[rows] = self._version  # integrate bumped the version before this
         pruned = self._prune_if_needed()
         return n_u, n_new, pruned
 
@@ -847,6 +867,7 @@ class GlobalSemanticMap:
             arr[: kept.shape[0]] = kept
             arr[kept.shape[0]:] = 0
         self._n = int(keep.shape[0])
+        self._feat_reset = max(self._feat_reset, self._version)  # rows moved (callers bumped first)
         order = np.argsort(self._keys[: self._n], kind="stable")
         self._sorted_keys = self._keys[: self._n][order].copy()
         self._sorted_rows = order.astype(np.int64)
@@ -886,6 +907,8 @@ class GlobalSemanticMap:
                 feat_weight=frozen(self._feat_weight),
                 hits=frozen(self._hits),
                 last_seen_ns=frozen(self._last_seen_ns),
+                feat_stamp=frozen(self._feat_stamp),
+                feat_reset=self._feat_reset,
                 generation=self._generation,
                 _unit_source=self._unit_source,
             )

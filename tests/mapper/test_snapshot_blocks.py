@@ -96,3 +96,63 @@ def test_old_snapshots_keep_their_own_blocks(monkeypatch: pytest.MonkeyPatch) ->
     new = gmap.snapshot()
     check(new)  # computed first: the old snapshot has not published blocks
     check(old)  # then the old one: its rows differ, it must not take the new blocks
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_random_changes_blocks_equal_full_renormalisation(monkeypatch: pytest.MonkeyPatch, seed: int) -> None:
+    """Random sequences of every kind of change, snapshots taken (and their blocks computed) in
+    random order, sometimes an older one after a newer: the blocks always equal a full
+    renormalisation (prunes, restores and clears move rows: those blocks are compared by bytes)."""
+    monkeypatch.setattr(global_map, "UNIT_BLOCK_ROWS", 16)
+    rng = np.random.default_rng(seed)
+    gmap = GlobalSemanticMap(GlobalMapConfig(pixel_stride=2, max_points=400))
+    pending: list[global_map.GlobalMapSnapshot] = []
+    checked = 0
+    for step in range(40):
+        op = rng.choice(["integrate", "integrate", "integrate", "features", "set", "restore", "clear"],
+                        p=[0.25, 0.25, 0.2, 0.1, 0.1, 0.05, 0.05])  # fmt: skip
+        x = float(rng.integers(0, 6)) * 3.0
+        if op == "integrate":
+            gmap.integrate(keyframe(x, step + 1, step), map_version=step + 1)
+        elif op == "features" and gmap.dim is not None:
+            kf = keyframe(x, step + 1, step)
+            gmap.integrate_features(kf, map_version=step + 1)
+        elif op == "set":
+            keys, _ = gmap.seen_voxels(keyframe(x, step + 1, step))
+            if keys.size:
+                some = keys[: int(rng.integers(1, keys.size + 1))]
+                gmap.set_features(some, rng.standard_normal((some.size, 8)))
+        elif op == "restore":
+            arrays, manifest = gmap.to_arrays()
+            gmap.restore(arrays, manifest, map_version=step + 1)
+        elif op == "clear":
+            gmap.clear(map_version=step + 1)
+        pending.append(gmap.snapshot())
+        while pending and rng.random() < 0.6:  # compute some of the snapshots, in random order
+            snap = pending.pop(int(rng.integers(0, len(pending))))
+            if snap.feat is not None and len(snap):
+                check(snap)
+                checked += 1
+    assert checked > 10
+
+
+def test_stamps_find_the_changed_rows_without_comparing(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stream of integrates and learned features, each snapshot computed in turn: the changed
+    rows come from the write stamps, no row bytes are compared."""
+    monkeypatch.setattr(global_map, "UNIT_BLOCK_ROWS", 16)
+    compares: list[int] = []
+    original = global_map._row_words
+
+    def counting(a: np.ndarray) -> np.ndarray:
+        compares.append(a.shape[0])
+        return original(a)
+
+    monkeypatch.setattr(global_map, "_row_words", counting)
+    gmap = GlobalSemanticMap(GlobalMapConfig(pixel_stride=2, max_points=1_000_000))
+    for i in range(12):
+        gmap.integrate(keyframe(3.0 * (i % 4), i + 1, i), map_version=i + 1)
+        if i % 3 == 2:
+            keys, _ = gmap.seen_voxels(keyframe(0.0, 100 + i, 100 + i))
+            gmap.set_features(keys[:5], np.ones((min(5, keys.size), 8)))
+        check(gmap.snapshot())
+    assert compares == []
