@@ -248,9 +248,10 @@ class QueryConfig:
 
     answer_max_age_s: float = 2.0
     """``query_points`` answers the same question (texts, negatives, min_score, max_points,
-    objects) from its last answer when the map has not changed since, or, while the map only grew
-    or was fused into (no ``load``), when that answer is at most this old (seconds since its
-    snapshot was taken); a stale answer is returned at once and recomputed in the background, so a
+    objects) from its last answer when the map has not changed since, or, while frames are
+    arriving and the map only grew or was fused into (no ``load``), when that answer is at most
+    this old (seconds since its snapshot was taken); a stale answer is returned at once and
+    recomputed in the background (once the stream stops, answers are of the current map), so a
     planner asking back to back during a stream is not held up by a recomputation per keyframe
     (:class:`mapper.node.queries.AnswerCache`; replies carry ``answer_reused`` / ``answer_age_ms``
     in ``timing_ms``, and ``map_version`` says which version answered). 0 = only answers of the

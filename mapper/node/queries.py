@@ -468,9 +468,10 @@ class AnswerCache:
     :meth:`get` returns a cached answer when it was computed on the current map version (the
     same answer a new computation would give), or, with ``max_age_s > 0``, on an older version
     of the same map (same generation: no ``load`` or ``clear`` since) at most ``max_age_s``
-    seconds ago: a *stale* answer, which the node returns at once and recomputes in the
-    background (stale-while-revalidate). Replies say which (``timing_ms``: ``answer_reused``,
-    ``answer_age_ms``; ``map_version`` is the version the answer describes). Least recently used
+    seconds ago: a *stale* answer, which the node returns at once (only while frames are
+    arriving) and recomputes in the background (stale-while-revalidate). Replies say which
+    (``timing_ms``: ``answer_reused``, ``answer_age_ms``; ``map_version`` is the version the
+    answer describes). Least recently used
     questions beyond ``max_entries`` answers or ``max_bytes`` of their arrays are dropped (an
     answer larger than ``max_bytes`` is not kept). Thread-safe."""
 
@@ -487,18 +488,19 @@ class AnswerCache:
         return len(self._entries)
 
     def get(
-        self, key: AnswerKey, version: int, generation: int, now_s: float
+        self, key: AnswerKey, version: int, generation: int, now_s: float, *, allow_stale: bool = True
     ) -> tuple[Points, float, bool] | None:
         """(answer, age_s, stale) for the question ``key`` on the map at ``version`` /
-        ``generation``, or None when it must be computed. The answer is a shallow copy with its
-        own ``id`` (None) and ``timing_ms`` (``answer_reused`` 1, ``answer_age_ms``)."""
+        ``generation``, or None when it must be computed (``allow_stale=False``: unless the answer
+        is of this very version). The answer is a shallow copy with its own ``id`` (None) and
+        ``timing_ms`` (``answer_reused`` 1, ``answer_age_ms``)."""
         with self._lock:
             entry = self._entries.get(key)
             if entry is None or entry.generation != generation or entry.version > version:
                 return None
             age = max(0.0, now_s - entry.taken_s)
             stale = entry.version != version
-            if stale and age > self.max_age_s:
+            if stale and (not allow_stale or age > self.max_age_s):
                 return None
             self._entries.move_to_end(key)
             self.counts["reused_stale" if stale else "reused_same_version"] += 1

@@ -1235,9 +1235,10 @@ class MapperNode:
         threading.Thread(target=warm, name="mapper-encoder-warmup", daemon=True).start()
 
     def _handle_query_points(self, msg: Message) -> Message:
-        """Answer from :class:`mapper.node.queries.AnswerCache` when it may (same map version, or a
-        stale answer within ``queries.answer_max_age_s``, then recomputed in the background), else
-        compute on the current snapshot."""
+        """Answer from :class:`mapper.node.queries.AnswerCache` when it may (same map version, or,
+        while frames are arriving, a stale answer within ``queries.answer_max_age_s``, then
+        recomputed in the background), else compute on the current snapshot. Once the stream
+        stops (no frame for ``limits.ingest_active_s``) every answer is of the current map."""
         assert isinstance(msg, QueryPoints)
         from mapper.node.queries import answer_key
 
@@ -1245,7 +1246,8 @@ class MapperNode:
         key = answer_key(msg.texts, msg.negatives, msg.min_score, msg.max_points, msg.objects)
         gmap = self.state.global_map
         t0 = time.monotonic()
-        hit = answers.get(key, gmap.version, gmap.generation, t0)
+        streaming = t0 - self._ingest_last <= self.config.limits.ingest_active_s
+        hit = answers.get(key, gmap.version, gmap.generation, t0, allow_stale=streaming)
         if hit is None:
             return self._compute_answer(key, msg)
         answer, _age, stale = hit

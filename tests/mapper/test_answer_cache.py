@@ -5,6 +5,7 @@ across a ``load`` / ``clear`` (another map), never past the age, never for anoth
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -95,8 +96,10 @@ def test_bounded_and_off() -> None:
 
 
 def node_with_map(tmp_path: Path, **queries: object) -> MapperNode:
+    """A node with a small map; frames count as arriving (stale answers are only served then)."""
     node = in_process_node(tmp_path, queries=queries)
     node._text_encoder = lambda what: HashEncoder()  # type: ignore[method-assign]
+    node._ingest_last = math.inf
     for i in range(3):
         node.state.global_map.integrate(keyframe(10.0 * i, i + 1, i), map_version=i + 1)
     return node
@@ -150,6 +153,18 @@ def test_node_reuses_then_refreshes_a_stale_answer(tmp_path: Path) -> None:
     # another question is computed, not taken from this one
     other = ask(node, max_points=5)
     assert other.timing_ms["answer_reused"] == 0.0 and other.xyz.shape[0] <= 5
+
+
+def test_node_recomputes_once_the_stream_stopped(tmp_path: Path) -> None:
+    """With no frame for ``limits.ingest_active_s`` a changed map is answered afresh at once."""
+    node = node_with_map(tmp_path, answer_max_age_s=60.0)
+    ask(node)
+    node.state.global_map.integrate(keyframe(0.0, 11, 11), map_version=7)
+    node._ingest_last = time.monotonic() - 10.0
+    now = ask(node)
+    assert now.timing_ms["answer_reused"] == 0.0 and now.map_version == 7
+    same(now, fresh(node))
+    assert ask(node).timing_ms["answer_reused"] == 1.0  # unchanged map: the same answer again
 
 
 def test_node_recomputes_past_the_age_and_after_a_load(tmp_path: Path) -> None:
