@@ -276,7 +276,8 @@ class MapperNode:
         made by the first query: :mod:`mapper.node.queries` imports SciPy)."""
         self._answer_cache: AnswerCache | None = None
         """``query_points``' recent answers (``queries.answer_max_age_s``); made with the label cache."""
-        self._label_cache_lock = threading.Lock()
+        self._answers_lock = threading.Lock()
+        """Guards making the two caches and the refresh bookkeeping."""
         self._refresh_jobs: queue.Queue[tuple[AnswerKey, QueryPoints]] = queue.Queue(
             maxsize=max(1, config.queries.answer_cache_entries)
         )
@@ -1259,7 +1260,7 @@ class MapperNode:
     def _query_caches(self) -> tuple[BlockLabelCache, AnswerCache]:
         from mapper.node.queries import AnswerCache, BlockLabelCache
 
-        with self._label_cache_lock:
+        with self._answers_lock:
             if self._label_cache is None or self._answer_cache is None:
                 cfg = self.config.queries
                 self._label_cache = BlockLabelCache(cfg.label_cache_blocks)
@@ -1293,7 +1294,7 @@ class MapperNode:
     def _schedule_refresh(self, key: AnswerKey, msg: QueryPoints) -> None:
         """Queue one background recomputation of ``key`` (none when one is already queued or the
         queue is full: the next stale request queues it)."""
-        with self._label_cache_lock:
+        with self._answers_lock:
             if key in self._refresh_pending:
                 return
             try:
@@ -1327,7 +1328,7 @@ class MapperNode:
         except Exception:
             log.exception("answer refresh failed (the next request computes its answer)")
         finally:
-            with self._label_cache_lock:
+            with self._answers_lock:
                 self._refresh_pending.discard(key)
         return True
 
