@@ -420,7 +420,8 @@ class BlockLabelCache:
                     self.hits += 1
                     parts.append(entry[1:])
                     continue
-            result = label_from_similarities(np.matmul(block, emb_t), n_texts)  # (rows, T + Q) cosines
+            label, score, beats = label_from_similarities(np.matmul(block, emb_t), n_texts)  # (rows, T + Q)
+            result = (label.astype(np.int16), score, beats)  # at most 64 texts: 112 KB a full block
             parts.append(result)
             with self._lock:
                 self.misses += 1
@@ -432,7 +433,7 @@ class BlockLabelCache:
         if not parts:
             return np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, bool)
         label, score, beats = (np.concatenate([p[i] for p in parts]) for i in range(3))
-        return label, score, beats
+        return label.astype(np.int64), score, beats
 
 
 AnswerKey = tuple[tuple[str, ...], tuple[str, ...] | None, float | None, int | None, bool]
