@@ -58,6 +58,7 @@ import itertools
 import logging
 import threading
 import time
+import warnings
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -112,7 +113,10 @@ def _unit_rows(feat: np.ndarray) -> np.ndarray:
     if out.size == 0:
         return out
     t = torch.from_numpy(out)
-    t.copy_(torch.from_numpy(np.ascontiguousarray(feat)))
+    with warnings.catch_warnings():  # snapshot rows are read-only; torch only reads them here
+        warnings.filterwarnings("ignore", message="The given NumPy array is not writable")
+        source = torch.from_numpy(np.ascontiguousarray(feat))
+    t.copy_(source)
     t.div_(torch.linalg.vector_norm(t, dim=1, keepdim=True).clamp_min_(1e-12))
     return out
 
