@@ -472,9 +472,9 @@ class AnswerCache:
     seconds ago: a *stale* answer, which the node returns at once (only while frames are
     arriving) and recomputes in the background (stale-while-revalidate). Replies say which
     (``timing_ms``: ``answer_reused``, ``answer_age_ms``; ``map_version`` is the version the
-    answer describes). Least recently used
-    questions beyond ``max_entries`` answers or ``max_bytes`` of their arrays are dropped (an
-    answer larger than ``max_bytes`` is not kept). Thread-safe."""
+    answer describes). Least recently used questions beyond ``max_entries`` answers or
+    ``max_bytes`` of their arrays are dropped (an answer larger than ``max_bytes`` is not kept).
+    Thread-safe."""
 
     def __init__(self, max_age_s: float, max_entries: int, max_bytes: int = 64 << 20) -> None:
         self.max_age_s = max_age_s
