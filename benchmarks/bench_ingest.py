@@ -104,9 +104,11 @@ def row(r: dict[str, Any]) -> str:
     integ = r.get("integration_after_stream") or {}
     planner = r["planner"] or {}
     ack = r["ack_latency"]
+    age = planner.get("answer_age") or {}
     return (
         f"| {r['name']} | {r['acks_per_s']} | {ack.get('p50_ms')} / {ack.get('p95_ms')} "
         f"| {r['integrate_ms_p50']} / {r['integrate_ms_p95']} | {planner.get('answers_per_s')} "
+        f"(age p50 {age.get('p50_ms')} / p95 {age.get('p95_ms')} ms) "
         f"| {integ.get('backlog')} (waits {integ.get('backpressure_waits')}, "
         f"lag p95 {integ.get('lag_ms_p95')} ms) "
         f"| {r['saved_keyframes_integrated']} of {r['keyframes_acked']} | {r['load_1min']} |"
@@ -133,8 +135,9 @@ def main() -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     report = {"machine": describe_machine(), "runs": results}
     out.with_suffix(".json").write_text(json.dumps(report, indent=1))
-    print("| configuration | acks/s | ack p50 / p95 ms | integrate p50 / p95 ms | planner answers/s "
-          "| backlog after the stream | saved map: keyframes integrated | load |")
+    print("| configuration | acks/s | ack p50 / p95 ms | integrate p50 / p95 ms "
+          "| planner answers/s (answer age) | backlog after the stream "
+          "| saved map: keyframes integrated | load |")
     for r in results:
         print(row(r))
     return 0

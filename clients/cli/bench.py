@@ -201,6 +201,7 @@ def bench_ingest(
     """Acks/s of a pipelined stream, with a planner asking back to back on another connection."""
     stop = threading.Event()
     answers: list[float] = []
+    ages: list[float] = []  # seconds: how old each answer's map snapshot was (the node's answer cache)
     errors: dict[str, int] = {}
 
     def planner() -> None:
@@ -208,8 +209,9 @@ def bench_ingest(
             while not stop.is_set():
                 t0 = time.perf_counter()
                 try:
-                    c.query_points(QUERY_TEXTS, max_points=100)
+                    reply = c.query_points(QUERY_TEXTS, max_points=100)
                     answers.append(time.perf_counter() - t0)
+                    ages.append(reply.timing_ms.get("answer_age_ms", 0.0) / 1e3)
                 except RemoteError as exc:  # not_ready before the first features
                     errors[exc.code] = errors.get(exc.code, 0) + 1
                     time.sleep(0.05)
@@ -244,6 +246,7 @@ def bench_ingest(
             "answers": len(answers),
             "answers_per_s": round(len(answers) / elapsed, 2),
             "latency": _pcts(answers),
+            "answer_age": _pcts(ages),
             "errors": errors,
         }
         if query_during
@@ -329,8 +332,8 @@ def bench_status_during_render(node: NodeProcess, size: tuple[int, int], min_sam
         while not done.is_set() or len(status_s) < min_samples:
             status_s.append(_timed(client.status)[0])
             try:  # a new question each time (computed), then the same again (the answer cache)
-                new = 100 + len(query_s)
-                query_s.append(_timed(lambda: client.query_points(QUERY_TEXTS, max_points=new))[0])  # noqa: B023
+                ask = functools.partial(client.query_points, QUERY_TEXTS, max_points=100 + len(query_s))
+                query_s.append(_timed(ask)[0])
                 repeat_s.append(_timed(lambda: client.query_points(QUERY_TEXTS, max_points=100))[0])
             except RemoteError:
                 pass
@@ -384,7 +387,7 @@ def bench_query_points(
             node_timing = reply.timing_ms
             repeat.append(_timed(lambda: client.query_points(QUERY_TEXTS, timeout_s=300.0))[0])
         for text in NEW_QUERY_TEXTS[: max(1, cached_repeats)]:
-            new_text.append(_timed(lambda: client.query_points([text], timeout_s=300.0))[0])  # noqa: B023
+            new_text.append(_timed(functools.partial(client.query_points, [text], timeout_s=300.0))[0])
         floor = matmul_floor_s(n, 20)
         c50 = float(np.percentile(cached, 50)) if cached else math.nan
         n50 = float(np.percentile(new_text, 50)) if new_text else math.nan
@@ -477,7 +480,8 @@ def to_markdown(r: dict[str, Any]) -> str:
         p = ing["planner"]
         lines.append(
             f"Planner asking `query_points` back to back during the stream: {p['answers_per_s']} answers/s "
-            f"(p50 {p['latency']['p50_ms']} ms, p95 {p['latency']['p95_ms']} ms)."
+            f"(p50 {p['latency']['p50_ms']} ms, p95 {p['latency']['p95_ms']} ms); the answers' age "
+            f"p50 {p['answer_age']['p50_ms']} ms, p95 {p['answer_age']['p95_ms']} ms."
         )
     seg = r["segment_points"]
     lines += [

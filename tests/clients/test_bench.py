@@ -25,6 +25,8 @@ def test_bench_quick_writes_json_and_markdown(tmp_path: Path) -> None:
     assert machine["python"] and machine["cpu_count"] and machine["torch"]
     assert result["ingest"]["frames"] == 12 and sum(result["ingest"]["acks"].values()) == 12
     assert result["ingest"]["integrate_ms_p50"] is not None
+    planner = result["ingest"]["planner"]
+    assert planner["answer_age"]["n"] == planner["answers"]  # one age per answer
     for method in ("average", "average_depth"):
         assert result["segment_points"][method]["error"] is None
         assert result["segment_points"][method]["per_100k_s"] > 0
