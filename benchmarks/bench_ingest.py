@@ -39,6 +39,9 @@ CONFIGS: dict[str, list[str]] = {
     "background, share 0.6": ["global_map.integrate_queue=16", "limits.query_share=0.6"],
     "background, share 1.0": ["global_map.integrate_queue=16", "limits.query_share=1.0"],
     "inline, share 1.0": ["global_map.integrate_queue=0", "limits.query_share=1.0"],
+    "background, share 0.3, answers up to 1 s": [
+        "global_map.integrate_queue=16", "limits.query_share=0.3", "queries.answer_max_age_s=1.0"
+    ],
     "background, share 0.3, no learned map features": [
         "global_map.integrate_queue=16", "limits.query_share=0.3", "global_map.learned_features=false"
     ],
