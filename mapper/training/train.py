@@ -41,7 +41,13 @@ import torch
 import torch.distributed as dist
 
 from govnesf._compat import tomllib
-from mapper.model.checkpoint import load_training_state, save_checkpoint
+from mapper.model.checkpoint import (
+    config_from_dict,
+    load_metadata,
+    load_model,
+    load_training_state,
+    save_checkpoint,
+)
 from mapper.model.config import ModelConfig, get_preset
 from mapper.model.field import GovNeSF, SourceViews, render_rays
 from mapper.model.losses import distortion_loss, govnesf_loss, ov_cosine_loss
@@ -96,6 +102,11 @@ class TrainConfig:
     """Weights-only checkpoint written at every validation and at the end (e.g. checkpoints/cpu-small)."""
     export_half: bool = True
     """Export float16 weights (the validation metrics are checked with them)."""
+    init_weights: str = ""
+    """Fine-tune: start from this checkpoint's weights (``NAME`` / ``NAME.json`` of an export or a
+    training checkpoint, e.g. ``checkpoints/cpu-small``) with a fresh optimiser and schedule
+    (step 0). Its model config and mode must be the run's. Empty = random init. Ignored on resume
+    (the training checkpoint has the weights)."""
     max_steps: int = 2000
     """Length of the run (the cosine schedule ends here)."""
     batch_views: int = 2
@@ -676,6 +687,8 @@ def _build_model(cfg: TrainConfig, mcfg: ModelConfig, dd: _Dist, resume: str | P
     model = GovNeSF(mcfg, mode=cfg.mode).to(dd.device)  # type: ignore[arg-type]
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     built = _Model(model, optimizer)
+    if resume is None and cfg.init_weights:
+        _init_from(model, cfg.init_weights, mcfg, cfg.mode)
     if resume is not None:
         meta, extra = load_training_state(resume, model, optimizer)
         built.start = int(meta["step"])
@@ -687,6 +700,23 @@ def _build_model(cfg: TrainConfig, mcfg: ModelConfig, dd: _Dist, resume: str | P
         for t in list(model.state_dict().values()):
             dist.broadcast(t, src=0)
     return built
+
+
+def _init_from(model: GovNeSF, path: str, mcfg: ModelConfig, mode: str) -> None:
+    """Load ``path``'s weights into ``model`` in place (float32), refusing another config or mode."""
+    meta = load_metadata(path)
+    theirs = config_from_dict(meta["config"])
+    if theirs != mcfg:
+        ours, other = dataclasses.asdict(mcfg), dataclasses.asdict(theirs)
+        diff = sorted(k for k in ours if ours[k] != other.get(k))
+        raise ValueError(
+            f"init_weights {path}: its model config differs from the run's in {diff}; "
+            "fine-tuning needs the same preset, OV size and Distill head"
+        )
+    if meta.get("mode", "blend") != mode:
+        raise ValueError(f"init_weights {path}: mode {meta.get('mode', 'blend')!r}, the run's is {mode!r}")
+    loaded, _ = load_model(path)
+    model.load_state_dict(loaded.state_dict(), strict=True)
 
 
 class _Run:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import socket
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -224,3 +225,36 @@ def test_photometric_augmentation_is_deterministic_and_off_by_default(data_root:
         RaySampler([scene], tiny_model_config(), rays_per_view=16, photometric_prob=1.5)
     with pytest.raises(ValueError, match="surface_band_m"):
         TrainConfig(surface_band_m=0.0)
+
+
+def test_init_weights_fine_tunes_from_a_checkpoint(data_root: Path, tmp_path: Path) -> None:
+    train(_cfg(data_root, tmp_path / "base", max_steps=2), model_cfg=tiny_model_config(), progress=False)
+    base = _params(tmp_path / "base" / "last")
+    tuned_cfg = _cfg(
+        data_root, tmp_path / "tuned", max_steps=1, lr=1e-12, init_weights=str(tmp_path / "base" / "last")
+    )
+    result = train(tuned_cfg, model_cfg=tiny_model_config(), progress=False)
+    assert result["step"] == 1  # a fresh schedule: the base run's 2 steps do not count
+    tuned = _params(tmp_path / "tuned" / "last")
+    torch.manual_seed(0)
+    init = GovNeSF(tiny_model_config()).state_dict()
+    differs_from_init = 0
+    for k in base:  # one step at lr 1e-12 leaves the loaded weights where they were
+        torch.testing.assert_close(tuned[k], base[k], atol=1e-6, rtol=0, msg=lambda m, k=k: f"{k}: {m}")
+        differs_from_init += int(not torch.equal(tuned[k], init[k]))
+    assert differs_from_init > len(base) // 2
+
+
+def test_init_weights_refuses_another_config_or_mode(data_root: Path, tmp_path: Path) -> None:
+    train(_cfg(data_root, tmp_path / "base", max_steps=1), model_cfg=tiny_model_config(), progress=False)
+    src = str(tmp_path / "base" / "last")
+    other = replace(tiny_model_config(), num_source_views=tiny_model_config().num_source_views + 1)
+    with pytest.raises(ValueError, match="num_source_views"):
+        train(_cfg(data_root, tmp_path / "a", init_weights=src), model_cfg=other, progress=False)
+    with pytest.raises(ValueError, match="mode 'blend'"):
+        train(
+            _cfg(data_root, tmp_path / "b", init_weights=src, mode="distill"),
+            model_cfg=tiny_model_config(),
+            progress=False,
+        )
+    assert not (tmp_path / "a" / "last.json").exists() and not (tmp_path / "b" / "last.json").exists()
