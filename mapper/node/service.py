@@ -1191,6 +1191,9 @@ class MapperNode:
             fresh.retag(version)
             state.global_map = fresh  # a frame being integrated into the old map right now is dropped
             self._publish(version, count)
+        # The loaded map is ready to query when the reply goes out: its snapshot and normalised
+        # features (what the first query_points would compute) are made here, off the query path.
+        fresh.snapshot().unit_feature_blocks()
         for listener in self.load_listeners:
             listener(fresh, version)
         points = len(state.global_map)

@@ -233,3 +233,18 @@ def test_started_node_refreshes_in_the_background(tmp_path: Path) -> None:
         same(refreshed, fresh(node))
     finally:
         node.stop()
+
+
+def test_a_loaded_map_is_ready_to_query(tmp_path: Path) -> None:
+    """``load`` replies with the map's snapshot and normalised features made, so the first
+    ``query_points`` does not compute them; its answer is the one a fresh computation gives."""
+    node = node_with_map(tmp_path, answer_max_age_s=0.0)
+    node.handle_query(encode(Save(name="m")))
+    reply = decode(node.handle_query(encode(Load(name="m"))))
+    assert isinstance(reply, Ok), reply
+    snap = node.state.global_map.snapshot()
+    blocks = snap._cache.get("unit_blocks")
+    assert blocks is not None and sum(b.shape[0] for b in blocks) == len(snap) > 0  # made by the load
+    after = ask(node)
+    assert node.state.global_map.snapshot() is snap and snap._cache["unit_blocks"] is blocks  # used as made
+    same(after, fresh(node))
