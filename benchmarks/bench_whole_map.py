@@ -9,8 +9,14 @@ method (``average``, ``average_depth``, ``govnesf``). Runs:
 * ``unbounded``: a window that holds every keyframe;
 * ``bounded``: a window of ceil(keyframes / 3) keyframes (the stream has 3x more keyframes than
   the window), answered from the window and the global map (the node's default);
-* ``bounded, window only``: the same with ``queries.map_radius_voxels = 0`` (the behaviour before);
+* ``bounded, window only``: the same with ``queries.map_radius_voxels = 0`` (no map answers);
+* ``bounded`` / ``unbounded, window first (before 2026-12-03)``: the map answers only the points
+  no window view sees, within 1.5 voxels (``map_radius_voxels = 1.5``,
+  ``map_when_more_confident = false``);
 * ``bounded, no learned map features``: ``global_map.learned_features = false``.
+
+Every other run uses the shipped ``[queries]`` (``map_radius_voxels = 2.5``,
+``map_when_more_confident = true``); the unbounded run too, so the comparison is like for like.
 
 Also the global map's own mIoU (each ground-truth point labelled by the nearest map point's fused
 feature within the lookup radius) with and without the learned features written before eviction.
@@ -66,7 +72,9 @@ def _count_keyframes(frames: list[bytes]) -> int:
     return n
 
 
-def _node(tmp: Path, max_keyframes: int, *, radius_voxels: float, learned: bool) -> tuple[Any, Any]:
+def _node(
+    tmp: Path, max_keyframes: int, *, radius_voxels: float, learned: bool, more_confident: bool
+) -> tuple[Any, Any]:
     from mapper.node.config import config_from_dict
     from mapper.node.plugins.learned import install_learned_handlers
     from mapper.node.service import MapperNode
@@ -78,7 +86,7 @@ def _node(tmp: Path, max_keyframes: int, *, radius_voxels: float, learned: bool)
             "events_endpoint": "",
             "window": {"max_keyframes": max_keyframes},
             "global_map": {"rendered_depth": False, "learned_features": learned},
-            "queries": {"map_radius_voxels": radius_voxels},
+            "queries": {"map_radius_voxels": radius_voxels, "map_when_more_confident": more_confident},
         }
     )
     node = MapperNode(config)
@@ -135,6 +143,7 @@ def _map_miou(node: Any, xyz: np.ndarray, gt: np.ndarray, texts: list[str]) -> f
 
 def bench_scene(scene: Path, tmp: Path) -> dict[str, Any]:
     from clients.harness import mean_iou
+    from mapper.node.config import QueryConfig
 
     frames = _frames(scene)
     gt = np.load(scene / "gt" / "points.npz")
@@ -142,11 +151,15 @@ def bench_scene(scene: Path, tmp: Path) -> dict[str, Any]:
     texts = json.loads((scene / "gt" / "class_names.json").read_text())
     n_kf = _count_keyframes(frames)
     bounded = max(1, math.ceil(n_kf / 3))
-    runs = {
-        "unbounded": (10_000, 1.5, True),
-        "bounded": (bounded, 1.5, True),
-        "bounded, window only": (bounded, 0.0, True),
-        "bounded, no learned map features": (bounded, 1.5, False),
+    shipped = QueryConfig()
+    radius, confident = shipped.map_radius_voxels, shipped.map_when_more_confident
+    runs = {  # max keyframes, map radius (voxels), learned map features, map when more confident
+        "unbounded": (10_000, radius, True, confident),
+        "bounded": (bounded, radius, True, confident),
+        "bounded, window only": (bounded, 0.0, True, False),
+        "bounded, window first (before 2026-12-03)": (bounded, 1.5, True, False),
+        "unbounded, window first (before 2026-12-03)": (10_000, 1.5, True, False),
+        "bounded, no learned map features": (bounded, radius, False, confident),
     }
     out: dict[str, Any] = {
         "scene": scene.name,
@@ -156,8 +169,10 @@ def bench_scene(scene: Path, tmp: Path) -> dict[str, Any]:
         "gt_points": int(xyz.shape[0]),
         "runs": {},
     }
-    for name, (max_kf, radius, learned) in runs.items():
-        node, blender = _node(tmp, max_kf, radius_voxels=radius, learned=learned)
+    for name, (max_kf, radius_voxels, learned, more_confident) in runs.items():
+        node, blender = _node(
+            tmp, max_kf, radius_voxels=radius_voxels, learned=learned, more_confident=more_confident
+        )
         ingest_s = _run(frames, node, blender)
         row: dict[str, Any] = {"max_keyframes": max_kf, "ingest_s": round(ingest_s, 2)}
         for method in METHODS:
@@ -169,7 +184,7 @@ def bench_scene(scene: Path, tmp: Path) -> dict[str, Any]:
                 "none": int(np.count_nonzero(source == 0)),
                 "seconds": round(seconds, 2),
             }
-        if radius > 0:
+        if radius_voxels > 0:
             row["global_map_miou"] = round(100 * _map_miou(node, xyz, gt_label, texts), 2)
         row["map_features"] = (
             node.status_providers["map_features"]() if "map_features" in node.status_providers else None

@@ -265,10 +265,16 @@ class QueryConfig:
     """Most memory the kept answers' arrays may take (least recently asked dropped first; an
     answer larger than this is not kept). 0..100000."""
 
-    map_radius_voxels: float = 1.5
+    map_radius_voxels: float = 2.5
     """``segment_points`` / ``render`` answer a point no window keyframe sees from the global
     map's nearest point with a feature within this many map voxels (``global_map.voxel_size_m``);
     0 = window only. 0..100."""
+
+    map_when_more_confident: bool = True
+    """``segment_points`` also answers a point the window sees from that nearest map point when the
+    map names another text with a higher cosine than the window's answer (keyframes that left the
+    window saw the point better than those in it; the reply's ``source`` says map). False = the window's
+    answer wherever it sees a point. ``render`` labels keep the window's answer where it has one."""
 
     def validate(self, where: str) -> None:
         _check_range(where, "queries.workers", self.workers, 0, 64)

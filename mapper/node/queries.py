@@ -698,19 +698,24 @@ def fill_from_map(
     score: np.ndarray,  # (N,) float32 the window's scores
     window_seen: np.ndarray,  # (N,) bool: the window answered the point
     radius_m: float,
+    *,
+    more_confident: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Answer the points the window did not from the map: (label (N,) int32, score (N,) float32,
     source (N,) uint8). A point the window saw keeps the window's answer (``SOURCE_WINDOW``); an
     unseen one takes the best text of the nearest map point carrying a feature within
-    ``radius_m`` (``SOURCE_MAP``: its cosine as score), else -1 / 0 (``SOURCE_NONE``). A map whose
-    feature dimension is not the texts' answers nothing."""
+    ``radius_m`` (``SOURCE_MAP``: its cosine as score), else -1 / 0 (``SOURCE_NONE``). With
+    ``more_confident``, a point the window saw also takes the map's answer where the map names
+    another text with a higher cosine than the window's score (views that left the window saw it
+    better than the ones in it); where both name the same text the window's answer stays. A map
+    whose feature dimension is not the texts' answers nothing."""
     label = np.array(label, np.int32, copy=True)
     score = np.array(score, np.float32, copy=True)
     seen = np.asarray(window_seen, bool)
     source = np.where(seen, SOURCE_WINDOW, SOURCE_NONE).astype(np.uint8)
     label[~seen] = -1
     score[~seen] = 0.0
-    todo = np.flatnonzero(~seen)
+    todo = np.arange(seen.shape[0]) if more_confident else np.flatnonzero(~seen)
     if todo.size == 0 or not _map_compatible(snapshot, text_emb):
         return label, score, source
     rows = snapshot.nearest_with_feature(np.asarray(xyz)[todo], radius_m)
@@ -718,9 +723,13 @@ def fill_from_map(
     if hit.any():
         sims = _map_unit_features(snapshot, rows[hit]) @ text_emb.T  # (n, T)
         best = np.argmax(sims, axis=1)
+        best_score = sims[np.arange(best.shape[0]), best].astype(np.float32)
         idx = todo[hit]
-        label[idx] = best.astype(np.int32)
-        score[idx] = sims[np.arange(best.shape[0]), best].astype(np.float32)
+        # unseen, or the map names another text with a higher cosine than the window's answer
+        take = ~seen[idx] | ((best_score > score[idx]) & (best != label[idx]))
+        idx = idx[take]
+        label[idx] = best[take].astype(np.int32)
+        score[idx] = best_score[take]
         source[idx] = SOURCE_MAP
     return label, score, source
 

@@ -1428,7 +1428,8 @@ class MapperNode:
 
         if snap is None:
             snap = self.state.global_map.snapshot()
-        return fill_from_map(snap, xyz, text_emb, label, score, window_seen, self.map_radius_m)
+        return fill_from_map(snap, xyz, text_emb, label, score, window_seen, self.map_radius_m,
+                             more_confident=self.config.queries.map_when_more_confident)
 
     @property
     def map_radius_m(self) -> float:

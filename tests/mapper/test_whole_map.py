@@ -286,3 +286,46 @@ def test_set_features_refuses_a_wrong_shape_and_changes_nothing() -> None:
     with pytest.raises(ValueError, match=r"must be \(U="):
         gmap.set_features(keys, np.ones((keys.shape[0] + 1, D), np.float32))
     assert gmap.version == version and gmap.points_learned == 0
+
+
+def test_fill_from_map_takes_a_more_confident_map_answer_only_when_asked() -> None:
+    n = 1
+    snap = GlobalMapSnapshot(
+        version=1, map_version=1, voxel_size_m=0.05, xyz=np.array([[0.0, 0.0, 2.0]], np.float32),
+        feat=np.eye(D, dtype=np.float16)[:1], weight=np.ones(n, np.float32),
+        feat_weight=np.ones(n, np.float32), hits=np.ones(n, np.int32), last_seen_ns=np.zeros(n, np.int64),
+    )  # fmt: skip
+    emb = np.eye(D, dtype=np.float32)
+    xyz = np.array([[0.0, 0.0, 2.0]] * 4 + [[0.0, 5.0, 2.0]], np.float32)  # four at the map point, one far
+    # the window says: 1 (weaker than the map's 0), 1 (as confident as the map: a tie keeps the window),
+    # 0 (the map's own text, weaker: the window's answer stays), unseen, and 2 far from every map point
+    label = np.array([1, 1, 0, -1, 2], np.int32)
+    score = np.array([0.3, 1.0, 0.2, 0.0, 0.3], np.float32)
+    seen = label >= 0
+    lab, sc, src = fill_from_map(snap, xyz, emb, label, score, seen, 0.075, more_confident=True)
+    assert lab.tolist() == [0, 1, 0, 0, 2]
+    assert src.tolist() == [SOURCE_MAP, SOURCE_WINDOW, SOURCE_WINDOW, SOURCE_MAP, SOURCE_WINDOW]
+    assert sc[0] == pytest.approx(1.0, abs=1e-3) and sc[1] == 1.0 and sc[2] == pytest.approx(0.2)
+    lab, sc, src = fill_from_map(snap, xyz, emb, label, score, seen, 0.075)  # default: window first
+    assert lab.tolist() == [1, 1, 0, 0, 2] and src.tolist() == [1, 1, 1, 2, 1]
+    assert sc[0] == pytest.approx(0.3)
+
+
+@pytest.mark.parametrize("more_confident", [True, False])
+def test_node_prefers_the_more_confident_map_as_configured(tmp_path: Path, more_confident: bool) -> None:
+    """ON_B is in the window, seen as class 1 by a view with a weak feature; the map fused it as
+    class 3 from a view that left (a strong feature): the map answers when configured to."""
+    node = _node(tmp_path, map_when_more_confident=more_confident)
+    strong = _frame(0, LOOK_X, 3)
+    weak = _frame(1, np.eye(4), 0)  # A's wall, so that `strong` leaves the window ...
+    ov = np.zeros((6, 8, D), np.float16)
+    ov[..., 1], ov[..., 3] = 0.6, 0.55  # ... then B's wall again: mostly 1, some 3
+    again = _frame(2, LOOK_X, 1)
+    again.ov = ov
+    _stream(node, [strong, weak, again])
+    reply = _segment(node, "average", [ON_B])
+    assert reply.source is not None
+    if more_confident:
+        assert reply.label.tolist() == [3] and reply.source.tolist() == [SOURCE_MAP]
+    else:
+        assert reply.label.tolist() == [1] and reply.source.tolist() == [SOURCE_WINDOW]
