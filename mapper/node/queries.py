@@ -48,7 +48,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from mapper.node.config import QueryConfig
-from mapper.node.global_map import GlobalMapSnapshot
+from mapper.node.global_map import UNIT_BLOCK_ROWS, GlobalMapSnapshot
 from mapper.ov.encoders import TextEncoder
 from protocol.errors import ProtocolError
 from protocol.messages import ObjectCandidate, Points
@@ -677,12 +677,25 @@ def segment_average(
     return label, score, n
 
 
-def _map_unit_features(snapshot: GlobalMapSnapshot, rows: np.ndarray) -> np.ndarray:
-    """(len(rows), D) float32 unit features of map rows (rows carry a feature)."""
-    assert snapshot.feat is not None
-    f = snapshot.feat[rows].astype(np.float32)
-    f /= np.maximum(np.sqrt(np.einsum("nd,nd->n", f, f)), 1e-12)[:, None]
-    return f
+def _map_similarities(
+    snapshot: GlobalMapSnapshot,
+    rows: np.ndarray,  # (n,) int64 map rows that carry a feature
+    text_emb: np.ndarray,  # (T, D) float32 unit rows
+) -> np.ndarray:  # (n, T) float32
+    """Cosines of map rows' features with the texts: each distinct row once, from the snapshot's
+    cached fp32 unit blocks (no fp16 conversion per request): the cosines of the rows' fp16
+    features, normalised, with the texts, up to float32 rounding."""
+    uniq, inverse = np.unique(rows, return_inverse=True)
+    blocks = snapshot.unit_feature_blocks()
+    emb_t = np.ascontiguousarray(text_emb.T, np.float32)
+    sims = np.empty((uniq.shape[0], text_emb.shape[0]), np.float32)
+    block_of = uniq // UNIT_BLOCK_ROWS
+    bounds = np.searchsorted(block_of, np.arange(len(blocks) + 1))
+    for b in range(len(blocks)):
+        lo, hi = bounds[b], bounds[b + 1]
+        if hi > lo:
+            sims[lo:hi] = blocks[b][uniq[lo:hi] - b * UNIT_BLOCK_ROWS] @ emb_t
+    return sims[inverse.ravel()]
 
 
 def _map_compatible(snapshot: GlobalMapSnapshot, text_emb: np.ndarray) -> bool:
@@ -721,7 +734,7 @@ def fill_from_map(
     rows = snapshot.nearest_with_feature(np.asarray(xyz)[todo], radius_m)
     hit = rows >= 0
     if hit.any():
-        sims = _map_unit_features(snapshot, rows[hit]) @ text_emb.T  # (n, T)
+        sims = _map_similarities(snapshot, rows[hit], text_emb)  # (n, T)
         best = np.argmax(sims, axis=1)
         best_score = sims[np.arange(best.shape[0]), best].astype(np.float32)
         idx = todo[hit]
@@ -819,7 +832,7 @@ def render_from_map(
         rows[rest] = splat[rest]
     jj, ii = np.nonzero(need & (rows >= 0))
     if jj.size:
-        sims = _map_unit_features(snapshot, rows[jj, ii]) @ text_emb.T  # (n, T)
+        sims = _map_similarities(snapshot, rows[jj, ii], text_emb)  # (n, T)
         cos[jj, ii] = sims.astype(np.float32)
         label[jj, ii] = np.argmax(sims, axis=1).astype(np.int32)
         answered[jj, ii] = True

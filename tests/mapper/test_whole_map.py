@@ -329,3 +329,28 @@ def test_node_prefers_the_more_confident_map_as_configured(tmp_path: Path, more_
         assert reply.label.tolist() == [3] and reply.source.tolist() == [SOURCE_MAP]
     else:
         assert reply.label.tolist() == [1] and reply.source.tolist() == [SOURCE_WINDOW]
+
+
+def test_map_similarities_equal_a_float64_reference_across_blocks() -> None:
+    from mapper.node.global_map import UNIT_BLOCK_ROWS
+    from mapper.node.queries import _map_similarities
+
+    rng = np.random.default_rng(3)
+    n = UNIT_BLOCK_ROWS + 500  # two blocks
+    feat = rng.standard_normal((n, D)).astype(np.float16)
+    snap = GlobalMapSnapshot(
+        version=1, map_version=1, voxel_size_m=0.05, xyz=rng.uniform(0, 5, (n, 3)).astype(np.float32),
+        feat=feat, weight=np.ones(n, np.float32), feat_weight=np.ones(n, np.float32),
+        hits=np.ones(n, np.int32), last_seen_ns=np.zeros(n, np.int64),
+    )  # fmt: skip
+    emb = rng.standard_normal((3, D)).astype(np.float32)
+    emb /= np.linalg.norm(emb, axis=1, keepdims=True)
+    rows = rng.integers(0, n, 2000)
+    rows[:3] = [0, UNIT_BLOCK_ROWS - 1, UNIT_BLOCK_ROWS]  # block edges, and repeats below
+    rows[3:6] = rows[:3]
+    f = feat[rows].astype(np.float64)
+    want = (f / np.linalg.norm(f, axis=1, keepdims=True)) @ emb.T.astype(np.float64)
+    got = _map_similarities(snap, rows, emb)
+    assert got.shape == (2000, 3) and got.dtype == np.float32
+    np.testing.assert_allclose(got, want, atol=2e-6)
+    assert _map_similarities(snap, rows[:0], emb).shape == (0, 3)
