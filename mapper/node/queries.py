@@ -268,6 +268,14 @@ def _cell_pairs_linked(
     return np.bincount(pair[close], minlength=a.size) > 0
 
 
+def support_factor(n_points: int, support_points: float) -> float:
+    """``1 - exp(-n_points / support_points)`` in (0, 1): how much of an object's score a cluster
+    of ``n_points`` keeps (1 when ``support_points`` <= 0: no discount)."""
+    if support_points <= 0:
+        return 1.0
+    return float(-np.expm1(-n_points / support_points))
+
+
 def cluster_points(
     xyz: np.ndarray,  # (N, 3) float32 world metres
     score: np.ndarray,  # (N,) float32
@@ -275,15 +283,18 @@ def cluster_points(
     radius_m: float,
     min_points: int,
     *,
+    support_points: float = 0.0,
     reference: bool = False,
 ) -> list[Cluster]:
     """Connected components per label (points at most ``radius_m`` apart are linked), keeping the
     components with at least ``min_points`` points; each scored by the mean of its top half of
-    scores. Sorted by score, best first. The components come from :func:`radius_components`;
-    ``reference=True`` takes them from every point pair of a k-d tree, as before (for tests)."""
+    scores, times ``1 - exp(-n / support_points)`` for a component of n points when
+    ``support_points`` > 0 (:func:`support_factor`). Sorted by score, best first. The components
+    come from :func:`radius_components`; ``reference=True`` takes them from every point pair of a
+    k-d tree, as before (for tests)."""
     out: list[Cluster] = []
     if reference:
-        return _cluster_points_reference(xyz, score, label, radius_m, min_points)
+        return _cluster_points_reference(xyz, score, label, radius_m, min_points, support_points)
     for lab in np.unique(label):
         idx = np.flatnonzero(label == lab)
         if idx.size < min_points:
@@ -303,7 +314,8 @@ def cluster_points(
             s = np.sort(score[idx[members]])[::-1]
             top = s[: max(1, (s.size + 1) // 2)]
             out.append(Cluster(
-                int(lab), idx[members], p.mean(axis=0), p.min(axis=0), p.max(axis=0), float(top.mean())
+                int(lab), idx[members], p.mean(axis=0), p.min(axis=0), p.max(axis=0),
+                float(top.mean()) * support_factor(members.size, support_points),
             ))
     out.sort(key=lambda c: (-c.score, -c.indices.size))
     return out
@@ -315,6 +327,7 @@ def _cluster_points_reference(
     label: np.ndarray,  # (N,) int labels (>= 0)
     radius_m: float,
     min_points: int,
+    support_points: float = 0.0,
 ) -> list[Cluster]:
     """The previous :func:`cluster_points` (k-d tree point pairs, one pass per component)."""
     out: list[Cluster] = []
@@ -335,7 +348,8 @@ def _cluster_points_reference(
             s = np.sort(score[idx[members]])[::-1]
             top = s[: max(1, (s.size + 1) // 2)]
             cluster = Cluster(
-                int(lab), idx[members], p.mean(axis=0), p.min(axis=0), p.max(axis=0), float(top.mean())
+                int(lab), idx[members], p.mean(axis=0), p.min(axis=0), p.max(axis=0),
+                float(top.mean()) * support_factor(members.size, support_points),
             )
             out.append(cluster)
     out.sort(key=lambda c: (-c.score, -c.indices.size))
@@ -613,7 +627,8 @@ def query_points(
     candidates: list[ObjectCandidate] = []
     if objects and sel.size:
         clusters = cluster_points(
-            snapshot.xyz[sel], score[sel], label[sel], config.cluster_radius_m, config.min_object_points
+            snapshot.xyz[sel], score[sel], label[sel], config.cluster_radius_m, config.min_object_points,
+            support_points=config.object_support_points,
         )
         for c in clusters[: config.max_objects]:
             candidates.append(

@@ -208,3 +208,27 @@ def test_segment_average_labels_seen_points_and_leaves_unseen_at_minus_one() -> 
     # the depth test drops the views for a point in front of the surface
     label_d, _, n_d = segment_average(pts, views, emb, use_depth=True)
     assert label_d.tolist() == [0, 1, -1, -1] and n_d[3] == 0
+
+
+def test_object_scores_are_discounted_by_support() -> None:
+    """A small cluster of high scores no longer outranks a large, slightly lower-scoring one; the
+    discount is 1 - exp(-n / support_points), off at 0; the reference clustering agrees."""
+    from mapper.node.queries import support_factor
+
+    rng = np.random.default_rng(0)
+    big = rng.uniform(0, 0.5, (400, 3)) + [2.0, 0.0, 0.0]  # a dense 0.5 m cube of 400 points
+    small = rng.uniform(0, 0.05, (16, 3))  # 16 points, far from it
+    xyz = np.concatenate([big, small]).astype(np.float32)
+    score = np.concatenate([np.full(400, 0.45), np.full(16, 0.6)]).astype(np.float32)
+    label = np.zeros(len(xyz), np.int64)
+    plain = cluster_points(xyz, score, label, radius_m=0.2, min_points=10)
+    assert [c.indices.size for c in plain] == [16, 400]  # by the mean of the top half only
+    for reference in (False, True):
+        ranked = cluster_points(xyz, score, label, radius_m=0.2, min_points=10, support_points=25.0,
+                                reference=reference)  # fmt: skip
+        assert [c.indices.size for c in ranked] == [400, 16]
+        assert ranked[0].score == pytest.approx(0.45 * (1 - np.exp(-400 / 25)), rel=1e-6)
+        assert ranked[1].score == pytest.approx(0.6 * (1 - np.exp(-16 / 25)), rel=1e-6)
+    assert support_factor(15, 0.0) == 1.0 and support_factor(0, 25.0) == 0.0
+    assert support_factor(25, 25.0) == pytest.approx(1 - np.exp(-1))
+    assert 0.999 < support_factor(10_000, 25.0) <= 1.0
