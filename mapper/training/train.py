@@ -599,6 +599,8 @@ def train(
     """
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
+    if cfg.init_weights and resume is None:
+        load_metadata(cfg.init_weights)  # a missing checkpoint fails now, not after loading the data
     dd = _init_distributed()
     try:
         return _train(

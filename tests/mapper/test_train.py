@@ -261,4 +261,7 @@ def test_init_weights_refuses_another_config_or_mode(data_root: Path, tmp_path: 
             model_cfg=tiny_model_config(),
             progress=False,
         )
-    assert not (tmp_path / "a" / "last.json").exists() and not (tmp_path / "b" / "last.json").exists()
+    with pytest.raises(FileNotFoundError, match="not found"):
+        train(_cfg(data_root, tmp_path / "c", init_weights=str(tmp_path / "nowhere")),
+              model_cfg=tiny_model_config(), progress=False)  # fmt: skip
+    assert not any((tmp_path / d / "last.json").exists() for d in "abc")
