@@ -195,13 +195,18 @@ def test_render_labels_the_pixels_the_window_leaves_from_the_map(tmp_path: Path,
     assert decode(encode(reply), direction="reply").source.shape == (H, W)  # type: ignore[attr-defined]
 
 
-def test_render_from_map_leaves_pixels_without_map_points_alone() -> None:
+def _one_point_snapshot() -> GlobalMapSnapshot:
+    """A map of one point 2 m ahead of the origin (z = 2) whose feature is class 0."""
     n = 1
-    snap = GlobalMapSnapshot(
+    return GlobalMapSnapshot(
         version=1, map_version=1, voxel_size_m=0.05, xyz=np.array([[0.0, 0.0, 2.0]], np.float32),
         feat=np.eye(D, dtype=np.float16)[:1], weight=np.ones(n, np.float32),
         feat_weight=np.ones(n, np.float32), hits=np.ones(n, np.int32), last_seen_ns=np.zeros(n, np.int64),
     )  # fmt: skip
+
+
+def test_render_from_map_leaves_pixels_without_map_points_alone() -> None:
+    snap = _one_point_snapshot()
     need = np.ones((H, W), bool)
     emb = np.eye(D, dtype=np.float32)
     label, cos, answered = render_from_map(snap, K, np.eye(4), W, H, None, need, emb, 0.075)
@@ -289,12 +294,7 @@ def test_set_features_refuses_a_wrong_shape_and_changes_nothing() -> None:
 
 
 def test_fill_from_map_takes_a_more_confident_map_answer_only_when_asked() -> None:
-    n = 1
-    snap = GlobalMapSnapshot(
-        version=1, map_version=1, voxel_size_m=0.05, xyz=np.array([[0.0, 0.0, 2.0]], np.float32),
-        feat=np.eye(D, dtype=np.float16)[:1], weight=np.ones(n, np.float32),
-        feat_weight=np.ones(n, np.float32), hits=np.ones(n, np.int32), last_seen_ns=np.zeros(n, np.int64),
-    )  # fmt: skip
+    snap = _one_point_snapshot()
     emb = np.eye(D, dtype=np.float32)
     xyz = np.array([[0.0, 0.0, 2.0]] * 4 + [[0.0, 5.0, 2.0]], np.float32)  # four at the map point, one far
     # the window says: 1 (weaker than the map's 0), 1 (as confident as the map: a tie keeps the window),
