@@ -141,7 +141,32 @@ def _map_miou(node: Any, xyz: np.ndarray, gt: np.ndarray, texts: list[str]) -> f
     return mean_iou(pred, gt, len(texts))[0]
 
 
-def bench_scene(scene: Path, tmp: Path) -> dict[str, Any]:
+def _render_miou(node: Any, scene: Path, texts: list[str], n_views: int) -> tuple[float, float]:
+    """2D mIoU (%) of ``render`` labels at the scene's first ``n_views`` novel views against their
+    ground-truth labels (pixels with a label), and the share of labelled pixels the map answered."""
+    from clients.harness import mean_iou
+    from protocol.messages import Render, RenderResult, decode, encode
+
+    views = np.load(scene / "gt" / "novel_views.npz")
+    preds, gts, from_map = [], [], []
+    for i in range(min(n_views, views["label"].shape[0])):
+        h, w = views["label"].shape[1:]
+        msg = Render(width=w, height=h, K=views["K"][i], world_from_cam=views["world_from_cam"][i],
+                     outputs=["label"], texts=texts)  # fmt: skip
+        reply = decode(node.handle_query(encode(msg)), direction="reply")
+        if not isinstance(reply, RenderResult) or reply.label is None:
+            raise SystemExit(f"render: {reply}")
+        ok = views["label"][i] >= 0
+        preds.append(reply.label[ok].astype(np.int64))
+        gts.append(views["label"][i][ok].astype(np.int64))
+        if reply.source is not None:
+            from_map.append(reply.source[ok] == 2)
+    miou = mean_iou(np.concatenate(preds), np.concatenate(gts), len(texts))[0]
+    share = float(np.concatenate(from_map).mean()) if from_map else 0.0
+    return round(100 * miou, 2), round(100 * share, 1)
+
+
+def bench_scene(scene: Path, tmp: Path, render_views: int = 0) -> dict[str, Any]:
     from clients.harness import mean_iou
     from mapper.node.config import QueryConfig
 
@@ -184,6 +209,8 @@ def bench_scene(scene: Path, tmp: Path) -> dict[str, Any]:
                 "none": int(np.count_nonzero(source == 0)),
                 "seconds": round(seconds, 2),
             }
+        if render_views > 0:
+            row["render_miou"], row["render_from_map_pct"] = _render_miou(node, scene, texts, render_views)
         if radius_voxels > 0:
             row["global_map_miou"] = round(100 * _map_miou(node, xyz, gt_label, texts), 2)
         row["map_features"] = (
@@ -194,7 +221,9 @@ def bench_scene(scene: Path, tmp: Path) -> dict[str, Any]:
         print(
             f"{scene.name} {name}: "
             + ", ".join(f"{m} {row[m]['miou']}" for m in METHODS)
-            + (f", map {row.get('global_map_miou')}" if "global_map_miou" in row else ""),
+            + (f", map {row.get('global_map_miou')}" if "global_map_miou" in row else "")
+            + (f", render {row['render_miou']} ({row['render_from_map_pct']}% from map)"
+               if "render_miou" in row else ""),
             flush=True,
         )
     return out
@@ -202,17 +231,20 @@ def bench_scene(scene: Path, tmp: Path) -> dict[str, Any]:
 
 def to_markdown(results: list[dict[str, Any]]) -> str:
     lines = [
-        "| scene (keyframes / window) | run | average | average_depth | govnesf | global map alone |",
-        "|---|---|---|---|---|---|",
+        "| scene (keyframes / window) | run | average | average_depth | govnesf | global map alone "
+        "| render labels, 2D (from map) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in results:
         for name, row in r["runs"].items():
             cells = [f"{row[m]['miou']:.1f} ({row[m]['from_map']} from map)" for m in METHODS]
             gm = row.get("global_map_miou")
+            rend = (f"{row['render_miou']:.1f} ({row['render_from_map_pct']:.0f}%)"
+                    if "render_miou" in row else "-")
             lines.append(
                 f"| {r['scene']} ({r['keyframes']} / {r['window']}) | {name} | "
                 + " | ".join(cells)
-                + f" | {'-' if gm is None else f'{gm:.1f}'} |"
+                + f" | {'-' if gm is None else f'{gm:.1f}'} | {rend} |"
             )
     return "\n".join(lines) + "\n"
 
@@ -221,6 +253,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("scenes", nargs="+", type=Path)
     parser.add_argument("--out", type=Path, default=REPO / "out" / "bench" / "whole_map")
+    parser.add_argument("--render-views", type=int, default=0,
+                        help="also render this many of the scene's novel views (gt/novel_views.npz) per run "
+                             "and report the 2D mIoU of the render labels (0 = none)")
     args = parser.parse_args(argv)
     import tempfile
 
@@ -230,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
             if not (scene / "frames.govrec").is_file():
                 print(f"{scene}: no frames.govrec (make it with scripts/make_eval_data.sh)", file=sys.stderr)
                 return 2
-            results.append(bench_scene(scene, Path(tmp)))
+            results.append(bench_scene(scene, Path(tmp), render_views=args.render_views))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".json").write_text(json.dumps(results, indent=1))
     args.out.with_suffix(".md").write_text(to_markdown(results))

@@ -819,11 +819,14 @@ def render_from_map(
     need: np.ndarray,  # (H, W) bool: pixels the window did not label
     text_emb: np.ndarray,  # (T, D) float32 unit rows
     radius_m: float,
+    *,
+    splat: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Label the ``need`` pixels of a view from the map: (label (H, W) int32, -1 elsewhere; cos
     (H, W, T) float32, 0 elsewhere; answered (H, W) bool). A pixel with a rendered surface takes
     the nearest map point with a feature within ``radius_m`` of that surface point; one without
-    (or without a map point that near) takes the splatted map point that projects into it."""
+    (or without a map point that near) takes the splatted map point that projects into it
+    (``splat=False``: stays unanswered)."""
     n_texts = text_emb.shape[0]
     label = np.full((height, width), -1, np.int32)
     cos = np.zeros((height, width, n_texts), np.float32)
@@ -842,9 +845,9 @@ def render_from_map(
             p_world = p_cam @ pose[:3, :3].T + pose[:3, 3]
             rows[jj, ii] = snapshot.nearest_with_feature(p_world, radius_m)
     rest = need & (rows < 0)
-    if rest.any():
-        splat = _splat_rows(snapshot, np.asarray(K, np.float64), world_from_cam, width, height)
-        rows[rest] = splat[rest]
+    if splat and rest.any():
+        splatted = _splat_rows(snapshot, np.asarray(K, np.float64), world_from_cam, width, height)
+        rows[rest] = splatted[rest]
     jj, ii = np.nonzero(need & (rows >= 0))
     if jj.size:
         sims = _map_similarities(snapshot, rows[jj, ii], text_emb)  # (n, T)

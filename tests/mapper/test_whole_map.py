@@ -176,7 +176,7 @@ def test_govnesf_segment_falls_back_to_the_map(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("depth", [2.0, 0.0], ids=["surface", "splat"])
 def test_render_labels_the_pixels_the_window_leaves_from_the_map(tmp_path: Path, depth: float) -> None:
-    node = _node(tmp_path)
+    node = _node(tmp_path, map_when_more_confident=False)  # window first
     _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
     runtime = StubRuntime(depth)
     handler = make_render_handler(runtime, node)  # type: ignore[arg-type]
@@ -193,6 +193,40 @@ def test_render_labels_the_pixels_the_window_leaves_from_the_map(tmp_path: Path,
     assert (reply.label[:, W // 4:][right == SOURCE_MAP] == 0).all()
     assert np.allclose(reply.score[:, W // 4:, 0][right == SOURCE_MAP], 1.0, atol=2e-3)
     assert decode(encode(reply), direction="reply").source.shape == (H, W)  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("depth", [2.0, 0.0], ids=["surface", "splat"])
+def test_render_takes_the_more_confident_map_where_the_surface_is_known(tmp_path: Path, depth: float) -> None:
+    """Default rule: the window's left quarter says class 2 at cosine 0.8; the map point at the
+    rendered surface (A's wall) says class 0 at cosine 1: the map answers there. Without a rendered
+    surface (depth 0) nothing is compared (no splat), so the window's answer stays. The reply
+    carries only the outputs asked for."""
+    node = _node(tmp_path)
+    _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
+    runtime = StubRuntime(depth)
+    handler = make_render_handler(runtime, node)  # type: ignore[arg-type]
+    msg = Render(width=W, height=H, K=K, world_from_cam=np.eye(4), outputs=["label"],
+                 texts=["c0", "c1", "c2", "c3"], id=3)  # fmt: skip
+    reply = handler(msg)
+    assert isinstance(reply, RenderResult) and reply.score is None and reply.depth_m is None
+    assert "score" in runtime.outputs  # asked of the model for the comparison
+    assert reply.label is not None and reply.source is not None
+    left, left_source = reply.label[:, : W // 4], reply.source[:, : W // 4]
+    if depth > 0:
+        assert (left_source == SOURCE_MAP).mean() > 0.95 and (left[left_source == SOURCE_MAP] == 0).all()
+    else:
+        assert (left == 2).all() and (left_source == SOURCE_WINDOW).all()
+    assert (reply.source[:, W // 4:] == SOURCE_MAP).mean() > 0.95  # the rest as before
+
+
+def test_render_with_map_radius_zero_is_window_only(tmp_path: Path) -> None:
+    node = _node(tmp_path, map_radius_voxels=0.0)
+    _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
+    handler = make_render_handler(StubRuntime(0.0), node)  # type: ignore[arg-type]
+    reply = handler(Render(width=W, height=H, K=K, world_from_cam=np.eye(4), outputs=["label"],
+                           texts=["c0", "c1", "c2", "c3"]))  # fmt: skip
+    assert isinstance(reply, RenderResult) and reply.source is not None and reply.label is not None
+    assert not (reply.source == SOURCE_MAP).any() and (reply.label[:, W // 4:] == -1).all()
 
 
 def _one_point_snapshot() -> GlobalMapSnapshot:

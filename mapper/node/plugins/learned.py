@@ -32,11 +32,12 @@ import numpy as np
 
 from mapper.node.map_features import PreEvictionFeatures
 from mapper.node.plugins.depth_points import RenderedDepthPoints
-from mapper.runtime.model_runtime import ModelRuntime, RuntimeNotReady
+from mapper.runtime.model_runtime import ModelRuntime, RenderFrame, RuntimeNotReady
 from protocol.errors import ProtocolError
 from protocol.messages import Message, Render, RenderResult, Segmentation, SegmentPoints
 
 if TYPE_CHECKING:
+    from mapper.node.global_map import GlobalMapSnapshot
     from mapper.node.service import MapperNode, QueryHandler
 
 __all__ = [
@@ -96,6 +97,36 @@ def make_segment_handler(
     return handle_segment
 
 
+def _more_confident_pixels(
+    snap: GlobalMapSnapshot,
+    K: np.ndarray,  # (4,)
+    msg: Render,
+    frame: RenderFrame,  # with label, score (H, W, T) and depth_m
+    window: np.ndarray,  # (H, W) bool: pixels the window labelled
+    emb: np.ndarray,  # (T, D)
+    radius_m: float,
+    filled: tuple[np.ndarray, np.ndarray, np.ndarray],  # render_from_map of the other pixels
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``queries.map_when_more_confident`` for a render: a pixel the window labelled, with a
+    rendered surface, takes the map point within the radius of that surface point when the map
+    names another text with a higher cosine (no splat: only where the surface is known)."""
+    from mapper.node.queries import render_from_map
+
+    lab, cos, answered = filled
+    assert frame.depth_m is not None and frame.label is not None and frame.score is not None
+    check = window & (frame.depth_m > 0)
+    m_lab, m_cos, m_ans = render_from_map(
+        snap, K, msg.world_from_cam, msg.width, msg.height, frame.depth_m, check, emb, radius_m, splat=False
+    )
+    safe = np.maximum(frame.label, 0)[..., None]
+    win_best = np.take_along_axis(frame.score, safe, axis=-1)[..., 0]
+    map_best = np.take_along_axis(m_cos, np.maximum(m_lab, 0)[..., None], axis=-1)[..., 0]
+    over = m_ans & (m_lab != frame.label) & (map_best > win_best)
+    lab = np.where(over, m_lab, lab)
+    cos = np.where(over[..., None], m_cos, cos)
+    return lab, cos, answered | over
+
+
 def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -> QueryHandler:
     """A ``Render`` handler backed by the runtime. With ``node``, pixels the window does not label
     are answered from its global map (the render then also computes depth and label)."""
@@ -105,8 +136,10 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
         started = time.perf_counter()
         semantic = "label" in msg.outputs or "score" in msg.outputs
         outputs = list(msg.outputs)
+        more_confident = node is not None and node.config.queries.map_when_more_confident
         if node is not None and semantic:
-            outputs += [o for o in ("depth", "label") if o not in outputs]
+            wanted = ("depth", "label", "score") if more_confident else ("depth", "label")
+            outputs += [o for o in wanted if o not in outputs]
         try:
             frame = runtime.render(msg.K, msg.world_from_cam, msg.width, msg.height, outputs, msg.texts)
         except RuntimeNotReady as exc:
@@ -120,13 +153,18 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
             emb = _text_emb(node, list(msg.texts), "render")
             window = frame.label >= 0
             source = window.astype(np.uint8)  # 1 = window, 0 = none
-            if emb is not None:
+            if emb is not None and node.map_radius_m > 0:  # radius 0: window only (no splat either)
                 from mapper.node.queries import SOURCE_MAP, render_from_map
 
+                snap, K = node.state.global_map.snapshot(), np.asarray(msg.K, np.float64)
                 lab, cos, answered = render_from_map(
-                    node.state.global_map.snapshot(), np.asarray(msg.K, np.float64), msg.world_from_cam,
-                    msg.width, msg.height, frame.depth_m, ~window, emb, node.map_radius_m,
+                    snap, K, msg.world_from_cam, msg.width, msg.height, frame.depth_m, ~window, emb,
+                    node.map_radius_m,
                 )  # fmt: skip
+                if more_confident and frame.score is not None and frame.depth_m is not None:
+                    lab, cos, answered = _more_confident_pixels(
+                        snap, K, msg, frame, window, emb, node.map_radius_m, (lab, cos, answered)
+                    )
                 frame.label = np.where(answered, lab, frame.label).astype(np.int32)
                 if frame.score is not None:
                     frame.score = np.where(answered[..., None], cos, frame.score).astype(np.float32)
@@ -135,6 +173,8 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
             timing["from_map"] = float(np.count_nonzero(source == 2))
             if "depth" not in msg.outputs:
                 frame.depth_m = None
+            if "score" not in msg.outputs:
+                frame.score = None
             if "label" not in msg.outputs:
                 frame.label = None
                 source = None
