@@ -279,8 +279,8 @@ class QueryConfig:
     map_when_more_confident: bool = True
     """``segment_points`` also answers a point the window sees from that nearest map point when the
     map names another text with a higher cosine than the window's answer (keyframes that left the
-    window saw the point better than those in it; the reply's ``source`` says map). False = the window's
-    answer wherever it sees a point. ``render`` labels keep the window's answer where it has one."""
+    window saw the point better than those in it; the reply's ``source`` says map); ``render`` labels
+    the same where the render found a surface. False = the window's answer wherever it has one."""
 
     def validate(self, where: str) -> None:
         _check_range(where, "queries.workers", self.workers, 0, 64)
