@@ -718,6 +718,17 @@ def _map_compatible(snapshot: GlobalMapSnapshot, text_emb: np.ndarray) -> bool:
     return feat is not None and snapshot.n_with_features > 0 and feat.shape[1] == text_emb.shape[1]
 
 
+def map_more_confident(
+    map_label: np.ndarray,  # (...) int: the map's best text
+    map_score: np.ndarray,  # (...) float: its cosine
+    label: np.ndarray,  # (...) int: the window's answer
+    score: np.ndarray,  # (...) float: its cosine
+) -> np.ndarray:  # (...) bool
+    """The ``queries.map_when_more_confident`` rule: the map names another text than the window,
+    with a higher cosine (a tie, or the same text, keeps the window's answer)."""
+    return (map_label != label) & (map_score > score)
+
+
 def fill_from_map(
     snapshot: GlobalMapSnapshot,
     xyz: np.ndarray,  # (N, 3) float32 world metres
@@ -753,8 +764,7 @@ def fill_from_map(
         best = np.argmax(sims, axis=1)
         best_score = sims[np.arange(best.shape[0]), best].astype(np.float32)
         idx = todo[hit]
-        # unseen, or the map names another text with a higher cosine than the window's answer
-        take = ~seen[idx] | ((best_score > score[idx]) & (best != label[idx]))
+        take = ~seen[idx] | map_more_confident(best, best_score, label[idx], score[idx])
         idx = idx[take]
         label[idx] = best[take].astype(np.int32)
         score[idx] = best_score[take]
@@ -855,3 +865,26 @@ def render_from_map(
         label[jj, ii] = np.argmax(sims, axis=1).astype(np.int32)
         answered[jj, ii] = True
     return label, cos, answered
+
+
+def render_more_confident(
+    snapshot: GlobalMapSnapshot,
+    K: np.ndarray,  # (4,) [fx, fy, cx, cy] for width x height
+    world_from_cam: np.ndarray,  # (4, 4) camera-to-world
+    depth_m: np.ndarray,  # (H, W) rendered z-depth, 0 = no surface
+    label: np.ndarray,  # (H, W) int32 the window's labels (-1 = none)
+    cos: np.ndarray,  # (H, W, T) float32 the window's cosines
+    text_emb: np.ndarray,  # (T, D) float32 unit rows
+    radius_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`map_more_confident` for a render: the pixels the window labelled where the render
+    found a surface, against the map point nearest that surface point (:func:`render_from_map`
+    without the splat). Returns the map's (label (H, W), cos (H, W, T)) and ``over`` (H, W) bool,
+    the pixels whose answer the map takes."""
+    height, width = label.shape
+    need = (label >= 0) & (depth_m > 0)
+    m_lab, m_cos, m_ans = render_from_map(
+        snapshot, K, world_from_cam, width, height, depth_m, need, text_emb, radius_m, splat=False
+    )
+    over = m_ans & map_more_confident(m_lab, m_cos.max(axis=-1), label, cos.max(axis=-1))
+    return m_lab, m_cos, over

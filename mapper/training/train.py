@@ -44,7 +44,6 @@ from govnesf._compat import tomllib
 from mapper.model.checkpoint import (
     config_from_dict,
     load_metadata,
-    load_model,
     load_training_state,
     save_checkpoint,
 )
@@ -717,8 +716,7 @@ def _init_from(model: GovNeSF, path: str, mcfg: ModelConfig, mode: str) -> None:
         )
     if meta.get("mode", "blend") != mode:
         raise ValueError(f"init_weights {path}: mode {meta.get('mode', 'blend')!r}, the run's is {mode!r}")
-    loaded, _ = load_model(path)
-    model.load_state_dict(loaded.state_dict(), strict=True)
+    load_training_state(path, model)  # the weights only, in place (no optimiser state)
 
 
 class _Run:

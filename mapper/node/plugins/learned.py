@@ -32,12 +32,11 @@ import numpy as np
 
 from mapper.node.map_features import PreEvictionFeatures
 from mapper.node.plugins.depth_points import RenderedDepthPoints
-from mapper.runtime.model_runtime import ModelRuntime, RenderFrame, RuntimeNotReady
+from mapper.runtime.model_runtime import ModelRuntime, RuntimeNotReady
 from protocol.errors import ProtocolError
 from protocol.messages import Message, Render, RenderResult, Segmentation, SegmentPoints
 
 if TYPE_CHECKING:
-    from mapper.node.global_map import GlobalMapSnapshot
     from mapper.node.service import MapperNode, QueryHandler
 
 __all__ = [
@@ -97,36 +96,6 @@ def make_segment_handler(
     return handle_segment
 
 
-def _more_confident_pixels(
-    snap: GlobalMapSnapshot,
-    K: np.ndarray,  # (4,)
-    msg: Render,
-    frame: RenderFrame,  # with label, score (H, W, T) and depth_m
-    window: np.ndarray,  # (H, W) bool: pixels the window labelled
-    emb: np.ndarray,  # (T, D)
-    radius_m: float,
-    filled: tuple[np.ndarray, np.ndarray, np.ndarray],  # render_from_map of the other pixels
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``queries.map_when_more_confident`` for a render: a pixel the window labelled, with a
-    rendered surface, takes the map point within the radius of that surface point when the map
-    names another text with a higher cosine (no splat: only where the surface is known)."""
-    from mapper.node.queries import render_from_map
-
-    lab, cos, answered = filled
-    assert frame.depth_m is not None and frame.label is not None and frame.score is not None
-    check = window & (frame.depth_m > 0)
-    m_lab, m_cos, m_ans = render_from_map(
-        snap, K, msg.world_from_cam, msg.width, msg.height, frame.depth_m, check, emb, radius_m, splat=False
-    )
-    safe = np.maximum(frame.label, 0)[..., None]
-    win_best = np.take_along_axis(frame.score, safe, axis=-1)[..., 0]
-    map_best = np.take_along_axis(m_cos, np.maximum(m_lab, 0)[..., None], axis=-1)[..., 0]
-    over = m_ans & (m_lab != frame.label) & (map_best > win_best)
-    lab = np.where(over, m_lab, lab)
-    cos = np.where(over[..., None], m_cos, cos)
-    return lab, cos, answered | over
-
-
 def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -> QueryHandler:
     """A ``Render`` handler backed by the runtime. With ``node``, pixels the window does not label
     are answered from its global map (the render then also computes depth and label)."""
@@ -154,7 +123,7 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
             window = frame.label >= 0
             source = window.astype(np.uint8)  # 1 = window, 0 = none
             if emb is not None and node.map_radius_m > 0:  # radius 0: window only (no splat either)
-                from mapper.node.queries import SOURCE_MAP, render_from_map
+                from mapper.node.queries import SOURCE_MAP, render_from_map, render_more_confident
 
                 snap, K = node.state.global_map.snapshot(), np.asarray(msg.K, np.float64)
                 lab, cos, answered = render_from_map(
@@ -162,9 +131,12 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
                     node.map_radius_m,
                 )  # fmt: skip
                 if more_confident and frame.score is not None and frame.depth_m is not None:
-                    lab, cos, answered = _more_confident_pixels(
-                        snap, K, msg, frame, window, emb, node.map_radius_m, (lab, cos, answered)
+                    m_lab, m_cos, over = render_more_confident(
+                        snap, K, msg.world_from_cam, frame.depth_m, frame.label, frame.score, emb,
+                        node.map_radius_m,
                     )
+                    lab, cos = np.where(over, m_lab, lab), np.where(over[..., None], m_cos, cos)
+                    answered |= over
                 frame.label = np.where(answered, lab, frame.label).astype(np.int32)
                 if frame.score is not None:
                     frame.score = np.where(answered[..., None], cos, frame.score).astype(np.float32)
