@@ -7,7 +7,8 @@ handlers, rendered-depth map points, and :mod:`mapper.node.plugins.triangulation
 * ``rgb, fixed range``: frames WITHOUT depth, triangulation off (the node before issue 13: volume
   bounds from the frusta up to ``model.max_range_m``, map points from rendered depth only);
 * ``rgb + triangulation``: frames WITHOUT depth, triangulation on (bounds follow the points, and
-  the points join the global map).
+  the points join the global map), stereo off;
+* ``rgb + triangulation + stereo``: the same with dense plane-sweep depth (the node's default).
 
 Reported per run (``--json`` writes them all):
 
@@ -20,6 +21,9 @@ Reported per run (``--json`` writes them all):
 * 3D mIoU of ``segment_points`` at the ground-truth surface samples the stream saw: ``govnesf``
   (learned; with depth also +DGM) and ``average`` (plain averaging), same points, class names as texts;
 * "find the chair": the top object's distance to the nearest real chair;
+* the global map's points: their distance to the true surface (median, p90);
+* with ``rgb+tri+stereo``, plane-sweep stereo (:mod:`mapper.geometry.plane_sweep`) on top of the
+  triangulation: depths kept per keyframe, cost per keyframe, points added to the global map;
 * rendered depth at held-out poses (``clients.sim.export.novel_view_poses``): median relative error.
 
 Usage::
@@ -52,8 +56,13 @@ from mapper.node.service import MapperNode
 from mapper.runtime.model_runtime import ModelRuntime
 from protocol.messages import Points, QueryPoints, Segmentation, SegmentPoints, decode, encode
 
-MODES = {"depth": (True, True), "rgb": (False, False), "rgb+tri": (False, True)}
-"""mode -> (frames carry depth, triangulation on)."""
+MODES = {
+    "depth": (True, True, False),
+    "rgb": (False, False, False),
+    "rgb+tri": (False, True, False),
+    "rgb+tri+stereo": (False, True, True),
+}
+"""mode -> (frames carry depth, triangulation on, plane-sweep stereo on)."""
 
 
 
@@ -69,7 +78,7 @@ def _query(node: MapperNode, msg: Any) -> Any:
 
 
 def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
-    with_depth, triangulate = MODES[mode]
+    with_depth, triangulate, stereo = MODES[mode]
     stream = sim_stream(args.seed, args.frames, args.width, args.height, depth=with_depth, style=args.style)
     scene = stream.scene
     config = config_from_dict({
@@ -77,6 +86,7 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         "window": {"max_keyframes": args.window},
         "model": {"checkpoint": str(args.checkpoint), "device": args.device},
         "triangulation": {"enabled": triangulate},
+        "stereo": {"enabled": stereo},
     })
     node = MapperNode(config)
     runtime = ModelRuntime(config.model)
@@ -121,6 +131,12 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
             "tri_median_sigma_m": float(np.median(sigma)) if len(sigma) else None,
             "tri_global_map_points": stats["global_map_points"],
         })
+        if stereo:
+            st = stats["stereo"]
+            row.update({
+                "stereo_keyframes": st["keyframes"], "stereo_depths_per_keyframe": st["depths_per_keyframe"],
+                "stereo_ms_mean": st["mean_ms"], "stereo_global_map_points": st["global_map_points"],
+            })
     runtime.sync()
     b = runtime.bounds
     assert b is not None
@@ -149,7 +165,12 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         assert out.depth_m is not None
         rel.append(np.abs(out.depth_m[ok] - truth[ok]) / truth[ok])
     row["render_depth_median_rel_err"] = float(np.median(np.concatenate(rel)))
-    row["global_map_points"] = len(node.state.global_map.snapshot())
+    snap = node.state.global_map.snapshot()
+    row["global_map_points"] = len(snap)
+    if len(snap):  # the map's geometry: each point's distance to the true surface
+        map_dist = cKDTree(surface).query(np.asarray(snap.xyz, np.float64))[0]
+        row["map_median_dist_m"] = float(np.median(map_dist))
+        row["map_p90_dist_m"] = float(np.percentile(map_dist, 90))
     node.stop()
     return row
 

@@ -1,4 +1,5 @@
-"""Settings of sparse triangulation from posed RGB (TOML table ``[triangulation]``; no torch).
+"""Settings of sparse triangulation and dense plane-sweep stereo from posed RGB (TOML tables
+``[triangulation]`` and ``[stereo]``; no torch).
 
 :class:`TriangulationConfig` is one field of :class:`mapper.node.config.NodeConfig`; the pure
 geometry (:mod:`mapper.geometry.triangulation`) and the node plugin
@@ -184,3 +185,135 @@ class TriangulationConfig:
         check("bounds_min_points", self.bounds_min_points, 1, 100_000)
         check("bounds_depth_quantile", self.bounds_depth_quantile, 0.5, 1.0)
         check("depth_prior_radius_px", self.depth_prior_radius_px, 0, 16)
+
+
+@dataclass(frozen=True)
+class StereoConfig:
+    """Dense depth from posed RGB by plane sweep (:mod:`mapper.geometry.plane_sweep`; TOML table
+    ``[stereo]``): for RGB-only keyframes, against the partners triangulation chose."""
+
+    enabled: bool = True
+    """Sweep every keyframe that arrives without depth (in the triangulation worker, after its
+    points: they set the depth range). False = sparse points only."""
+
+    planes: int = 48
+    """Depth hypotheses of the coarse sweep, uniform in inverse depth. 3..512."""
+
+    refine_steps: int = 9
+    """Hypotheses per pixel of the refining sweep across one coarse step either side of the coarse
+    winner (1 = no refinement). 1..64."""
+
+    patch_px: int = 5
+    """Side of the square ZNCC patch (odd). 3..31."""
+
+    top_k: int = 2
+    """The score of a hypothesis is the mean ZNCC of its ``top_k`` best sources (occlusion robust);
+    a pixel needs at least this many sources that see it. 1..16."""
+
+    max_sources: int = 4
+    """Partner keyframes swept against (the best of triangulation's partners). 1..16."""
+
+    min_ncc: float = 0.75
+    """Lowest aggregated ZNCC a depth is kept at. -1..1."""
+
+    min_texture: float = 0.02
+    """Lowest standard deviation of the reference patch's intensity (0..1 scale): no texture, no
+    depth. 0..1."""
+
+    uniqueness_planes: int = 3
+    """A depth is dropped when a coarse hypothesis more than this many steps away scores within
+    ``uniqueness_margin`` of the best (repetitive texture); 0 = no check. 0..512."""
+
+    uniqueness_margin: float = 0.02
+    """See ``uniqueness_planes``. 0..2."""
+
+    min_depth_m: float = 0.2
+    """Nearest depth swept (m). 1e-3..1e3."""
+
+    max_depth_m: float = 12.0
+    """Farthest depth swept (m). 1e-2..1e4."""
+
+    range_quantile: float = 0.02
+    """The range follows the keyframe's triangulated depths: from their ``range_quantile`` to their
+    ``1 - range_quantile`` quantile, each widened by ``range_margin``. 0..0.5."""
+
+    range_margin: float = 1.5
+    """See ``range_quantile`` (near / margin, far x margin). 1..10."""
+
+    min_range_points: int = 8
+    """Fewer triangulated points than this: the range is the room's (recent keyframes' points)
+    or ``[min_depth_m, fallback_far_m]``. 1..100000."""
+
+    fallback_far_m: float = 6.0
+    """Farthest depth swept while no keyframe has triangulated points (m). 0.1..1e4."""
+
+    max_width: int = 200
+    """Keyframes wider than this are swept at this width (area-downscaled; the depth is scaled
+    back up, nearest pixel): the cost grows with the pixels. 16..4096."""
+
+    consistency_rel: float = 0.05
+    """Multi-view geometric consistency: a partner *agrees* with a swept depth when its own depth
+    (input depth, or its swept depth) at the point's projection is within this relative
+    difference. 0..1."""
+
+    min_agreeing: int = 1
+    """Partners that must agree (``consistency_rel``) for a swept depth to be kept; 0 = no
+    check. 0..16."""
+
+    global_map_weight: float = 0.3
+    """Swept depths are fused into the global map at this weight (times the score above
+    ``min_ncc``, normalised); 0 = not added. 0..1."""
+
+    depth_prior: bool = True
+    """With a learned-model runtime, the swept depth (where it has one, the triangulated prior
+    elsewhere), filled along the image (``prior_fill_px``), is the keyframe's depth prior for
+    Depth Guided Masking. The global map only ever gets the swept depths themselves."""
+
+    prior_fill_px: int = 8
+    """Holes of the prior are filled from the depths within this radius (pixels at the working
+    size) of similar intensity (``plane_sweep.fill_depth``); 0 = no filling. 0..64."""
+
+    prior_fill_sigma: float = 0.05
+    """Intensity difference (0..1 scale) at which a neighbour's weight falls to exp(-1/2). 1e-3..1."""
+
+    prior_fill_spread: float = 0.1
+    """A hole stays empty where the neighbours' inverse depths spread more than this (relative
+    standard deviation: a depth edge). 0..1."""
+
+    def validate(self, where: str) -> None:
+        """Raise :class:`ConfigError` naming ``where``, the key, the value and the allowed range."""
+
+        def check(key: str, value: float, lo: float, hi: float) -> None:
+            if not lo <= value <= hi:
+                raise ConfigError(f"{where}: stereo.{key} = {value!r} out of range {lo}..{hi}")
+
+        check("planes", self.planes, 3, 512)
+        check("refine_steps", self.refine_steps, 1, 64)
+        check("patch_px", self.patch_px, 3, 31)
+        if self.patch_px % 2 == 0:
+            raise ConfigError(f"{where}: stereo.patch_px = {self.patch_px} must be odd")
+        check("top_k", self.top_k, 1, 16)
+        check("max_sources", self.max_sources, 1, 16)
+        if self.top_k > self.max_sources:
+            raise ConfigError(f"{where}: stereo.top_k = {self.top_k} exceeds stereo.max_sources = "
+                              f"{self.max_sources}")
+        check("min_ncc", self.min_ncc, -1.0, 1.0)
+        check("min_texture", self.min_texture, 0.0, 1.0)
+        check("uniqueness_planes", self.uniqueness_planes, 0, 512)
+        check("uniqueness_margin", self.uniqueness_margin, 0.0, 2.0)
+        check("min_depth_m", self.min_depth_m, 1e-3, 1e3)
+        check("max_depth_m", self.max_depth_m, 1e-2, 1e4)
+        if self.max_depth_m <= self.min_depth_m:
+            raise ConfigError(f"{where}: stereo.max_depth_m = {self.max_depth_m} must exceed "
+                              f"stereo.min_depth_m = {self.min_depth_m}")
+        check("range_quantile", self.range_quantile, 0.0, 0.5)
+        check("range_margin", self.range_margin, 1.0, 10.0)
+        check("min_range_points", self.min_range_points, 1, 100_000)
+        check("fallback_far_m", self.fallback_far_m, 0.1, 1e4)
+        check("max_width", self.max_width, 16, 4096)
+        check("consistency_rel", self.consistency_rel, 0.0, 1.0)
+        check("min_agreeing", self.min_agreeing, 0, 16)
+        check("global_map_weight", self.global_map_weight, 0.0, 1.0)
+        check("prior_fill_px", self.prior_fill_px, 0, 64)
+        check("prior_fill_sigma", self.prior_fill_sigma, 1e-3, 1.0)
+        check("prior_fill_spread", self.prior_fill_spread, 0.0, 1.0)

@@ -35,7 +35,7 @@ from typing import Any
 from govnesf._compat import tomllib
 from govnesf.resources import find_data_file
 from mapper.errors import ConfigError
-from mapper.geometry.config import TriangulationConfig
+from mapper.geometry.config import StereoConfig, TriangulationConfig
 from mapper.node.store import validate_map_name
 from mapper.ov.config import ClipBackendConfig
 from mapper.runtime.config import ModelRuntimeConfig
@@ -527,6 +527,11 @@ class NodeConfig:
     ``[triangulation]``; :mod:`mapper.node.plugins.triangulation`): global-map points and the
     learned model's volume bounds for RGB-only robots."""
 
+    stereo: StereoConfig = field(default_factory=StereoConfig)
+    """Dense depth by plane-sweep stereo for keyframes without depth (TOML table ``[stereo]``;
+    :mod:`mapper.geometry.plane_sweep`, run by the triangulation worker after a keyframe's points):
+    global-map points and the depth prior for RGB-only robots."""
+
     limits: LimitsConfig = field(default_factory=LimitsConfig)
     """Socket high-water marks and queue bounds (TOML table ``[limits]``)."""
 
@@ -560,6 +565,7 @@ class NodeConfig:
         self.model.validate(where)
         self.ov_backend.validate(where)
         self.triangulation.validate(where)
+        self.stereo.validate(where)
         self.limits.validate(where)
         if self.ov_backend.kind and self.ov_space is not None and self.ov_space != self.ov_backend.space:
             raise ConfigError(

@@ -51,7 +51,16 @@ from typing import TYPE_CHECKING, Any, Protocol
 import cv2
 import numpy as np
 
-from mapper.geometry.config import TriangulationConfig
+from mapper.geometry.config import StereoConfig, TriangulationConfig
+from mapper.geometry.plane_sweep import (
+    DenseDepth,
+    StereoView,
+    agreeing_views,
+    depth_range,
+    fill_depth,
+    gray_image,
+    sweep_depth,
+)
 from mapper.geometry.triangulation import (
     FeatureExtractor,
     Features,
@@ -137,6 +146,7 @@ class _Candidate:
     view: PosedView
     rgb: np.ndarray | None  # (H, W, 3) uint8 until the features are detected
     features: Features | None = None
+    stereo: _StereoImage | None = None  # its image (and depth) at the sweep's working size
 
     def detected(self, extractor: FeatureExtractor) -> Features:
         if self.features is None:
@@ -144,6 +154,54 @@ class _Candidate:
             self.features = extractor.detect(np.asarray(self.rgb))
             self.rgb = None
         return self.features
+
+
+@dataclass
+class _StereoImage:
+    """A keyframe at the plane sweep's working size (``stereo.max_width``)."""
+
+    view: StereoView  # K scaled to the working size, gray (h, w) float32
+    depth_m: np.ndarray | None  # (h, w) float32: its input depth, or its swept depth; None = neither
+
+
+def stereo_image(keyframe: Any, config: StereoConfig) -> _StereoImage:
+    """``keyframe`` (rgb, K, pose, optional depth) at the sweep's working size."""
+    rgb = np.asarray(keyframe.rgb)
+    height, width = rgb.shape[:2]
+    K = np.asarray(keyframe.K, np.float64)
+    gray = gray_image(rgb)
+    depth = None if keyframe.depth_m is None else np.asarray(keyframe.depth_m, np.float32)
+    if width > config.max_width:
+        w = config.max_width
+        h = max(1, round(height * w / width))
+        gray = np.asarray(cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA), np.float32)
+        K = K * np.array([w / width, h / height, w / width, h / height])
+        if depth is not None:
+            depth = np.asarray(cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST), np.float32)
+    elif depth is not None and depth.shape != gray.shape:
+        size = (gray.shape[1], gray.shape[0])
+        depth = np.asarray(cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST), np.float32)
+    view = StereoView(K, np.asarray(keyframe.world_from_cam, np.float64), gray)
+    return _StereoImage(view, depth)
+
+
+def swept_keyframe(
+    keyframe: Any, dense: DenseDepth, keep: np.ndarray, config: StereoConfig, min_ncc: float
+) -> TriangulatedKeyframe:
+    """The kept swept depths as a depth map of ``keyframe`` (full size, nearest pixel) with a
+    confidence of ``global_map_weight`` times the score above ``min_ncc`` (normalised, >= 0.1)."""
+    height, width = keyframe.rgb.shape[:2]
+    depth = np.where(keep, dense.depth_m, 0.0).astype(np.float32)
+    certainty = np.clip((dense.score - min_ncc) / max(1e-6, 1.0 - min_ncc), 0.1, 1.0)
+    conf = np.where(keep, config.global_map_weight * certainty, 0.0).astype(np.float32)
+    if depth.shape != (height, width):
+        depth = np.asarray(cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST), np.float32)
+        conf = np.asarray(cv2.resize(conf, (width, height), interpolation=cv2.INTER_NEAREST), np.float32)
+    return TriangulatedKeyframe(
+        stamp_ns=int(keyframe.stamp_ns), K=np.asarray(keyframe.K, np.float64),
+        world_from_cam=np.asarray(keyframe.world_from_cam, np.float64), rgb=keyframe.rgb,
+        depth_m=depth, ov=keyframe.ov, confidence=conf,
+    )
 
 
 class SparseTriangulation:
@@ -156,10 +214,15 @@ class SparseTriangulation:
     """
 
     def __init__(
-        self, node: MapperNode, config: TriangulationConfig | None = None, runtime: ExtentSink | None = None
+        self,
+        node: MapperNode,
+        config: TriangulationConfig | None = None,
+        runtime: ExtentSink | None = None,
+        stereo: StereoConfig | None = None,
     ) -> None:
         self.node = node
         self.config = config or node.config.triangulation
+        self.stereo = stereo or node.config.stereo
         self.runtime = runtime
         self.extractor = FeatureExtractor(self.config)
         self._lock = threading.Lock()  # guards the sparse map, the candidates and the map they belong to
@@ -186,6 +249,10 @@ class SparseTriangulation:
         self.failed = 0
         self.seconds: deque[float] = deque(maxlen=1000)
         self.seconds_total = 0.0
+        self.stereo_keyframes = 0
+        self.stereo_pixels = 0  # swept depths kept (at the working size)
+        self.stereo_map_points = 0
+        self.stereo_seconds_total = 0.0
         self._log = LimitedLog(log)
 
     # -- wiring -------------------------------------------------------------------------------
@@ -245,18 +312,23 @@ class SparseTriangulation:
             height, width = keyframe.rgb.shape[:2]
             pose = np.asarray(keyframe.world_from_cam, np.float64)
             view = PosedView(np.asarray(keyframe.K, np.float64), pose, int(width), int(height))
+            image = stereo_image(keyframe, self.stereo) if self.stereo.enabled else None
             if keyframe.depth_m is not None:
-                candidate = _Candidate(keyframe_key(keyframe), view, keyframe.rgb)
+                candidate = _Candidate(keyframe_key(keyframe), view, keyframe.rgb, stereo=image)
                 if not self._add_candidate(generation, candidate):
                     self.stale += 1  # a load meanwhile
                 return 0
             features = self.extractor.detect(np.asarray(keyframe.rgb))
-            if not self._add_candidate(generation, _Candidate(keyframe_key(keyframe), view, None, features)):
+            own = _Candidate(keyframe_key(keyframe), view, None, features, stereo=image)
+            if not self._add_candidate(generation, own):
                 self.stale += 1  # a load while it was detected
                 return 0
             chosen = select_partners(view, [c.view for c in candidates], self.config)
             partners = [(candidates[i].view, candidates[i].detected(self.extractor)) for i in chosen]
             points = triangulate_keyframe(self.extractor, view, features, partners, self.config)
+            swept = None
+            if image is not None:
+                swept = self._sweep(image, [candidates[i] for i in chosen], points)
         except Exception as exc:  # bad input, OpenCV errors (cv2.error): count, never kill the worker
             self._failed(keyframe, exc)
             return 0
@@ -267,11 +339,14 @@ class SparseTriangulation:
             self._store(keyframe_key(keyframe), points)
             if self.runtime is not None and self.config.bounds:
                 self._set_extent(keyframe_key(keyframe), view, points)
-        if self.runtime is not None and self.config.depth_prior_radius_px > 0 and len(points):
-            sparse = sparse_depth_keyframe(keyframe, points, self.config)
-            self.runtime.set_view_depth_prior(keyframe_key(keyframe),
-                                              depth_prior(sparse, self.config.depth_prior_radius_px))
+        swept_frame = None
+        if swept is not None:
+            dense, keep = swept
+            swept_frame = swept_keyframe(keyframe, dense, keep, self.stereo, self.stereo.min_ncc)
+        self._set_depth_prior(keyframe, points, swept_frame, image)
         self._integrate(keyframe, points, target)
+        if swept_frame is not None:
+            self._integrate_swept(keyframe, swept_frame, target)
         seconds = time.perf_counter() - started
         self.processed += 1
         self.points_total += len(points)
@@ -282,6 +357,82 @@ class SparseTriangulation:
         log.debug("triangulation: %d points (%d partners, %d matches) for keyframe at stamp %d in %.0f ms",
                   len(points), points.partners, points.matches, keyframe.stamp_ns, 1e3 * seconds)
         return 1
+
+    def _sweep(
+        self, image: _StereoImage, partners: list[_Candidate], points: SparsePoints
+    ) -> tuple[DenseDepth, np.ndarray] | None:
+        """Plane-sweep depth of a keyframe (``image``) against its best partners; returns the
+        sweep and the (h, w) mask of the depths kept (``stereo.min_agreeing`` partners agree), or
+        None without enough partners. The keyframe's swept depth is kept for later checks."""
+        cfg = self.stereo
+        sources = [p.stereo for p in partners if p.stereo is not None][: cfg.max_sources]
+        if len(sources) < cfg.top_k:
+            return None
+        started = time.perf_counter()
+        span = depth_range(points.depth_m, cfg) if len(points) else None
+        if span is None:
+            room = self._room_depths
+            far = float(np.median(room)) * cfg.range_margin if room else cfg.fallback_far_m
+            span = (cfg.min_depth_m, max(far, 2.0 * cfg.min_depth_m))
+        dense = sweep_depth(image.view, [s.view for s in sources], span[0], span[1], cfg)
+        image.depth_m = dense.depth_m  # later keyframes check their depths against it
+        keep = dense.valid
+        if cfg.min_agreeing > 0:
+            others = [(s.view.K, s.view.world_from_cam, s.depth_m) for s in sources if s.depth_m is not None]
+            agree, _ = agreeing_views(image.view.K, image.view.world_from_cam, dense.depth_m, others,
+                                      cfg.consistency_rel)
+            keep = keep & (agree >= cfg.min_agreeing)
+        self.stereo_keyframes += 1
+        self.stereo_pixels += int(np.count_nonzero(keep))
+        self.stereo_seconds_total += time.perf_counter() - started
+        return dense, keep
+
+    def _set_depth_prior(
+        self, keyframe: Any, points: SparsePoints, swept: TriangulatedKeyframe | None,
+        image: _StereoImage | None,
+    ) -> None:
+        """The keyframe's depth prior for the runtime: its swept depth where kept, the splatted
+        triangulated points elsewhere, the holes filled along the image (``stereo.prior_fill_px``)."""
+        if self.runtime is None:
+            return
+        prior = None
+        if self.config.depth_prior_radius_px > 0 and len(points):
+            sparse = sparse_depth_keyframe(keyframe, points, self.config)
+            prior = depth_prior(sparse, self.config.depth_prior_radius_px)
+        cfg = self.stereo
+        if swept is not None and cfg.depth_prior and bool((swept.depth_m > 0).any()):
+            prior = swept.depth_m if prior is None else np.where(swept.depth_m > 0, swept.depth_m, prior)
+            if cfg.prior_fill_px > 0 and image is not None:
+                prior = self._filled(prior, image)
+        if prior is not None:
+            self.runtime.set_view_depth_prior(keyframe_key(keyframe), np.asarray(prior, np.float32))
+
+    def _filled(self, prior: np.ndarray, image: _StereoImage) -> np.ndarray:
+        """``prior`` (H, W) with its holes filled at the working size, back at (H, W)."""
+        cfg = self.stereo
+        gray = image.view.gray
+        small = prior
+        if prior.shape != gray.shape:
+            small = cv2.resize(prior, (gray.shape[1], gray.shape[0]), interpolation=cv2.INTER_NEAREST)
+        filled = fill_depth(gray, small, cfg.prior_fill_px, sigma_gray=cfg.prior_fill_sigma,
+                            max_spread=cfg.prior_fill_spread)
+        if filled.shape != prior.shape:
+            filled = cv2.resize(filled, (prior.shape[1], prior.shape[0]), interpolation=cv2.INTER_NEAREST)
+            filled = np.where(prior > 0, prior, filled)
+        return filled
+
+    def _integrate_swept(self, keyframe: Any, swept: TriangulatedKeyframe, target: GlobalSemanticMap) -> None:
+        if self.stereo.global_map_weight <= 0.0 or not bool((swept.depth_m > 0).any()):
+            return
+        if target is not self.node.state.global_map:
+            return  # a map load replaced the map (counted once by _integrate)
+        try:
+            stats = target.integrate(swept, map_version=None, pixel_stride=1,
+                                     confidence=swept.confidence, count_keyframe=False)
+        except (ValueError, RuntimeError) as exc:
+            self._failed(keyframe, exc)
+            return
+        self.stereo_map_points += stats.points
 
     def _add_candidate(self, generation: int, candidate: _Candidate) -> bool:
         """Append ``candidate`` unless a reset came after ``generation`` (then False)."""
@@ -383,6 +534,9 @@ class SparseTriangulation:
                 feats += f.uv.nbytes + f.descriptors.nbytes + (0 if f.gray is None else f.gray.nbytes)
             elif c.rgb is not None:
                 feats += c.rgb.nbytes  # a view of the keyframe's image (shared with the window)
+            if c.stereo is not None:
+                depth = c.stereo.depth_m
+                feats += c.stereo.view.gray.nbytes + (0 if depth is None else depth.nbytes)
         return int(pts + feats)
 
     def run(self, stop: threading.Event) -> None:
@@ -414,6 +568,13 @@ class SparseTriangulation:
             "stale": self.stale,
             "failed": self.failed,
             "memory_bytes": self.memory_bytes(),
+            "stereo": {
+                "enabled": self.stereo.enabled,
+                "keyframes": self.stereo_keyframes,
+                "depths_per_keyframe": round(self.stereo_pixels / max(self.stereo_keyframes, 1), 1),
+                "global_map_points": self.stereo_map_points,
+                "mean_ms": round(1e3 * self.stereo_seconds_total / max(self.stereo_keyframes, 1), 1),
+            },
         }
 
 

@@ -1,0 +1,334 @@
+"""Dense depth from posed RGB by plane sweep (mapper.geometry.plane_sweep) and its use in the
+triangulation plugin: a rendered textured plane with known depth, degenerate cases (pure rotation,
+no texture, no sources, a source that does not see the view), multi-view geometric consistency,
+the depth range, the config, and the plugin's dense prior and global-map points."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from mapper.geometry.config import StereoConfig
+from mapper.geometry.plane_sweep import (
+    StereoView,
+    agreeing_views,
+    depth_range,
+    fill_depth,
+    gray_image,
+    sweep_depth,
+)
+from mapper.node.config import ConfigError, config_from_dict
+from mapper.node.plugins.triangulation import SparseTriangulation, keyframe_key
+from mapper.node.service import MapperNode
+from protocol.messages import Frame, encode
+
+K = np.array([100.0, 100.0, 80.0, 60.0])
+W, H = 160, 120
+PLANE_Z = 3.0
+
+
+def pose(yaw_deg: float, center: tuple[float, float, float]) -> np.ndarray:
+    a = np.radians(yaw_deg)
+    out = np.eye(4)
+    out[:3, :3] = [[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]]
+    out[:3, 3] = center
+    return out
+
+
+def plane_depth(world_from_cam: np.ndarray) -> np.ndarray:
+    """(H, W) true z-depth of the plane z = PLANE_Z."""
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    rays = np.stack([(u - K[2]) / K[0], (v - K[3]) / K[1], np.ones_like(u)], axis=-1)
+    rays = rays @ world_from_cam[:3, :3].T
+    return (PLANE_Z - world_from_cam[2, 3]) / rays[..., 2]
+
+
+def render_plane(world_from_cam: np.ndarray, texture: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8: the plane z = PLANE_Z textured over x, y in [-3, 3] m."""
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    rays = np.stack([(u - K[2]) / K[0], (v - K[3]) / K[1], np.ones_like(u)], axis=-1)
+    rays = rays @ world_from_cam[:3, :3].T
+    c = world_from_cam[:3, 3]
+    hit = c + ((PLANE_Z - c[2]) / rays[..., 2])[..., None] * rays
+    size = texture.shape[0]
+    mx = ((hit[..., 0] + 3.0) / 6.0 * size - 0.5).astype(np.float32)
+    my = ((hit[..., 1] + 3.0) / 6.0 * size - 0.5).astype(np.float32)
+    gray = cv2.remap(texture, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    return np.repeat(gray[..., None], 3, axis=2)
+
+
+@pytest.fixture(scope="module")
+def texture() -> np.ndarray:
+    rng = np.random.default_rng(7)
+    noise = rng.uniform(0, 255, (96, 96)).astype(np.float32)
+    return cv2.resize(noise, (1024, 1024), interpolation=cv2.INTER_CUBIC).clip(0, 255).astype(np.uint8)
+
+
+POSES = [pose(0.0, (0.0, 0.0, 0.0)), pose(-3.0, (0.35, 0.05, 0.0)), pose(4.0, (-0.3, 0.1, 0.0)),
+         pose(-2.0, (0.15, -0.2, 0.1))]
+
+
+def stereo_view(i: int, texture: np.ndarray) -> StereoView:
+    return StereoView(K, POSES[i], gray_image(render_plane(POSES[i], texture)))
+
+
+def test_textured_plane_gets_its_true_depth_almost_everywhere(texture: np.ndarray) -> None:
+    ref = stereo_view(0, texture)
+    out = sweep_depth(ref, [stereo_view(i, texture) for i in (1, 2, 3)], 1.0, 8.0, StereoConfig())
+    truth = plane_depth(POSES[0])
+    rel = np.abs(out.depth_m[out.valid] - truth[out.valid]) / truth[out.valid]
+    assert out.sources == 3 and out.density > 0.6
+    assert np.median(rel) < 0.01 and np.quantile(rel, 0.95) < 0.03
+    assert (out.score[out.valid] >= StereoConfig().min_ncc).all() and (out.score[~out.valid] == -1).all()
+
+
+def test_a_slanted_view_and_views_of_other_sizes_are_swept_too(texture: np.ndarray) -> None:
+    # the reference looks at the plane at 25 degrees; a source renders at another size and focal length
+    ref_pose = pose(25.0, (-0.8, 0.0, 0.2))
+    ref = StereoView(K, ref_pose, gray_image(render_plane(ref_pose, texture)))
+    src_pose = pose(20.0, (-0.4, 0.05, 0.2))
+    big = cv2.resize(render_plane(src_pose, texture), (2 * W, 2 * H), interpolation=cv2.INTER_LINEAR)
+    src = StereoView(2.0 * K, src_pose, gray_image(big))
+    out = sweep_depth(ref, [src, stereo_view(0, texture)], 1.0, 8.0, StereoConfig(top_k=1))
+    truth = plane_depth(ref_pose)
+    rel = np.abs(out.depth_m[out.valid] - truth[out.valid]) / truth[out.valid]
+    assert out.density > 0.4 and np.median(rel) < 0.02
+
+
+def test_pure_rotation_gives_no_depth(texture: np.ndarray) -> None:
+    # same centre, turned: every hypothesis projects to the same pixel, nothing is unique
+    ref = stereo_view(0, texture)
+    turned = pose(5.0, (0.0, 0.0, 0.0))
+    src = StereoView(K, turned, gray_image(render_plane(turned, texture)))
+    out = sweep_depth(ref, [src], 1.0, 8.0, StereoConfig(top_k=1))
+    assert out.density < 0.01
+
+
+def test_no_texture_no_sources_and_unseen_views_give_no_depth(texture: np.ndarray) -> None:
+    flat = StereoView(K, POSES[0], np.full((H, W), 0.5, np.float32))
+    flat_src = StereoView(K, POSES[1], np.full((H, W), 0.5, np.float32))
+    assert sweep_depth(flat, [flat_src], 1.0, 8.0, StereoConfig(top_k=1)).density == 0.0
+    none = sweep_depth(stereo_view(0, texture), [], 1.0, 8.0)
+    assert none.density == 0.0 and none.depth_m.shape == (H, W) and none.sources == 0
+    # fewer sources than top_k: no pixel can be scored
+    assert sweep_depth(stereo_view(0, texture), [stereo_view(1, texture)], 1.0, 8.0,
+                       StereoConfig(top_k=2)).density == 0.0
+    # a source looking the other way (the plane is behind it): nothing projects in front of it
+    behind = pose(180.0, (0.3, 0.0, 0.0))
+    src = StereoView(K, behind, stereo_view(1, texture).gray)
+    out = sweep_depth(stereo_view(0, texture), [src], 1.0, 8.0, StereoConfig(top_k=1))
+    assert out.density == 0.0
+
+
+def test_the_surface_outside_the_swept_range_is_not_reported(texture: np.ndarray) -> None:
+    # the plane is 3 m away; sweeping 0.5-2 m puts every winner on the far end: dropped
+    out = sweep_depth(stereo_view(0, texture), [stereo_view(i, texture) for i in (1, 2)], 0.5, 2.0)
+    assert out.density < 0.02
+
+
+def test_bad_inputs_raise_before_any_work(texture: np.ndarray) -> None:
+    ref = stereo_view(0, texture)
+    with pytest.raises(ValueError, match="near"):
+        sweep_depth(ref, [stereo_view(1, texture)], 3.0, 2.0)
+    with pytest.raises(ValueError, match="near"):
+        sweep_depth(ref, [stereo_view(1, texture)], 0.0, 2.0)
+    with pytest.raises(ValueError, match="fx, fy"):
+        sweep_depth(StereoView(np.array([0.0, 100.0, 80.0, 60.0]), POSES[0], ref.gray), [], 1.0, 2.0)
+    with pytest.raises(ValueError, match="world_from_cam"):
+        sweep_depth(ref, [StereoView(K, np.full((4, 4), np.nan), ref.gray)], 1.0, 2.0)
+    with pytest.raises(ValueError, match="gray"):
+        sweep_depth(StereoView(K, POSES[0], ref.gray[None]), [], 1.0, 2.0)
+    with pytest.raises(ValueError, match="rgb"):
+        gray_image(np.zeros((4, 4), np.uint8))
+
+
+def test_geometric_consistency_counts_agreeing_and_checking_views() -> None:
+    d0, d1 = plane_depth(POSES[0]).astype(np.float32), plane_depth(POSES[1]).astype(np.float32)
+    off = 1.3 * plane_depth(POSES[2])
+    agree, checked = agreeing_views(K, POSES[0], d0, [(K, POSES[1], d1), (K, POSES[2], off)], 0.05)
+    seen = checked > 0
+    assert seen.mean() > 0.5
+    assert (agree[seen] <= checked[seen]).all()
+    # view 1 agrees wherever it sees the point; view 2's depth is 30% off: it never agrees
+    assert np.median(agree[seen]) == 1 and agree.max() == 1
+    # pixels without depth are never checked; a view without depth there does not check
+    holes = d0.copy()
+    holes[:, :40] = 0.0
+    _, checked = agreeing_views(K, POSES[0], holes, [(K, POSES[1], np.zeros_like(d1))], 0.05)
+    assert checked.max() == 0
+    agree, checked = agreeing_views(K, POSES[0], holes, [(K, POSES[1], d1)], 0.05)
+    assert checked[:, :40].max() == 0 and agree[10:110, 60:100].min() == 1
+    # a view that has the point behind it does not check it
+    _, checked = agreeing_views(K, POSES[0], d0, [(K, pose(180.0, (0.0, 0.0, 0.0)), d1)], 0.05)
+    assert checked.max() == 0
+
+
+def test_depth_range_follows_the_points_within_the_limits() -> None:
+    cfg = StereoConfig()
+    assert depth_range(np.array([2.0, 3.0]), cfg) is None  # fewer than min_range_points
+    rng = np.random.default_rng(0)
+    near, far = depth_range(rng.uniform(2.0, 4.0, 200), cfg)  # type: ignore[misc]
+    assert near == pytest.approx(2.0 / cfg.range_margin, rel=0.05)
+    assert far == pytest.approx(4.0 * cfg.range_margin, rel=0.05)
+    near, far = depth_range(np.full(50, 10.0), cfg)  # type: ignore[misc]
+    assert far == cfg.max_depth_m and near == pytest.approx(10.0 / cfg.range_margin)
+    assert depth_range(np.full(50, 100.0), cfg) is None  # beyond max_depth_m: nothing to sweep
+    assert depth_range(np.array([np.nan, -1.0, 0.0] * 10), cfg) is None
+
+
+def test_filling_carries_depths_across_a_surface_of_one_colour_but_not_across_edges() -> None:
+    # a slanted plane (inverse depth affine in the pixel) seen as one colour, depths on a sparse grid
+    truth = plane_depth(pose(25.0, (-0.8, 0.0, 0.2))).astype(np.float32)
+    sparse = np.zeros_like(truth)
+    sparse[::6, ::6] = truth[::6, ::6]
+    gray = np.full((H, W), 0.4, np.float32)
+    filled = fill_depth(gray, sparse, 6)
+    assert (filled[sparse > 0] == sparse[sparse > 0]).all()  # known depths are kept
+    inner = filled[6:-6, 6:-6]
+    assert (inner > 0).all()
+    np.testing.assert_allclose(inner, truth[6:-6, 6:-6], rtol=0.01)
+    # two surfaces of different colours and depths: no depth crosses the colour edge
+    left = np.broadcast_to(np.arange(W)[None, :] < W // 2, (H, W))
+    gray2 = np.where(left, 0.2, 0.8).astype(np.float32)
+    depth2 = np.where(left, 2.0, 4.0).astype(np.float32)
+    sparse2 = np.zeros_like(depth2)
+    sparse2[::5, ::5] = depth2[::5, ::5]
+    out = fill_depth(gray2, sparse2, 6)
+    on = out > 0
+    assert on.mean() > 0.9 and np.abs(out[on] - depth2[on]).max() < 1e-4
+    # the same depths on ONE colour, the depth edge between two sample columns (75: 2 m, 80: 4 m):
+    # the pixels between see both depths, they disagree, those pixels stay empty
+    depth3 = np.where(np.arange(W)[None, :] < 78, 2.0, 4.0).astype(np.float32) * np.ones((H, 1), np.float32)
+    sparse3 = np.zeros_like(depth3)
+    sparse3[::5, ::5] = depth3[::5, ::5]
+    out = fill_depth(np.full((H, W), 0.5, np.float32), sparse3, 6, max_spread=0.1)
+    assert (out[:, 77:79] == 0).all()
+    far = np.r_[0:70, 86:150]
+    assert (out[6:-6, far] > 0).all() and np.abs(out[6:-6, far] - depth3[6:-6, far]).max() < 1e-4
+
+
+def test_filling_edge_cases() -> None:
+    gray = np.zeros((H, W), np.float32)
+    empty = np.zeros((H, W), np.float32)
+    assert (fill_depth(gray, empty, 5) == 0).all()
+    one = empty.copy()
+    one[60, 80] = 2.0
+    np.testing.assert_array_equal(fill_depth(gray, one, 0), one)  # radius 0: unchanged
+    assert (fill_depth(gray, one, 3, min_weight=10.0) == one).all()  # too little support: nothing filled
+    with pytest.raises(ValueError, match="same"):
+        fill_depth(gray, empty[:, :10], 3)
+    with pytest.raises(ValueError, match="radius_px"):
+        fill_depth(gray, empty, -1)
+
+
+def test_config_is_validated() -> None:
+    with pytest.raises(ConfigError, match="stereo.patch_px"):
+        config_from_dict({"stereo": {"patch_px": 4}})
+    with pytest.raises(ConfigError, match="stereo.top_k"):
+        config_from_dict({"stereo": {"top_k": 5, "max_sources": 4}})
+    with pytest.raises(ConfigError, match="stereo.max_depth_m"):
+        config_from_dict({"stereo": {"min_depth_m": 5.0, "max_depth_m": 4.0}})
+    with pytest.raises(ConfigError, match="stereo.planes"):
+        config_from_dict({"stereo": {"planes": 2}})
+    assert config_from_dict({"stereo": {"enabled": False}}).stereo.enabled is False
+
+
+# ---- the node plugin ---------------------------------------------------------------------------
+class Sink:
+    def __init__(self) -> None:
+        self.priors: dict[tuple[str, int, int], np.ndarray | None] = {}
+
+    def set_view_depth_prior(self, key: tuple[str, int, int], depth_m: np.ndarray | None) -> None:
+        self.priors[key] = depth_m
+
+    def set_view_extent(self, key: tuple[str, int, int], points_m: np.ndarray | None) -> None:
+        pass
+
+
+def plane_frame(i: int, texture: np.ndarray, depth: bool = False) -> Frame:
+    p = POSES[i]
+    return Frame(seq=i, stamp_ns=1000 + i, width=W, height=H, K=K.copy(), world_from_cam=p.copy(),
+                 rgb=render_plane(p, texture),
+                 depth_m=plane_depth(p).astype(np.float32) if depth else None,
+                 ov=np.full((H // 8, W // 8, 4), 0.5, np.float16), ov_space="test-space")
+
+
+def make_node(tmp_path: Path, stereo: dict[str, object]) -> MapperNode:
+    return MapperNode(config_from_dict({
+        "map_dir": str(tmp_path / "maps"), "autosave_name": "", "save_on_exit": False, "serve_model": False,
+        "window": {"max_keyframes": 8, "min_translation_m": 0.05},
+        "global_map": {"min_weight": 0.0, "rendered_depth": False},
+        "triangulation": {"global_map_weight": 0.0},  # only the swept depths reach the map
+        "stereo": stereo,
+    }))
+
+
+@pytest.fixture()
+def node(tmp_path: Path) -> Iterator[MapperNode]:
+    mapper = make_node(tmp_path, {"top_k": 1})
+    yield mapper
+    mapper.stop()
+
+
+def test_plugin_sweeps_rgb_only_keyframes_into_a_dense_prior_and_map_points(
+    node: MapperNode, texture: np.ndarray
+) -> None:
+    sink = Sink()
+    tri = SparseTriangulation(node, runtime=sink)
+    tri.install()
+    node.handle_ingest(encode(plane_frame(0, texture, depth=True)))  # a partner whose depth checks
+    for i in (1, 2, 3):
+        node.handle_ingest(encode(plane_frame(i, texture)))
+    assert tri.process_pending() == 3
+    stereo = tri.stats()["stereo"]
+    assert stereo["enabled"] and stereo["keyframes"] == 3 and stereo["depths_per_keyframe"] > 0.3 * H * W
+    assert stereo["global_map_points"] > 0 and stereo["mean_ms"] > 0
+    # the prior: dense, on the plane (the triangulated discs and the swept depths)
+    prior = sink.priors[keyframe_key(plane_frame(3, texture))]
+    assert prior is not None and prior.shape == (H, W) and (prior > 0).mean() > 0.3
+    on = prior > 0
+    truth = plane_depth(POSES[3])
+    assert np.median(np.abs(prior[on] - truth[on]) / truth[on]) < 0.01
+    # the global map's points are on the plane
+    snap = node.state.global_map.snapshot()
+    assert len(snap) > 1000 and np.median(np.abs(snap.xyz[:, 2] - PLANE_Z)) < 0.03
+
+
+def test_disabled_stereo_adds_no_swept_depth(tmp_path: Path, texture: np.ndarray) -> None:
+    node = make_node(tmp_path, {"enabled": False})
+    try:
+        sink = Sink()
+        tri = SparseTriangulation(node, runtime=sink)
+        tri.install()
+        node.handle_ingest(encode(plane_frame(0, texture, depth=True)))
+        with_depth = len(node.state.global_map.snapshot())  # the depth frame's own points
+        for i in (1, 2, 3):
+            node.handle_ingest(encode(plane_frame(i, texture)))
+        assert tri.process_pending() == 3
+        assert tri.stats()["stereo"]["keyframes"] == 0
+        assert len(node.state.global_map.snapshot()) == with_depth
+    finally:
+        node.stop()
+
+
+def test_a_large_keyframe_is_swept_at_the_working_width(tmp_path: Path, texture: np.ndarray) -> None:
+    node = make_node(tmp_path, {"top_k": 1, "max_width": 80})
+    try:
+        sink = Sink()
+        tri = SparseTriangulation(node, runtime=sink)
+        tri.install()
+        for i in (0, 1, 2):
+            node.handle_ingest(encode(plane_frame(i, texture, depth=i == 0)))
+        tri.process_pending()
+        assert tri.stats()["stereo"]["keyframes"] == 2
+        prior = sink.priors[keyframe_key(plane_frame(2, texture))]
+        assert prior is not None and prior.shape == (H, W)  # back at the keyframe's size
+        on = prior > 0
+        truth = plane_depth(POSES[2])
+        assert on.mean() > 0.3 and np.median(np.abs(prior[on] - truth[on]) / truth[on]) < 0.02
+    finally:
+        node.stop()
