@@ -36,6 +36,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -43,6 +44,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tomllib
 import torch
 from scipy.spatial import cKDTree
 
@@ -88,6 +90,11 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         "triangulation": {"enabled": triangulate},
         "stereo": {"enabled": stereo},
     })
+    for item in args.set:  # SECTION.KEY=VALUE overrides (TOML values: 0, 0.5, true, "text")
+        key, _, value = item.partition("=")
+        section, _, name = key.partition(".")
+        config = config_from_dict({**_as_dict(config), section: {**_as_dict(config).get(section, {}),
+                                                                 name: tomllib.loads(f"v = {value}")["v"]}})
     node = MapperNode(config)
     runtime = ModelRuntime(config.model)
     if not runtime.ready:
@@ -175,6 +182,10 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
     return row
 
 
+def _as_dict(config: Any) -> dict[str, Any]:
+    return dataclasses.asdict(config)
+
+
 def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:.3f}" if abs(v) < 10 else f"{v:.0f}"
@@ -197,6 +208,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--process-every", type=int, default=10, help="frames between worker passes")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json", type=Path, default=None, help="also write the rows as JSON")
+    p.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE",
+                   help="node config overrides, e.g. stereo.prior_fill_px=16")
     args = p.parse_args(argv)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     torch.set_num_threads(args.threads)

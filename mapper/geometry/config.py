@@ -269,6 +269,15 @@ class StereoConfig:
     elsewhere), filled along the image (``prior_fill_px``), is the keyframe's depth prior for
     Depth Guided Masking. The global map only ever gets the swept depths themselves."""
 
+    sigma_rel: float = 0.03
+    """1-sigma uncertainty of a kept swept depth, relative to the depth (about its measured median
+    error: benchmarks/stereo_depth.py); the rendered-depth points' consistency check
+    (``global_map.rendered_consistency``) uses the swept depths as it uses triangulated points,
+    with this sigma. 1e-4..1."""
+
+    max_points: int = 400_000
+    """Swept points kept for that check (the oldest keyframes' go first). 0 = none kept. 0..1e8."""
+
     prior_fill_px: int = 8
     """Holes of the prior are filled from the depths within this radius (pixels at the working
     size) of similar intensity (``plane_sweep.fill_depth``); 0 = no filling. 0..64."""
@@ -317,3 +326,5 @@ class StereoConfig:
         check("prior_fill_px", self.prior_fill_px, 0, 64)
         check("prior_fill_sigma", self.prior_fill_sigma, 1e-3, 1.0)
         check("prior_fill_spread", self.prior_fill_spread, 0.0, 1.0)
+        check("sigma_rel", self.sigma_rel, 1e-4, 1.0)
+        check("max_points", self.max_points, 0, 100_000_000)

@@ -122,6 +122,35 @@ def test_consistency_mask_points_overrule_views_and_no_evidence_rejects() -> Non
                       "rejected": 99 - int(expected.sum())}
     keep, counts = consistency_mask(ref, np.zeros((0, 3)), np.zeros(0), [], config)
     assert not keep.any() and counts["rejected"] == 99
+    # without view agreement (global_map.rendered_view_agreement): only the agreeing point's disc
+    keep, counts = consistency_mask(ref, xyz, sigma, [plane_view((0.5, 0.0, 0.0))], config, by_views=False)
+    np.testing.assert_array_equal(keep, disc(8, 1, 1))
+    assert counts["by_views"] == 0 and counts["by_points"] == 5 and counts["rejected"] == 94
+
+
+def test_view_agreement_mode_follows_the_stereo_setting(tmp_path) -> None:
+    from mapper.node.config import ConfigError, config_from_dict
+    from mapper.node.plugins.depth_points import RenderedDepthPoints
+    from mapper.node.plugins.triangulation import SparseTriangulation
+    from mapper.node.service import MapperNode
+
+    with pytest.raises(ConfigError, match="rendered_view_agreement"):
+        config_from_dict({"global_map": {"rendered_view_agreement": "maybe"}})
+    answers = {}
+    for mode, stereo in (("auto", True), ("auto", False), ("on", True), ("off", False)):
+        node = MapperNode(config_from_dict({
+            "map_dir": str(tmp_path / "maps"), "autosave_name": "", "save_on_exit": False, "serve_model": False,
+            "global_map": {"rendered_view_agreement": mode}, "stereo": {"enabled": stereo},
+        }))
+        try:
+            points = RenderedDepthPoints(node, runtime=None)  # type: ignore[arg-type]
+            without = points._view_agreement()  # no triangulation plugin installed: nothing sweeps
+            SparseTriangulation(node).install()
+            answers[(mode, stereo)] = (without, points._view_agreement())
+        finally:
+            node.stop()
+    assert answers == {("auto", True): (True, False), ("auto", False): (True, True),
+                       ("on", True): (True, True), ("off", False): (False, False)}
 
 
 # ---- the plugin ----------------------------------------------------------------------------------

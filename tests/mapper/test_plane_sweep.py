@@ -293,6 +293,12 @@ def test_plugin_sweeps_rgb_only_keyframes_into_a_dense_prior_and_map_points(
     on = prior > 0
     truth = plane_depth(POSES[3])
     assert np.median(np.abs(prior[on] - truth[on]) / truth[on]) < 0.01
+    # the swept depths as points (what rendered-depth points are checked against), with a sigma
+    xyz, sigma = tri.geometry_points()
+    n_tri = len(tri.points()[0])
+    assert len(xyz) == n_tri + stereo["points"] and stereo["points"] > 1000
+    assert np.median(np.abs(xyz[n_tri:, 2] - PLANE_Z)) < 0.03
+    np.testing.assert_allclose(sigma[n_tri:].mean(), tri.stereo.sigma_rel * PLANE_Z, rtol=0.2)
     # the global map's points are on the plane
     snap = node.state.global_map.snapshot()
     assert len(snap) > 1000 and np.median(np.abs(snap.xyz[:, 2] - PLANE_Z)) < 0.03
@@ -330,5 +336,22 @@ def test_a_large_keyframe_is_swept_at_the_working_width(tmp_path: Path, texture:
         on = prior > 0
         truth = plane_depth(POSES[2])
         assert on.mean() > 0.3 and np.median(np.abs(prior[on] - truth[on]) / truth[on]) < 0.02
+    finally:
+        node.stop()
+
+
+def test_swept_points_keep_within_their_budget(tmp_path: Path, texture: np.ndarray) -> None:
+    node = make_node(tmp_path, {"top_k": 1, "max_points": 100})
+    try:
+        tri = SparseTriangulation(node, runtime=Sink())
+        tri.install()
+        for i in (0, 1, 2, 3):
+            node.handle_ingest(encode(plane_frame(i, texture, depth=i == 0)))
+        tri.process_pending()
+        stereo = tri.stats()["stereo"]
+        # only the newest keyframe's points are left (one keyframe is never split)
+        assert stereo["keyframes"] == 3 and stereo["depths_per_keyframe"] > 100
+        assert stereo["points"] == len(tri.geometry_points()[0]) - len(tri.points()[0])
+        assert stereo["points"] < 2 * stereo["depths_per_keyframe"]
     finally:
         node.stop()

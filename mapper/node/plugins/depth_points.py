@@ -14,13 +14,15 @@ rendered depth where both exist.
 Multi-view consistency (``rendered_consistency``, :func:`consistency_mask`): an opacity threshold
 alone keeps floaters (a density field fit to few views puts confident surfaces where there are
 none). So a rendered pixel is kept only where it agrees with the geometry from other views: with
-the **triangulated points** (:mod:`mapper.node.plugins.triangulation`) that project within
+the **triangulated points** and the kept **plane-sweep depths** as points
+(:mod:`mapper.node.plugins.triangulation`, ``geometry_points``) that project within
 ``rendered_consistency_radius_px`` of it (their depth in this camera within
 ``max(rendered_consistency_sigmas * sigma, rendered_consistency_voxels * voxel_size_m)`` of the
 rendered depth, at least one of them), or, where no triangulated point projects near it, with the
 **rendered depth of at least one other keyframe** (rendered in the same batch or one of the last
 ``rendered_consistency_views``, camera centre at least ``rendered_consistency_min_baseline_m``
-away) that sees it: the pixel's 3D point reprojected there lies within
+away) that sees it (``rendered_view_agreement``: by default only while the node sweeps no stereo
+depths): the pixel's 3D point reprojected there lies within
 ``rendered_consistency_voxels * voxel_size_m`` of that keyframe's rendered depth. Points behind a
 camera or outside its image are no evidence either way. The triangulated points come from the
 node's installed :class:`~mapper.node.plugins.triangulation.SparseTriangulation` (found at
@@ -249,9 +251,12 @@ def consistency_mask(
     sigma_m: np.ndarray,
     others: Sequence[DepthView],
     config: GlobalMapConfig,
+    *,
+    by_views: bool = True,
 ) -> tuple[np.ndarray, dict[str, int]]:
     """(h, w) bool: the pixels of ``view`` to keep (see the module docstring), and counts
-    ``{"checked", "by_points", "by_views", "rejected"}`` of its pixels with depth."""
+    ``{"checked", "by_points", "by_views", "rejected"}`` of its pixels with depth. ``by_views=False``:
+    only the points' agreement keeps a pixel (``global_map.rendered_view_agreement``)."""
     tol = config.rendered_consistency_voxels * config.voxel_size_m
     depth = np.asarray(view.depth_m)
     has_depth = np.isfinite(depth) & (depth > 0)
@@ -259,14 +264,17 @@ def consistency_mask(
         view, xyz, sigma_m, radius_px=config.rendered_consistency_radius_px,
         sigmas=config.rendered_consistency_sigmas, min_tolerance_m=tol,
     )
-    by_views = view_agreement(view, others, tolerance_m=tol,
-                              min_baseline_m=config.rendered_consistency_min_baseline_m)
-    by_views &= has_depth & ~neighbour
-    keep = (agrees | by_views) & has_depth
+    if by_views:
+        agree_views = view_agreement(view, others, tolerance_m=tol,
+                                     min_baseline_m=config.rendered_consistency_min_baseline_m)
+        agree_views &= has_depth & ~neighbour
+    else:
+        agree_views = np.zeros_like(has_depth)
+    keep = (agrees | agree_views) & has_depth
     counts = {
         "checked": int(has_depth.sum()),
         "by_points": int(agrees.sum()),
-        "by_views": int(by_views.sum()),
+        "by_views": int(agree_views.sum()),
         "rejected": int(has_depth.sum() - keep.sum()),
     }
     return keep, counts
@@ -388,12 +396,23 @@ class RenderedDepthPoints:
             return None
         return rendered, time.perf_counter() - started
 
+    def _view_agreement(self) -> bool:
+        """``global_map.rendered_view_agreement``: "auto" is on unless the node's triangulation
+        plugin sweeps dense stereo depths."""
+        mode = self.config.rendered_view_agreement
+        if mode != "auto":
+            return mode == "on"
+        owner = getattr(self.node.status_providers.get("triangulation"), "__self__", None)
+        stereo = getattr(owner, "stereo", None)
+        return not (stereo is not None and bool(getattr(stereo, "enabled", False)))
+
     def _sparse_points(self) -> tuple[np.ndarray, np.ndarray]:
         """The triangulated points (empty when no triangulation plugin is installed)."""
         source = self.sparse_source
         if source is None:
             owner = getattr(self.node.status_providers.get("triangulation"), "__self__", None)
-            source = getattr(owner, "points", None)
+            # triangulated points and plane-sweep depths when the plugin has them
+            source = getattr(owner, "geometry_points", None) or getattr(owner, "points", None)
         if source is None:
             return np.zeros((0, 3)), np.zeros(0)
         return source()
@@ -405,7 +424,8 @@ class RenderedDepthPoints:
             return rendered
         views = others + [r for r, t in self._recent if t is target]
         xyz, sigma = self._sparse_points()
-        keep, counts = consistency_mask(rendered, xyz, sigma, views, self.config)
+        keep, counts = consistency_mask(rendered, xyz, sigma, views, self.config,
+                                        by_views=self._view_agreement())
         for key, value in counts.items():
             self.consistency[key] += value
         return replace(rendered, depth_m=np.where(keep, rendered.depth_m, 0.0).astype(np.float32),

@@ -232,6 +232,8 @@ class SparseTriangulation:
         )  # (keyframe, its map version, the node's map when it was queued)
         self._candidates: deque[_Candidate] = deque(maxlen=self.config.candidate_keyframes)
         self._points: OrderedDict[KeyframeKey, SparsePoints] = OrderedDict()
+        self._swept: OrderedDict[KeyframeKey, tuple[np.ndarray, np.ndarray]] = OrderedDict()  # xyz, sigma
+        self._n_swept = 0
         self._n_points = 0
         self._map: GlobalSemanticMap | None = None  # the map the candidates and points belong to
         self._loaded_version = -1  # map version of the latest load: keyframes up to it are stale
@@ -337,6 +339,8 @@ class SparseTriangulation:
                 self.stale += 1
                 return 0
             self._store(keyframe_key(keyframe), points)
+            if swept is not None and image is not None:
+                self._store_swept(keyframe_key(keyframe), image, swept[0], swept[1])
             if self.runtime is not None and self.config.bounds:
                 self._set_extent(keyframe_key(keyframe), view, points)
         swept_frame = None
@@ -448,6 +452,8 @@ class SparseTriangulation:
         self._generation += 1
         self._points.clear()
         self._n_points = 0
+        self._swept.clear()
+        self._n_swept = 0
         self._candidates.clear()
         self._room_depths.clear()
         self._without_extent.clear()
@@ -506,6 +512,39 @@ class SparseTriangulation:
             self._failed(keyframe, exc)
             return
         self.integrated_points += stats.points
+
+    def _store_swept(
+        self, key: KeyframeKey, image: _StereoImage, dense: DenseDepth, keep: np.ndarray
+    ) -> None:
+        """Keep the keyframe's kept swept depths as world points with a sigma (``stereo.sigma_rel``)
+        within ``stereo.max_points`` (``_lock`` held)."""
+        if self.stereo.max_points <= 0:
+            return
+        rows, cols = np.nonzero(keep)
+        z = dense.depth_m[rows, cols].astype(np.float64)
+        fx, fy, cx, cy = (float(v) for v in image.view.K)
+        cam = np.stack([(cols + 0.5 - cx) / fx * z, (rows + 0.5 - cy) / fy * z, z], axis=-1)
+        pose = np.asarray(image.view.world_from_cam, np.float64)
+        xyz = cam @ pose[:3, :3].T + pose[:3, 3]
+        old = self._swept.pop(key, None)
+        if old is not None:
+            self._n_swept -= len(old[0])
+        self._swept[key] = (xyz, self.stereo.sigma_rel * z)
+        self._n_swept += len(z)
+        while self._n_swept > self.stereo.max_points and len(self._swept) > 1:
+            _, (dropped, _) = self._swept.popitem(last=False)
+            self._n_swept -= len(dropped)
+
+    def geometry_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """The triangulated points and the kept swept depths as points: ``(xyz (N, 3) float64
+        world, sigma_m (N,) float64)``; what the rendered-depth points are checked against."""
+        xyz, sigma = self.points()
+        with self._lock:
+            swept = list(self._swept.values())
+        if not swept:
+            return xyz, sigma
+        return (np.concatenate([xyz] + [p for p, _ in swept]),
+                np.concatenate([sigma] + [s for _, s in swept]))
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
         """Every kept point: ``(xyz (N, 3) float64 world, sigma_m (N,) float64)``."""
@@ -573,6 +612,7 @@ class SparseTriangulation:
                 "keyframes": self.stereo_keyframes,
                 "depths_per_keyframe": round(self.stereo_pixels / max(self.stereo_keyframes, 1), 1),
                 "global_map_points": self.stereo_map_points,
+                "points": self._n_swept,
                 "mean_ms": round(1e3 * self.stereo_seconds_total / max(self.stereo_keyframes, 1), 1),
             },
         }
