@@ -18,7 +18,8 @@ Steps, each printed as it happens:
 6. save the map, stop the node with SIGINT and check that it exited cleanly (exit code 0);
 7. RGB-only (skip with ``--no-rgb-only``): the same robot WITHOUT a depth camera (rgb, pose and
    SimLSeg features) streams into a fresh node; once its background workers (points triangulated
-   from the posed RGB, ``mapper/node/plugins/triangulation.py``, and rendered depth) are idle,
+   from the posed RGB and plane-sweep stereo depths, ``mapper/node/plugins/triangulation.py``, and
+   rendered depth) are idle,
    "find the chair" must again lie within 0.5 m of a real chair, and ``segment_points`` mIoU
    (``govnesf`` and ``average``) is printed (docs/RGB_ONLY.md).
 
@@ -373,6 +374,11 @@ def _rgb_only_pass(args: argparse.Namespace, out: Path, room: _Room, failures: l
                   f"{tri.get('keyframes', 0)} keyframes: {tri.get('points_per_keyframe', 0)} points and "
                   f"{tri.get('mean_ms', 0)} ms per keyframe (off the ack path), {tri.get('points', 0)} "
                   f"points kept, {tri.get('global_map_points', 0)} into the global map")
+            stereo = tri.get("stereo") or {}
+            if stereo.get("keyframes"):
+                print(f"  plane-sweep stereo: {stereo['keyframes']} keyframes, "
+                      f"{stereo['depths_per_keyframe']} depths kept per keyframe, "
+                      f"{stereo['mean_ms']} ms per keyframe, {stereo['global_map_points']} into the map")
             bounds = (extra.get("model") or {}).get("bounds")
             if bounds:
                 print(f"  cost volume bounds: {bounds}")
