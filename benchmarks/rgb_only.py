@@ -24,7 +24,9 @@ Reported per run (``--json`` writes them all):
 * the global map's points: their distance to the true surface (median, p90);
 * with ``rgb+tri+stereo``, plane-sweep stereo (:mod:`mapper.geometry.plane_sweep`) on top of the
   triangulation: depths kept per keyframe, cost per keyframe, points added to the global map;
-* rendered depth at held-out poses (``clients.sim.export.novel_view_poses``): median relative error.
+* rendered depth at held-out poses (``clients.sim.export.novel_view_poses``): median relative error;
+  and the same poses' depth splatted from the global map's points (where they cover, and with the
+  model's depth elsewhere).
 
 Usage::
 
@@ -54,6 +56,7 @@ from clients.sim.scenes import CLASS_NAMES, LABEL_OF
 from mapper.node.config import config_from_dict
 from mapper.node.plugins.learned import install_learned_handlers
 from mapper.node.plugins.triangulation import install_triangulation
+from mapper.node.queries import _splat_rows
 from mapper.node.service import MapperNode
 from mapper.runtime.model_runtime import ModelRuntime
 from protocol.messages import Points, QueryPoints, Segmentation, SegmentPoints, decode, encode
@@ -173,6 +176,28 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         rel.append(np.abs(out.depth_m[ok] - truth[ok]) / truth[ok])
     row["render_depth_median_rel_err"] = float(np.median(np.concatenate(rel)))
     snap = node.state.global_map.snapshot()
+    # the same poses' depth from the global map's points (z-buffer splat of the points with a
+    # feature, as `render` labels pixels from the map), and that splat with the model's depth elsewhere
+    rel_s, rel_c, cover = [], [], []
+    for pose in poses:
+        truth = stream.renderer.render(stream.K, pose, args.width, args.height).depth_m
+        out = runtime.render(stream.K, pose, args.width, args.height, outputs=("depth",))
+        assert out.depth_m is not None
+        rows = _splat_rows(snap, np.asarray(stream.K, np.float64), pose, args.width, args.height)
+        pose64 = np.asarray(pose, np.float64)
+        hit = rows >= 0
+        z_map = np.zeros(rows.shape)
+        z_map[hit] = ((snap.xyz[rows[hit]].astype(np.float64) - pose64[:3, 3]) @ pose64[:3, :3])[:, 2]
+        ok = (truth > 0) & np.isfinite(truth)
+        m = ok & hit
+        rel_s.append(np.abs(z_map[m] - truth[m]) / truth[m])
+        cover.append(m.sum() / max(1, ok.sum()))
+        both = np.where(hit, z_map, out.depth_m)
+        rel_c.append(np.abs(both[ok] - truth[ok]) / truth[ok])
+    splat = np.concatenate(rel_s)
+    row["map_splat_depth_median_rel_err"] = float(np.median(splat)) if splat.size else None
+    row["map_splat_depth_cover"] = float(np.mean(cover))
+    row["map_splat_else_render_depth_median_rel_err"] = float(np.median(np.concatenate(rel_c)))
     row["global_map_points"] = len(snap)
     if len(snap):  # the map's geometry: each point's distance to the true surface
         map_dist = cKDTree(surface).query(np.asarray(snap.xyz, np.float64))[0]

@@ -139,8 +139,9 @@ def test_view_agreement_mode_follows_the_stereo_setting(tmp_path) -> None:
     answers = {}
     for mode, stereo in (("auto", True), ("auto", False), ("on", True), ("off", False)):
         node = MapperNode(config_from_dict({
-            "map_dir": str(tmp_path / "maps"), "autosave_name": "", "save_on_exit": False, "serve_model": False,
-            "global_map": {"rendered_view_agreement": mode}, "stereo": {"enabled": stereo},
+            "map_dir": str(tmp_path / "maps"), "autosave_name": "", "save_on_exit": False,
+            "serve_model": False, "global_map": {"rendered_view_agreement": mode},
+            "stereo": {"enabled": stereo},
         }))
         try:
             points = RenderedDepthPoints(node, runtime=None)  # type: ignore[arg-type]
