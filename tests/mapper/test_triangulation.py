@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -456,3 +457,35 @@ def test_a_load_during_a_triangulation_keeps_nothing_of_it(
     assert found[0] > 0 and tri.stats()["stale"] == 1 and tri.stats()["failed"] == 0
     assert tri.stats()["memory_bytes"] == 0 and tri.keyframe_points(plane_frame(2, texture)) is None
     assert tri.points()[0].shape == (0, 3) and len(tri._candidates) == 0
+
+
+def test_pending_counts_the_batch_in_progress(node: MapperNode, texture: np.ndarray) -> None:
+    # the worker drains the queue into a batch: until each keyframe of it is done, it is pending
+    # (a client that waits for pending == 0 must not see 0 while the batch is being worked on)
+    tri = SparseTriangulation(node, config=TriangulationConfig(max_pending=8))
+    tri.install()
+    for i in range(4):
+        node.handle_ingest(encode(plane_frame(i, texture)))
+    seen: list[int] = []
+    original = tri._process_one
+
+    def spy(keyframe: Any, version: int, target: GlobalSemanticMap) -> int:
+        seen.append(tri.pending)
+        return original(keyframe, version, target)
+
+    tri._process_one = spy  # type: ignore[method-assign]
+    assert tri.pending == 4
+    tri.process_pending()
+    assert seen == [4, 3, 2, 1] and tri.pending == 0
+
+
+def test_a_stopping_node_leaves_the_rest_of_the_batch(node: MapperNode, texture: np.ndarray) -> None:
+    tri = SparseTriangulation(node, config=TriangulationConfig(max_pending=8))
+    tri.install()
+    for i in range(3):
+        node.handle_ingest(encode(plane_frame(i, texture)))
+    stop = threading.Event()
+    stop.set()
+    tri.run(stop)  # returns at once (stop is set) and keeps the event for the batches
+    assert tri.process_pending() == 0
+    assert tri.stats()["left_at_stop"] == 3 and tri.pending == 0 and tri.processed == 0

@@ -305,6 +305,7 @@ class RenderedDepthPoints:
             self.config.rendered_max_pending
         )
         self._busy = False
+        self._in_batch = 0  # keyframes of the batch being processed, not yet done (for `pending`)
         self.integrated = 0
         self.points = 0
         self.stale = 0
@@ -337,7 +338,8 @@ class RenderedDepthPoints:
 
     @property
     def pending(self) -> int:
-        return len(self._queue)
+        """Keyframes waiting, including those of the batch the worker took and has not finished."""
+        return len(self._queue) + self._in_batch
 
     @property
     def queued(self) -> int:
@@ -363,13 +365,17 @@ class RenderedDepthPoints:
                 return 0
             if len(self.runtime) < self.config.rendered_min_views:
                 return 0  # wait for more keyframes; the pending ones stay queued
-            batch = [(kf, target, self._render(kf, target)) for kf, target in self._queue.drain()]
+            taken = self._queue.drain()
+            self._in_batch = len(taken)
+            batch = [(kf, target, self._render(kf, target)) for kf, target in taken]
             done = 0
             for i, (keyframe, target, rendered) in enumerate(batch):
+                self._in_batch = len(batch) - i
                 if rendered is None:
                     continue
                 others = [r for j, (_, t, r) in enumerate(batch) if j != i and t is target and r is not None]
                 done += self._integrate_one(keyframe, target, rendered, others)
+            self._in_batch = 0
             for _, target, rendered in batch:
                 if rendered is not None:
                     self._recent.append((rendered[0], target))
@@ -377,6 +383,7 @@ class RenderedDepthPoints:
         finally:
             with self._lock:
                 self._busy = False
+                self._in_batch = 0
 
     def _render(self, keyframe: Any, target: GlobalSemanticMap) -> tuple[RenderedKeyframe, float] | None:
         """The keyframe's rendered depth (unfiltered) and the seconds it took; None when stale or

@@ -234,6 +234,9 @@ class SparseTriangulation:
         self._points: OrderedDict[KeyframeKey, SparsePoints] = OrderedDict()
         self._swept: OrderedDict[KeyframeKey, tuple[np.ndarray, np.ndarray]] = OrderedDict()  # xyz, sigma
         self._n_swept = 0
+        self._in_batch = 0  # keyframes of the batch being processed, not yet done (for `pending`)
+        self._stop = threading.Event()  # the worker's stop event once it runs
+        self.left_at_stop = 0
         self._n_points = 0
         self._map: GlobalSemanticMap | None = None  # the map the candidates and points belong to
         self._loaded_version = -1  # map version of the latest load: keyframes up to it are stale
@@ -286,7 +289,8 @@ class SparseTriangulation:
 
     @property
     def pending(self) -> int:
-        return len(self._queue)
+        """Keyframes waiting, including those of the batch the worker took and has not finished."""
+        return len(self._queue) + self._in_batch
 
     def process_pending(self) -> int:
         """Triangulate every keyframe pending now; returns the keyframes triangulated (those with
@@ -294,8 +298,20 @@ class SparseTriangulation:
         if not self._work_lock.acquire(blocking=False):
             return 0
         try:
-            return sum(self._process_one(kf, version, target) for kf, version, target in self._queue.drain())
+            batch = self._queue.drain()
+            self._in_batch = len(batch)
+            done = 0
+            for n, (kf, version, target) in enumerate(batch):
+                if self._stop.is_set():  # the node is stopping: the rest of the batch is not worked on
+                    self.left_at_stop += len(batch) - n
+                    break
+                try:
+                    done += self._process_one(kf, version, target)
+                finally:
+                    self._in_batch -= 1
+            return done
         finally:
+            self._in_batch = 0
             self._work_lock.release()
 
     def _process_one(self, keyframe: Any, map_version: int, target: GlobalSemanticMap) -> int:
@@ -579,7 +595,9 @@ class SparseTriangulation:
         return int(pts + feats)
 
     def run(self, stop: threading.Event) -> None:
-        """Worker loop: process the pending keyframes whenever new ones arrive, until ``stop``."""
+        """Worker loop: process the pending keyframes whenever new ones arrive, until ``stop`` (set
+        during a batch, the batch's remaining keyframes are left: ``left_at_stop``)."""
+        self._stop = stop
         run_worker(stop, self._queue.wake, self.process_pending, self._unexpected)
 
     def _unexpected(self, exc: BaseException) -> None:
@@ -606,6 +624,7 @@ class SparseTriangulation:
             "p90_ms": round(1e3 * recent[int(0.9 * (len(recent) - 1))], 1) if recent else 0.0,
             "stale": self.stale,
             "failed": self.failed,
+            "left_at_stop": self.left_at_stop,
             "memory_bytes": self.memory_bytes(),
             "stereo": {
                 "enabled": self.stereo.enabled,
