@@ -121,15 +121,27 @@ def _check_view(view: StereoView, name: str) -> None:
         raise ValueError(f"{name}: gray must have shape (H, W), got {view.gray.shape}")
 
 
+def _rows_per_call(h: int) -> int:
+    """Planes of height ``h`` stacked into one OpenCV image (its sides stay below 32 767)."""
+    return max(1, 32_000 // max(1, h))
+
+
 def _box(images: np.ndarray, patch: int) -> np.ndarray:
     """Mean over ``patch`` x ``patch`` windows of each (H, W) plane of (n, H, W) float32 (reflected
-    borders). OpenCV filters up to 512 channels at once: the planes go in as channels."""
+    borders, OpenCV's ``BORDER_REFLECT``). The planes are padded by reflection above and below,
+    stacked into one tall image and filtered in one call; the padding rows, where the planes would
+    mix, are cut off."""
     n, h, w = images.shape
+    r = patch // 2
     out = np.empty_like(images)
-    for s in range(0, n, 512):
-        block = np.ascontiguousarray(images[s : s + 512].transpose(1, 2, 0))
-        filtered = cv2.boxFilter(block, -1, (patch, patch), borderType=cv2.BORDER_REFLECT)
-        out[s : s + 512] = filtered.reshape(h, w, -1).transpose(2, 0, 1)
+    step = _rows_per_call(h + 2 * r)
+    for s in range(0, n, step):
+        block = np.pad(images[s : s + step], ((0, 0), (r, r), (0, 0)), mode="symmetric")
+        m = block.shape[0]
+        tall = cv2.boxFilter(
+            block.reshape(m * (h + 2 * r), w), -1, (patch, patch), borderType=cv2.BORDER_REFLECT
+        )
+        out[s : s + m] = tall.reshape(m, h + 2 * r, w)[:, r : r + h]
     return out
 
 
@@ -162,10 +174,13 @@ def _zncc(
     map_x = (u - 0.5).astype(np.float32)
     map_y = (v - 0.5).astype(np.float32)
     warped = np.empty((D, H, W), np.float32)
-    for d in range(D):
-        warped[d] = cv2.remap(
-            source.gray, map_x[d], map_y[d], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-        )
+    step = _rows_per_call(H)
+    for s in range(0, D, step):  # the planes' maps stacked into one tall map: one call
+        m = min(step, D - s)
+        warped[s : s + m] = cv2.remap(
+            source.gray, map_x[s : s + m].reshape(m * H, W), map_y[s : s + m].reshape(m * H, W),
+            cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE,
+        ).reshape(m, H, W)  # fmt: skip
     valid_frac = _box(inside.astype(np.float32), patch)
     mean_b = _box(warped, patch)
     mean_bb = _box(warped * warped, patch)
@@ -184,10 +199,18 @@ def _aggregate(scores: np.ndarray, top_k: int) -> np.ndarray:
     k = min(top_k, scores.shape[0])
     filled = np.where(np.isnan(scores), -np.inf, scores)
     if k == scores.shape[0]:
-        best = filled
+        best = list(filled)
+    elif k <= 4:  # insertion into k running maxima: O(S k) elementwise, no sort along the sources
+        best = [np.full(filled.shape[1:], -np.inf, np.float32) for _ in range(k)]
+        for x in filled:
+            x = x.copy()
+            for j in range(k):  # best[0] >= best[1] >= ...: carry the smaller value down
+                hi = np.maximum(best[j], x)
+                np.minimum(best[j], x, out=x)
+                best[j] = hi
     else:
-        best = -np.partition(-filled, k - 1, axis=0)[:k]
-    out = best.mean(axis=0)
+        best = list(-np.partition(-filled, k - 1, axis=0)[:k])
+    out = np.sum(best, axis=0) / k
     return np.where(np.isfinite(out), out, -np.inf).astype(np.float32)
 
 

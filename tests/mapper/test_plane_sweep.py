@@ -355,3 +355,22 @@ def test_swept_points_keep_within_their_budget(tmp_path: Path, texture: np.ndarr
         assert stereo["points"] < 2 * stereo["depths_per_keyframe"]
     finally:
         node.stop()
+
+
+def test_stacked_box_filter_and_top_k_equal_their_plain_definitions() -> None:
+    from mapper.geometry import plane_sweep
+
+    rng = np.random.default_rng(3)
+    planes = rng.random((7, 13, 11)).astype(np.float32)
+    for patch in (3, 5, 7):
+        plain = np.stack([cv2.boxFilter(p, -1, (patch, patch), borderType=cv2.BORDER_REFLECT)
+                          for p in planes])
+        np.testing.assert_allclose(plane_sweep._box(planes, patch), plain, atol=1e-6)
+    scores = rng.uniform(-1, 1, (5, 3, 4, 6)).astype(np.float32)
+    scores[rng.random(scores.shape) < 0.3] = np.nan  # sources that do not count
+    filled = np.where(np.isnan(scores), -np.inf, scores)
+    ordered = -np.sort(-filled, axis=0)
+    for k in (1, 2, 3, 5):
+        expected = ordered[:k].mean(axis=0)
+        expected = np.where(np.isfinite(expected), expected, -np.inf)
+        np.testing.assert_allclose(plane_sweep._aggregate(scores, k), expected, atol=1e-6)
