@@ -247,6 +247,12 @@ class StereoConfig:
     fallback_far_m: float = 6.0
     """Farthest depth swept while no keyframe has triangulated points (m). 0.1..1e4."""
 
+    max_backlog: int = 16
+    """While more keyframes than this wait for the triangulation worker, new ones are triangulated
+    without a sweep (counted in ``status`` as ``stereo.skipped_busy``): under a fast stream the
+    worker keeps up with the cheaper sparse geometry instead of dropping keyframes. 0 = never
+    skip. 0..100000."""
+
     max_width: int = 200
     """Keyframes wider than this are swept at this width (area-downscaled; the depth is scaled
     back up, nearest pixel): the cost grows with the pixels. 16..4096."""
@@ -328,3 +334,4 @@ class StereoConfig:
         check("prior_fill_spread", self.prior_fill_spread, 0.0, 1.0)
         check("sigma_rel", self.sigma_rel, 1e-4, 1.0)
         check("max_points", self.max_points, 0, 100_000_000)
+        check("max_backlog", self.max_backlog, 0, 100_000)

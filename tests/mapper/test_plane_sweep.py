@@ -374,3 +374,19 @@ def test_stacked_box_filter_and_top_k_equal_their_plain_definitions() -> None:
         expected = ordered[:k].mean(axis=0)
         expected = np.where(np.isfinite(expected), expected, -np.inf)
         np.testing.assert_allclose(plane_sweep._aggregate(scores, k), expected, atol=1e-6)
+
+
+def test_a_backlog_skips_the_sweep_but_not_the_triangulation(tmp_path: Path, texture: np.ndarray) -> None:
+    node = make_node(tmp_path, {"top_k": 1, "max_backlog": 1})
+    try:
+        tri = SparseTriangulation(node, runtime=Sink())
+        tri.install()
+        for i in (0, 1, 2, 3):
+            node.handle_ingest(encode(plane_frame(i, texture, depth=i == 0)))
+        # the batch: the depth keyframe, then three RGB-only ones with 3, 2 and 1 keyframes waiting
+        assert tri.process_pending() == 3
+        stereo = tri.stats()["stereo"]
+        assert stereo["skipped_busy"] == 2 and stereo["keyframes"] == 1
+        assert tri.stats()["keyframes"] == 3 and len(tri.points()[0]) > 0  # all three triangulated
+    finally:
+        node.stop()

@@ -258,6 +258,7 @@ class SparseTriangulation:
         self.stereo_pixels = 0  # swept depths kept (at the working size)
         self.stereo_map_points = 0
         self.stereo_seconds_total = 0.0
+        self.stereo_skipped_busy = 0
         self._log = LimitedLog(log)
 
     # -- wiring -------------------------------------------------------------------------------
@@ -346,7 +347,11 @@ class SparseTriangulation:
             points = triangulate_keyframe(self.extractor, view, features, partners, self.config)
             swept = None
             if image is not None:
-                swept = self._sweep(image, [candidates[i] for i in chosen], points)
+                backlog = self.stereo.max_backlog
+                if backlog and self.pending > backlog:  # keep up: sparse geometry only for now
+                    self.stereo_skipped_busy += 1
+                else:
+                    swept = self._sweep(image, [candidates[i] for i in chosen], points)
         except Exception as exc:  # bad input, OpenCV errors (cv2.error): count, never kill the worker
             self._failed(keyframe, exc)
             return 0
@@ -632,6 +637,7 @@ class SparseTriangulation:
                 "depths_per_keyframe": round(self.stereo_pixels / max(self.stereo_keyframes, 1), 1),
                 "global_map_points": self.stereo_map_points,
                 "points": self._n_swept,
+                "skipped_busy": self.stereo_skipped_busy,
                 "mean_ms": round(1e3 * self.stereo_seconds_total / max(self.stereo_keyframes, 1), 1),
             },
         }
