@@ -148,6 +148,8 @@ class _Prepared:
     ov_space: str | None
     support: Tensor | None = None  # (1, X, Y, Z) 1 where >= min_view_support views see the voxel
     max_density: Tensor | None = None  # (X, Y, Z) dilated max sub-voxel density (1/m), on first use
+    prior_only: Tensor | None = None  # (M,) bool: the view's depth_m is a prior (no input depth)
+    free_space: Tensor | None = None  # (X, Y, Z) bool carved by the priors (carve_free_space), on first use
     ov_table: Tensor | None = None  # (M * h_ov * w_ov, D) ``ov`` channel-last, on first use
 
     def ov_maps(self, view_idx: Tensor, image_wh: tuple[int, int]) -> OVMaps:
@@ -753,8 +755,11 @@ class ModelRuntime:
         support = None
         if self.config.min_view_support > 1:
             support = (count >= self.config.min_view_support).to(self.device, torch.float32)[None]
+        prior_only = torch.tensor([e.depth_m is None and e.depth_prior is not None for e in entries],
+                                  device=self.device)
         self._prepared = _Prepared(
             version=self.version,
+            prior_only=prior_only,
             bounds=self._volume.bounds,
             volume=volume,
             rgb=torch.stack([e.rgb for e in entries]),
@@ -787,6 +792,62 @@ class ModelRuntime:
             return prep.bounds, self._occupancy(prep)
 
     def _occupancy(self, prep: _Prepared) -> Tensor:
+        """The occupancy grid: the density's (``_density_occupancy``) less the free space the
+        depth priors carve (``carve_free_space``)."""
+        occupied = self._density_occupancy(prep)
+        if not self.config.carve_free_space:
+            return occupied
+        if prep.free_space is None:
+            prep.free_space = self._free_space(prep)
+        return occupied & ~prep.free_space
+
+    def _free_space(self, prep: _Prepared) -> Tensor:
+        """(X, Y, Z) bool: voxels the prior rays of at least ``carve_min_views`` keyframes without
+        input depth cross short of their surface, away from every prior surface point."""
+        cfg = self.config
+        b = prep.bounds
+        dims = torch.tensor(b.dims, device=self.device)
+        n_vox = int(np.prod(b.dims))
+        empty = torch.zeros(b.dims, dtype=torch.bool, device=self.device)
+        if prep.depth_m is None or prep.prior_only is None or not bool(prep.prior_only.any()):
+            return empty
+        origin = torch.tensor(b.origin_m, dtype=torch.float32, device=self.device)
+        step = 0.5 * b.voxel_size_m
+        crossed = torch.zeros(n_vox, dtype=torch.int32, device=self.device)
+        surface = torch.zeros(n_vox, dtype=torch.bool, device=self.device)
+
+        def linear(world: Tensor) -> tuple[Tensor, Tensor]:  # (..., 3) -> voxel index, inside
+            vox = torch.floor((world - origin) / b.voxel_size_m).long()
+            inside = ((vox >= 0) & (vox < dims)).all(dim=-1)
+            idx = (vox[..., 0] * b.dims[1] + vox[..., 1]) * b.dims[2] + vox[..., 2]
+            return idx, inside
+
+        for v in prep.prior_only.nonzero().squeeze(-1).tolist():
+            depth = prep.depth_m[v]
+            rows, cols = (depth > 0).nonzero(as_tuple=True)
+            if rows.numel() == 0:
+                continue
+            keep = torch.linspace(0, rows.numel() - 1, min(cfg.carve_rays, rows.numel()), device=self.device)
+            keep = keep.round().long()
+            rows, cols = rows[keep], cols[keep]
+            z = depth[rows, cols]
+            K, pose = prep.K[v], prep.world_from_cam[v]
+            ray = torch.stack([(cols.float() + 0.5 - K[2]) / K[0], (rows.float() + 0.5 - K[3]) / K[1],
+                               torch.ones_like(z)], dim=-1)  # (R, 3), z = 1
+            ray_w = ray @ pose[:3, :3].T
+            end, inside = linear(z[:, None] * ray_w + pose[:3, 3])
+            surface[end[inside]] = True
+            t = torch.arange(1, int(float(z.max()) / step) + 1, device=self.device) * step  # (S,)
+            before = t[None, :] <= (1.0 - cfg.carve_margin) * z[:, None]  # (R, S)
+            pts = pose[:3, 3] + t[None, :, None] * ray_w[:, None, :]  # (R, S, 3)
+            idx, inside = linear(pts)
+            seen = torch.unique(idx[before & inside])
+            crossed[seen] += 1
+        near_surface = F.max_pool3d(surface.view(1, 1, *b.dims).float(), 3, 1, 1)[0, 0] > 0
+        empty = (crossed.view(b.dims) >= cfg.carve_min_views) & ~near_surface
+        return empty
+
+    def _density_occupancy(self, prep: _Prepared) -> Tensor:
         if prep.max_density is not None:
             return prep.max_density >= self.config.occupancy_threshold
         model = self._require_model()

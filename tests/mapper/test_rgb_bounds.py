@@ -128,3 +128,62 @@ def test_a_sparse_depth_prior_masks_views_only_where_it_exists(model: GovNeSF) -
     np.testing.assert_array_equal(unmasked, plain)
     with pytest.raises(ValueError, match="depth_m"):
         runtime.set_view_depth_prior(keyframe_key(kfs[0]), np.full((3, 4), -1.0, np.float32))
+
+
+def _carved(runtime: ModelRuntime) -> np.ndarray:
+    with runtime._lock:
+        prep = runtime._prepare()
+        return runtime._free_space(prep).cpu().numpy()
+
+
+def test_depth_priors_carve_the_free_space_in_front_of_their_surfaces(model: GovNeSF) -> None:
+    from dataclasses import replace
+
+    runtime = make_runtime(model, bounds_margin_m=0.0, carve_free_space=True)
+    window = KeyframeWindow(WindowConfig(max_keyframes=8, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    kfs = [keyframe(i, orbit(i), depth_m=None) for i in range(5)]
+    for kf in kfs:
+        window.consider(kf)
+    assert not _carved(runtime).any()  # no prior: nothing carved
+    for kf in kfs:  # every camera sees a surface 3 m away (1 m beyond the orbit's centre)
+        runtime.set_view_depth_prior(keyframe_key(kf), np.full((30, 40), 3.0, np.float32))
+    runtime.sync()
+    carved = _carved(runtime)
+    assert carved.any()
+    b = runtime.bounds
+    assert b is not None
+    centres = (np.argwhere(carved) + 0.5) * b.voxel_size_m + np.asarray(b.origin_m)
+    cams = np.array([orbit(i) for i in range(5)])
+    dist = np.linalg.norm(centres[:, None, :] - cams[None, :, :], axis=-1)  # (n, 5)
+    # a carved voxel lies within (1 - margin) * 3 m / cos(off-axis angle) of at least carve_min_views
+    # cameras (plus a voxel; the 40 x 30 image's corner rays are ~53 deg off the axis)
+    reach = (1.0 - runtime.config.carve_margin) * 3.0 / 0.6 + b.voxel_size_m
+    assert ((dist <= reach).sum(axis=1) >= runtime.config.carve_min_views).all()
+    # the surfaces themselves (3 m along each optical axis) are never carved
+    for eye in cams:
+        axis = np.array([0.0, 0.0, 0.5]) - eye
+        point = eye + 3.0 * axis / np.linalg.norm(axis)
+        vox = np.floor((point - np.asarray(b.origin_m)) / b.voxel_size_m).astype(int)
+        if ((vox >= 0) & (vox < np.asarray(b.dims))).all():
+            assert not carved[tuple(vox)]
+    # the occupancy grid leaves the carved voxels out; off, or too many views asked for: nothing carved
+    bounds, occupancy = runtime.occupancy()
+    assert not (occupancy.cpu().numpy() & carved).any()
+    runtime.config = replace(runtime.config, carve_min_views=1000)
+    assert not _carved(runtime).any()
+    runtime.config = replace(runtime.config, carve_min_views=2, carve_free_space=False)
+    with runtime._lock:
+        prep = runtime._prepare()
+        assert torch.equal(runtime._occupancy(prep), runtime._density_occupancy(prep))
+
+
+def test_keyframes_with_input_depth_never_carve(model: GovNeSF) -> None:
+    runtime = make_runtime(model)
+    window = KeyframeWindow(WindowConfig(max_keyframes=8, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    kfs = [keyframe(i, orbit(i), depth_m=2.0) for i in range(5)]
+    for kf in kfs:
+        window.consider(kf)
+        runtime.set_view_depth_prior(keyframe_key(kf), np.full((30, 40), 2.0, np.float32))  # ignored
+    assert not _carved(runtime).any()
