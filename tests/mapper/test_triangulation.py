@@ -242,7 +242,8 @@ def test_orb_detector_also_triangulates_the_plane(texture: np.ndarray) -> None:
 
 
 def test_geometry_module_loads_without_torch() -> None:
-    code = ("import sys, mapper.geometry.triangulation, mapper.node.plugins.triangulation\n"
+    code = ("import sys, mapper.geometry.triangulation, mapper.geometry.plane_sweep, "
+            "mapper.node.plugins.triangulation\n"
             "print('torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60,
                          check=False)
