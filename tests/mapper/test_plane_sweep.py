@@ -25,10 +25,14 @@ from mapper.node.config import ConfigError, config_from_dict
 from mapper.node.plugins.triangulation import SparseTriangulation, keyframe_key
 from mapper.node.service import MapperNode
 from protocol.messages import Frame, encode
+from tests.mapper.test_triangulation import PLANE_Z, H, K, W, make_texture, plane_depth, render_plane
 
-K = np.array([100.0, 100.0, 80.0, 60.0])
-W, H = 160, 120
-PLANE_Z = 3.0
+# the textured plane z = 3 m of the triangulation tests: same camera, texture and renderer
+
+
+@pytest.fixture(scope="module")
+def texture() -> np.ndarray:
+    return make_texture()
 
 
 def pose(yaw_deg: float, center: tuple[float, float, float]) -> np.ndarray:
@@ -37,35 +41,6 @@ def pose(yaw_deg: float, center: tuple[float, float, float]) -> np.ndarray:
     out[:3, :3] = [[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]]
     out[:3, 3] = center
     return out
-
-
-def plane_depth(world_from_cam: np.ndarray) -> np.ndarray:
-    """(H, W) true z-depth of the plane z = PLANE_Z."""
-    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-    rays = np.stack([(u - K[2]) / K[0], (v - K[3]) / K[1], np.ones_like(u)], axis=-1)
-    rays = rays @ world_from_cam[:3, :3].T
-    return (PLANE_Z - world_from_cam[2, 3]) / rays[..., 2]
-
-
-def render_plane(world_from_cam: np.ndarray, texture: np.ndarray) -> np.ndarray:
-    """(H, W, 3) uint8: the plane z = PLANE_Z textured over x, y in [-3, 3] m."""
-    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
-    rays = np.stack([(u - K[2]) / K[0], (v - K[3]) / K[1], np.ones_like(u)], axis=-1)
-    rays = rays @ world_from_cam[:3, :3].T
-    c = world_from_cam[:3, 3]
-    hit = c + ((PLANE_Z - c[2]) / rays[..., 2])[..., None] * rays
-    size = texture.shape[0]
-    mx = ((hit[..., 0] + 3.0) / 6.0 * size - 0.5).astype(np.float32)
-    my = ((hit[..., 1] + 3.0) / 6.0 * size - 0.5).astype(np.float32)
-    gray = cv2.remap(texture, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-    return np.repeat(gray[..., None], 3, axis=2)
-
-
-@pytest.fixture(scope="module")
-def texture() -> np.ndarray:
-    rng = np.random.default_rng(7)
-    noise = rng.uniform(0, 255, (96, 96)).astype(np.float32)
-    return cv2.resize(noise, (1024, 1024), interpolation=cv2.INTER_CUBIC).clip(0, 255).astype(np.uint8)
 
 
 POSES = [pose(0.0, (0.0, 0.0, 0.0)), pose(-3.0, (0.35, 0.05, 0.0)), pose(4.0, (-0.3, 0.1, 0.0)),

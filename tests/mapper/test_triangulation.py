@@ -182,11 +182,16 @@ def render_plane(world_from_cam: np.ndarray, texture: np.ndarray) -> np.ndarray:
     return np.repeat(gray[..., None], 3, axis=2)
 
 
-@pytest.fixture(scope="module")
-def texture() -> np.ndarray:
+def make_texture() -> np.ndarray:
+    """(1024, 1024) uint8 smooth random texture of the plane (also used by test_plane_sweep.py)."""
     rng = np.random.default_rng(7)
     noise = rng.uniform(0, 255, (96, 96)).astype(np.float32)
     return cv2.resize(noise, (1024, 1024), interpolation=cv2.INTER_CUBIC).clip(0, 255).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def texture() -> np.ndarray:
+    return make_texture()
 
 
 PLANE_POSES = [pose(rot_y(deg), (x, 0.05 * i, 0.0)) for i, (x, deg) in enumerate([(0.0, 0.0), (0.35, -3.0),
