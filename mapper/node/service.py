@@ -252,6 +252,12 @@ class MapperNode:
         the state lock, after a new keyframe went into the window and the global map, with the
         keyframe and its map version, in ack order. Must be quick (queue the work) and must not
         raise."""
+        self.feature_listeners: list[Callable[[Keyframe], None]] = []
+        """Called on the in-process OV backend's worker, outside the state lock, right after a
+        keyframe WITHOUT input depth got its features swapped into the window, with the featured
+        keyframe: plugins that put points of that keyframe into the global map before its features
+        existed (triangulation, plane-sweep stereo) fuse the features into them now. Must not
+        raise."""
         self.load_listeners: list[Callable[[GlobalSemanticMap, int], None]] = []
         """Called on the thread that loaded a map (``load`` or the autosave at start), outside the
         state lock, right after the loaded map replaced the window and the global map, with the new

@@ -365,3 +365,47 @@ def test_a_backlog_skips_the_sweep_but_not_the_triangulation(tmp_path: Path, tex
         assert tri.stats()["keyframes"] == 3 and len(tri.points()[0]) > 0  # all three triangulated
     finally:
         node.stop()
+
+
+def test_features_that_arrive_later_reach_the_triangulated_and_swept_points(
+    tmp_path: Path, texture: np.ndarray
+) -> None:
+    # a robot without depth and without onboard OV: the node's OV backend encodes the keyframes
+    # later than the worker adds their points; the features must still reach those points
+    import dataclasses
+
+    node = MapperNode(config_from_dict({
+        "map_dir": str(tmp_path / "maps"), "autosave_name": "", "save_on_exit": False, "serve_model": False,
+        "window": {"max_keyframes": 8, "min_translation_m": 0.05},
+        "global_map": {"min_weight": 0.0, "rendered_depth": False},
+        "ov_backend": {"kind": "clip", "weights_path": str(tmp_path / "never-loaded.pt"),
+                       "bpe_path": str(tmp_path / "never-loaded.txt.gz")},
+        "stereo": {"top_k": 1},
+    }))
+    try:
+        tri = SparseTriangulation(node, runtime=Sink())
+        tri.install()
+        for i in (0, 1, 2, 3):
+            frame = plane_frame(i, texture, depth=i == 0)
+            node.handle_ingest(encode(dataclasses.replace(frame, ov=None, ov_space=None)))
+        assert tri.process_pending() == 3
+        snap = node.state.global_map.snapshot()
+        assert len(snap) > 1000 and snap.n_with_features == 0
+        # the backend's swap, then its notice to the feature listeners
+        for kf in list(node.state.window.keyframes):
+            if kf.depth_m is not None:
+                continue
+            featured = dataclasses.replace(kf, ov=np.full((H // 8, W // 8, 4), 0.5, np.float16),
+                                           ov_space="test-space")
+            with node.state.lock:
+                assert node.state.window.swap(kf, featured)
+            for listener in node.feature_listeners:
+                listener(featured)
+        stats = tri.stats()
+        assert stats["late_feature_points"] > 1000 and stats["failed"] == 0
+        assert node.state.global_map.snapshot().n_with_features > 1000
+        for listener in node.feature_listeners:  # told twice: nothing is fused twice
+            listener(featured)
+        assert tri.stats()["late_feature_points"] == stats["late_feature_points"]
+    finally:
+        node.stop()

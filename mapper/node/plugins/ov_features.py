@@ -40,7 +40,9 @@ no depth is skipped (nothing would use its features). A failed encode or integra
 limited) and counted in ``failed``; the worker never dies. Keyframes without input depth get their
 features into the window; the global-map points that :mod:`mapper.node.plugins.depth_points` adds for them
 from rendered depth carry those features when the rendered-depth worker runs after the swap (it
-looks up the window's current copy of the keyframe it queued).
+looks up the window's current copy of the keyframe it queued), and the node's ``feature_listeners``
+are told of the featured keyframe (the triangulation plugin then fuses the features into the
+triangulated and plane-sweep points it added for that keyframe before the features existed).
 
 Example (in-process; ``node`` a :class:`mapper.node.service.MapperNode` whose config has
 ``ov_backend.kind = "clip"``)::
@@ -353,6 +355,12 @@ class OvFeatureWorker:
         if not swapped and keyframe.depth_m is None:
             self.skipped_evicted += 1  # left the window while it was encoded
             return 0
+        if swapped and keyframe.depth_m is None:
+            for listener in self.node.feature_listeners:  # points other plugins added without features
+                try:
+                    listener(featured)
+                except Exception as exc:
+                    self._failed(keyframe, "feature listener", exc)
         points = 0
         if keyframe.depth_m is not None:
             try:

@@ -45,7 +45,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict, deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
 import cv2
@@ -237,6 +237,12 @@ class SparseTriangulation:
         self._in_batch = 0  # keyframes of the batch being processed, not yet done (for `pending`)
         self._stop = threading.Event()  # the worker's stop event once it runs
         self.left_at_stop = 0
+        # map points added for keyframes that had no OV features yet: (sparse, swept) depth maps
+        # kept until the in-process OV backend's features arrive (on_features), bounded
+        self._featureless: OrderedDict[KeyframeKey, tuple[GlobalSemanticMap, list[TriangulatedKeyframe]]] = (
+            OrderedDict()
+        )
+        self.late_feature_points = 0
         self._n_points = 0
         self._map: GlobalSemanticMap | None = None  # the map the candidates and points belong to
         self._loaded_version = -1  # map version of the latest load: keyframes up to it are stale
@@ -268,6 +274,7 @@ class SparseTriangulation:
         (``"triangulation"``) and run the worker with the node (started by ``node.start()``)."""
         self.node.keyframe_listeners.append(self.on_keyframe)
         self.node.load_listeners.append(self.on_map_loaded)
+        self.node.feature_listeners.append(self.on_features)
         self.node.workers.append(("triangulation", self.run))
         self.node.status_providers["triangulation"] = self.stats
 
@@ -446,19 +453,6 @@ class SparseTriangulation:
             filled = np.where(prior > 0, prior, filled)
         return filled
 
-    def _integrate_swept(self, keyframe: Any, swept: TriangulatedKeyframe, target: GlobalSemanticMap) -> None:
-        if self.stereo.global_map_weight <= 0.0 or not bool((swept.depth_m > 0).any()):
-            return
-        if target is not self.node.state.global_map:
-            return  # a map load replaced the map (counted once by _integrate)
-        try:
-            stats = target.integrate(swept, map_version=None, pixel_stride=1,
-                                     confidence=swept.confidence, count_keyframe=False)
-        except (ValueError, RuntimeError) as exc:
-            self._failed(keyframe, exc)
-            return
-        self.stereo_map_points += stats.points
-
     def _add_candidate(self, generation: int, candidate: _Candidate) -> bool:
         """Append ``candidate`` unless a reset came after ``generation`` (then False)."""
         with self._lock:
@@ -475,6 +469,7 @@ class SparseTriangulation:
         self._n_points = 0
         self._swept.clear()
         self._n_swept = 0
+        self._featureless.clear()
         self._candidates.clear()
         self._room_depths.clear()
         self._without_extent.clear()
@@ -525,14 +520,77 @@ class SparseTriangulation:
         if target is not self.node.state.global_map:
             self.stale += 1  # a map load replaced the map this keyframe belonged to
             return
+        self._fuse(keyframe, sparse_depth_keyframe(self._current(keyframe), points, self.config), target,
+                   swept=False)
+
+    def _current(self, keyframe: Any) -> Any:
+        """The window's copy of ``keyframe`` when it gained OV features since it was queued (the
+        in-process OV backend swaps a featured copy in), else ``keyframe``."""
+        if keyframe.ov is not None:
+            return keyframe
+        with self.node.state.lock:
+            for current in self.node.state.window.keyframes:
+                if keyframe_key(current) == keyframe_key(keyframe) and current.ov is not None:
+                    return current
+        return keyframe
+
+    def _fuse(
+        self, keyframe: Any, depth: TriangulatedKeyframe, target: GlobalSemanticMap, *, swept: bool
+    ) -> None:
+        """Integrate a sparse or swept depth map of ``keyframe``; without OV features yet, keep it
+        until they arrive (``on_features``)."""
         try:
-            sparse = sparse_depth_keyframe(keyframe, points, self.config)
-            stats = target.integrate(sparse, map_version=None, pixel_stride=1,
-                                     confidence=sparse.confidence, count_keyframe=False)
+            stats = target.integrate(depth, map_version=None, pixel_stride=1, confidence=depth.confidence,
+                                     count_keyframe=False)
         except (ValueError, RuntimeError) as exc:
             self._failed(keyframe, exc)
             return
-        self.integrated_points += stats.points
+        if swept:
+            self.stereo_map_points += stats.points
+        else:
+            self.integrated_points += stats.points
+        if depth.ov is None and self.node.config.ov_backend.kind:  # only a backend brings features later
+            self._remember_featureless(keyframe, depth, target)
+
+    def _remember_featureless(
+        self, keyframe: Any, depth: TriangulatedKeyframe, target: GlobalSemanticMap
+    ) -> None:
+        key = keyframe_key(keyframe)
+        with self._lock:
+            entry = self._featureless.setdefault(key, (target, []))
+            entry[1].append(depth)
+            while len(self._featureless) > max(1, self.node.config.ov_backend.max_pending):
+                self._featureless.popitem(last=False)  # the backend drops beyond this many too
+        current = self._current(keyframe)  # features swapped in meanwhile: the listener came too early
+        if current.ov is not None:
+            self.on_features(current)
+
+    def on_features(self, keyframe: Any) -> None:
+        """``node.feature_listeners``: ``keyframe`` (no input depth) got its OV features; fuse them
+        into the map points this plugin added for it without features. Never raises."""
+        with self._lock:
+            entry = self._featureless.pop(keyframe_key(keyframe), None)
+        if entry is None or keyframe.ov is None:
+            return
+        target, depths = entry
+        if target is not self.node.state.global_map:
+            return  # a load replaced that map
+        for depth in depths:
+            try:
+                stats = target.integrate_features(replace(depth, ov=keyframe.ov), pixel_stride=1,
+                                                  confidence=depth.confidence)
+            except (ValueError, RuntimeError) as exc:
+                self._failed(keyframe, exc)
+                continue
+            self.late_feature_points += stats.points
+
+    def _integrate_swept(self, keyframe: Any, swept: TriangulatedKeyframe, target: GlobalSemanticMap) -> None:
+        if self.stereo.global_map_weight <= 0.0 or not bool((swept.depth_m > 0).any()):
+            return
+        if target is not self.node.state.global_map:
+            return  # a map load replaced the map (counted once by _integrate)
+        current = self._current(keyframe)
+        self._fuse(keyframe, replace(swept, ov=current.ov), target, swept=True)
 
     def _store_swept(
         self, key: KeyframeKey, image: _StereoImage, dense: DenseDepth, keep: np.ndarray
@@ -630,6 +688,7 @@ class SparseTriangulation:
             "stale": self.stale,
             "failed": self.failed,
             "left_at_stop": self.left_at_stop,
+            "late_feature_points": self.late_feature_points,
             "memory_bytes": self.memory_bytes(),
             "stereo": {
                 "enabled": self.stereo.enabled,
