@@ -20,6 +20,16 @@ multi-view checks, an uncertainty per point) and uses the points three ways:
   features (a sparse depth map through the map's public ``integrate``), at
   ``global_map_weight`` times a confidence that falls with the uncertainty.
 
+Then **plane-sweep stereo** (``[stereo]``, :mod:`mapper.geometry.plane_sweep`): the keyframe is swept
+against the best ``stereo.max_sources`` of the same partners (at most ``stereo.max_width`` wide,
+depth range from its triangulated points); depths that a partner's own depth confirms join the
+global map (``stereo.global_map_weight``), are kept as points with a relative sigma for the
+rendered-depth points' consistency check (:meth:`SparseTriangulation.geometry_points`), and, filled
+along the image, become the runtime's depth prior. With more than ``stereo.max_backlog`` keyframes
+waiting the sweep is skipped (the worker keeps up with the sparse geometry). Points added before
+the in-process OV backend encoded their keyframe get its features later
+(``node.feature_listeners`` -> :meth:`SparseTriangulation.on_features`).
+
 Scheduling: :meth:`SparseTriangulation.on_keyframe` runs on the keyframe-listener thread
 (integrator; ingest when integration is inline) after the keyframe entered the window and only
 queues it (O(1)); the worker (``mapper-triangulation``) detects, matches and triangulates. The
