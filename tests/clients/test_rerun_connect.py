@@ -9,6 +9,7 @@ server's file back: the same entities and points as the ``--rerun`` file of the 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import signal
@@ -95,6 +96,7 @@ def grpc_server(tmp_path: Path) -> Iterator[tuple[str, Path]]:
     proc = subprocess.Popen(
         [exe, "--serve-grpc", "--bind", "127.0.0.1", "--port", str(port), "--save", str(saved)],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
+        start_new_session=True,  # `rerun` may be a launcher whose server is a child: stop the group
     )  # fmt: skip
     try:
         deadline = time.monotonic() + 20.0
@@ -109,13 +111,16 @@ def grpc_server(tmp_path: Path) -> Iterator[tuple[str, Path]]:
                 time.sleep(0.1)
         yield f"127.0.0.1:{port}", saved
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)  # the server finishes its --save file on SIGTERM
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        # the server finishes its --save file on SIGTERM; the whole group, so that a server the
+        # launcher started does not outlive the test (it used to, reparented to init)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
 
 
 @pytest.mark.filterwarnings("ignore:RRD file has no footer")  # the server's file is still open
