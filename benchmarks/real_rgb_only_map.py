@@ -142,6 +142,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
+    unknown = [m for m in args.modes.split(",") if m.strip() not in MODES]
+    if unknown:
+        raise SystemExit(f"--modes: unknown {unknown}; choose from {', '.join(MODES)}")
     if not args.data.is_dir():
         print(f"real sequence {args.data} not found: skipped")
         return 0

@@ -53,6 +53,7 @@ from scipy.spatial import cKDTree
 from clients.harness import chair_distance, mean_iou, sim_stream
 from clients.sim.export import count_views, novel_view_poses
 from clients.sim.scenes import CLASS_NAMES, LABEL_OF
+from mapper.errors import ConfigError
 from mapper.node.config import config_from_dict
 from mapper.node.plugins.learned import install_learned_handlers
 from mapper.node.plugins.triangulation import install_triangulation
@@ -93,11 +94,9 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         "triangulation": {"enabled": triangulate},
         "stereo": {"enabled": stereo},
     })
-    for item in args.set:  # SECTION.KEY=VALUE overrides (TOML values: 0, 0.5, true, "text")
-        key, _, value = item.partition("=")
-        section, _, name = key.partition(".")
-        config = config_from_dict({**_as_dict(config), section: {**_as_dict(config).get(section, {}),
-                                                                 name: tomllib.loads(f"v = {value}")["v"]}})
+    for section, name, value in args.overrides:  # checked in main()
+        current = _as_dict(config)
+        config = config_from_dict({**current, section: {**current.get(section, {}), name: value}})
     node = MapperNode(config)
     runtime = ModelRuntime(config.model)
     if not runtime.ready:
@@ -207,6 +206,24 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
     return row
 
 
+def parse_overrides(items: list[str]) -> list[tuple[str, str, Any]]:
+    """``SECTION.KEY=VALUE`` items (TOML values: 0, 0.5, true, "text") -> (section, key, value),
+    each checked against the node config; a bad one exits with a message before any work."""
+    out = []
+    for item in items:
+        key, eq, text = item.partition("=")
+        section, dot, name = key.partition(".")
+        try:
+            if not (eq and dot and section and name):
+                raise ValueError("expected SECTION.KEY=VALUE")
+            value = tomllib.loads(f"v = {text}")["v"]
+            config_from_dict({section: {name: value}})
+        except (ValueError, ConfigError) as exc:  # TOMLDecodeError is a ValueError
+            raise SystemExit(f"--set {item!r}: {exc}") from None
+        out.append((section, name, value))
+    return out
+
+
 def _as_dict(config: Any) -> dict[str, Any]:
     return dataclasses.asdict(config)
 
@@ -236,6 +253,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE",
                    help="node config overrides, e.g. stereo.prior_fill_px=16")
     args = p.parse_args(argv)
+    unknown = [m for m in args.modes.split(",") if m.strip() not in MODES]
+    if unknown:
+        raise SystemExit(f"--modes: unknown {unknown}; choose from {', '.join(MODES)}")
+    args.overrides = parse_overrides(args.set)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     torch.set_num_threads(args.threads)
     rows = []

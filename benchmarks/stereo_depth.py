@@ -66,19 +66,14 @@ def sim_sequence(seed: int, style: str, frames: int) -> list[dict[str, Any]]:
 
 def real_sequence(width: int) -> list[dict[str, Any]]:
     sys.path.insert(0, str(ROOT / "benchmarks"))
+    from real_rgb_only_map import resized  # type: ignore[import-not-found]
     from real_sequence import ICL_K, load_sequence  # type: ignore[import-not-found]
 
     frames, _ = load_sequence(REAL, ICL_K)
     out = []
     for f in frames:
-        h, w = f.rgb.shape[:2]
-        s = width / w
-        size = (width, round(h * s))
-        out.append({
-            "rgb": cv2.resize(f.rgb, size, interpolation=cv2.INTER_AREA),
-            "depth": cv2.resize(f.depth_m, size, interpolation=cv2.INTER_NEAREST),
-            "K": np.asarray(f.K, np.float64) * s, "pose": np.asarray(f.world_from_cam, np.float64),
-        })  # fmt: skip
+        rgb, depth, K = resized(f, width)  # area-averaged colour, nearest depth, K scaled
+        out.append({"rgb": rgb, "depth": depth, "K": K, "pose": np.asarray(f.world_from_cam, np.float64)})
     return out
 
 
@@ -140,6 +135,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1, help="OpenCV threads")
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
+    for spec in args.sim:
+        seed, _, _style = spec.partition(":")
+        if not seed.isdigit():
+            raise SystemExit(f"--sim: expected SEED:STYLE with an integer seed, got {spec!r}")
     cv2.setNumThreads(args.threads)
     cfg = StereoConfig()
     kinds = {f.name: type(getattr(cfg, f.name)) for f in fields(cfg)}

@@ -9,7 +9,9 @@ What they share lives here:
   ``max_len`` items the oldest is dropped and counted; ``wake`` is set on every put;
 * :func:`run_worker`: the worker loop (wake on new items or every ``idle_wait_s``, stop on the
   node's stop event, never die on an exception: the node shuts down when a thread dies);
-* :class:`LimitedLog`: warnings at most once per interval per kind (the rest at debug level).
+* :class:`LimitedLog`: warnings at most once per interval per kind (the rest at debug level);
+* :func:`with_current_features`: the window's copy of a queued keyframe once the in-process OV
+  backend swapped a featured copy in.
 """
 
 from __future__ import annotations
@@ -19,9 +21,9 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
-__all__ = ["KeyframeQueue", "LimitedLog", "run_worker"]
+__all__ = ["KeyframeQueue", "LimitedLog", "run_worker", "with_current_features"]
 
 T = TypeVar("T")
 
@@ -108,3 +110,18 @@ class LimitedLog:
             self.logger.warning(fmt, *args)
         else:
             self.logger.debug(fmt, *args)
+
+
+def with_current_features(node: Any, keyframe: Any) -> Any:
+    """The window's current copy of ``keyframe`` (same camera, seq and stamp) when it has gained OV
+    features since it was queued (the in-process OV backend, :mod:`mapper.node.plugins.ov_features`,
+    swaps in a featured copy), else ``keyframe``. ``node`` is a :class:`mapper.node.service.MapperNode`."""
+    if keyframe.ov is not None:
+        return keyframe
+    with node.state.lock:
+        for current in node.state.window.keyframes:
+            if (current.camera, current.seq, current.stamp_ns) == (
+                keyframe.camera, keyframe.seq, keyframe.stamp_ns
+            ) and current.ov is not None:
+                return current
+    return keyframe

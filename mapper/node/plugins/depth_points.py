@@ -62,7 +62,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from mapper.node.config import GlobalMapConfig
-from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker
+from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker, with_current_features
 from mapper.runtime.model_runtime import ModelRuntime, RuntimeNotReady
 
 if TYPE_CHECKING:
@@ -393,7 +393,7 @@ class RenderedDepthPoints:
             return None
         started = time.perf_counter()
         if keyframe.ov is None:
-            keyframe = self._with_current_features(keyframe)
+            keyframe = with_current_features(self.node, keyframe)
         try:
             rendered = render_keyframe_depth(self.runtime, keyframe, self.config)
         except (RuntimeNotReady, ValueError, RuntimeError) as exc:
@@ -467,18 +467,6 @@ class RenderedDepthPoints:
         log.debug("rendered depth: %d points for keyframe at stamp %d in %.0f ms (%s)",
                   stats.points, keyframe.stamp_ns, 1e3 * seconds, stats.skipped or "ok")
         return 1
-
-    def _with_current_features(self, keyframe: Any) -> Any:
-        """The window's current copy of ``keyframe`` when it has gained OV features since it was
-        queued (the in-process OV backend, :mod:`mapper.node.plugins.ov_features`, swaps in a
-        featured copy)."""
-        with self.node.state.lock:
-            for current in self.node.state.window.keyframes:
-                if (current.camera, current.seq, current.stamp_ns) == (
-                    keyframe.camera, keyframe.seq, keyframe.stamp_ns
-                ) and current.ov is not None:
-                    return current
-        return keyframe
 
     def run(self, stop: threading.Event) -> None:
         """Worker loop: process the pending keyframes whenever new ones arrive, until ``stop``."""

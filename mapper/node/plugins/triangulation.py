@@ -55,8 +55,9 @@ import logging
 import threading
 import time
 from collections import OrderedDict, deque
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
 import cv2
 import numpy as np
@@ -80,7 +81,7 @@ from mapper.geometry.triangulation import (
     select_partners,
     triangulate_keyframe,
 )
-from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker
+from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker, with_current_features
 
 if TYPE_CHECKING:
     from mapper.node.global_map import GlobalSemanticMap
@@ -91,6 +92,7 @@ __all__ = ["SparseTriangulation", "TriangulatedKeyframe", "install_triangulation
 log = logging.getLogger("mapper.node.plugins.triangulation")
 
 KeyframeKey = tuple[str, int, int]
+T = TypeVar("T")
 
 
 class ExtentSink(Protocol):
@@ -196,10 +198,12 @@ def stereo_image(keyframe: Any, config: StereoConfig) -> _StereoImage:
 
 
 def swept_keyframe(
-    keyframe: Any, dense: DenseDepth, keep: np.ndarray, config: StereoConfig, min_ncc: float
+    keyframe: Any, dense: DenseDepth, keep: np.ndarray, config: StereoConfig
 ) -> TriangulatedKeyframe:
-    """The kept swept depths as a depth map of ``keyframe`` (full size, nearest pixel) with a
-    confidence of ``global_map_weight`` times the score above ``min_ncc`` (normalised, >= 0.1)."""
+    """The kept swept depths as a depth map of ``keyframe`` (full size, nearest pixel, its OV
+    features) with a confidence of ``global_map_weight`` times the score above ``min_ncc``
+    (normalised, >= 0.1)."""
+    min_ncc = config.min_ncc
     height, width = keyframe.rgb.shape[:2]
     depth = np.where(keep, dense.depth_m, 0.0).astype(np.float32)
     certainty = np.clip((dense.score - min_ncc) / max(1e-6, 1.0 - min_ncc), 0.1, 1.0)
@@ -212,6 +216,35 @@ def swept_keyframe(
         world_from_cam=np.asarray(keyframe.world_from_cam, np.float64), rgb=keyframe.rgb,
         depth_m=depth, ov=keyframe.ov, confidence=conf,
     )
+
+
+class _KeyframeBudget(Generic[T]):
+    """Per-keyframe items (newest last) whose sizes sum to at most ``budget``: beyond it the oldest
+    keyframes' items go first, but a keyframe's own item is never split or dropped for itself."""
+
+    def __init__(self, budget: int, size: Callable[[T], int]) -> None:
+        self.budget = budget
+        self._size = size
+        self.items: OrderedDict[KeyframeKey, T] = OrderedDict()
+        self.total = 0
+
+    def put(self, key: KeyframeKey, item: T) -> int:
+        """Keep ``item`` for ``key`` (replacing its previous one); returns the size evicted."""
+        old = self.items.pop(key, None)
+        if old is not None:
+            self.total -= self._size(old)
+        self.items[key] = item
+        self.total += self._size(item)
+        evicted = 0
+        while self.total > self.budget and len(self.items) > 1:
+            _, dropped = self.items.popitem(last=False)
+            self.total -= self._size(dropped)
+            evicted += self._size(dropped)
+        return evicted
+
+    def clear(self) -> None:
+        self.items.clear()
+        self.total = 0
 
 
 class SparseTriangulation:
@@ -241,9 +274,10 @@ class SparseTriangulation:
             self.config.max_pending
         )  # (keyframe, its map version, the node's map when it was queued)
         self._candidates: deque[_Candidate] = deque(maxlen=self.config.candidate_keyframes)
-        self._points: OrderedDict[KeyframeKey, SparsePoints] = OrderedDict()
-        self._swept: OrderedDict[KeyframeKey, tuple[np.ndarray, np.ndarray]] = OrderedDict()  # xyz, sigma
-        self._n_swept = 0
+        self._points: _KeyframeBudget[SparsePoints] = _KeyframeBudget(self.config.max_points, len)
+        self._swept: _KeyframeBudget[tuple[np.ndarray, np.ndarray]] = _KeyframeBudget(  # (xyz, sigma)
+            self.stereo.max_points, lambda xyz_sigma: len(xyz_sigma[1])
+        )
         self._in_batch = 0  # keyframes of the batch being processed, not yet done (for `pending`)
         self._stop = threading.Event()  # the worker's stop event once it runs
         self.left_at_stop = 0
@@ -253,7 +287,6 @@ class SparseTriangulation:
             OrderedDict()
         )
         self.late_feature_points = 0
-        self._n_points = 0
         self._map: GlobalSemanticMap | None = None  # the map the candidates and points belong to
         self._loaded_version = -1  # map version of the latest load: keyframes up to it are stale
         self._generation = 0  # +1 on every reset: work begun before it is not kept
@@ -381,14 +414,12 @@ class SparseTriangulation:
                 self._store_swept(keyframe_key(keyframe), image, swept[0], swept[1])
             if self.runtime is not None and self.config.bounds:
                 self._set_extent(keyframe_key(keyframe), view, points)
-        swept_frame = None
-        if swept is not None:
-            dense, keep = swept
-            swept_frame = swept_keyframe(keyframe, dense, keep, self.stereo, self.stereo.min_ncc)
+        current = with_current_features(self.node, keyframe)  # its OV features, if they came meanwhile
+        swept_frame = None if swept is None else swept_keyframe(current, swept[0], swept[1], self.stereo)
         self._set_depth_prior(keyframe, points, swept_frame, image)
-        self._integrate(keyframe, points, target)
+        self._integrate(current, points, target)
         if swept_frame is not None:
-            self._integrate_swept(keyframe, swept_frame, target)
+            self._integrate_swept(current, swept_frame, target)
         seconds = time.perf_counter() - started
         self.processed += 1
         self.points_total += len(points)
@@ -476,9 +507,7 @@ class SparseTriangulation:
         held); work begun before it is not kept."""
         self._generation += 1
         self._points.clear()
-        self._n_points = 0
         self._swept.clear()
-        self._n_swept = 0
         self._featureless.clear()
         self._candidates.clear()
         self._room_depths.clear()
@@ -514,15 +543,7 @@ class SparseTriangulation:
 
     def _store(self, key: KeyframeKey, points: SparsePoints) -> None:
         """Keep ``points`` for ``key`` within ``max_points`` (``_lock`` held)."""
-        old = self._points.pop(key, None)
-        if old is not None:
-            self._n_points -= len(old)
-        self._points[key] = points
-        self._n_points += len(points)
-        while self._n_points > self.config.max_points and len(self._points) > 1:
-            _, dropped = self._points.popitem(last=False)
-            self._n_points -= len(dropped)
-            self.points_evicted += len(dropped)
+        self.points_evicted += self._points.put(key, points)
 
     def _integrate(self, keyframe: Any, points: SparsePoints, target: GlobalSemanticMap) -> None:
         if self.config.global_map_weight <= 0.0 or not len(points):
@@ -530,19 +551,7 @@ class SparseTriangulation:
         if target is not self.node.state.global_map:
             self.stale += 1  # a map load replaced the map this keyframe belonged to
             return
-        self._fuse(keyframe, sparse_depth_keyframe(self._current(keyframe), points, self.config), target,
-                   swept=False)
-
-    def _current(self, keyframe: Any) -> Any:
-        """The window's copy of ``keyframe`` when it gained OV features since it was queued (the
-        in-process OV backend swaps a featured copy in), else ``keyframe``."""
-        if keyframe.ov is not None:
-            return keyframe
-        with self.node.state.lock:
-            for current in self.node.state.window.keyframes:
-                if keyframe_key(current) == keyframe_key(keyframe) and current.ov is not None:
-                    return current
-        return keyframe
+        self._fuse(keyframe, sparse_depth_keyframe(keyframe, points, self.config), target, swept=False)
 
     def _fuse(
         self, keyframe: Any, depth: TriangulatedKeyframe, target: GlobalSemanticMap, *, swept: bool
@@ -571,7 +580,7 @@ class SparseTriangulation:
             entry[1].append(depth)
             while len(self._featureless) > max(1, self.node.config.ov_backend.max_pending):
                 self._featureless.popitem(last=False)  # the backend drops beyond this many too
-        current = self._current(keyframe)  # features swapped in meanwhile: the listener came too early
+        current = with_current_features(self.node, keyframe)  # swapped in meanwhile: listener too early
         if current.ov is not None:
             self.on_features(current)
 
@@ -599,8 +608,7 @@ class SparseTriangulation:
             return
         if target is not self.node.state.global_map:
             return  # a map load replaced the map (counted once by _integrate)
-        current = self._current(keyframe)
-        self._fuse(keyframe, replace(swept, ov=current.ov), target, swept=True)
+        self._fuse(keyframe, swept, target, swept=True)
 
     def _store_swept(
         self, key: KeyframeKey, image: _StereoImage, dense: DenseDepth, keep: np.ndarray
@@ -615,21 +623,14 @@ class SparseTriangulation:
         cam = np.stack([(cols + 0.5 - cx) / fx * z, (rows + 0.5 - cy) / fy * z, z], axis=-1)
         pose = np.asarray(image.view.world_from_cam, np.float64)
         xyz = cam @ pose[:3, :3].T + pose[:3, 3]
-        old = self._swept.pop(key, None)
-        if old is not None:
-            self._n_swept -= len(old[0])
-        self._swept[key] = (xyz, self.stereo.sigma_rel * z)
-        self._n_swept += len(z)
-        while self._n_swept > self.stereo.max_points and len(self._swept) > 1:
-            _, (dropped, _) = self._swept.popitem(last=False)
-            self._n_swept -= len(dropped)
+        self._swept.put(key, (xyz, self.stereo.sigma_rel * z))
 
     def geometry_points(self) -> tuple[np.ndarray, np.ndarray]:
         """The triangulated points and the kept swept depths as points: ``(xyz (N, 3) float64
         world, sigma_m (N,) float64)``; what the rendered-depth points are checked against."""
         xyz, sigma = self.points()
         with self._lock:
-            swept = list(self._swept.values())
+            swept = list(self._swept.items.values())
         if not swept:
             return xyz, sigma
         return (np.concatenate([xyz] + [p for p, _ in swept]),
@@ -638,7 +639,7 @@ class SparseTriangulation:
     def points(self) -> tuple[np.ndarray, np.ndarray]:
         """Every kept point: ``(xyz (N, 3) float64 world, sigma_m (N,) float64)``."""
         with self._lock:
-            kept = list(self._points.values())
+            kept = list(self._points.items.values())
         if not kept:
             return np.zeros((0, 3)), np.zeros(0)
         return np.concatenate([p.xyz for p in kept]), np.concatenate([p.sigma_m for p in kept])
@@ -646,14 +647,14 @@ class SparseTriangulation:
     def keyframe_points(self, keyframe: Any) -> SparsePoints | None:
         """The points triangulated for ``keyframe`` (None when it was not, or they were dropped)."""
         with self._lock:
-            return self._points.get(keyframe_key(keyframe))
+            return self._points.items.get(keyframe_key(keyframe))
 
     def memory_bytes(self) -> int:
         """Bytes of the sparse map and the candidates' features (reported in ``status`` under
         ``triangulation``; not in the node's ``memory_bytes``, which counts map data, as a load
         restores it)."""
         with self._lock:
-            pts = sum(p.xyz.nbytes + p.sigma_m.nbytes * 5 + p.uv.nbytes for p in self._points.values())
+            pts = sum(p.xyz.nbytes + p.sigma_m.nbytes * 5 + p.uv.nbytes for p in self._points.items.values())
             candidates = list(self._candidates)
         feats = 0
         for c in candidates:
@@ -688,7 +689,7 @@ class SparseTriangulation:
             "queued": self._queue.queued,
             "dropped": self._queue.dropped,
             "keyframes": self.processed,
-            "points": self._n_points,
+            "points": self._points.total,
             "points_evicted": self.points_evicted,
             "points_per_keyframe": round(self.points_total / max(self.processed, 1), 1),
             "partners_per_keyframe": round(self.partners_total / max(self.processed, 1), 2),
@@ -705,7 +706,7 @@ class SparseTriangulation:
                 "keyframes": self.stereo_keyframes,
                 "depths_per_keyframe": round(self.stereo_pixels / max(self.stereo_keyframes, 1), 1),
                 "global_map_points": self.stereo_map_points,
-                "points": self._n_swept,
+                "points": self._swept.total,
                 "skipped_busy": self.stereo_skipped_busy,
                 "mean_ms": round(1e3 * self.stereo_seconds_total / max(self.stereo_keyframes, 1), 1),
             },
