@@ -8,7 +8,14 @@ A simulated robot (``clients.sim``, SimLSeg OV features, depth) streams keyframe
 * ``render``: a held-out view (between two stream poses) at ``--width x --height``, dense
   (every sample on the rays' [near, far] within the volume box) and with empty-space skipping;
   reports latency, evaluated samples, and the difference between the two outputs;
-* ``segment``: ``--points`` surface points (back-projected keyframe depth) with method govnesf.
+* ``segment``: ``--points`` surface points (back-projected keyframe depth) with method govnesf;
+* ``--map-surface``: the keyframes also go into a global map (as the node fuses frames with
+  depth), and the view is rendered at the map's surfaces (``model.surface_from_map``, what the
+  node's ``render`` does: :func:`mapper.node.queries.map_surface_depth`, then
+  ``ModelRuntime.render(surface_depth_m=...)``), timed with the splat.
+
+Every render also reports its PSNR against the simulator's image, its depth's median relative
+error and its labels' accuracy against the simulator's (pixels whose class is one of the texts).
 
 Run (2-core CPU: a few minutes with a trained checkpoint)::
 
@@ -35,9 +42,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from clients.sim.export import RecordConfig, SimStream  # noqa: E402
+from clients.sim.scenes import CLASS_NAMES  # noqa: E402
 from mapper.model.config import get_preset  # noqa: E402
 from mapper.model.field import GovNeSF  # noqa: E402
-from mapper.node.config import WindowConfig  # noqa: E402
+from mapper.node.config import GlobalMapConfig, WindowConfig  # noqa: E402
+from mapper.node.global_map import GlobalSemanticMap  # noqa: E402
+from mapper.node.queries import map_surface_depth  # noqa: E402
 from mapper.node.window import Keyframe, KeyframeWindow  # noqa: E402
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig, RenderFrame  # noqa: E402
 
@@ -115,6 +125,26 @@ def compare(dense: RenderFrame, frame: RenderFrame) -> dict[str, object]:
     }
 
 
+def against_truth(frame: RenderFrame, view: Any) -> dict[str, object]:
+    """A render against the simulator's view: depth median relative error (where both have depth)
+    and label accuracy (pixels whose class is one of TEXTS)."""
+    out: dict[str, object] = {}
+    if frame.depth_m is not None:
+        both = (view.depth_m > 0) & (frame.depth_m > 0)
+        rel = np.abs(frame.depth_m[both] - view.depth_m[both]) / view.depth_m[both]
+        out["depth_median_rel_err"] = round(float(np.median(rel)), 4) if both.any() else None
+        out["depth_cover"] = round(float(both.sum() / max(1, (view.depth_m > 0).sum())), 4)
+    if frame.label is not None:
+        truth = np.full(view.label.shape, -1)
+        for i, text in enumerate(TEXTS):
+            if text in CLASS_NAMES:
+                truth[view.label == CLASS_NAMES.index(text)] = i
+        scored = truth >= 0
+        accuracy = float((frame.label == truth)[scored].mean()) if scored.any() else None
+        out["label_accuracy"] = None if accuracy is None else round(accuracy, 4)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", default="checkpoints/cpu-small.safetensors")
@@ -144,6 +174,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--segment-reference", action="store_true",
         help="also run segment_points with batched_view_groups flipped and report the label agreement",
+    )  # fmt: skip
+    p.add_argument(
+        "--map-surface", action="store_true",
+        help="also render at the surfaces of a global map of the keyframes (model.surface_from_map)",
     )  # fmt: skip
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     p.add_argument("--json", metavar="FILE", help="also write the numbers as JSON")
@@ -176,6 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     runtime.attach(window)
     surface: list[np.ndarray] = []
+    global_map = GlobalSemanticMap(GlobalMapConfig()) if args.map_surface else None
     callback_s = 0.0
     for frame, _view in stream.frames():
         kf = Keyframe(
@@ -186,6 +221,8 @@ def main(argv: list[str] | None = None) -> int:
         c0 = time.perf_counter()
         update = window.consider(kf)
         callback_s += time.perf_counter() - c0
+        if update.added and global_map is not None:
+            global_map.integrate(kf)
         if update.added and frame.depth_m is not None:
             d = frame.depth_m
             rows, cols = np.nonzero(d > 0)
@@ -222,7 +259,8 @@ def main(argv: list[str] | None = None) -> int:
     for size in args.sizes:
         width, height = parse_size(size)
         K = np.array([stream.K[0] * width / 160, stream.K[1] * height / 120, width / 2, height / 2])
-        truth = stream.renderer.render(K, pose, width, height).rgb  # the simulator's image of the view
+        view = stream.renderer.render(K, pose, width, height)  # what the simulator sees from the view
+        truth = view.rgb
 
         def render(
             skip: bool, K: np.ndarray = K, width: int = width, height: int = height
@@ -257,7 +295,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"dense {width}x{height}: the reference render in {cached} (timed when it was made)")
             assert dense.rgb is not None
             entry.update(
-                dense_ms=dense_ms, dense_stats=dense.stats, dense_psnr_db=round(psnr(dense.rgb, truth), 3)
+                dense_ms=dense_ms, dense_stats=dense.stats, dense_psnr_db=round(psnr(dense.rgb, truth), 3),
+                dense_vs_truth=against_truth(dense, view),
             )
             print(f"render {width}x{height} dense: {dense_ms / 1e3:.2f} s, PSNR {entry['dense_psnr_db']} dB, "
                   f"{dense.stats}", flush=True)  # fmt: skip
@@ -270,7 +309,7 @@ def main(argv: list[str] | None = None) -> int:
             run: dict[str, object] = {
                 "config": {**variant, **{key: getattr(runtime.config, key) for key in LEVERS}},
                 "occupied_fraction": round(occupied, 4), "render_ms": ms, "stats": fast.stats,
-                "psnr_db": round(psnr(fast.rgb, truth), 3),
+                "psnr_db": round(psnr(fast.rgb, truth), 3), "vs_truth": against_truth(fast, view),
             }  # fmt: skip
             if dense is not None:
                 run["vs_dense"] = compare(dense, fast)
@@ -279,6 +318,31 @@ def main(argv: list[str] | None = None) -> int:
             runs.append(run)
             print(f"render {width}x{height} fast: {run}", flush=True)
         runtime.config = base
+        if global_map is not None:
+            snap = global_map.snapshot()
+            best, frame = float("inf"), None
+            for _ in range(args.repeat):
+                t, c = time.perf_counter(), time.process_time()
+                depth = map_surface_depth(snap, K, pose, width, height,
+                                          see_through_px=base.surface_see_through_px,
+                                          see_through_rel=base.surface_see_through_rel)  # fmt: skip
+                out = runtime.render(K, pose, width, height, outputs, TEXTS, surface_depth_m=depth)
+                wall = 1e3 * (time.perf_counter() - t)
+                if wall < best:
+                    best, frame = wall, out
+                    out.stats["cpu_ms"] = round(1e3 * (time.process_time() - c), 1)
+                    out.stats["map_pixels"] = int(np.count_nonzero(depth))
+            assert frame is not None and frame.rgb is not None
+            run = {
+                "config": "map surface", "render_ms": best, "stats": frame.stats,
+                "psnr_db": round(psnr(frame.rgb, truth), 3), "vs_truth": against_truth(frame, view),
+            }  # fmt: skip
+            if dense is not None:
+                run["vs_dense"] = compare(dense, frame)
+                run["psnr_delta_db"] = round(float(run["psnr_db"]) - float(entry["dense_psnr_db"]), 3)  # type: ignore[arg-type]
+                run["speedup"] = round(float(entry["dense_ms"]) / best, 2)  # type: ignore[arg-type]
+            runs.append(run)
+            print(f"render {width}x{height} map surface: {run}", flush=True)
         entry["fast"] = runs
         renders.append(entry)
     results["renders"] = renders

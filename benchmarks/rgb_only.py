@@ -24,9 +24,11 @@ Reported per run (``--json`` writes them all):
 * the global map's points: their distance to the true surface (median, p90);
 * with ``rgb+tri+stereo``, plane-sweep stereo (:mod:`mapper.geometry.plane_sweep`) on top of the
   triangulation: depths kept per keyframe, cost per keyframe, points added to the global map;
-* rendered depth at held-out poses (``clients.sim.export.novel_view_poses``): median relative error;
-  and the same poses' depth splatted from the global map's points (where they cover, and with the
-  model's depth elsewhere).
+* at held-out poses (``clients.sim.export.novel_view_poses``): the node's ``render`` depth (median
+  relative error) and colour (PSNR against the simulator's image, mean over the poses), with the
+  map's surfaces where it has them (``model.surface_from_map``); the model's march alone (every
+  pixel marched: depth and PSNR); the map's surface alone
+  (:func:`mapper.node.queries.map_surface_depth`: its error and its share of the pixels).
 
 Usage::
 
@@ -57,10 +59,19 @@ from mapper.errors import ConfigError
 from mapper.node.config import config_from_dict
 from mapper.node.plugins.learned import install_learned_handlers
 from mapper.node.plugins.triangulation import install_triangulation
-from mapper.node.queries import _splat_rows
+from mapper.node.queries import map_surface_depth
 from mapper.node.service import MapperNode
 from mapper.runtime.model_runtime import ModelRuntime
-from protocol.messages import Points, QueryPoints, Segmentation, SegmentPoints, decode, encode
+from protocol.messages import (
+    Points,
+    QueryPoints,
+    Render,
+    RenderResult,
+    Segmentation,
+    SegmentPoints,
+    decode,
+    encode,
+)
 
 MODES = {
     "depth": (True, True, False),
@@ -166,37 +177,37 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
     row["chair_m"] = (chair_distance(reply.objects[0].centroid, scene)
                       if isinstance(reply, Points) and reply.objects else None)
     poses, _ = novel_view_poses(stream, args.novel_views, seed=args.seed)
-    rel = []
-    for pose in poses:
-        truth = stream.renderer.render(stream.K, pose, args.width, args.height).depth_m
-        out = runtime.render(stream.K, pose, args.width, args.height, outputs=("depth",))
-        ok = (truth > 0) & np.isfinite(truth)
-        assert out.depth_m is not None
-        rel.append(np.abs(out.depth_m[ok] - truth[ok]) / truth[ok])
-    row["render_depth_median_rel_err"] = float(np.median(np.concatenate(rel)))
     snap = node.state.global_map.snapshot()
-    # the same poses' depth from the global map's points (z-buffer splat of the points with a
-    # feature, as `render` labels pixels from the map), and that splat with the model's depth elsewhere
-    rel_s, rel_c, cover = [], [], []
+    # depth (and colour) at the held-out poses: the node's `render` (the map's surface where it has
+    # one, model.surface_from_map), the model's march alone, and the map's surface alone
+    cfg = config.model
+    rel_node, rel_march, rel_map, cover, psnr, psnr_march = [], [], [], [], [], []
     for pose in poses:
-        truth = stream.renderer.render(stream.K, pose, args.width, args.height).depth_m
-        out = runtime.render(stream.K, pose, args.width, args.height, outputs=("depth",))
-        assert out.depth_m is not None
-        rows = _splat_rows(snap, np.asarray(stream.K, np.float64), pose, args.width, args.height)
-        pose64 = np.asarray(pose, np.float64)
-        hit = rows >= 0
-        z_map = np.zeros(rows.shape)
-        z_map[hit] = ((snap.xyz[rows[hit]].astype(np.float64) - pose64[:3, 3]) @ pose64[:3, :3])[:, 2]
-        ok = (truth > 0) & np.isfinite(truth)
-        m = ok & hit
-        rel_s.append(np.abs(z_map[m] - truth[m]) / truth[m])
+        truth = stream.renderer.render(stream.K, pose, args.width, args.height)
+        ok = (truth.depth_m > 0) & np.isfinite(truth.depth_m)
+        gt = truth.depth_m[ok]
+        reply = _query(node, Render(width=args.width, height=args.height, K=np.asarray(stream.K, np.float64),
+                                    world_from_cam=np.asarray(pose, np.float64), outputs=["rgb", "depth"]))
+        assert isinstance(reply, RenderResult) and reply.depth_m is not None and reply.rgb is not None, reply
+        rel_node.append(np.abs(reply.depth_m[ok] - gt) / gt)
+        psnr.append(_psnr(reply.rgb, truth.rgb))
+        march = runtime.render(stream.K, pose, args.width, args.height, outputs=("rgb", "depth"))
+        assert march.depth_m is not None and march.rgb is not None
+        rel_march.append(np.abs(march.depth_m[ok] - gt) / gt)
+        psnr_march.append(_psnr(march.rgb, truth.rgb))
+        z_map = map_surface_depth(snap, np.asarray(stream.K, np.float64), pose, args.width, args.height,
+                                  see_through_px=cfg.surface_see_through_px,
+                                  see_through_rel=cfg.surface_see_through_rel)  # fmt: skip
+        m = ok & (z_map > 0)
+        rel_map.append(np.abs(z_map[m] - truth.depth_m[m]) / truth.depth_m[m])
         cover.append(m.sum() / max(1, ok.sum()))
-        both = np.where(hit, z_map, out.depth_m)
-        rel_c.append(np.abs(both[ok] - truth[ok]) / truth[ok])
-    splat = np.concatenate(rel_s)
-    row["map_splat_depth_median_rel_err"] = float(np.median(splat)) if splat.size else None
-    row["map_splat_depth_cover"] = float(np.mean(cover))
-    row["map_splat_else_render_depth_median_rel_err"] = float(np.median(np.concatenate(rel_c)))
+    row["render_depth_median_rel_err"] = float(np.median(np.concatenate(rel_node)))
+    row["render_psnr_db"] = float(np.mean(psnr))
+    row["march_depth_median_rel_err"] = float(np.median(np.concatenate(rel_march)))
+    row["march_psnr_db"] = float(np.mean(psnr_march))
+    on_map = np.concatenate(rel_map)
+    row["map_surface_depth_median_rel_err"] = float(np.median(on_map)) if on_map.size else None
+    row["map_surface_cover"] = float(np.mean(cover))
     row["global_map_points"] = len(snap)
     if len(snap):  # the map's geometry: each point's distance to the true surface
         map_dist = cKDTree(surface).query(np.asarray(snap.xyz, np.float64))[0]
@@ -204,6 +215,12 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         row["map_p90_dist_m"] = float(np.percentile(map_dist, 90))
     node.stop()
     return row
+
+
+def _psnr(rgb: np.ndarray, truth: np.ndarray) -> float:
+    """PSNR (dB) of two uint8 images."""
+    mse = float(np.mean((rgb.astype(np.float64) - truth.astype(np.float64)) ** 2)) / 255.0**2
+    return 10.0 * float(np.log10(1.0 / max(mse, 1e-12)))
 
 
 def parse_overrides(items: list[str]) -> list[tuple[str, str, Any]]:

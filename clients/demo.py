@@ -333,8 +333,18 @@ def _render_view(client: MapperClient, args: argparse.Namespace, out: Path, room
     Image.fromarray(panels["combined"]).save(out / "render.png")
     if rlog is not None:
         rlog.log_render(result, stream.K, pose, render_texts)
+    truth = stream.renderer.render(stream.K, pose, args.width, args.height)  # the simulator's view
+    quality = ""
+    if result.rgb is not None and result.depth_m is not None:
+        mse = float(np.mean((result.rgb.astype(np.float64) - truth.rgb.astype(np.float64)) ** 2)) / 255.0**2
+        both = (truth.depth_m > 0) & (result.depth_m > 0)
+        rel = np.abs(result.depth_m[both] - truth.depth_m[both]) / truth.depth_m[both]
+        depth_err = 100 * float(np.median(rel)) if both.any() else float("nan")
+        quality = (f"; PSNR {10 * np.log10(1 / max(mse, 1e-12)):.1f} dB, depth median error "
+                   f"{depth_err:.1f}% against the simulator's view; "
+                   f"{int(result.timing_ms.get('surface_pixels', 0))} pixels at the map's surfaces")
     print(f"  rendered a novel view (colour, depth, semantics): {out / 'render.png'} "
-          f"in {result.timing_ms.get('handler', 0):.0f} ms on the node")
+          f"in {result.timing_ms.get('handler', 0):.0f} ms on the node{quality}")
 
 
 def _wait_for_workers(client: MapperClient, timeout_s: float = 900.0) -> dict[str, Any]:

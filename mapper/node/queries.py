@@ -47,6 +47,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from mapper.geometry.splat import see_through, splat_points
 from mapper.node.config import QueryConfig
 from mapper.node.global_map import UNIT_BLOCK_ROWS, GlobalMapSnapshot
 from mapper.ov.encoders import TextEncoder
@@ -66,6 +67,7 @@ __all__ = [
     "fill_from_map",
     "label_from_similarities",
     "label_with_texts",
+    "map_surface_depth",
     "normalise_query",
     "query_points",
     "render_from_map",
@@ -780,43 +782,34 @@ def _splat_rows(
     height: int,
 ) -> np.ndarray:
     """(H, W) int64 map row of the nearest map point with a feature that projects into each pixel
-    (z-buffer; each point covers about its voxel's footprint, at most 5x5 pixels), -1 = none."""
-    out = np.full(height * width, -1, np.int64)
+    (z-buffer, :func:`mapper.geometry.splat.splat_points`; each point covers about its voxel's
+    footprint, at most 5x5 pixels), -1 = none."""
     rows = np.flatnonzero(snapshot.feat_weight > 0)
     if rows.size == 0:
-        return out.reshape(height, width)
-    fx, fy, cx, cy = (float(v) for v in K)
-    rot = np.asarray(world_from_cam, np.float64)[:3, :3]
-    trans = np.asarray(world_from_cam, np.float64)[:3, 3]
-    p_cam = (snapshot.xyz[rows].astype(np.float64) - trans) @ rot  # world -> camera: R^T (x - t)
-    z = p_cam[:, 2]
-    front = z > 1e-3
-    rows, p_cam, z = rows[front], p_cam[front], z[front]
-    u = fx * p_cam[:, 0] / z + cx
-    v = fy * p_cam[:, 1] / z + cy
-    reach = np.clip(np.rint(0.5 * fx * snapshot.voxel_size_m / z), 0, 2).astype(np.int64)
-    inside = (u > -3) & (u < width + 3) & (v > -3) & (v < height + 3)
-    rows, z, reach = rows[inside], z[inside], reach[inside]
-    col, lin = np.floor(u[inside]).astype(np.int64), np.floor(v[inside]).astype(np.int64)
-    pix_parts, z_parts, row_parts = [], [], []
-    for dy in range(-2, 3):
-        for dx in range(-2, 3):
-            m = reach >= max(abs(dx), abs(dy))
-            cc, ll = col[m] + dx, lin[m] + dy
-            ok = (cc >= 0) & (cc < width) & (ll >= 0) & (ll < height)
-            pix_parts.append(ll[ok] * width + cc[ok])
-            z_parts.append(z[m][ok])
-            row_parts.append(rows[m][ok])
-    pix = np.concatenate(pix_parts)
-    if pix.size == 0:
-        return out.reshape(height, width)
-    zz, rr = np.concatenate(z_parts), np.concatenate(row_parts)
-    order = np.lexsort((zz, pix))  # by pixel, nearest first
-    pix, rr = pix[order], rr[order]
-    first = np.ones(pix.shape[0], bool)
-    first[1:] = pix[1:] != pix[:-1]
-    out[pix[first]] = rr[first]
-    return out.reshape(height, width)
+        return np.full((height, width), -1, np.int64)
+    index, _ = splat_points(snapshot.xyz[rows], K, world_from_cam, width, height, snapshot.voxel_size_m)
+    return np.where(index >= 0, rows[np.maximum(index, 0)], -1)
+
+
+def map_surface_depth(
+    snapshot: GlobalMapSnapshot,
+    K: np.ndarray,  # (4,) [fx, fy, cx, cy] for width x height
+    world_from_cam: np.ndarray,  # (4, 4) camera-to-world
+    width: int,
+    height: int,
+    *,
+    see_through_px: int,
+    see_through_rel: float,
+) -> np.ndarray:  # (H, W) float32 z-depth (m), 0 = no map surface
+    """The surface each pixel sees in the global map: the z-depth of the nearest map point (every
+    point, with or without a feature) splatted over its voxel's footprint, minus the pixels that
+    see a point through a hole in a nearer surface (:func:`mapper.geometry.splat.see_through`
+    with ``see_through_px`` / ``see_through_rel``). ``render`` evaluates the model's appearance at
+    these surface points (docs/RENDERING.md, "Surfaces from the map")."""
+    if len(snapshot) == 0:
+        return np.zeros((height, width), np.float32)
+    _, z = splat_points(snapshot.xyz, K, world_from_cam, width, height, snapshot.voxel_size_m)
+    return np.where(see_through(z, see_through_px, see_through_rel), np.float32(0), z).astype(np.float32)
 
 
 def render_from_map(

@@ -1109,6 +1109,7 @@ class ModelRuntime:
         texts: Sequence[str] | None = None,
         *,
         empty_space_skipping: bool | None = None,
+        surface_depth_m: np.ndarray | None = None,  # (H, W) float32 z-depth (m), 0 = none
     ) -> RenderFrame:
         """Render a novel view.
 
@@ -1117,6 +1118,10 @@ class ModelRuntime:
             outputs: subset of ``("rgb", "depth", "label", "score")``.
             texts: label set (required for ``label`` / ``score``).
             empty_space_skipping: override the config (dense sampling with False).
+            surface_depth_m: a known surface per pixel (the node's global map,
+                ``mapper.node.queries.map_surface_depth``): where > 0 the pixel is rendered AT that
+                surface point (one appearance evaluation there; depth = this z, opacity 1) instead
+                of marching its ray; the other pixels march as usual. None = march every pixel.
 
         Returns:
             :class:`RenderFrame`: rgb (H, W, 3) uint8 (black where nothing is rendered), depth_m
@@ -1153,6 +1158,16 @@ class ModelRuntime:
             )
         if not bool((K_t[:2] > 0).all()):
             raise ValueError(f"K: fx, fy must be > 0, got {K_t[:2].tolist()}")
+        surface_np = None
+        if surface_depth_m is not None:
+            surface_np = np.asarray(surface_depth_m, np.float32)
+            if surface_np.shape != (int(height), int(width)):
+                raise ValueError(
+                    f"surface_depth_m must have shape (H, W) = ({int(height)}, {int(width)}), "
+                    f"got {surface_np.shape}"
+                )
+            if not (np.isfinite(surface_np).all() and (surface_np >= 0).all()):
+                raise ValueError("surface_depth_m must be finite and >= 0 (0 = no surface)")
         skip = self.config.empty_space_skipping if empty_space_skipping is None else empty_space_skipping
         model = self._require_model()
         timing: dict[str, float] = {}
@@ -1182,8 +1197,19 @@ class ModelRuntime:
                 else None
             )
             stats = {"samples": 0, "density_evals": 0, "appearance_evals": 0, "view_groups": 0}
-            for i in range(0, n_rays, self.config.chunk_rays):
-                sl = slice(i, i + self.config.chunk_rays)
+            marched = torch.arange(n_rays, device=self.device)
+            if surface_np is not None:
+                z_surface = torch.from_numpy(surface_np.reshape(-1)).to(self.device)
+                at_surface = (z_surface > 0).nonzero().squeeze(-1)
+                marched = (z_surface <= 0).nonzero().squeeze(-1)
+                t_surface = time.perf_counter()
+                self._render_surface(
+                    model, prep, origins, dirs, axis, z_surface, at_surface, semantic, allowed, stats,
+                    appearance, (rgb, ray_depth, opacity, covered, ov),
+                )  # fmt: skip
+                timing["surface"] = (time.perf_counter() - t_surface) * 1e3
+            for i in range(0, marched.numel(), self.config.chunk_rays):
+                sl = marched[i : i + self.config.chunk_rays]
                 part = self._render_rays(
                     model, prep, origins[sl], dirs[sl], occupancy, semantic, allowed, stats, appearance,
                     appearance_groups=self.config.appearance_groups if skip else 0,
@@ -1196,8 +1222,9 @@ class ModelRuntime:
             if skip and ov is not None and emb is not None and self._refines(emb.shape[0]):
                 # coarse-to-fine labels: pixels whose best two texts are close get every sample's
                 # appearance (their weight groups could have swapped the two)
-                top2 = (F.normalize(ov, dim=-1) @ emb.T).topk(2, dim=-1).values
-                redo = (top2[:, 0] - top2[:, 1] < self.config.refine_margin).nonzero().squeeze(-1)
+                # (surface pixels had one exact evaluation at their point: nothing to refine)
+                top2 = (F.normalize(ov[marched], dim=-1) @ emb.T).topk(2, dim=-1).values
+                redo = marched[top2[:, 0] - top2[:, 1] < self.config.refine_margin]
                 stats["refined_rays"] = int(redo.numel())
                 again = {"samples": 0, "density_evals": 0, "appearance_evals": 0, "view_groups": 0}
                 for i in range(0, redo.numel(), self.config.chunk_rays):
@@ -1240,6 +1267,47 @@ class ModelRuntime:
         timing["total"] = (time.perf_counter() - t0) * 1e3
         frame.timing_ms = timing
         return frame
+
+    def _render_surface(
+        self,
+        model: GovNeSF,
+        prep: _Prepared,
+        origins: Tensor,  # (R, 3)
+        dirs: Tensor,  # (R, 3) unit
+        axis: Tensor,  # (3,) the camera's optical axis (world)
+        z_surface: Tensor,  # (R,) known surface z-depth, 0 = none
+        rays: Tensor,  # (S,) int64 the rays with a surface
+        need_ov: bool,
+        allowed: Tensor,  # (M,) bool views usable as sources
+        stats: dict[str, int],
+        appearance: bool,
+        out: tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None],  # rgb, ray distance, opacity, covered, ov
+    ) -> None:
+        """Render ``rays`` at their known surface: the point at z-depth ``z_surface`` along each ray
+        gets one appearance evaluation (the same view-grouped FusionNet blend as a marched sample);
+        ray distance = z / (d . axis), opacity 1, covered = whether an allowed view sees the point.
+        Writes into ``out`` in place."""
+        rgb, ray_depth, opacity, covered, ov = out
+        stats["surface_rays"] = int(rays.numel())
+        if rays.numel() == 0:
+            return
+        t = z_surface[rays] / (dirs[rays] @ axis).clamp_min(1e-6)
+        ray_depth[rays] = t
+        opacity[rays] = 1.0
+        if not appearance:
+            return
+        fn = self._appearance(model, prep, need_ov, allowed, stats, self.config.batched_view_groups)
+        for i in range(0, rays.numel(), self.config.chunk_rays):
+            sub = rays[i : i + self.config.chunk_rays]
+            points = origins[sub] + t[i : i + self.config.chunk_rays, None] * dirs[sub]
+            _, features = self._density(model, prep, points)  # the marcher's features, the same way
+            stats["density_evals"] += int(sub.numel())
+            rgb_k, ov_k, valid_k = fn(points, dirs[sub], features)
+            rgb[sub] = rgb_k.to(rgb.dtype)
+            covered[sub] = valid_k.to(covered.dtype)
+            if ov is not None and ov_k.shape[-1] == ov.shape[-1]:
+                ov[sub] = ov_k.to(ov.dtype)
+            stats["appearance_evals"] += int(sub.numel())
 
     def _refines(self, n_texts: int) -> bool:
         """Whether a skipping render re-renders its ambiguous pixels (``refine_margin``)."""

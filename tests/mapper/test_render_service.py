@@ -193,3 +193,41 @@ def test_callbacks_do_no_model_work_under_the_state_lock(node: MapperNode, model
         and too_big.code == "bad_request"
         and "max_render_pixels" in too_big.message
     )
+
+
+@pytest.mark.parametrize("mode", ["auto", "on", "off", "auto-rgb-only"])
+def test_render_takes_the_global_maps_surface_where_it_has_one(
+    node: MapperNode, model: GovNeSF, mode: str
+) -> None:
+    from mapper.node.queries import map_surface_depth
+
+    runtime = ModelRuntime(
+        ModelRuntimeConfig(device="cpu", surface_from_map=mode.split("-")[0]), model=model,
+        text_encoder=lambda space: FakeEncoder(),
+    )  # fmt: skip
+    install_learned_handlers(node, runtime)
+    for seq in range(3):
+        node.handle_ingest(encode(frame(seq)))
+    node.drain_integrations()
+    if mode == "auto-rgb-only":  # auto: the window's keyframes mostly without depth -> march
+        for seq in range(3, 8):
+            rgb_only = frame(seq)
+            rgb_only.depth_m = None
+            node.handle_ingest(encode(rgb_only))
+        node.drain_integrations()
+    K, pose = np.array([10.0, 10.0, 6.0, 4.5]), look_at((2.2, 0.4, 1.1), (0.0, 0.0, 0.5))
+    snap = node.state.global_map.snapshot()
+    assert len(snap) > 0
+    cfg = runtime.config
+    surface = map_surface_depth(snap, K, pose, 12, 9, see_through_px=cfg.surface_see_through_px,
+                                see_through_rel=cfg.surface_see_through_rel)  # fmt: skip
+    assert (surface > 0).sum() > 20
+    reply = query(node, Render(width=12, height=9, K=K, world_from_cam=pose, outputs=["rgb", "depth"]))
+    assert isinstance(reply, RenderResult) and reply.depth_m is not None
+    on = surface > 0
+    if mode in ("auto", "on"):  # the map's depth where it has a surface, the model's march elsewhere
+        np.testing.assert_allclose(reply.depth_m[on], surface[on], rtol=1e-5)
+        assert reply.timing_ms["surface_pixels"] == on.sum()
+    else:
+        assert "surface_pixels" not in reply.timing_ms
+        assert not np.allclose(reply.depth_m[on], surface[on], rtol=1e-3)

@@ -372,3 +372,66 @@ def test_point_source_views_sets_the_views_of_point_answers_only(model: GovNeSF)
     assert not np.array_equal(answers["more"][2], answers["default"][2])  # other views, other features
     with pytest.raises(ConfigError, match="point_source_views"):
         ModelRuntimeConfig(point_source_views=300).validate("test")
+
+
+def test_surface_render_at_an_opaque_surface_matches_the_march(slab_runtime: ModelRuntime) -> None:
+    # The slab's front face is opaque (50 / m): the march's colour, scores and depth come from
+    # just behind x = 2 m; rendering every pixel AT the march's surface gives the same image with
+    # one appearance evaluation a pixel and no density evaluation.
+    pose = look_at((0.3, 0.2, 1.1), (2.0, -0.1, 0.9))
+    K = [10.0, 10.0, 10.0, 7.5]
+    march = slab_runtime.render(K, pose, 20, 15, ["rgb", "depth", "score"], ["a", "b"])
+    assert march.depth_m is not None and march.rgb is not None and march.score is not None
+    opaque = march.opacity > 0.99  # (rays leaving the volume box through its sides are not)
+    assert opaque.mean() > 0.5
+    known = np.where(opaque, march.depth_m, 0.0).astype(np.float32)
+    surface = slab_runtime.render(
+        K, pose, 20, 15, ["rgb", "depth", "score"], ["a", "b"], surface_depth_m=known
+    )
+    n = int(opaque.sum())
+    assert surface.stats["surface_rays"] == n
+    assert surface.depth_m is not None and surface.rgb is not None and surface.score is not None
+    np.testing.assert_allclose(surface.depth_m[opaque], march.depth_m[opaque], rtol=1e-5)
+    np.testing.assert_array_equal(surface.opacity[opaque], 1.0)
+    # the same colour (of 255) but where a pixel's view set differs (view selection per cell)
+    diff = np.abs(surface.rgb[opaque].astype(int) - march.rgb[opaque].astype(int)).max(axis=-1)
+    assert np.mean(diff <= 4) >= 0.95 and diff.mean() <= 2.0
+    close = np.abs(surface.score[opaque] - march.score[opaque]).max(axis=-1) <= 0.03
+    assert close.mean() >= 0.95
+    everywhere = slab_runtime.render(
+        K, pose, 20, 15, ["rgb"], surface_depth_m=np.full((15, 20), 2.0, np.float32)
+    )
+    # one density (for its volume feature) and one appearance evaluation a pixel, no march
+    assert everywhere.stats["density_evals"] == 300 and everywhere.stats["appearance_evals"] == 300
+
+
+def test_surface_pixels_leave_the_others_marched_as_before(slab_runtime: ModelRuntime) -> None:
+    pose = look_at((0.3, 0.2, 1.1), (2.0, -0.1, 0.9))
+    K = [10.0, 10.0, 10.0, 7.5]
+    march = slab_runtime.render(K, pose, 20, 15, ["rgb", "depth", "label"], ["a", "b"])
+    known = np.zeros((15, 20), np.float32)
+    known[:, :8] = 2.5  # a surface that is not the slab's: taken as given
+    mixed = slab_runtime.render(K, pose, 20, 15, ["rgb", "depth", "label"], ["a", "b"], surface_depth_m=known)
+    assert mixed.stats["surface_rays"] == 15 * 8
+    assert mixed.depth_m is not None and march.depth_m is not None and mixed.rgb is not None
+    np.testing.assert_allclose(mixed.depth_m[:, :8], 2.5, rtol=1e-5)
+    np.testing.assert_allclose(mixed.depth_m[:, 8:], march.depth_m[:, 8:], atol=1e-5)
+    assert march.rgb is not None and mixed.label is not None and march.label is not None
+    assert np.abs(mixed.rgb[:, 8:].astype(int) - march.rgb[:, 8:].astype(int)).max() <= 1
+    np.testing.assert_array_equal(mixed.label[:, 8:], march.label[:, 8:])
+    at_3m = np.full((15, 20), 3.0, np.float32)
+    depth_only = slab_runtime.render(K, pose, 20, 15, ["depth"], surface_depth_m=at_3m)
+    assert depth_only.stats["appearance_evals"] == 0 and depth_only.stats["density_evals"] == 0
+    np.testing.assert_allclose(depth_only.depth_m, 3.0, rtol=1e-5)  # type: ignore[arg-type]
+
+
+def test_surface_depth_is_checked_before_any_work(slab_runtime: ModelRuntime) -> None:
+    pose = look_at((0.3, 0.2, 1.1), (2.0, -0.1, 0.9))
+    K = [10.0, 10.0, 10.0, 7.5]
+    for bad, what in (
+        (np.ones((15, 19), np.float32), "shape"),
+        (np.full((15, 20), np.nan, np.float32), "finite"),
+        (np.full((15, 20), -1.0, np.float32), ">= 0"),
+    ):
+        with pytest.raises(ValueError, match=what):
+            slab_runtime.render(K, pose, 20, 15, ["rgb"], surface_depth_m=bad)

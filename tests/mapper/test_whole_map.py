@@ -23,7 +23,7 @@ from mapper.node.plugins.learned import make_render_handler, make_segment_handle
 from mapper.node.queries import SOURCE_MAP, SOURCE_NONE, SOURCE_WINDOW, fill_from_map, render_from_map
 from mapper.node.service import MapperNode
 from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
-from mapper.runtime.model_runtime import RenderFrame
+from mapper.runtime.model_runtime import ModelRuntimeConfig, RenderFrame
 from protocol.messages import (
     ANSWER_SOURCES,
     Error,
@@ -142,6 +142,8 @@ class StubRuntime:
     """Stands in for ModelRuntime: the window "sees" only points with x > 1 (B's wall) and renders
     a surface 2 m ahead whose pixels it leaves unlabelled (or no surface with ``depth=0``)."""
 
+    config = ModelRuntimeConfig(surface_from_map="off")  # these tests are about the map's labels
+
     def __init__(self, depth: float = 2.0) -> None:
         self.depth = depth
         self.outputs: list[str] = []
@@ -151,7 +153,8 @@ class StubRuntime:
         return np.where(seen, 1, -1).astype(np.int32), np.where(seen, 0.9, 0.0).astype(np.float32), {"n": 1.0}
 
     def render(
-        self, K: Any, pose: Any, width: int, height: int, outputs: Sequence[str], texts: Any
+        self, K: Any, pose: Any, width: int, height: int, outputs: Sequence[str], texts: Any,
+        surface_depth_m: np.ndarray | None = None,
     ) -> RenderFrame:
         self.outputs = list(outputs)
         label = np.full((height, width), -1, np.int32)

@@ -3,7 +3,10 @@
 ``install_learned_handlers(node, runtime)`` attaches the runtime to the node's keyframe window and
 registers the handlers on the node's dispatch table:
 
-* ``Render`` -> :meth:`mapper.runtime.model_runtime.ModelRuntime.render`;
+* ``Render`` -> :meth:`mapper.runtime.model_runtime.ModelRuntime.render`; with
+  ``model.surface_from_map`` ("auto": while the window's keyframes mostly carry input depth) the
+  pixels where the global map has a surface (:func:`mapper.node.queries.map_surface_depth`) are
+  rendered at it, the others marched;
 * ``SegmentPoints`` with ``method == "govnesf"`` -> :meth:`mapper.runtime.model_runtime.ModelRuntime.segment`;
   every other method falls through to the handler that served ``SegmentPoints`` before (read from
   ``node.query_handlers`` at install time, e.g. the ``average`` baselines).
@@ -96,6 +99,16 @@ def make_segment_handler(
     return handle_segment
 
 
+def _surface_from_map(node: MapperNode, mode: str) -> bool:
+    """``model.surface_from_map``: "on", "off", or "auto" = at least half of the window's
+    keyframes carry input depth (the map's surfaces are then measured ones)."""
+    if mode != "auto":
+        return mode == "on"
+    with node.state.lock:
+        keyframes = node.state.window.keyframes
+    return bool(keyframes) and 2 * sum(k.depth_m is not None for k in keyframes) >= len(keyframes)
+
+
 def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -> QueryHandler:
     """A ``Render`` handler backed by the runtime. With ``node``, pixels the window does not label
     are answered from its global map (the render then also computes depth and label)."""
@@ -109,13 +122,31 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
         if node is not None and semantic:
             wanted = ("depth", "label", "score") if more_confident else ("depth", "label")
             outputs += [o for o in wanted if o not in outputs]
+        surface = None
+        if node is not None and _surface_from_map(node, runtime.config.surface_from_map):
+            # pixels the global map has a surface for are rendered at it (docs/RENDERING.md)
+            from mapper.node.queries import map_surface_depth
+
+            t_surface = time.perf_counter()
+            cfg = runtime.config
+            surface = map_surface_depth(
+                node.state.global_map.snapshot(), np.asarray(msg.K, np.float64), msg.world_from_cam,
+                msg.width, msg.height, see_through_px=cfg.surface_see_through_px,
+                see_through_rel=cfg.surface_see_through_rel,
+            )  # fmt: skip
+            surface_ms = (time.perf_counter() - t_surface) * 1e3
         try:
-            frame = runtime.render(msg.K, msg.world_from_cam, msg.width, msg.height, outputs, msg.texts)
+            frame = runtime.render(
+                msg.K, msg.world_from_cam, msg.width, msg.height, outputs, msg.texts, surface_depth_m=surface
+            )
         except RuntimeNotReady as exc:
             raise ProtocolError("not_ready", f"render: {exc}") from None
         except ValueError as exc:
             raise ProtocolError("bad_request", f"render: {exc}") from None
         timing = dict(frame.timing_ms)
+        if surface is not None:
+            timing["map_surface"] = surface_ms
+            timing["surface_pixels"] = float(np.count_nonzero(surface))
         source = None
         if node is not None and semantic and frame.label is not None and msg.texts:
             t_map = time.perf_counter()

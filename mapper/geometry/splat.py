@@ -1,0 +1,111 @@
+"""Z-buffered splats of world points into a camera, and the see-through test of a splat.
+
+Pure numpy functions (no torch, no node state): the node's ``render`` uses them to find the
+surface each pixel sees in the global map (:func:`mapper.node.queries.map_surface_depth`), and
+its map labels use :func:`splat_points` for pixels the render found no surface in.
+
+Conventions (docs/CONVENTIONS.md): ``K = [fx, fy, cx, cy]`` for a ``width x height`` image,
+``world_from_cam`` camera-to-world in the OpenCV optical frame, z-depth along the optical axis.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import minimum_filter
+
+__all__ = ["MAX_REACH_PX", "splat_points", "see_through"]
+
+MAX_REACH_PX = 2
+"""A point covers at most (2 * MAX_REACH_PX + 1)^2 pixels (its footprint's half width, clipped)."""
+
+
+def splat_points(
+    xyz: np.ndarray,  # (N, 3) world points (m)
+    K: np.ndarray,  # (4,) [fx, fy, cx, cy]
+    world_from_cam: np.ndarray,  # (4, 4) camera-to-world
+    width: int,
+    height: int,
+    footprint_m: float,  # each point's size: it covers about this many metres at its depth
+) -> tuple[np.ndarray, np.ndarray]:
+    """Z-buffer splat: the nearest point that covers each pixel.
+
+    Each point in front of the camera (z > 1 mm) covers a square of half width
+    ``round(0.5 * fx * footprint_m / z)`` pixels (0..``MAX_REACH_PX``) around the pixel it
+    projects into; a pixel takes the covering point with the smallest z.
+
+    Returns:
+        index: (H, W) int64 row of ``xyz`` that each pixel shows, -1 where none;
+        z: (H, W) float32 that point's z-depth (m), 0 where none.
+    """
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"xyz must have shape (N, 3), got {xyz.shape}")
+    K = np.asarray(K, np.float64).reshape(-1)
+    pose = np.asarray(world_from_cam, np.float64)
+    if K.shape != (4,) or pose.shape != (4, 4) or not (np.isfinite(K).all() and np.isfinite(pose).all()):
+        raise ValueError(
+            f"K must be 4 finite numbers and world_from_cam a finite (4, 4), got {K.shape}, {pose.shape}"
+        )
+    if not (K[0] > 0 and K[1] > 0):
+        raise ValueError(f"K: fx, fy must be > 0, got {K[:2].tolist()}")
+    if not (width >= 1 and height >= 1):
+        raise ValueError(f"image size {width}x{height} out of range: width and height must be >= 1")
+    if not (np.isfinite(footprint_m) and footprint_m >= 0):
+        raise ValueError(f"footprint_m must be finite and >= 0, got {footprint_m}")
+    index = np.full(height * width, -1, np.int64)
+    depth = np.zeros(height * width, np.float32)
+    if xyz.shape[0] == 0:
+        return index.reshape(height, width), depth.reshape(height, width)
+    fx, fy, cx, cy = (float(v) for v in K)
+    p_cam = (xyz.astype(np.float64) - pose[:3, 3]) @ pose[:3, :3]  # world -> camera: R^T (x - t)
+    z = p_cam[:, 2]
+    rows = np.flatnonzero(np.isfinite(z) & (z > 1e-3))
+    p_cam, z = p_cam[rows], z[rows]
+    u = fx * p_cam[:, 0] / z + cx
+    v = fy * p_cam[:, 1] / z + cy
+    reach = np.clip(np.rint(0.5 * fx * footprint_m / z), 0, MAX_REACH_PX).astype(np.int64)
+    pad = MAX_REACH_PX + 1
+    inside = (u > -pad) & (u < width + pad) & (v > -pad) & (v < height + pad)
+    rows, z, reach = rows[inside], z[inside], reach[inside]
+    col, lin = np.floor(u[inside]).astype(np.int64), np.floor(v[inside]).astype(np.int64)
+    pix_parts, z_parts, row_parts = [], [], []
+    for dy in range(-MAX_REACH_PX, MAX_REACH_PX + 1):
+        for dx in range(-MAX_REACH_PX, MAX_REACH_PX + 1):
+            m = reach >= max(abs(dx), abs(dy))
+            cc, ll = col[m] + dx, lin[m] + dy
+            ok = (cc >= 0) & (cc < width) & (ll >= 0) & (ll < height)
+            pix_parts.append(ll[ok] * width + cc[ok])
+            z_parts.append(z[m][ok])
+            row_parts.append(rows[m][ok])
+    pix = np.concatenate(pix_parts)
+    if pix.size == 0:
+        return index.reshape(height, width), depth.reshape(height, width)
+    zz, rr = np.concatenate(z_parts), np.concatenate(row_parts)
+    order = np.lexsort((zz, pix))  # by pixel, nearest first
+    pix, rr, zz = pix[order], rr[order], zz[order]
+    first = np.ones(pix.shape[0], bool)
+    first[1:] = pix[1:] != pix[:-1]
+    index[pix[first]] = rr[first]
+    depth[pix[first]] = zz[first]
+    return index.reshape(height, width), depth.reshape(height, width)
+
+
+def see_through(
+    z: np.ndarray,  # (H, W) z-depth (m), 0 = nothing
+    window_px: int,
+    rel: float,
+) -> np.ndarray:  # (H, W) bool
+    """Pixels of a sparse splat that show a point seen THROUGH a hole in a nearer surface: their
+    depth exceeds the nearest depth within ``window_px`` pixels (a square of half width) by more
+    than ``rel`` of it. Pixels without depth are never flagged; ``window_px = 0`` flags nothing."""
+    z = np.asarray(z)
+    if z.ndim != 2:
+        raise ValueError(f"z must have shape (H, W), got {z.shape}")
+    if window_px < 0 or not (np.isfinite(rel) and rel >= 0):
+        raise ValueError(f"window_px must be >= 0 and rel finite and >= 0, got {window_px}, {rel}")
+    have = z > 0
+    if window_px == 0 or not have.any():
+        return np.zeros(z.shape, bool)
+    masked = np.where(have, z, np.inf).astype(np.float32)
+    nearest = minimum_filter(masked, size=2 * window_px + 1, mode="nearest")
+    return have & (z > (1.0 + rel) * nearest)

@@ -1,0 +1,95 @@
+"""Tests for mapper.geometry.splat: z-buffered splats of world points (exact depths of known
+geometry, nearest wins, points behind the camera, footprints) and the see-through test."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapper.geometry.splat import MAX_REACH_PX, see_through, splat_points
+
+K = np.array([50.0, 50.0, 20.0, 15.0])  # 40 x 30 image
+
+
+def plane_points(z: float, spacing: float = 0.01, half: float = 1.0) -> np.ndarray:
+    """A fronto-parallel plane at z (camera = world frame), points on a grid."""
+    g = np.arange(-half, half + 1e-9, spacing)
+    x, y = np.meshgrid(g, g)
+    return np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], axis=1)
+
+
+@settings(max_examples=20, deadline=None)
+@given(z=st.floats(0.3, 20.0), tx=st.floats(-0.5, 0.5), ty=st.floats(-0.5, 0.5))
+def test_a_plane_splats_to_its_depth_and_each_pixel_shows_a_point_that_projects_near_it(
+    z: float, tx: float, ty: float
+) -> None:
+    pose = np.eye(4)
+    pose[:3, 3] = [tx, ty, 0.0]
+    xyz = plane_points(z + 0.0, spacing=0.5 * z / K[0], half=2.0 * z) + [tx, ty, 0.0]
+    index, depth = splat_points(xyz, K, pose, 40, 30, footprint_m=0.0)
+    assert index.shape == (30, 40) and depth.dtype == np.float32
+    assert np.all(index >= 0)  # points 0.5 px apart cover every pixel
+    np.testing.assert_allclose(depth, z, rtol=1e-6)
+    p = xyz[index] - [tx, ty, 0.0]
+    u, v = K[0] * p[..., 0] / p[..., 2] + K[2], K[1] * p[..., 1] / p[..., 2] + K[3]
+    cols, rows = np.meshgrid(np.arange(40), np.arange(30))
+    assert np.all((np.floor(u) == cols) & (np.floor(v) == rows))  # footprint 0: the pixel it falls in
+
+
+def test_nearest_point_wins_and_points_behind_the_camera_are_ignored() -> None:
+    near, far = plane_points(2.0, 0.02), plane_points(3.0, 0.02)
+    behind = plane_points(-1.0, 0.02)
+    xyz = np.concatenate([far, behind, near])
+    index, depth = splat_points(xyz, K, np.eye(4), 40, 30, footprint_m=0.05)
+    assert np.all(depth == np.float32(2.0))
+    assert np.all(index >= len(far) + len(behind))  # every pixel shows a point of the near plane
+    only_behind, d_behind = splat_points(behind, K, np.eye(4), 40, 30, footprint_m=0.05)
+    assert np.all(only_behind == -1) and np.all(d_behind == 0)
+
+
+def test_a_point_covers_its_footprint_up_to_the_reach() -> None:
+    xyz = np.array([[0.0, 0.0, 2.0]])  # projects into pixel (20, 15)
+    for footprint, reach in ((0.0, 0), (0.08, 1), (0.16, 2), (10.0, MAX_REACH_PX)):  # 0.5 fx f / z px
+        index, depth = splat_points(xyz, K, np.eye(4), 40, 30, footprint_m=footprint)
+        rows, cols = np.nonzero(index == 0)
+        assert rows.min() == 15 - reach and rows.max() == 15 + reach
+        assert cols.min() == 20 - reach and cols.max() == 20 + reach
+        assert np.count_nonzero(depth) == (2 * reach + 1) ** 2
+
+
+def test_empty_and_bad_inputs() -> None:
+    index, depth = splat_points(np.zeros((0, 3)), K, np.eye(4), 8, 6, 0.05)
+    assert index.shape == (6, 8) and np.all(index == -1) and np.all(depth == 0)
+    for bad in (
+        dict(xyz=np.zeros((3, 2))),
+        dict(K=np.array([0.0, 50.0, 20.0, 15.0])),
+        dict(K=np.array([np.nan, 50.0, 20.0, 15.0])),
+        dict(world_from_cam=np.eye(3)),
+        dict(width=0),
+        dict(footprint_m=-1.0),
+    ):
+        args = dict(xyz=np.zeros((1, 3)), K=K, world_from_cam=np.eye(4), width=8, height=6, footprint_m=0.05)
+        args.update(bad)
+        with pytest.raises(ValueError):
+            splat_points(**args)  # type: ignore[arg-type]
+
+
+def test_see_through_flags_a_far_point_in_a_hole_of_a_near_surface_only() -> None:
+    z = np.full((9, 9), 2.0, np.float32)
+    z[4, 4] = 5.0  # seen through a hole of the 2 m surface
+    z[0, 0] = 0.0  # no depth: never flagged
+    flagged = see_through(z, window_px=1, rel=0.1)
+    assert flagged[4, 4] and flagged.sum() == 1
+    assert not see_through(z, window_px=0, rel=0.1).any()
+    assert not see_through(z, window_px=1, rel=2.0).any()  # 5 m is within 3x of 2 m
+    # a step between two surfaces: only the far side within the window is flagged
+    step = np.full((5, 10), 2.0, np.float32)
+    step[:, 5:] = 4.0
+    flagged = see_through(step, window_px=2, rel=0.1)
+    assert not flagged[:, :5].any() and flagged[:, 5:7].all() and not flagged[:, 7:].any()
+    with pytest.raises(ValueError):
+        see_through(np.zeros(4), 1, 0.1)
+    with pytest.raises(ValueError):
+        see_through(z, -1, 0.1)
