@@ -151,7 +151,7 @@ class ModelRuntimeConfig:
     model's diffuse density (docs/RENDERING.md, "Surfaces from the map"). ``"auto"`` (default):
     on while at least half of the window's keyframes carry input depth (an RGB-only map's
     surfaces are not accurate enough yet: measured there); ``"on"``: always; ``"off"``: march
-    every pixel. ``govnesf render`` without a node has no map and always marches."""
+    every pixel. ``ModelRuntime.render`` used in-process without a node has no map and marches."""
 
     surface_see_through_px: int = 3
     """A map-surface pixel whose depth exceeds the nearest map depth within this many pixels by
