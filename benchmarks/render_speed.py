@@ -323,9 +323,7 @@ def main(argv: list[str] | None = None) -> int:
             best, frame = float("inf"), None
             for _ in range(args.repeat):
                 t, c = time.perf_counter(), time.process_time()
-                depth = map_surface_depth(snap, K, pose, width, height,
-                                          see_through_px=base.surface_see_through_px,
-                                          see_through_rel=base.surface_see_through_rel)  # fmt: skip
+                depth = map_surface_depth(snap, K, pose, width, height, base)
                 out = runtime.render(K, pose, width, height, outputs, TEXTS, surface_depth_m=depth)
                 wall = 1e3 * (time.perf_counter() - t)
                 if wall < best:

@@ -195,9 +195,7 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         assert march.depth_m is not None and march.rgb is not None
         rel_march.append(np.abs(march.depth_m[ok] - gt) / gt)
         psnr_march.append(_psnr(march.rgb, truth.rgb))
-        z_map = map_surface_depth(snap, np.asarray(stream.K, np.float64), pose, args.width, args.height,
-                                  see_through_px=cfg.surface_see_through_px,
-                                  see_through_rel=cfg.surface_see_through_rel)  # fmt: skip
+        z_map = map_surface_depth(snap, np.asarray(stream.K, np.float64), pose, args.width, args.height, cfg)
         m = ok & (z_map > 0)
         rel_map.append(np.abs(z_map[m] - truth.depth_m[m]) / truth.depth_m[m])
         cover.append(m.sum() / max(1, ok.sum()))

@@ -11,9 +11,8 @@ Conventions (docs/CONVENTIONS.md): ``K = [fx, fy, cx, cy]`` for a ``width x heig
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import minimum_filter
 
-__all__ = ["MAX_REACH_PX", "splat_points", "see_through"]
+__all__ = ["MAX_REACH_PX", "fill_holes", "see_through", "splat_points"]
 
 MAX_REACH_PX = 2
 """A point covers at most (2 * MAX_REACH_PX + 1)^2 pixels (its footprint's half width, clipped)."""
@@ -90,14 +89,54 @@ def splat_points(
     return index.reshape(height, width), depth.reshape(height, width)
 
 
+def _first_along(z: np.ndarray, window_px: int, axis: int, step: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each pixel, the first depth > 0 met going ``step`` (+1 / -1) along ``axis`` within
+    ``window_px`` pixels (the pixel itself excluded): (depth (H, W), 0 = none; distance in pixels)."""
+    found = np.zeros(z.shape, z.dtype)
+    dist = np.zeros(z.shape, np.int32)
+    n = z.shape[axis]
+    for k in range(1, min(window_px, n - 1) + 1):
+        shifted = np.zeros_like(z)
+        src = [slice(None)] * 2
+        dst = [slice(None)] * 2
+        if step > 0:  # the pixel k further along the axis
+            src[axis], dst[axis] = slice(k, None), slice(None, n - k)
+        else:
+            src[axis], dst[axis] = slice(None, n - k), slice(k, None)
+        shifted[tuple(dst)] = z[tuple(src)]
+        new = (found == 0) & (shifted > 0)
+        found[new] = shifted[new]
+        dist[new] = k
+    return found, dist
+
+
+def _min_along(z: np.ndarray, window_px: int, axis: int, step: int) -> np.ndarray:
+    """For each pixel, the smallest depth > 0 within ``window_px`` pixels going ``step`` along
+    ``axis`` (the pixel itself excluded); 0 = none."""
+    z_inf = np.where(z > 0, z, np.inf).astype(np.float32)
+    best = np.full(z.shape, np.inf, np.float32)
+    n = z.shape[axis]
+    for k in range(1, min(window_px, n - 1) + 1):
+        src = [slice(None)] * 2
+        dst = [slice(None)] * 2
+        if step > 0:
+            src[axis], dst[axis] = slice(k, None), slice(None, n - k)
+        else:
+            src[axis], dst[axis] = slice(None, n - k), slice(k, None)
+        np.minimum(best[tuple(dst)], z_inf[tuple(src)], out=best[tuple(dst)])
+    return np.where(np.isfinite(best), best, np.float32(0))
+
+
 def see_through(
     z: np.ndarray,  # (H, W) z-depth (m), 0 = nothing
     window_px: int,
     rel: float,
 ) -> np.ndarray:  # (H, W) bool
-    """Pixels of a sparse splat that show a point seen THROUGH a hole in a nearer surface: their
-    depth exceeds the nearest depth within ``window_px`` pixels (a square of half width) by more
-    than ``rel`` of it. Pixels without depth are never flagged; ``window_px = 0`` flags nothing."""
+    """Pixels of a splat that show a point seen THROUGH a hole in a nearer surface: within
+    ``window_px`` pixels on BOTH sides (left and right, or above and below) some depth is nearer
+    than this pixel's by more than ``rel`` of it. The far side of a depth edge (a nearer
+    surface on one side only) is not flagged; pixels without depth never are; ``window_px = 0``
+    flags nothing."""
     z = np.asarray(z)
     if z.ndim != 2:
         raise ValueError(f"z must have shape (H, W), got {z.shape}")
@@ -106,6 +145,41 @@ def see_through(
     have = z > 0
     if window_px == 0 or not have.any():
         return np.zeros(z.shape, bool)
-    masked = np.where(have, z, np.inf).astype(np.float32)
-    nearest = minimum_filter(masked, size=2 * window_px + 1, mode="nearest")
-    return have & (z > (1.0 + rel) * nearest)
+    z = z.astype(np.float32)
+
+    def nearer(found: np.ndarray) -> np.ndarray:
+        return (found > 0) & (z > (1.0 + rel) * found)
+
+    flagged = np.zeros(z.shape, bool)
+    for axis in (0, 1):
+        flagged |= nearer(_min_along(z, window_px, axis, -1)) & nearer(_min_along(z, window_px, axis, +1))
+    return have & flagged
+
+
+def fill_holes(
+    z: np.ndarray,  # (H, W) z-depth (m), 0 = nothing
+    window_px: int,
+    rel: float,
+) -> np.ndarray:  # (H, W) float32
+    """Small holes of a splat filled: a pixel without depth whose first depths within
+    ``window_px`` pixels on both sides (left and right, else above and below) agree within
+    ``rel`` takes their linear interpolation (a surface continues across the hole). Other pixels
+    are returned unchanged; ``window_px = 0`` fills nothing."""
+    z = np.asarray(z)
+    if z.ndim != 2:
+        raise ValueError(f"z must have shape (H, W), got {z.shape}")
+    if window_px < 0 or not (np.isfinite(rel) and rel >= 0):
+        raise ValueError(f"window_px must be >= 0 and rel finite and >= 0, got {window_px}, {rel}")
+    out = z.astype(np.float32).copy()
+    if window_px == 0 or not (z > 0).any():
+        return out
+    src = z.astype(np.float32)
+    for axis in (1, 0):
+        before, d_before = _first_along(src, window_px, axis, -1)
+        after, d_after = _first_along(src, window_px, axis, +1)
+        both = (out == 0) & (before > 0) & (after > 0)
+        agree = both & (np.abs(before - after) <= rel * np.minimum(before, after))
+        span = np.maximum(d_before + d_after, 1).astype(np.float32)
+        interp = (before * d_after + after * d_before) / span
+        out[agree] = interp[agree]
+    return out

@@ -47,10 +47,11 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from mapper.geometry.splat import see_through, splat_points
+from mapper.geometry.splat import fill_holes, see_through, splat_points
 from mapper.node.config import QueryConfig
 from mapper.node.global_map import UNIT_BLOCK_ROWS, GlobalMapSnapshot
 from mapper.ov.encoders import TextEncoder
+from mapper.runtime.config import ModelRuntimeConfig
 from protocol.errors import ProtocolError
 from protocol.messages import ObjectCandidate, Points
 
@@ -797,19 +798,22 @@ def map_surface_depth(
     world_from_cam: np.ndarray,  # (4, 4) camera-to-world
     width: int,
     height: int,
-    *,
-    see_through_px: int,
-    see_through_rel: float,
+    config: ModelRuntimeConfig,
 ) -> np.ndarray:  # (H, W) float32 z-depth (m), 0 = no map surface
     """The surface each pixel sees in the global map: the z-depth of the nearest map point (every
-    point, with or without a feature) splatted over its voxel's footprint, minus the pixels that
-    see a point through a hole in a nearer surface (:func:`mapper.geometry.splat.see_through`
-    with ``see_through_px`` / ``see_through_rel``). ``render`` evaluates the model's appearance at
-    these surface points (docs/RENDERING.md, "Surfaces from the map")."""
+    point, with or without a feature) splatted over its voxel's footprint; minus the pixels that
+    see a point through a hole in a nearer surface (:func:`mapper.geometry.splat.see_through`,
+    ``config.surface_see_through_px`` / ``_rel``); then holes up to ``config.surface_fill_px``
+    pixels on each side filled where the surface around them agrees within
+    ``config.surface_fill_rel`` (:func:`mapper.geometry.splat.fill_holes`). ``render``
+    evaluates the model's appearance at these surface points (docs/RENDERING.md, "Surfaces from
+    the map")."""
     if len(snapshot) == 0:
         return np.zeros((height, width), np.float32)
     _, z = splat_points(snapshot.xyz, K, world_from_cam, width, height, snapshot.voxel_size_m)
-    return np.where(see_through(z, see_through_px, see_through_rel), np.float32(0), z).astype(np.float32)
+    hole = see_through(z, config.surface_see_through_px, config.surface_see_through_rel)
+    return fill_holes(np.where(hole, np.float32(0), z).astype(np.float32), config.surface_fill_px,
+                      config.surface_fill_rel)  # fmt: skip
 
 
 def render_from_map(

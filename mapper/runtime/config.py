@@ -154,12 +154,21 @@ class ModelRuntimeConfig:
     every pixel. ``ModelRuntime.render`` used in-process without a node has no map and marches."""
 
     surface_see_through_px: int = 3
-    """A map-surface pixel whose depth exceeds the nearest map depth within this many pixels by
-    more than ``surface_see_through_rel`` sees through a hole of a sparse map; it is marched
-    instead. 0 = no test. 0..32."""
+    """A map-surface pixel with a nearer map surface (by more than ``surface_see_through_rel``) on
+    both sides within this many pixels (left and right, or above and below) sees through a hole
+    of that surface; it is marched instead (or filled, ``surface_fill_px``). 0 = no test. 0..32."""
 
     surface_see_through_rel: float = 0.1
     """See ``surface_see_through_px``. 0..10."""
+
+    surface_fill_px: int = 2
+    """Holes of the map's splat (between point footprints, or left by the see-through test) up to
+    this many pixels on each side are filled where the surface on both sides agrees within
+    ``surface_fill_rel`` (linear interpolation), so they are rendered at the surface too. 0 = no
+    filling. 0..32."""
+
+    surface_fill_rel: float = 0.05
+    """See ``surface_fill_px``. 0..10."""
 
     min_view_support: int = 1
     """Density is forced to 0 where fewer than this many keyframes see the cost-volume voxel (a
@@ -223,6 +232,8 @@ class ModelRuntimeConfig:
             )
         check("surface_see_through_px", self.surface_see_through_px, 0, 32)
         check("surface_see_through_rel", self.surface_see_through_rel, 0.0, 10.0)
+        check("surface_fill_px", self.surface_fill_px, 0, 32)
+        check("surface_fill_rel", self.surface_fill_rel, 0.0, 10.0)
         check("min_view_support", self.min_view_support, 1, 1000)
         check("min_opacity", self.min_opacity, 0.0, 1.0)
         check("max_render_pixels", self.max_render_pixels, 1, 4096 * 4096)

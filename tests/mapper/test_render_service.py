@@ -218,9 +218,7 @@ def test_render_takes_the_global_maps_surface_where_it_has_one(
     K, pose = np.array([10.0, 10.0, 6.0, 4.5]), look_at((2.2, 0.4, 1.1), (0.0, 0.0, 0.5))
     snap = node.state.global_map.snapshot()
     assert len(snap) > 0
-    cfg = runtime.config
-    surface = map_surface_depth(snap, K, pose, 12, 9, see_through_px=cfg.surface_see_through_px,
-                                see_through_rel=cfg.surface_see_through_rel)  # fmt: skip
+    surface = map_surface_depth(snap, K, pose, 12, 9, runtime.config)
     assert (surface > 0).sum() > 20
     reply = query(node, Render(width=12, height=9, K=K, world_from_cam=pose, outputs=["rgb", "depth"]))
     assert isinstance(reply, RenderResult) and reply.depth_m is not None

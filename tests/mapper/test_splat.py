@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapper.geometry.splat import MAX_REACH_PX, see_through, splat_points
+from mapper.geometry.splat import MAX_REACH_PX, fill_holes, see_through, splat_points
 
 K = np.array([50.0, 50.0, 20.0, 15.0])  # 40 x 30 image
 
@@ -84,12 +84,38 @@ def test_see_through_flags_a_far_point_in_a_hole_of_a_near_surface_only() -> Non
     assert flagged[4, 4] and flagged.sum() == 1
     assert not see_through(z, window_px=0, rel=0.1).any()
     assert not see_through(z, window_px=1, rel=2.0).any()  # 5 m is within 3x of 2 m
-    # a step between two surfaces: only the far side within the window is flagged
+    # a step between two surfaces (nearer on one side only) is an edge, not a hole
     step = np.full((5, 10), 2.0, np.float32)
     step[:, 5:] = 4.0
-    flagged = see_through(step, window_px=2, rel=0.1)
-    assert not flagged[:, :5].any() and flagged[:, 5:7].all() and not flagged[:, 7:].any()
+    assert not see_through(step, window_px=3, rel=0.1).any()
+    # a far strip 2 px wide inside a near surface is a hole: flagged within the window only
+    strip = np.full((5, 10), 2.0, np.float32)
+    strip[:, 4:6] = 4.0
+    assert see_through(strip, window_px=2, rel=0.1)[:, 4:6].all()
+    assert not see_through(strip, window_px=1, rel=0.1).any()  # 1 px: the far side's partner is far
     with pytest.raises(ValueError):
         see_through(np.zeros(4), 1, 0.1)
     with pytest.raises(ValueError):
         see_through(z, -1, 0.1)
+
+
+def test_fill_holes_interpolates_small_holes_of_one_surface_only() -> None:
+    ramp = np.tile(np.linspace(2.0, 2.9, 10, dtype=np.float32), (6, 1))  # a slanted surface
+    holes = ramp.copy()
+    holes[2, 4:6] = 0.0  # 2 px hole in a row: both sides within 2 px
+    holes[0:3, 8] = 0.0  # 3 px tall hole in a column, also bounded left and right
+    filled = fill_holes(holes, window_px=2, rel=0.1)
+    np.testing.assert_allclose(filled, ramp, rtol=1e-5)  # linear across the hole: exact on a ramp
+    assert np.array_equal(fill_holes(holes, window_px=0, rel=0.1), holes)
+    wide = ramp.copy()
+    wide[:, 3:7] = 0.0  # 4 px wide, every row: farther than 2 px from one side for the middle ones
+    out = fill_holes(wide, window_px=2, rel=0.1)
+    assert np.all(out[:, 4:6] == 0)
+    edge = np.zeros((3, 7), np.float32)
+    edge[:, :3], edge[:, 4:] = 2.0, 4.0  # a hole between two different surfaces stays a hole
+    assert np.all(fill_holes(edge, window_px=2, rel=0.1)[:, 3] == 0)
+    border = ramp.copy()
+    border[:, 0] = 0.0  # nothing on one side: not a hole of a surface
+    assert np.all(fill_holes(border, window_px=2, rel=0.1)[:, 0] == 0)
+    with pytest.raises(ValueError):
+        fill_holes(np.zeros(3), 1, 0.1)

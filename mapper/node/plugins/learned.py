@@ -128,12 +128,10 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
             from mapper.node.queries import map_surface_depth
 
             t_surface = time.perf_counter()
-            cfg = runtime.config
             surface = map_surface_depth(
                 node.state.global_map.snapshot(), np.asarray(msg.K, np.float64), msg.world_from_cam,
-                msg.width, msg.height, see_through_px=cfg.surface_see_through_px,
-                see_through_rel=cfg.surface_see_through_rel,
-            )  # fmt: skip
+                msg.width, msg.height, runtime.config,
+            )
             surface_ms = (time.perf_counter() - t_surface) * 1e3
         try:
             frame = runtime.render(
