@@ -25,9 +25,10 @@ Reported per run (``--json`` writes them all):
 * with ``rgb+tri+stereo``, plane-sweep stereo (:mod:`mapper.geometry.plane_sweep`) on top of the
   triangulation: depths kept per keyframe, cost per keyframe, points added to the global map;
 * at held-out poses (``clients.sim.export.novel_view_poses``): the node's ``render`` depth (median
-  relative error) and colour (PSNR against the simulator's image, mean over the poses), with the
-  map's surfaces where it has them (``model.surface_from_map``); the model's march alone (every
-  pixel marched: depth and PSNR); the map's surface alone
+  relative error) and colour (PSNR against the simulator's image, mean over the poses), at the
+  measured surfaces where there are some (``model.surface_from_map``: the global map with depth,
+  the triangulated and swept points without; their share of the pixels); the model's march alone
+  (every pixel marched: depth and PSNR); the global map's surface alone
   (:func:`mapper.node.queries.map_surface_depth`: its error and its share of the pixels).
 
 Usage::
@@ -181,7 +182,7 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
     # depth (and colour) at the held-out poses: the node's `render` (the map's surface where it has
     # one, model.surface_from_map), the model's march alone, and the map's surface alone
     cfg = config.model
-    rel_node, rel_march, rel_map, cover, psnr, psnr_march = [], [], [], [], [], []
+    rel_node, rel_march, rel_map, cover, psnr, psnr_march, at_surface = [], [], [], [], [], [], []
     for pose in poses:
         truth = stream.renderer.render(stream.K, pose, args.width, args.height)
         ok = (truth.depth_m > 0) & np.isfinite(truth.depth_m)
@@ -190,6 +191,7 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
                                     world_from_cam=np.asarray(pose, np.float64), outputs=["rgb", "depth"]))
         assert isinstance(reply, RenderResult) and reply.depth_m is not None and reply.rgb is not None, reply
         rel_node.append(np.abs(reply.depth_m[ok] - gt) / gt)
+        at_surface.append(reply.timing_ms.get("surface_pixels", 0.0) / (args.width * args.height))
         psnr.append(_psnr(reply.rgb, truth.rgb))
         march = runtime.render(stream.K, pose, args.width, args.height, outputs=("rgb", "depth"))
         assert march.depth_m is not None and march.rgb is not None
@@ -201,6 +203,7 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         cover.append(m.sum() / max(1, ok.sum()))
     row["render_depth_median_rel_err"] = float(np.median(np.concatenate(rel_node)))
     row["render_psnr_db"] = float(np.mean(psnr))
+    row["render_surface_share"] = float(np.mean(at_surface))  # pixels rendered at a measured surface
     row["march_depth_median_rel_err"] = float(np.median(np.concatenate(rel_march)))
     row["march_psnr_db"] = float(np.mean(psnr_march))
     on_map = np.concatenate(rel_map)

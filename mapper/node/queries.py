@@ -73,6 +73,7 @@ __all__ = [
     "query_points",
     "render_from_map",
     "segment_average",
+    "surface_depth",
 ]
 
 SOURCE_NONE, SOURCE_WINDOW, SOURCE_MAP = 0, 1, 2
@@ -792,6 +793,31 @@ def _splat_rows(
     return np.where(index >= 0, rows[np.maximum(index, 0)], -1)
 
 
+def surface_depth(
+    xyz: np.ndarray,  # (N, 3) world points of measured surfaces
+    footprint_m: float,  # each point covers about this many metres
+    K: np.ndarray,  # (4,) [fx, fy, cx, cy] for width x height
+    world_from_cam: np.ndarray,  # (4, 4) camera-to-world
+    width: int,
+    height: int,
+    config: ModelRuntimeConfig,
+) -> np.ndarray:  # (H, W) float32 z-depth (m), 0 = no surface
+    """The surface each pixel sees among ``xyz``: the z-depth of the nearest point splatted over
+    its footprint (:func:`mapper.geometry.splat.splat_points`); minus the pixels that see a point
+    through a hole in a nearer surface (:func:`mapper.geometry.splat.see_through`,
+    ``config.surface_see_through_px`` / ``_rel``); then holes up to ``config.surface_fill_px``
+    pixels on each side filled where the surface around them agrees within
+    ``config.surface_fill_rel`` (:func:`mapper.geometry.splat.fill_holes`). ``render``
+    evaluates the model's appearance at these surface points (docs/RENDERING.md, "Surfaces from
+    the map")."""
+    if len(xyz) == 0:
+        return np.zeros((height, width), np.float32)
+    _, z = splat_points(xyz, K, world_from_cam, width, height, footprint_m)
+    hole = see_through(z, config.surface_see_through_px, config.surface_see_through_rel)
+    return fill_holes(np.where(hole, np.float32(0), z).astype(np.float32), config.surface_fill_px,
+                      config.surface_fill_rel)  # fmt: skip
+
+
 def map_surface_depth(
     snapshot: GlobalMapSnapshot,
     K: np.ndarray,  # (4,) [fx, fy, cx, cy] for width x height
@@ -800,20 +826,9 @@ def map_surface_depth(
     height: int,
     config: ModelRuntimeConfig,
 ) -> np.ndarray:  # (H, W) float32 z-depth (m), 0 = no map surface
-    """The surface each pixel sees in the global map: the z-depth of the nearest map point (every
-    point, with or without a feature) splatted over its voxel's footprint; minus the pixels that
-    see a point through a hole in a nearer surface (:func:`mapper.geometry.splat.see_through`,
-    ``config.surface_see_through_px`` / ``_rel``); then holes up to ``config.surface_fill_px``
-    pixels on each side filled where the surface around them agrees within
-    ``config.surface_fill_rel`` (:func:`mapper.geometry.splat.fill_holes`). ``render``
-    evaluates the model's appearance at these surface points (docs/RENDERING.md, "Surfaces from
-    the map")."""
-    if len(snapshot) == 0:
-        return np.zeros((height, width), np.float32)
-    _, z = splat_points(snapshot.xyz, K, world_from_cam, width, height, snapshot.voxel_size_m)
-    hole = see_through(z, config.surface_see_through_px, config.surface_see_through_rel)
-    return fill_holes(np.where(hole, np.float32(0), z).astype(np.float32), config.surface_fill_px,
-                      config.surface_fill_rel)  # fmt: skip
+    """:func:`surface_depth` of every global-map point (with or without a feature), each over its
+    voxel's footprint."""
+    return surface_depth(snapshot.xyz, snapshot.voxel_size_m, K, world_from_cam, width, height, config)
 
 
 def render_from_map(

@@ -258,6 +258,11 @@ class MapperNode:
         keyframe: plugins that put points of that keyframe into the global map before its features
         existed (triangulation, plane-sweep stereo) fuse the features into them now. Must not
         raise."""
+        self.surface_points: list[Callable[[], np.ndarray]] = []
+        """Providers of measured surface points (world, (N, 3)) other than input depth, e.g. the
+        triangulated points and the kept plane-sweep depths of RGB-only keyframes: ``render``
+        (``model.surface_from_map = "auto"``) renders at their surfaces when the window's
+        keyframes mostly lack input depth. Called on the query thread; must not raise."""
         self.load_listeners: list[Callable[[GlobalSemanticMap, int], None]] = []
         """Called on the thread that loaded a map (``load`` or the autosave at start), outside the
         state lock, right after the loaded map replaced the window and the global map, with the new

@@ -229,3 +229,31 @@ def test_render_takes_the_global_maps_surface_where_it_has_one(
     else:
         assert "surface_pixels" not in reply.timing_ms
         assert not np.allclose(reply.depth_m[on], surface[on], rtol=1e-3)
+
+
+def test_rgb_only_render_takes_the_surfaces_of_the_measured_geometry(
+    node: MapperNode, model: GovNeSF
+) -> None:
+    from mapper.node.queries import surface_depth
+
+    runtime = runtime_for(model)  # surface_from_map = "auto"
+    install_learned_handlers(node, runtime)
+    for seq in range(4):  # RGB-only keyframes: the map's surfaces are not measured ones
+        rgb_only = frame(seq)
+        rgb_only.depth_m = None
+        node.handle_ingest(encode(rgb_only))
+    node.drain_integrations()
+    yy, zz = np.meshgrid(np.linspace(-1, 1, 60), np.linspace(0, 1.2, 40), indexing="ij")
+    wall = np.column_stack([yy.ravel(), zz.ravel()])
+    points = np.column_stack([np.full(len(wall), -0.3), wall])  # a plane x = -0.3 m, seen from +x
+    node.surface_points.append(lambda: points)  # what the triangulation plugin provides
+    K, pose = np.array([10.0, 10.0, 6.0, 4.5]), look_at((2.2, 0.0, 0.6), (0.0, 0.0, 0.6))
+    voxel = node.state.global_map.snapshot().voxel_size_m
+    expected = surface_depth(points, voxel, K, pose, 12, 9, runtime.config)
+    on = expected > 0
+    assert on.sum() > 20
+    reply = query(node, Render(width=12, height=9, K=K, world_from_cam=pose, outputs=["depth"]))
+    assert isinstance(reply, RenderResult) and reply.depth_m is not None
+    np.testing.assert_allclose(reply.depth_m[on], expected[on], rtol=1e-5)
+    assert reply.timing_ms["surface_pixels"] == on.sum() and reply.timing_ms["surface_from_geometry"] == 1.0
+    np.testing.assert_allclose(reply.depth_m[on], 2.5, rtol=0.01)  # the plane is 2.5 m ahead

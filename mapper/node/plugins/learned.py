@@ -99,14 +99,25 @@ def make_segment_handler(
     return handle_segment
 
 
-def _surface_from_map(node: MapperNode, mode: str) -> bool:
-    """``model.surface_from_map``: "on", "off", or "auto" = at least half of the window's
-    keyframes carry input depth (the map's surfaces are then measured ones)."""
-    if mode != "auto":
-        return mode == "on"
+def _surface_points(node: MapperNode, mode: str) -> tuple[np.ndarray, float, str] | None:
+    """The points ``render`` takes surfaces from (``model.surface_from_map``): (xyz (N, 3) world,
+    footprint in metres, which). "off": none; "on": every global-map point; "auto": the global
+    map while at least half of the window's keyframes carry input depth (its surfaces are then
+    measured ones), else the node's other measured surface points (``node.surface_points``:
+    triangulated points and kept plane-sweep depths), else none."""
+    if mode == "off":
+        return None
+    snap = node.state.global_map.snapshot()
+    if mode == "on":
+        return snap.xyz, snap.voxel_size_m, "map"
     with node.state.lock:
         keyframes = node.state.window.keyframes
-    return bool(keyframes) and 2 * sum(k.depth_m is not None for k in keyframes) >= len(keyframes)
+    if keyframes and 2 * sum(k.depth_m is not None for k in keyframes) >= len(keyframes):
+        return snap.xyz, snap.voxel_size_m, "map"
+    parts = [np.asarray(provide(), np.float64).reshape(-1, 3) for provide in node.surface_points]
+    if not parts:
+        return None
+    return np.concatenate(parts), snap.voxel_size_m, "geometry"
 
 
 def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -> QueryHandler:
@@ -122,17 +133,17 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
         if node is not None and semantic:
             wanted = ("depth", "label", "score") if more_confident else ("depth", "label")
             outputs += [o for o in wanted if o not in outputs]
-        surface = None
-        if node is not None and _surface_from_map(node, runtime.config.surface_from_map):
-            # pixels the global map has a surface for are rendered at it (docs/RENDERING.md)
-            from mapper.node.queries import map_surface_depth
+        surface, surface_source = None, None
+        t_surface = time.perf_counter()
+        points = _surface_points(node, runtime.config.surface_from_map) if node is not None else None
+        if points is not None:
+            # pixels with a measured surface are rendered at it (docs/RENDERING.md)
+            from mapper.node.queries import surface_depth
 
-            t_surface = time.perf_counter()
-            surface = map_surface_depth(
-                node.state.global_map.snapshot(), np.asarray(msg.K, np.float64), msg.world_from_cam,
-                msg.width, msg.height, runtime.config,
-            )
-            surface_ms = (time.perf_counter() - t_surface) * 1e3
+            xyz, footprint_m, surface_source = points
+            surface = surface_depth(xyz, footprint_m, np.asarray(msg.K, np.float64), msg.world_from_cam,
+                                    msg.width, msg.height, runtime.config)  # fmt: skip
+        surface_ms = (time.perf_counter() - t_surface) * 1e3
         try:
             frame = runtime.render(
                 msg.K, msg.world_from_cam, msg.width, msg.height, outputs, msg.texts, surface_depth_m=surface
@@ -145,6 +156,7 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
         if surface is not None:
             timing["map_surface"] = surface_ms
             timing["surface_pixels"] = float(np.count_nonzero(surface))
+            timing["surface_from_geometry"] = float(surface_source == "geometry")
         source = None
         if node is not None and semantic and frame.label is not None and msg.texts:
             t_map = time.perf_counter()

@@ -318,6 +318,7 @@ class SparseTriangulation:
         self.node.keyframe_listeners.append(self.on_keyframe)
         self.node.load_listeners.append(self.on_map_loaded)
         self.node.feature_listeners.append(self.on_features)
+        self.node.surface_points.append(lambda: self.geometry_points()[0])
         self.node.workers.append(("triangulation", self.run))
         self.node.status_providers["triangulation"] = self.stats
 
