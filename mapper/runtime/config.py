@@ -143,15 +143,17 @@ class ModelRuntimeConfig:
     reference path; the dense render always uses it)."""
 
     surface_from_map: str = "auto"
-    """``render`` on a node: pixels where the global map has a surface (the nearest map point
-    splatted over its voxel's footprint, :func:`mapper.node.queries.map_surface_depth`) are
-    rendered AT that surface: one appearance evaluation (FusionNet's blend of the source views)
-    at the surface point, depth = the map's; only the other pixels march through the volume.
-    With a map built from input depth this is sharper and several times faster than marching the
-    model's diffuse density (docs/RENDERING.md, "Surfaces from the map"). ``"auto"`` (default):
-    on while at least half of the window's keyframes carry input depth (an RGB-only map's
-    surfaces are not accurate enough yet: measured there); ``"on"``: always; ``"off"``: march
-    every pixel. ``ModelRuntime.render`` used in-process without a node has no map and marches."""
+    """``render`` on a node: pixels where a measured surface is known are rendered AT it: one
+    appearance evaluation (FusionNet's blend of the source views) at the surface point, depth =
+    the surface's; only the other pixels march through the volume. The surface of a pixel: the
+    nearest point splatted over its footprint (:func:`mapper.node.queries.surface_depth`).
+    ``"auto"`` (default): the global map's points while at least half of the window's keyframes
+    carry input depth, else the node's measured RGB-only geometry (triangulated points and kept
+    plane-sweep depths, ``MapperNode.surface_points``; an RGB-only global map also holds the
+    model's own rendered depth, too far off to render at); ``"on"``: the global map's points
+    always; ``"off"``: march every pixel. Sharper, with far better depth, and several times
+    faster than marching the model's diffuse density (docs/RENDERING.md, "Surfaces from the
+    map"). ``ModelRuntime.render`` used in-process without a node marches."""
 
     surface_see_through_px: int = 3
     """A map-surface pixel with a nearer map surface (by more than ``surface_see_through_rel``) on
