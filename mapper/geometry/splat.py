@@ -1,8 +1,10 @@
 """Z-buffered splats of world points into a camera, and the see-through test of a splat.
 
 Pure numpy functions (no torch, no node state): the node's ``render`` uses them to find the
-surface each pixel sees in the global map (:func:`mapper.node.queries.map_surface_depth`), and
-its map labels use :func:`splat_points` for pixels the render found no surface in.
+surface each pixel sees among measured points (:func:`mapper.node.queries.surface_depth`: the
+global map's, or an RGB-only window's triangulated and plane-sweep points), and its map labels
+use :func:`splat_points` for pixels the render found no surface in. :func:`fill_holes` closes
+small gaps between point footprints.
 
 Conventions (docs/CONVENTIONS.md): ``K = [fx, fy, cx, cy]`` for a ``width x height`` image,
 ``world_from_cam`` camera-to-world in the OpenCV optical frame, z-depth along the optical axis.

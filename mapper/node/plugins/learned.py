@@ -4,9 +4,10 @@
 registers the handlers on the node's dispatch table:
 
 * ``Render`` -> :meth:`mapper.runtime.model_runtime.ModelRuntime.render`; with
-  ``model.surface_from_map`` ("auto": while the window's keyframes mostly carry input depth) the
-  pixels where the global map has a surface (:func:`mapper.node.queries.map_surface_depth`) are
-  rendered at it, the others marched;
+  ``model.surface_from_map`` the pixels where a measured surface is known
+  (:func:`mapper.node.queries.surface_depth` of the global map's points, or for an RGB-only
+  window of ``node.surface_points``: triangulated and plane-sweep points) are rendered at it, the
+  others marched;
 * ``SegmentPoints`` with ``method == "govnesf"`` -> :meth:`mapper.runtime.model_runtime.ModelRuntime.segment`;
   every other method falls through to the handler that served ``SegmentPoints`` before (read from
   ``node.query_handlers`` at install time, e.g. the ``average`` baselines).
