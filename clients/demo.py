@@ -14,14 +14,17 @@ Steps, each printed as it happens:
 5. 3D semantic segmentation against ground truth: ``segment_points`` (``govnesf`` with and
    without Depth Guided Masking when the node has its model, ``average_depth`` and
    ``average``) at ground-truth surface points with the class names as texts, plus the global
-   map's own labels (``query_points`` with every class name), each as mIoU;
+   map's own labels (``query_points`` with every class name), each as mIoU; then a view is
+   rendered (``render.png``: colour, depth, labels; its PSNR and depth error against the
+   simulator's image of the pose are printed);
 6. save the map, stop the node with SIGINT and check that it exited cleanly (exit code 0);
 7. RGB-only (skip with ``--no-rgb-only``): the same robot WITHOUT a depth camera (rgb, pose and
    SimLSeg features) streams into a fresh node; once its background workers (points triangulated
    from the posed RGB and plane-sweep stereo depths, ``mapper/node/plugins/triangulation.py``, and
    rendered depth) are idle,
-   "find the chair" must again lie within 0.5 m of a real chair, and ``segment_points`` mIoU
-   (``govnesf`` and ``average``) is printed (docs/RGB_ONLY.md).
+   "find the chair" must again lie within 0.5 m of a real chair, ``segment_points`` mIoU
+   (``govnesf`` and ``average``) is printed, and the view of step 5 is rendered again
+   (``rgb_only/render.png``; PSNR and depth error printed; docs/RGB_ONLY.md).
 
 Outputs under ``out/demo/`` (override with ``--out``): ``*.ply`` / ``*.json`` per query,
 ``segmentation.json``, ``scene.ply`` (the ground-truth mesh), the node log and the map directory.
@@ -317,7 +320,8 @@ def _segmentation(client: MapperClient, out: Path, room: _Room, extra: dict[str,
 
 def _render_view(client: MapperClient, args: argparse.Namespace, out: Path, room: _Room,
                  extra: dict[str, Any], rlog: Any) -> None:
-    """End of step 5, when the node serves ``render``: a novel view as ``render.png``."""
+    """End of steps 5 and 7, when the node serves ``render``: a view as ``OUT/render.png``, with
+    its PSNR and depth error against the simulator's image of the same pose."""
     if "render" not in extra.get("serving", []):
         return
     from clients.cli.render import compose_panels
@@ -342,7 +346,8 @@ def _render_view(client: MapperClient, args: argparse.Namespace, out: Path, room
         depth_err = 100 * float(np.median(rel)) if both.any() else float("nan")
         quality = (f"; PSNR {10 * np.log10(1 / max(mse, 1e-12)):.1f} dB, depth median error "
                    f"{depth_err:.1f}% against the simulator's view; "
-                   f"{int(result.timing_ms.get('surface_pixels', 0))} pixels at the map's surfaces")
+                   f"{int(result.timing_ms.get('surface_pixels', 0))} of {args.width * args.height} pixels "
+                   "rendered at measured surfaces")
     print(f"  rendered a novel view (colour, depth, semantics): {out / 'render.png'} "
           f"in {result.timing_ms.get('handler', 0):.0f} ms on the node{quality}")
 
@@ -412,6 +417,7 @@ def _rgb_only_pass(args: argparse.Namespace, out: Path, room: _Room, failures: l
             _segment_points(client, room.gt_xyz[seen], room.gt_label[seen].astype(np.int64), texts,
                             extra, report, with_depth=False)
             (rgb_out / "segmentation.json").write_text(json.dumps(report, indent=1) + "\n")
+            _render_view(client, args, rgb_out, room, extra, None)
         code = node.signal(signal.SIGINT)
         print(f"  RGB-only node exited with code {code}")
         if code != 0:

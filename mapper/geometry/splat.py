@@ -12,9 +12,10 @@ Conventions (docs/CONVENTIONS.md): ``K = [fx, fy, cx, cy]`` for a ``width x heig
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
-__all__ = ["MAX_REACH_PX", "fill_holes", "see_through", "splat_points"]
+__all__ = ["MAX_REACH_PX", "fill_holes", "remove_speckles", "see_through", "splat_points"]
 
 MAX_REACH_PX = 2
 """A point covers at most (2 * MAX_REACH_PX + 1)^2 pixels (its footprint's half width, clipped)."""
@@ -184,4 +185,33 @@ def fill_holes(
         span = np.maximum(d_before + d_after, 1).astype(np.float32)
         interp = (before * d_after + after * d_before) / span
         out[agree] = interp[agree]
+    return out
+
+
+_INVALID = np.int16(-32768)
+
+
+def remove_speckles(
+    z: np.ndarray,  # (H, W) z-depth (m), 0 = nothing
+    max_size_px: int,
+    rel: float,
+) -> np.ndarray:  # (H, W) float32
+    """Small islands of a splat removed: 4-connected regions of pixels whose neighbours' depths
+    differ by at most ``rel`` (relative) that hold at most ``max_size_px`` pixels get depth 0
+    (``cv2.filterSpeckles`` on the log depth in steps of 1e-3). An isolated point (its footprint)
+    floating in front of or behind the surfaces around it is such an island. ``max_size_px = 0``
+    removes nothing."""
+    z = np.asarray(z)
+    if z.ndim != 2:
+        raise ValueError(f"z must have shape (H, W), got {z.shape}")
+    if max_size_px < 0 or not (np.isfinite(rel) and 0 <= rel <= 10):
+        raise ValueError(f"max_size_px must be >= 0 and rel in 0..10, got {max_size_px}, {rel}")
+    out = z.astype(np.float32).copy()
+    have = out > 0
+    if max_size_px == 0 or not have.any():
+        return out
+    log_z = np.clip(np.log(np.where(have, out, 1.0)), -30.0, 30.0)  # |log z| * 1000 fits int16
+    img = np.where(have, np.round(log_z * 1000.0), _INVALID).astype(np.int16)
+    cv2.filterSpeckles(img, int(_INVALID), int(max_size_px), max(1, int(round(1000.0 * np.log1p(rel)))))
+    out[img == _INVALID] = 0.0
     return out

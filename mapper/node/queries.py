@@ -47,7 +47,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from mapper.geometry.splat import fill_holes, see_through, splat_points
+from mapper.geometry.splat import fill_holes, remove_speckles, see_through, splat_points
 from mapper.node.config import QueryConfig
 from mapper.node.global_map import UNIT_BLOCK_ROWS, GlobalMapSnapshot
 from mapper.ov.encoders import TextEncoder
@@ -805,7 +805,8 @@ def surface_depth(
     """The surface each pixel sees among ``xyz``: the z-depth of the nearest point splatted over
     its footprint (:func:`mapper.geometry.splat.splat_points`); minus the pixels that see a point
     through a hole in a nearer surface (:func:`mapper.geometry.splat.see_through`,
-    ``config.surface_see_through_px`` / ``_rel``); then holes up to ``config.surface_fill_px``
+    ``config.surface_see_through_px`` / ``_rel``) and, with ``config.surface_speckle_px``, small
+    islands (:func:`mapper.geometry.splat.remove_speckles`); then holes up to ``config.surface_fill_px``
     pixels on each side filled where the surface around them agrees within
     ``config.surface_fill_rel`` (:func:`mapper.geometry.splat.fill_holes`). ``render``
     evaluates the model's appearance at these surface points (docs/RENDERING.md, "Surfaces from
@@ -814,8 +815,8 @@ def surface_depth(
         return np.zeros((height, width), np.float32)
     _, z = splat_points(xyz, K, world_from_cam, width, height, footprint_m)
     hole = see_through(z, config.surface_see_through_px, config.surface_see_through_rel)
-    return fill_holes(np.where(hole, np.float32(0), z).astype(np.float32), config.surface_fill_px,
-                      config.surface_fill_rel)  # fmt: skip
+    z = remove_speckles(np.where(hole, np.float32(0), z), config.surface_speckle_px, config.surface_fill_rel)
+    return fill_holes(z, config.surface_fill_px, config.surface_fill_rel)
 
 
 def map_surface_depth(

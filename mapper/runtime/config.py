@@ -163,6 +163,12 @@ class ModelRuntimeConfig:
     surface_see_through_rel: float = 0.1
     """See ``surface_see_through_px``. 0..10."""
 
+    surface_speckle_px: int = 0
+    """Islands of the splat of at most this many pixels (4-connected, neighbours' depths within
+    ``surface_fill_rel``) are dropped before filling (an isolated point floating off the surfaces
+    around it covers up to 25 pixels) and marched instead. 0 = keep them (default: at 40, measured
+    in docs/RENDERING.md, RGB-only renders were no better overall). 0..100000."""
+
     surface_fill_px: int = 2
     """Holes of the map's splat (between point footprints, or left by the see-through test) up to
     this many pixels on each side are filled where the surface on both sides agrees within
@@ -234,6 +240,7 @@ class ModelRuntimeConfig:
             )
         check("surface_see_through_px", self.surface_see_through_px, 0, 32)
         check("surface_see_through_rel", self.surface_see_through_rel, 0.0, 10.0)
+        check("surface_speckle_px", self.surface_speckle_px, 0, 100_000)
         check("surface_fill_px", self.surface_fill_px, 0, 32)
         check("surface_fill_rel", self.surface_fill_rel, 0.0, 10.0)
         check("min_view_support", self.min_view_support, 1, 1000)

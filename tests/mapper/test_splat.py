@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapper.geometry.splat import MAX_REACH_PX, fill_holes, see_through, splat_points
+from mapper.geometry.splat import MAX_REACH_PX, fill_holes, remove_speckles, see_through, splat_points
 
 K = np.array([50.0, 50.0, 20.0, 15.0])  # 40 x 30 image
 
@@ -119,3 +119,23 @@ def test_fill_holes_interpolates_small_holes_of_one_surface_only() -> None:
     assert np.all(fill_holes(border, window_px=2, rel=0.1)[:, 0] == 0)
     with pytest.raises(ValueError):
         fill_holes(np.zeros(3), 1, 0.1)
+
+
+def test_remove_speckles_drops_small_islands_off_the_surface_only() -> None:
+    z = np.tile(np.linspace(2.0, 3.0, 30, dtype=np.float32), (20, 1))  # a slanted wall
+    z[5:8, 5:8] = 1.0  # a 9-pixel island floating in front of it
+    z[12:15, 20:23] = 0.0  # a hole in it
+    z[13, 21] = 6.0  # a 1-pixel island behind, inside the hole
+    out = remove_speckles(z, max_size_px=10, rel=0.05)
+    assert np.all(out[5:8, 5:8] == 0) and out[13, 21] == 0
+    kept = np.ones(z.shape, bool)
+    kept[5:8, 5:8] = False
+    kept[12:15, 20:23] = False
+    np.testing.assert_array_equal(out[kept], z[kept])  # the wall (600 pixels, smooth) stays
+    assert np.array_equal(remove_speckles(z, max_size_px=0, rel=0.05), z)
+    assert np.all(remove_speckles(z, max_size_px=8, rel=0.05)[5:8, 5:8] == 1.0)  # 9 > 8 pixels: kept
+    big = remove_speckles(z, max_size_px=10_000, rel=0.05)
+    assert not big.any()  # everything is an island below that size
+    assert not remove_speckles(np.zeros((4, 4), np.float32), 5, 0.05).any()
+    with pytest.raises(ValueError):
+        remove_speckles(z, -1, 0.05)
