@@ -12,7 +12,11 @@ the default):
 
 * keyframes, triangulated points per keyframe and their distance to the true surface;
 * swept depths kept per keyframe and the sweep's cost per keyframe;
-* global-map points: count, and their distance to the true surface (median, p90, within 5 / 10 cm).
+* global-map points: count, and their distance to the true surface (median, p90, within 5 / 10 cm);
+* with ``--holdout-every N`` (default 10), every N-th frame (offset N // 2) is NOT streamed; at
+  those held-out real poses the node's ``render`` (``--render-width``; at the measured surfaces
+  where there are some, ``model.surface_from_map``) and the model's march alone are compared with
+  the real frame: depth median relative error (pixels with real depth) and PSNR.
 
 Usage::
 
@@ -46,7 +50,7 @@ from mapper.node.plugins.learned import install_learned_handlers  # noqa: E402
 from mapper.node.plugins.triangulation import install_triangulation  # noqa: E402
 from mapper.node.service import MapperNode  # noqa: E402
 from mapper.runtime.model_runtime import ModelRuntime  # noqa: E402
-from protocol.messages import Frame, encode  # noqa: E402
+from protocol.messages import Frame, Render, RenderResult, decode, encode  # noqa: E402
 
 MODES = {"rgb+tri": False, "rgb+tri+stereo": True}
 """mode -> plane-sweep stereo on."""
@@ -84,6 +88,42 @@ def _distances(tree: cKDTree, xyz: np.ndarray) -> dict[str, float | None]:
             "within_5cm": float((d <= 0.05).mean()), "within_10cm": float((d <= 0.10).mean())}  # fmt: skip
 
 
+def _psnr(rgb: np.ndarray, truth: np.ndarray) -> float:
+    mse = float(np.mean((rgb.astype(np.float64) - truth.astype(np.float64)) ** 2)) / 255.0**2
+    return 10.0 * float(np.log10(1.0 / max(mse, 1e-12)))
+
+
+def _held_out_renders(node: MapperNode, runtime: ModelRuntime, frames: list[PosedFrame], width: int
+                      ) -> dict[str, Any]:  # fmt: skip
+    """The node's ``render`` and the model's march alone at held-out real poses, against the real
+    frames: depth median relative error (pooled over the pixels with real depth) and mean PSNR."""
+    rel: dict[str, list[np.ndarray]] = {"render": [], "march": []}
+    psnr: dict[str, list[float]] = {"render": [], "march": []}
+    share = []
+    for f in frames:
+        rgb, depth, K = resized(f, width)
+        h, w = depth.shape
+        pose = np.asarray(f.world_from_cam, np.float64)
+        request = Render(width=w, height=h, K=K, world_from_cam=pose, outputs=["rgb", "depth"])
+        reply = decode(node.handle_query(encode(request)), direction="reply")
+        assert isinstance(reply, RenderResult) and reply.rgb is not None and reply.depth_m is not None, reply
+        march = runtime.render(K, pose, w, h, outputs=("rgb", "depth"))
+        assert march.rgb is not None and march.depth_m is not None
+        ok = depth > 0
+        outs = (("render", reply.rgb, reply.depth_m), ("march", march.rgb, march.depth_m))
+        for name, out_rgb, out_depth in outs:
+            rel[name].append(np.abs(out_depth[ok] - depth[ok]) / depth[ok])
+            psnr[name].append(_psnr(out_rgb, rgb))
+        share.append(reply.timing_ms.get("surface_pixels", 0.0) / (w * h))
+    return {
+        "held_out": len(frames), "render_width": width,
+        "render_depth_median_rel_err": float(np.median(np.concatenate(rel["render"]))),
+        "render_psnr_db": float(np.mean(psnr["render"])), "render_surface_share": float(np.mean(share)),
+        "march_depth_median_rel_err": float(np.median(np.concatenate(rel["march"]))),
+        "march_psnr_db": float(np.mean(psnr["march"])),
+    }  # fmt: skip
+
+
 def run(frames: list[PosedFrame], tree: cKDTree, args: argparse.Namespace, stereo: bool) -> dict[str, Any]:
     config = config_from_dict({
         "map_dir": "/tmp/govnesf-bench-maps", "autosave_name": "", "save_on_exit": False,
@@ -99,8 +139,12 @@ def run(frames: list[PosedFrame], tree: cKDTree, args: argparse.Namespace, stere
     tri = install_triangulation(node, runtime)
     assert tri is not None
     started = time.perf_counter()
+    every = args.holdout_every
+    held_out = [k for k in range(len(frames)) if every > 0 and k % every == every // 2]
     try:
         for k, f in enumerate(frames):
+            if k in held_out:
+                continue
             rgb, _, K = resized(f, args.width)
             node.handle_ingest(encode(Frame(
                 seq=k, stamp_ns=int(f.stamp_ns) or (k + 1) * 33_000_000, width=rgb.shape[1],
@@ -126,6 +170,8 @@ def run(frames: list[PosedFrame], tree: cKDTree, args: argparse.Namespace, stere
             "map_points": len(snap), "map": _distances(tree, snap.xyz),
             "wall_s": time.perf_counter() - started,
         }  # fmt: skip
+        if held_out:
+            row.update(_held_out_renders(node, runtime, [frames[k] for k in held_out], args.render_width))
         return row
     finally:
         node.stop()
@@ -139,6 +185,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--modes", default="rgb+tri,rgb+tri+stereo", help="comma-separated: " + ", ".join(MODES))
     p.add_argument("--checkpoint", type=Path, default=ROOT / "checkpoints" / "cpu-small.json")
     p.add_argument("--process-every", type=int, default=10, help="frames between worker passes")
+    p.add_argument("--holdout-every", type=int, default=10,
+                   help="every N-th frame (offset N // 2) is held out and rendered (0 = none)")
+    p.add_argument("--render-width", type=int, default=160, help="width of the held-out renders")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
