@@ -33,7 +33,8 @@ def splat_points(
 
     Each point in front of the camera (z > 1 mm) covers a square of half width
     ``round(0.5 * fx * footprint_m / z)`` pixels (0..``MAX_REACH_PX``) around the pixel it
-    projects into; a pixel takes the covering point with the smallest z.
+    projects into; a pixel takes the covering point with the smallest z (of equally near ones, the
+    highest row).
 
     Returns:
         index: (H, W) int64 row of ``xyz`` that each pixel shows, -1 where none;
@@ -70,6 +71,13 @@ def splat_points(
     inside = (u > -pad) & (u < width + pad) & (v > -pad) & (v < height + pad)
     rows, z, reach = rows[inside], z[inside], reach[inside]
     col, lin = np.floor(u[inside]).astype(np.int64), np.floor(v[inside]).astype(np.int64)
+    # Of the points that fall into the same pixel only the nearest can show anywhere: a farther one
+    # has the same or a smaller footprint (the reach falls with z) around the same pixel.
+    cell = (lin + pad) * (width + 2 * pad) + (col + pad)
+    nearest = np.full((width + 2 * pad) * (height + 2 * pad), np.inf)
+    np.minimum.at(nearest, cell, z)
+    keep = z <= nearest[cell]
+    rows, z, reach, col, lin = rows[keep], z[keep], reach[keep], col[keep], lin[keep]
     pix_parts, z_parts, row_parts = [], [], []
     for dy in range(-MAX_REACH_PX, MAX_REACH_PX + 1):
         for dx in range(-MAX_REACH_PX, MAX_REACH_PX + 1):
@@ -83,12 +91,12 @@ def splat_points(
     if pix.size == 0:
         return index.reshape(height, width), depth.reshape(height, width)
     zz, rr = np.concatenate(z_parts), np.concatenate(row_parts)
-    order = np.lexsort((zz, pix))  # by pixel, nearest first
-    pix, rr, zz = pix[order], rr[order], zz[order]
-    first = np.ones(pix.shape[0], bool)
-    first[1:] = pix[1:] != pix[:-1]
-    index[pix[first]] = rr[first]
-    depth[pix[first]] = zz[first]
+    zbuf = np.full(height * width, np.inf)
+    np.minimum.at(zbuf, pix, zz)  # the nearest covering point's z per pixel
+    win = zz <= zbuf[pix]
+    np.maximum.at(index, pix[win], rr[win])  # among equally near points, the highest row
+    covered = np.isfinite(zbuf)
+    depth[covered] = zbuf[covered]
     return index.reshape(height, width), depth.reshape(height, width)
 
 

@@ -38,6 +38,37 @@ def test_a_plane_splats_to_its_depth_and_each_pixel_shows_a_point_that_projects_
     assert np.all((np.floor(u) == cols) & (np.floor(v) == rows))  # footprint 0: the pixel it falls in
 
 
+def _brute_force_splat(xyz: np.ndarray, width: int, height: int, footprint: float) -> np.ndarray:
+    """The definition, point by point (camera = world frame): (H, W) nearest covering z."""
+    out = np.full((height, width), np.inf)
+    for x, y, z in xyz:
+        if not z > 1e-3:
+            continue
+        u, v = K[0] * x / z + K[2], K[1] * y / z + K[3]
+        reach = int(np.clip(np.rint(0.5 * K[0] * footprint / z), 0, MAX_REACH_PX))
+        c, r = int(np.floor(u)), int(np.floor(v))
+        for rr in range(r - reach, r + reach + 1):
+            for cc in range(c - reach, c + reach + 1):
+                if 0 <= rr < height and 0 <= cc < width:
+                    out[rr, cc] = min(out[rr, cc], z)
+    return np.where(np.isfinite(out), out, 0.0)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(0, 300), footprint=st.sampled_from([0.0, 0.05, 0.2, 1.0]))
+def test_splat_equals_its_definition_point_by_point(seed: int, n: int, footprint: float) -> None:
+    rng = np.random.default_rng(seed)
+    xyz = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(-1.2, 1.2, n), rng.uniform(-0.5, 4.0, n)])
+    if n > 10:  # points sharing a pixel (and exact ties) on purpose
+        xyz[: n // 4] = xyz[n // 4 : 2 * (n // 4)] * (1.0 + rng.uniform(0, 0.5))  # same pixel, farther
+        xyz[-3:] = xyz[0]
+    index, depth = splat_points(xyz, K, np.eye(4), 40, 30, footprint)
+    np.testing.assert_allclose(depth, _brute_force_splat(xyz, 40, 30, footprint), rtol=1e-6)
+    shown = index >= 0
+    assert np.array_equal(shown, depth > 0)
+    np.testing.assert_allclose(xyz[index[shown], 2], depth[shown], rtol=1e-6)  # the point it shows
+
+
 def test_nearest_point_wins_and_points_behind_the_camera_are_ignored() -> None:
     near, far = plane_points(2.0, 0.02), plane_points(3.0, 0.02)
     behind = plane_points(-1.0, 0.02)
