@@ -125,6 +125,16 @@ def compare(dense: RenderFrame, frame: RenderFrame) -> dict[str, object]:
     }
 
 
+def against_dense(dense: RenderFrame, frame: RenderFrame, run: dict[str, Any], entry: dict[str, Any],
+                  ms: float) -> dict[str, object]:  # fmt: skip
+    """A fast ``run`` (its ``frame``, ``ms``) against the dense render of the same view (``entry``)."""
+    return {
+        "vs_dense": compare(dense, frame),
+        "psnr_delta_db": round(float(run["psnr_db"]) - float(entry["dense_psnr_db"]), 3),
+        "speedup": round(float(entry["dense_ms"]) / ms, 2),
+    }
+
+
 def against_truth(frame: RenderFrame, view: Any) -> dict[str, object]:
     """A render against the simulator's view: depth median relative error (where both have depth)
     and label accuracy (pixels whose class is one of TEXTS)."""
@@ -312,9 +322,7 @@ def main(argv: list[str] | None = None) -> int:
                 "psnr_db": round(psnr(fast.rgb, truth), 3), "vs_truth": against_truth(fast, view),
             }  # fmt: skip
             if dense is not None:
-                run["vs_dense"] = compare(dense, fast)
-                run["psnr_delta_db"] = round(float(run["psnr_db"]) - float(entry["dense_psnr_db"]), 3)  # type: ignore[arg-type]
-                run["speedup"] = round(float(entry["dense_ms"]) / ms, 2)  # type: ignore[arg-type]
+                run.update(against_dense(dense, fast, run, entry, ms))
             runs.append(run)
             print(f"render {width}x{height} fast: {run}", flush=True)
         runtime.config = base
@@ -336,9 +344,7 @@ def main(argv: list[str] | None = None) -> int:
                 "psnr_db": round(psnr(frame.rgb, truth), 3), "vs_truth": against_truth(frame, view),
             }  # fmt: skip
             if dense is not None:
-                run["vs_dense"] = compare(dense, frame)
-                run["psnr_delta_db"] = round(float(run["psnr_db"]) - float(entry["dense_psnr_db"]), 3)  # type: ignore[arg-type]
-                run["speedup"] = round(float(entry["dense_ms"]) / best, 2)  # type: ignore[arg-type]
+                run.update(against_dense(dense, frame, run, entry, best))
             runs.append(run)
             print(f"render {width}x{height} map surface: {run}", flush=True)
         entry["fast"] = runs
