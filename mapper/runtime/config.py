@@ -155,6 +155,11 @@ class ModelRuntimeConfig:
     faster than marching the model's diffuse density (docs/RENDERING.md, "Surfaces from the
     map"). ``ModelRuntime.render`` used in-process without a node marches."""
 
+    surface_geometry_footprint: float = 0.5
+    """Footprint of each RGB-only geometry point (triangulated, plane-sweep) in the splat, in map
+    voxels (``global_map.voxel_size_m``); the global map's points cover one voxel. Half a voxel
+    with ``surface_fill_px = 4`` measured best on three of four rooms (docs/RENDERING.md). 0.01..10."""
+
     surface_see_through_px: int = 3
     """A map-surface pixel with a nearer map surface (by more than ``surface_see_through_rel``) on
     both sides within this many pixels (left and right, or above and below) sees through a hole
@@ -169,7 +174,7 @@ class ModelRuntimeConfig:
     around it covers up to 25 pixels) and marched instead. 0 = keep them (default: at 40, measured
     in docs/RENDERING.md, RGB-only renders were no better overall). 0..100000."""
 
-    surface_fill_px: int = 2
+    surface_fill_px: int = 4
     """Holes of the map's splat (between point footprints, or left by the see-through test) up to
     this many pixels on each side are filled where the surface on both sides agrees within
     ``surface_fill_rel`` (linear interpolation), so they are rendered at the surface too. 0 = no
@@ -238,6 +243,7 @@ class ModelRuntimeConfig:
             raise ConfigError(
                 f"{where}: model.surface_from_map = {self.surface_from_map!r}; allowed: auto, on, off"
             )
+        check("surface_geometry_footprint", self.surface_geometry_footprint, 0.01, 10.0)
         check("surface_see_through_px", self.surface_see_through_px, 0, 32)
         check("surface_see_through_rel", self.surface_see_through_rel, 0.0, 10.0)
         check("surface_speckle_px", self.surface_speckle_px, 0, 100_000)

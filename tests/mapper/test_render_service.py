@@ -248,8 +248,8 @@ def test_rgb_only_render_takes_the_surfaces_of_the_measured_geometry(
     points = np.column_stack([np.full(len(wall), -0.3), wall])  # a plane x = -0.3 m, seen from +x
     node.surface_points.append(lambda: points)  # what the triangulation plugin provides
     K, pose = np.array([10.0, 10.0, 6.0, 4.5]), look_at((2.2, 0.0, 0.6), (0.0, 0.0, 0.6))
-    voxel = node.state.global_map.snapshot().voxel_size_m
-    expected = surface_depth(points, voxel, K, pose, 12, 9, runtime.config)
+    footprint = runtime.config.surface_geometry_footprint * node.state.global_map.snapshot().voxel_size_m
+    expected = surface_depth(points, footprint, K, pose, 12, 9, runtime.config)
     on = expected > 0
     assert on.sum() > 20
     reply = query(node, Render(width=12, height=9, K=K, world_from_cam=pose, outputs=["depth"]))

@@ -36,6 +36,7 @@ import numpy as np
 
 from mapper.node.map_features import PreEvictionFeatures
 from mapper.node.plugins.depth_points import RenderedDepthPoints
+from mapper.runtime.config import ModelRuntimeConfig
 from mapper.runtime.model_runtime import ModelRuntime, RuntimeNotReady
 from protocol.errors import ProtocolError
 from protocol.messages import Message, Render, RenderResult, Segmentation, SegmentPoints
@@ -100,12 +101,14 @@ def make_segment_handler(
     return handle_segment
 
 
-def _surface_points(node: MapperNode, mode: str) -> tuple[np.ndarray, float, str] | None:
+def _surface_points(node: MapperNode, config: ModelRuntimeConfig) -> tuple[np.ndarray, float, str] | None:
     """The points ``render`` takes surfaces from (``model.surface_from_map``): (xyz (N, 3) world,
     footprint in metres, which). "off": none; "on": every global-map point; "auto": the global
     map while at least half of the window's keyframes carry input depth (its surfaces are then
     measured ones), else the node's other measured surface points (``node.surface_points``:
-    triangulated points and kept plane-sweep depths), else none."""
+    triangulated points and kept plane-sweep depths, each over ``surface_geometry_footprint``
+    voxels), else none."""
+    mode = config.surface_from_map
     if mode == "off":
         return None
     snap = node.state.global_map.snapshot()
@@ -118,7 +121,7 @@ def _surface_points(node: MapperNode, mode: str) -> tuple[np.ndarray, float, str
     parts = [np.asarray(provide(), np.float64).reshape(-1, 3) for provide in node.surface_points]
     if not parts:
         return None
-    return np.concatenate(parts), snap.voxel_size_m, "geometry"
+    return np.concatenate(parts), config.surface_geometry_footprint * snap.voxel_size_m, "geometry"
 
 
 def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -> QueryHandler:
@@ -136,7 +139,7 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
             outputs += [o for o in wanted if o not in outputs]
         surface, surface_source = None, None
         t_surface = time.perf_counter()
-        points = _surface_points(node, runtime.config.surface_from_map) if node is not None else None
+        points = _surface_points(node, runtime.config) if node is not None else None
         if points is not None:
             # pixels with a measured surface are rendered at it (docs/RENDERING.md)
             from mapper.node.queries import surface_depth
