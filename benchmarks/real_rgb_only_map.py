@@ -50,6 +50,7 @@ from mapper.node.plugins.learned import install_learned_handlers  # noqa: E402
 from mapper.node.plugins.triangulation import install_triangulation  # noqa: E402
 from mapper.node.service import MapperNode  # noqa: E402
 from mapper.runtime.model_runtime import ModelRuntime  # noqa: E402
+from mapper.training.metrics import masked_psnr  # noqa: E402
 from protocol.messages import Frame, Render, RenderResult, decode, encode  # noqa: E402
 
 MODES = {"rgb+tri": False, "rgb+tri+stereo": True}
@@ -88,11 +89,6 @@ def _distances(tree: cKDTree, xyz: np.ndarray) -> dict[str, float | None]:
             "within_5cm": float((d <= 0.05).mean()), "within_10cm": float((d <= 0.10).mean())}  # fmt: skip
 
 
-def _psnr(rgb: np.ndarray, truth: np.ndarray) -> float:
-    mse = float(np.mean((rgb.astype(np.float64) - truth.astype(np.float64)) ** 2)) / 255.0**2
-    return 10.0 * float(np.log10(1.0 / max(mse, 1e-12)))
-
-
 def _held_out_renders(node: MapperNode, runtime: ModelRuntime, frames: list[PosedFrame], width: int
                       ) -> dict[str, Any]:  # fmt: skip
     """The node's ``render`` and the model's march alone at held-out real poses, against the real
@@ -113,7 +109,7 @@ def _held_out_renders(node: MapperNode, runtime: ModelRuntime, frames: list[Pose
         outs = (("render", reply.rgb, reply.depth_m), ("march", march.rgb, march.depth_m))
         for name, out_rgb, out_depth in outs:
             rel[name].append(np.abs(out_depth[ok] - depth[ok]) / depth[ok])
-            psnr[name].append(_psnr(out_rgb, rgb))
+            psnr[name].append(masked_psnr(out_rgb, rgb, max_value=255.0))
         share.append(reply.timing_ms.get("surface_pixels", 0.0) / (w * h))
     return {
         "held_out": len(frames), "render_width": width,
@@ -191,6 +187,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
+    if args.holdout_every < 0 or not 8 <= args.render_width <= 4096:
+        p.error(f"--holdout-every must be >= 0 (got {args.holdout_every}) and --render-width 8..4096 "
+                f"(got {args.render_width})")
     unknown = [m for m in args.modes.split(",") if m.strip() not in MODES]
     if unknown:
         raise SystemExit(f"--modes: unknown {unknown}; choose from {', '.join(MODES)}")

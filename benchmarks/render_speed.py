@@ -50,6 +50,7 @@ from mapper.node.global_map import GlobalSemanticMap  # noqa: E402
 from mapper.node.queries import map_surface_depth  # noqa: E402
 from mapper.node.window import Keyframe, KeyframeWindow  # noqa: E402
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig, RenderFrame  # noqa: E402
+from mapper.training.metrics import depth_errors  # noqa: E402
 
 TEXTS = ["chair", "table", "sofa", "bed", "wall", "floor"]
 
@@ -140,10 +141,9 @@ def against_truth(frame: RenderFrame, view: Any) -> dict[str, object]:
     and label accuracy (pixels whose class is one of TEXTS)."""
     out: dict[str, object] = {}
     if frame.depth_m is not None:
-        both = (view.depth_m > 0) & (frame.depth_m > 0)
-        rel = np.abs(frame.depth_m[both] - view.depth_m[both]) / view.depth_m[both]
-        out["depth_median_rel_err"] = round(float(np.median(rel)), 4) if both.any() else None
-        out["depth_cover"] = round(float(both.sum() / max(1, (view.depth_m > 0).sum())), 4)
+        errors = depth_errors(frame.depth_m, view.depth_m)
+        out["depth_median_rel_err"] = round(errors.median_rel, 4) if errors.num_compared else None
+        out["depth_cover"] = round(errors.coverage, 4)
     if frame.label is not None:
         truth = np.full(view.label.shape, -1)
         for i, text in enumerate(TEXTS):

@@ -63,6 +63,7 @@ from mapper.node.plugins.triangulation import install_triangulation
 from mapper.node.queries import map_surface_depth
 from mapper.node.service import MapperNode
 from mapper.runtime.model_runtime import ModelRuntime
+from mapper.training.metrics import masked_psnr
 from protocol.messages import (
     Points,
     QueryPoints,
@@ -192,11 +193,11 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         assert isinstance(reply, RenderResult) and reply.depth_m is not None and reply.rgb is not None, reply
         rel_node.append(np.abs(reply.depth_m[ok] - gt) / gt)
         at_surface.append(reply.timing_ms.get("surface_pixels", 0.0) / (args.width * args.height))
-        psnr.append(_psnr(reply.rgb, truth.rgb))
+        psnr.append(masked_psnr(reply.rgb, truth.rgb, max_value=255.0))
         march = runtime.render(stream.K, pose, args.width, args.height, outputs=("rgb", "depth"))
         assert march.depth_m is not None and march.rgb is not None
         rel_march.append(np.abs(march.depth_m[ok] - gt) / gt)
-        psnr_march.append(_psnr(march.rgb, truth.rgb))
+        psnr_march.append(masked_psnr(march.rgb, truth.rgb, max_value=255.0))
         z_map = map_surface_depth(snap, np.asarray(stream.K, np.float64), pose, args.width, args.height, cfg)
         m = ok & (z_map > 0)
         rel_map.append(np.abs(z_map[m] - truth.depth_m[m]) / truth.depth_m[m])
@@ -216,12 +217,6 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         row["map_p90_dist_m"] = float(np.percentile(map_dist, 90))
     node.stop()
     return row
-
-
-def _psnr(rgb: np.ndarray, truth: np.ndarray) -> float:
-    """PSNR (dB) of two uint8 images."""
-    mse = float(np.mean((rgb.astype(np.float64) - truth.astype(np.float64)) ** 2)) / 255.0**2
-    return 10.0 * float(np.log10(1.0 / max(mse, 1e-12)))
 
 
 def parse_overrides(items: list[str]) -> list[tuple[str, str, Any]]:

@@ -31,12 +31,22 @@ def room(n: int, seed: int = 0) -> np.ndarray:
     return xyz.astype(np.float32)
 
 
+def size(text: str) -> tuple[int, int]:
+    """``WxH`` -> (W, H), each 1..4096 (argparse type: a clear error otherwise)."""
+    w, sep, h = text.partition("x")
+    if not (sep and w.isdigit() and h.isdigit() and 1 <= int(w) <= 4096 and 1 <= int(h) <= 4096):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected WxH, e.g. 160x120 (each 1..4096)")
+    return int(w), int(h)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--points", type=int, nargs="+", default=[100_000, 1_000_000])
-    p.add_argument("--sizes", nargs="+", default=["160x120", "320x240"])
+    p.add_argument("--sizes", nargs="+", type=size, default=[(160, 120), (320, 240)], metavar="WxH")
     p.add_argument("--repeat", type=int, default=5)
     args = p.parse_args(argv)
+    if min(args.points) < 1 or args.repeat < 1:
+        p.error("--points and --repeat must be >= 1")
     pose = np.eye(4)
     pose[:3, :3] = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float).T  # optical axis along +x
     pose[:3, 3] = [0.0, 0.0, 1.5]
@@ -45,8 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|---|---|---|")
     for n in args.points:
         xyz = room(n)
-        for size in args.sizes:
-            w, h = (int(v) for v in size.split("x"))
+        for w, h in args.sizes:
             K = np.array([0.9 * w, 0.9 * w, w / 2, h / 2])
             best = [float("inf"), float("inf")]
             for _ in range(args.repeat):
@@ -56,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
                 t = time.perf_counter()
                 z = surface_depth(xyz, 0.05, K, pose, w, h, config)
                 best[1] = min(best[1], time.perf_counter() - t)
-            print(f"| {n:,} | {size} | {1e3 * best[0]:.1f} | {1e3 * best[1]:.1f} | {(z > 0).mean():.3f} |")
+            print(f"| {n:,} | {w}x{h} | {1e3 * best[0]:.1f} | {1e3 * best[1]:.1f} | {(z > 0).mean():.3f} |")
     return 0
 
 

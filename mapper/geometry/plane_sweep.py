@@ -31,6 +31,7 @@ Example (a textured wall 2 m in front of two cameras 20 cm apart; tests/geometry
 
     >>> import numpy as np
     >>> from mapper.geometry.config import StereoConfig
+from mapper.geometry.triangulation import backproject
     >>> from mapper.geometry.plane_sweep import StereoView, sweep_depth
     >>> rng = np.random.default_rng(0)
     >>> K = np.array([100.0, 100.0, 40.0, 30.0])
@@ -54,6 +55,7 @@ import cv2
 import numpy as np
 
 from mapper.geometry.config import StereoConfig
+from mapper.geometry.triangulation import backproject
 
 __all__ = [
     "DenseDepth", "StereoView", "agreeing_views", "depth_range", "fill_depth", "gray_image", "sweep_depth",
@@ -320,14 +322,9 @@ def agreeing_views(
     H, W = d.shape
     agree = np.zeros((H, W), np.int32)
     checked = np.zeros((H, W), np.int32)
-    rows, cols = np.nonzero(d > 0)
+    rows, cols, world = backproject(d, K, world_from_cam)
     if rows.size == 0 or not others:
         return agree, checked
-    fx, fy, cx, cy = (float(v) for v in K)
-    z = d[rows, cols].astype(np.float64)
-    cam = np.stack([(cols + 0.5 - cx) / fx * z, (rows + 0.5 - cy) / fy * z, z], axis=-1)
-    pose = np.asarray(world_from_cam, np.float64)
-    world = cam @ pose[:3, :3].T + pose[:3, 3]
     for K_o, pose_o, depth_o in others:
         pose_o = np.asarray(pose_o, np.float64)
         p = (world - pose_o[:3, 3]) @ pose_o[:3, :3]  # (n, 3) in the other camera

@@ -100,6 +100,17 @@ def splat_points(
     return index.reshape(height, width), depth.reshape(height, width)
 
 
+def _shifted(n: int, k: int, axis: int, step: int) -> tuple[tuple[slice, ...], tuple[slice, ...]]:
+    """(source, destination) index tuples that put, at each pixel, the pixel ``k`` further along
+    ``axis`` in direction ``step`` (+1 / -1) of an (H, W) image whose ``axis`` has ``n`` pixels."""
+    src, dst = [slice(None)] * 2, [slice(None)] * 2
+    if step > 0:
+        src[axis], dst[axis] = slice(k, None), slice(None, n - k)
+    else:
+        src[axis], dst[axis] = slice(None, n - k), slice(k, None)
+    return tuple(src), tuple(dst)
+
+
 def _first_along(z: np.ndarray, window_px: int, axis: int, step: int) -> tuple[np.ndarray, np.ndarray]:
     """For each pixel, the first depth > 0 met going ``step`` (+1 / -1) along ``axis`` within
     ``window_px`` pixels (the pixel itself excluded): (depth (H, W), 0 = none; distance in pixels)."""
@@ -107,14 +118,9 @@ def _first_along(z: np.ndarray, window_px: int, axis: int, step: int) -> tuple[n
     dist = np.zeros(z.shape, np.int32)
     n = z.shape[axis]
     for k in range(1, min(window_px, n - 1) + 1):
+        src, dst = _shifted(n, k, axis, step)
         shifted = np.zeros_like(z)
-        src = [slice(None)] * 2
-        dst = [slice(None)] * 2
-        if step > 0:  # the pixel k further along the axis
-            src[axis], dst[axis] = slice(k, None), slice(None, n - k)
-        else:
-            src[axis], dst[axis] = slice(None, n - k), slice(k, None)
-        shifted[tuple(dst)] = z[tuple(src)]
+        shifted[dst] = z[src]
         new = (found == 0) & (shifted > 0)
         found[new] = shifted[new]
         dist[new] = k
@@ -128,13 +134,8 @@ def _min_along(z: np.ndarray, window_px: int, axis: int, step: int) -> np.ndarra
     best = np.full(z.shape, np.inf, np.float32)
     n = z.shape[axis]
     for k in range(1, min(window_px, n - 1) + 1):
-        src = [slice(None)] * 2
-        dst = [slice(None)] * 2
-        if step > 0:
-            src[axis], dst[axis] = slice(k, None), slice(None, n - k)
-        else:
-            src[axis], dst[axis] = slice(None, n - k), slice(k, None)
-        np.minimum(best[tuple(dst)], z_inf[tuple(src)], out=best[tuple(dst)])
+        src, dst = _shifted(n, k, axis, step)
+        np.minimum(best[dst], z_inf[src], out=best[dst])
     return np.where(np.isfinite(best), best, np.float32(0))
 
 

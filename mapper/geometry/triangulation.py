@@ -57,6 +57,7 @@ __all__ = [
     "PairPoints",
     "PosedView",
     "SparsePoints",
+    "backproject",
     "frustum_points",
     "fundamental_from_poses",
     "intrinsics_matrix",
@@ -171,6 +172,25 @@ def project(K: np.ndarray, world_from_cam: np.ndarray, xyz: np.ndarray) -> tuple
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = np.stack([fx * cam[:, 0] / z + cx, fy * cam[:, 1] / z + cy], axis=-1)
     return uv, z
+
+
+def backproject(
+    depth_m: np.ndarray,  # (H, W) z-depth (m), 0 / non-finite = none
+    K: np.ndarray,  # (4,) [fx, fy, cx, cy]
+    world_from_cam: np.ndarray,  # (4, 4)
+    mask: np.ndarray | None = None,  # (H, W) bool: only these pixels (None = all)
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The inverse of :func:`project` for a depth map: the pixels with a depth (finite, > 0, and
+    in ``mask``) as ``(rows (M,), cols (M,), world points (M, 3) float64)``, rays through the pixel
+    centres (+0.5)."""
+    pose = _check_pose(world_from_cam)
+    depth = np.asarray(depth_m)
+    has = np.isfinite(depth) & (depth > 0)
+    rows, cols = np.nonzero(has if mask is None else has & mask)
+    z = depth[rows, cols].astype(np.float64)
+    fx, fy, cx, cy = (float(v) for v in np.asarray(K, np.float64).reshape(4))
+    cam = np.stack([(cols + 0.5 - cx) / fx * z, (rows + 0.5 - cy) / fy * z, z], axis=-1)
+    return rows, cols, cam @ pose[:3, :3].T + pose[:3, 3]
 
 
 def fundamental_from_poses(a: PosedView, b: PosedView) -> np.ndarray:

@@ -1118,8 +1118,8 @@ class ModelRuntime:
             outputs: subset of ``("rgb", "depth", "label", "score")``.
             texts: label set (required for ``label`` / ``score``).
             empty_space_skipping: override the config (dense sampling with False).
-            surface_depth_m: a known surface per pixel (the node's global map,
-                ``mapper.node.queries.map_surface_depth``): where > 0 the pixel is rendered AT that
+            surface_depth_m: a known surface per pixel (from the node's measured points,
+                ``mapper.node.queries.surface_depth``): where > 0 the pixel is rendered AT that
                 surface point (one appearance evaluation there; depth = this z, opacity 1) instead
                 of marching its ray; the other pixels march as usual. None = march every pixel.
 
@@ -1177,7 +1177,9 @@ class ModelRuntime:
             t1 = time.perf_counter()
             timing["prepare"] = (t1 - t0) * 1e3
             emb = self._text_embeddings(prep, texts or []) if semantic else None
-            occupancy = self._occupancy(prep) if skip else None
+            # the occupancy grid only serves marched rays (none when every pixel has a surface)
+            marches = surface_np is None or bool((surface_np <= 0).any())
+            occupancy = self._occupancy(prep) if skip and marches else None
             t2 = time.perf_counter()
             timing["text_occupancy"] = (t2 - t1) * 1e3
             origins, dirs = pixel_rays(K_t, pose, int(width), int(height))

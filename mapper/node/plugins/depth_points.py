@@ -61,6 +61,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from mapper.geometry.triangulation import backproject
 from mapper.node.config import GlobalMapConfig
 from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker, with_current_features
 from mapper.runtime.model_runtime import ModelRuntime, RuntimeNotReady
@@ -145,18 +146,6 @@ def _project(xyz: np.ndarray, K: np.ndarray, world_from_cam: np.ndarray) -> tupl
     return uv, z
 
 
-def _backproject(view: DepthView) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The pixels with depth > 0: (rows (M,), cols (M,), world points (M, 3)), rays through the
-    pixel centres (+0.5)."""
-    depth = np.asarray(view.depth_m, np.float64)
-    rows, cols = np.nonzero(np.isfinite(depth) & (depth > 0))
-    z = depth[rows, cols]
-    fx, fy, cx, cy = (float(v) for v in view.K)
-    cam = np.stack([(cols + 0.5 - cx) / fx * z, (rows + 0.5 - cy) / fy * z, z], axis=1)
-    pose = np.asarray(view.world_from_cam, np.float64)
-    return rows, cols, cam @ pose[:3, :3].T + pose[:3, 3]
-
-
 def sparse_agreement(
     view: DepthView,
     xyz: np.ndarray,
@@ -224,7 +213,7 @@ def view_agreement(
     """
     depth = np.asarray(view.depth_m)
     agrees = np.zeros(depth.shape, bool)
-    rows, cols, xyz = _backproject(view)
+    rows, cols, xyz = backproject(view.depth_m, view.K, view.world_from_cam)
     if len(xyz) == 0:
         return agrees
     centre = np.asarray(view.world_from_cam, np.float64)[:3, 3]
@@ -409,15 +398,18 @@ class RenderedDepthPoints:
         mode = self.config.rendered_view_agreement
         if mode != "auto":
             return mode == "on"
-        owner = getattr(self.node.status_providers.get("triangulation"), "__self__", None)
-        stereo = getattr(owner, "stereo", None)
+        stereo = getattr(self._triangulation(), "stereo", None)
         return not (stereo is not None and bool(getattr(stereo, "enabled", False)))
+
+    def _triangulation(self) -> Any:
+        """The node's installed triangulation plugin (the owner of its ``status`` provider), or None."""
+        return getattr(self.node.status_providers.get("triangulation"), "__self__", None)
 
     def _sparse_points(self) -> tuple[np.ndarray, np.ndarray]:
         """The triangulated points (empty when no triangulation plugin is installed)."""
         source = self.sparse_source
         if source is None:
-            owner = getattr(self.node.status_providers.get("triangulation"), "__self__", None)
+            owner = self._triangulation()
             # triangulated points and plane-sweep depths when the plugin has them
             source = getattr(owner, "geometry_points", None) or getattr(owner, "points", None)
         if source is None:

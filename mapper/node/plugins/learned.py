@@ -111,17 +111,18 @@ def _surface_points(node: MapperNode, config: ModelRuntimeConfig) -> tuple[np.nd
     mode = config.surface_from_map
     if mode == "off":
         return None
+    if mode == "auto":
+        with node.state.lock:
+            keyframes = node.state.window.keyframes
+        with_depth = sum(k.depth_m is not None for k in keyframes)
+        if not (keyframes and 2 * with_depth >= len(keyframes)):  # mostly RGB-only: its geometry
+            parts = [np.asarray(provide(), np.float64).reshape(-1, 3) for provide in node.surface_points]
+            if not parts:
+                return None
+            footprint_m = config.surface_geometry_footprint * node.config.global_map.voxel_size_m
+            return np.concatenate(parts), footprint_m, "geometry"
     snap = node.state.global_map.snapshot()
-    if mode == "on":
-        return snap.xyz, snap.voxel_size_m, "map"
-    with node.state.lock:
-        keyframes = node.state.window.keyframes
-    if keyframes and 2 * sum(k.depth_m is not None for k in keyframes) >= len(keyframes):
-        return snap.xyz, snap.voxel_size_m, "map"
-    parts = [np.asarray(provide(), np.float64).reshape(-1, 3) for provide in node.surface_points]
-    if not parts:
-        return None
-    return np.concatenate(parts), config.surface_geometry_footprint * snap.voxel_size_m, "geometry"
+    return snap.xyz, snap.voxel_size_m, "map"
 
 
 def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -> QueryHandler:

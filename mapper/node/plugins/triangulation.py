@@ -77,6 +77,7 @@ from mapper.geometry.triangulation import (
     Features,
     PosedView,
     SparsePoints,
+    backproject,
     frustum_points,
     select_partners,
     triangulate_keyframe,
@@ -618,12 +619,8 @@ class SparseTriangulation:
         within ``stereo.max_points`` (``_lock`` held)."""
         if self.stereo.max_points <= 0:
             return
-        rows, cols = np.nonzero(keep)
+        rows, cols, xyz = backproject(dense.depth_m, image.view.K, image.view.world_from_cam, keep)
         z = dense.depth_m[rows, cols].astype(np.float64)
-        fx, fy, cx, cy = (float(v) for v in image.view.K)
-        cam = np.stack([(cols + 0.5 - cx) / fx * z, (rows + 0.5 - cy) / fy * z, z], axis=-1)
-        pose = np.asarray(image.view.world_from_cam, np.float64)
-        xyz = cam @ pose[:3, :3].T + pose[:3, 3]
         self._swept.put(key, (xyz, self.stereo.sigma_rel * z))
 
     def geometry_points(self) -> tuple[np.ndarray, np.ndarray]:
