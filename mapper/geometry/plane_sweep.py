@@ -31,7 +31,6 @@ Example (a textured wall 2 m in front of two cameras 20 cm apart; tests/geometry
 
     >>> import numpy as np
     >>> from mapper.geometry.config import StereoConfig
-from mapper.geometry.triangulation import backproject
     >>> from mapper.geometry.plane_sweep import StereoView, sweep_depth
     >>> rng = np.random.default_rng(0)
     >>> K = np.array([100.0, 100.0, 40.0, 30.0])
