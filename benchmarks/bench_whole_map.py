@@ -10,13 +10,14 @@ method (``average``, ``average_depth``, ``govnesf``). Runs:
 * ``bounded``: a window of ceil(keyframes / 3) keyframes (the stream has 3x more keyframes than
   the window), answered from the window and the global map (the node's default);
 * ``bounded, window only``: the same with ``queries.map_radius_voxels = 0`` (no map answers);
-* ``bounded`` / ``unbounded, window first (before 2026-12-03)``: the map answers only the points
-  no window view sees, within 1.5 voxels (``map_radius_voxels = 1.5``,
-  ``map_when_more_confident = false``);
+* ``bounded`` / ``unbounded, more confident (before the blend)``: ``queries.map_blend = 0``, the
+  rule before it: where both answer, the map's text only where its cosine is higher
+  (``map_when_more_confident = true``);
 * ``bounded, no learned map features``: ``global_map.learned_features = false``.
 
-Every other run uses the shipped ``[queries]`` (``map_radius_voxels = 2.5``,
-``map_when_more_confident = true``); the unbounded run too, so the comparison is like for like.
+Every other run uses the shipped ``[queries]`` (``map_radius_voxels = 2.5``, ``map_blend = 0.75``);
+the unbounded run too, so the comparison is like for like. (The "window first" rows of
+docs/QUERIES.md, the rule before 2026-12-03, came from this script's earlier version: ``git log``.)
 
 Also the global map's own mIoU (each ground-truth point labelled by the nearest map point's fused
 feature within the lookup radius) with and without the learned features written before eviction.
@@ -73,8 +74,9 @@ def _count_keyframes(frames: list[bytes]) -> int:
 
 
 def _node(
-    tmp: Path, max_keyframes: int, *, radius_voxels: float, learned: bool, more_confident: bool
-) -> tuple[Any, Any]:
+    tmp: Path, max_keyframes: int, *, radius_voxels: float, learned: bool, more_confident: bool, blend: float
+) -> tuple[Any, Any, Any]:
+    """(node, its map-features worker or None, the model runtime) for one run."""
     from mapper.node.config import config_from_dict
     from mapper.node.plugins.learned import install_learned_handlers
     from mapper.node.service import MapperNode
@@ -86,7 +88,8 @@ def _node(
             "events_endpoint": "",
             "window": {"max_keyframes": max_keyframes},
             "global_map": {"rendered_depth": False, "learned_features": learned},
-            "queries": {"map_radius_voxels": radius_voxels, "map_when_more_confident": more_confident},
+            "queries": {"map_radius_voxels": radius_voxels, "map_when_more_confident": more_confident,
+                        "map_blend": blend},
         }
     )
     node = MapperNode(config)
@@ -96,7 +99,7 @@ def _node(
     install_learned_handlers(node, runtime)
     provider = node.status_providers.get("map_features")
     blender = getattr(provider, "__self__", None)
-    return node, blender
+    return node, blender, runtime
 
 
 def _run(frames: list[bytes], node: Any, blender: Any) -> float:
@@ -177,14 +180,14 @@ def bench_scene(scene: Path, tmp: Path, render_views: int = 0) -> dict[str, Any]
     n_kf = _count_keyframes(frames)
     bounded = max(1, math.ceil(n_kf / 3))
     shipped = QueryConfig()
-    radius, confident = shipped.map_radius_voxels, shipped.map_when_more_confident
-    runs = {  # max keyframes, map radius (voxels), learned map features, map when more confident
-        "unbounded": (10_000, radius, True, confident),
-        "bounded": (bounded, radius, True, confident),
-        "bounded, window only": (bounded, 0.0, True, False),
-        "bounded, window first (before 2026-12-03)": (bounded, 1.5, True, False),
-        "unbounded, window first (before 2026-12-03)": (10_000, 1.5, True, False),
-        "bounded, no learned map features": (bounded, radius, False, confident),
+    radius, confident, blend = shipped.map_radius_voxels, shipped.map_when_more_confident, shipped.map_blend
+    runs = {  # max keyframes, map radius (voxels), learned map features, map when more confident, blend
+        "unbounded": (10_000, radius, True, confident, blend),
+        "bounded": (bounded, radius, True, confident, blend),
+        "bounded, window only": (bounded, 0.0, True, False, 0.0),
+        "bounded, more confident (before the blend)": (bounded, radius, True, True, 0.0),
+        "unbounded, more confident (before the blend)": (10_000, radius, True, True, 0.0),
+        "bounded, no learned map features": (bounded, radius, False, confident, blend),
     }
     out: dict[str, Any] = {
         "scene": scene.name,
@@ -194,9 +197,10 @@ def bench_scene(scene: Path, tmp: Path, render_views: int = 0) -> dict[str, Any]
         "gt_points": int(xyz.shape[0]),
         "runs": {},
     }
-    for name, (max_kf, radius_voxels, learned, more_confident) in runs.items():
-        node, blender = _node(
-            tmp, max_kf, radius_voxels=radius_voxels, learned=learned, more_confident=more_confident
+    for name, (max_kf, radius_voxels, learned, more_confident, map_blend) in runs.items():
+        node, blender, _ = _node(
+            tmp, max_kf, radius_voxels=radius_voxels, learned=learned, more_confident=more_confident,
+            blend=map_blend,
         )
         ingest_s = _run(frames, node, blender)
         row: dict[str, Any] = {"max_keyframes": max_kf, "ingest_s": round(ingest_s, 2)}

@@ -290,12 +290,34 @@ class QueryConfig:
     """``segment_points`` also answers a point the window sees from that nearest map point when the
     map names another text with a higher cosine than the window's answer (keyframes that left the
     window saw the point better than those in it; the reply's ``source`` says map); ``render`` labels
-    the same where the render found a surface. False = the window's answer wherever it has one."""
+    the same where the render found a surface. False = the window's answer wherever it has one.
+    ``segment_points`` answers without a depth test use ``map_blend`` instead where it is > 0."""
+
+    map_blend: float = 0.75
+    """Where both the window and the global map answer a ``segment_points`` point (the nearest map
+    point with a feature within ``map_radius_voxels``), the answer is the best text of the blended
+    cosines ``(1 - map_blend) * window + map_blend * map`` (score = that blended cosine;
+    ``source`` says map where the blend changed the window's label). The map fused every keyframe
+    that ever saw the point with depth (each observation visible by construction), the window
+    blends only its own keyframes, visible or not: measured in docs/QUERIES.md. Applies to the
+    answers without a depth test (``average``, ``govnesf`` without ``use_depth``; the others, and
+    ``render`` labels, keep the ``map_when_more_confident`` rule: measured, the blend did not help
+    them) while at least half of the window's keyframes carry input depth (the map's points are
+    then measured surfaces); else ``map_blend_without_depth``. 0 = the ``map_when_more_confident``
+    rule everywhere. 0..1."""
+
+    map_blend_without_depth: float = 0.0
+    """``map_blend`` while fewer than half of the window's keyframes carry input depth (an RGB-only
+    robot: the map's points come from triangulation, plane-sweep stereo and the model's rendered
+    depth, and their features were sampled at those estimated surfaces). 0 (default) = the
+    ``map_when_more_confident`` rule: measured in docs/QUERIES.md, 0.75 there cost 3-4 points. 0..1."""
 
     def validate(self, where: str) -> None:
         _check_range(where, "queries.workers", self.workers, 0, 64)
         _check_range(where, "queries.queue_length", self.queue_length, 1, 10_000)
         _check_range(where, "queries.map_radius_voxels", self.map_radius_voxels, 0.0, 100.0)
+        _check_range(where, "queries.map_blend", self.map_blend, 0.0, 1.0)
+        _check_range(where, "queries.map_blend_without_depth", self.map_blend_without_depth, 0.0, 1.0)
         _check_range(where, "queries.label_cache_blocks", self.label_cache_blocks, 0, 100_000)
         _check_range(where, "queries.answer_max_age_s", self.answer_max_age_s, 0.0, 3600.0)
         _check_range(where, "queries.answer_cache_entries", self.answer_cache_entries, 0, 10_000)

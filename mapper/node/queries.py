@@ -64,6 +64,8 @@ __all__ = [
     "SOURCE_MAP",
     "SOURCE_NONE",
     "SOURCE_WINDOW",
+    "best_text",
+    "blend_with_map",
     "cluster_points",
     "fill_from_map",
     "label_from_similarities",
@@ -73,6 +75,7 @@ __all__ = [
     "query_points",
     "render_from_map",
     "segment_average",
+    "segment_average_cosines",
     "surface_depth",
 ]
 
@@ -681,19 +684,43 @@ def segment_average(
     """OpenScene-2D averaging baseline: (label (N,) int32, -1 where no view counts; score (N,)
     float32 cosine of the chosen label, 0 where -1; n_views (N,) int64). ``views`` are
     ``(ov (h, w, D), K (4,), world_from_cam (4, 4), (W, H), depth_m (H, W) | None)``."""
+    cos, n = segment_average_cosines(xyz, views, text_emb, use_depth=use_depth)
+    label, score = best_text(cos, n > 0)
+    return label, score, n
+
+
+def segment_average_cosines(
+    xyz: np.ndarray,  # (N, 3) float32 world metres
+    views: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int], np.ndarray | None]],
+    text_emb: np.ndarray,  # (T, D) float32 unit rows
+    *,
+    use_depth: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`segment_average` before the choice of a text: (cosines (N, T) float32 of the averaged
+    feature with each text, zero rows where no view counts; n_views (N,) int64)."""
     from mapper.model.baselines import average_similarities  # torch-heavy; imported when first used
 
     sims_t, n_views = average_similarities(xyz, list(views), text_emb, use_depth=use_depth)
-    sims = sims_t.numpy()  # (N, T) cosines of the averaged features (zero rows where no view counts)
-    n = n_views.numpy()
-    if sims.shape[0] == 0:
-        return np.zeros(0, np.int32), np.zeros(0, np.float32), n
-    label = np.argmax(sims, axis=1).astype(np.int32)
-    score = np.take_along_axis(sims, label[:, None].astype(np.int64), axis=1)[:, 0].astype(np.float32)
-    seen = n > 0
+    return sims_t.numpy(), n_views.numpy()
+
+
+def best_text(
+    cos: np.ndarray,  # (N, T) float32 cosines
+    seen: np.ndarray,  # (N,) bool: rows that have an answer
+) -> tuple[np.ndarray, np.ndarray]:
+    """(label (N,) int32 argmax text, -1 where not ``seen``; score (N,) float32 its cosine, 0 there).
+
+    >>> best_text(np.array([[0.1, 0.7], [0.5, 0.2]], np.float32), np.array([True, False]))
+    (array([ 1, -1], dtype=int32), array([0.7, 0. ], dtype=float32))
+    """
+    seen = np.asarray(seen, bool)
+    if cos.shape[0] == 0:
+        return np.zeros(0, np.int32), np.zeros(0, np.float32)
+    label = np.argmax(cos, axis=1).astype(np.int32)
+    score = np.take_along_axis(cos, label[:, None].astype(np.int64), axis=1)[:, 0].astype(np.float32)
     label[~seen] = -1
     score[~seen] = 0.0
-    return label, score, n
+    return label, score
 
 
 def _map_similarities(
@@ -743,37 +770,77 @@ def fill_from_map(
     radius_m: float,
     *,
     more_confident: bool = False,
+    window_cos: np.ndarray | None = None,  # (N, T) float32 the window's cosines (rows where seen)
+    blend: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Answer the points the window did not from the map: (label (N,) int32, score (N,) float32,
     source (N,) uint8). A point the window saw keeps the window's answer (``SOURCE_WINDOW``); an
     unseen one takes the best text of the nearest map point carrying a feature within
-    ``radius_m`` (``SOURCE_MAP``: its cosine as score), else -1 / 0 (``SOURCE_NONE``). With
-    ``more_confident``, a point the window saw also takes the map's answer where the map names
-    another text with a higher cosine than the window's score (views that left the window saw it
-    better than the ones in it); where both name the same text the window's answer stays. A map
-    whose feature dimension is not the texts' answers nothing."""
+    ``radius_m`` (``SOURCE_MAP``: its cosine as score), else -1 / 0 (``SOURCE_NONE``).
+
+    A point both answer: with ``blend`` > 0 and ``window_cos`` given, the best text of the blended
+    cosines (:func:`blend_with_map`, ``queries.map_blend``); else with ``more_confident``, the map's
+    answer where the map names another text with a higher cosine than the window's score (views
+    that left the window saw it better than the ones in it; where both name the same text the
+    window's answer stays); else the window's. A map whose feature dimension is not the texts'
+    answers nothing."""
     label = np.array(label, np.int32, copy=True)
     score = np.array(score, np.float32, copy=True)
     seen = np.asarray(window_seen, bool)
     source = np.where(seen, SOURCE_WINDOW, SOURCE_NONE).astype(np.uint8)
     label[~seen] = -1
     score[~seen] = 0.0
-    todo = np.arange(seen.shape[0]) if more_confident else np.flatnonzero(~seen)
+    blending = blend > 0 and window_cos is not None
+    if blending:
+        window_cos = np.asarray(window_cos, np.float32)
+        if window_cos.shape != (seen.shape[0], text_emb.shape[0]):
+            raise ValueError(f"window_cos has shape {window_cos.shape}, expected ({seen.shape[0]}, "
+                             f"{text_emb.shape[0]})")
+    todo = np.arange(seen.shape[0]) if (more_confident or blending) else np.flatnonzero(~seen)
     if todo.size == 0 or not _map_compatible(snapshot, text_emb):
         return label, score, source
     rows = snapshot.nearest_with_feature(np.asarray(xyz)[todo], radius_m)
     hit = rows >= 0
     if hit.any():
         sims = _map_similarities(snapshot, rows[hit], text_emb)  # (n, T)
+        idx = todo[hit]
+        if blending:
+            assert window_cos is not None
+            both = seen[idx]
+            sims[both] = blend_with_map(window_cos[idx[both]], sims[both], blend)
         best = np.argmax(sims, axis=1)
         best_score = sims[np.arange(best.shape[0]), best].astype(np.float32)
-        idx = todo[hit]
+        if blending:
+            changed = ~seen[idx] | (best != label[idx])
+            label[idx] = best.astype(np.int32)
+            score[idx] = best_score
+            source[idx[changed]] = SOURCE_MAP
+            return label, score, source
         take = ~seen[idx] | map_more_confident(best, best_score, label[idx], score[idx])
         idx = idx[take]
         label[idx] = best[take].astype(np.int32)
         score[idx] = best_score[take]
         source[idx] = SOURCE_MAP
     return label, score, source
+
+
+def blend_with_map(
+    window_cos: np.ndarray,  # (..., T) the window's cosines
+    map_cos: np.ndarray,  # (..., T) the map point's cosines
+    weight: float,  # queries.map_blend, 0..1
+) -> np.ndarray:  # (..., T) float32
+    """The ``queries.map_blend`` rule for an answer both the window and the global map give:
+    ``(1 - weight) * window_cos + weight * map_cos``. The map's feature fused every keyframe that
+    ever saw the point with depth (each observation at its own depth pixel, so visible), the
+    window's blends the keyframes it still holds, including ones that do not see the point.
+
+    >>> [round(float(c), 3) for c in blend_with_map(np.array([0.9, 0.1]), np.array([0.2, 0.6]), 0.75)]
+    [0.375, 0.475]
+    """
+    if not 0.0 <= weight <= 1.0:
+        raise ValueError(f"weight {weight} must be in [0, 1]")
+    w = np.float32(weight)
+    return ((np.float32(1.0) - w) * np.asarray(window_cos, np.float32) + w * np.asarray(map_cos, np.float32))
 
 
 def _splat_rows(

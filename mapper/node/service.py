@@ -1359,7 +1359,7 @@ class MapperNode:
     def _segment_average(self, msg: SegmentPoints, use_depth: bool) -> Segmentation:
         """``average`` / ``average_depth``: OpenScene-2D averaging over the window's keyframes where
         they see a point, the global map's fused features elsewhere (:meth:`answer_from_map`)."""
-        from mapper.node.queries import segment_average
+        from mapper.node.queries import best_text, segment_average_cosines
 
         started = time.perf_counter()
         method = "average_depth" if use_depth else "average"
@@ -1400,13 +1400,14 @@ class MapperNode:
         t_text = time.perf_counter()
         xyz = np.asarray(msg.xyz, np.float32)
         if views:
-            label, score, n_views = segment_average(xyz, views, text_emb, use_depth=use_depth)
+            cos, n_views = segment_average_cosines(xyz, views, text_emb, use_depth=use_depth)
         else:
-            label = np.full(xyz.shape[0], -1, np.int32)
-            score = np.zeros(xyz.shape[0], np.float32)
+            cos = np.zeros((xyz.shape[0], text_emb.shape[0]), np.float32)
             n_views = np.zeros(xyz.shape[0], np.int64)
+        label, score = best_text(cos, n_views > 0)
         t_avg = time.perf_counter()
-        label, score, source = self.answer_from_map(xyz, text_emb, label, score, n_views > 0, map_snap)
+        label, score, source = self.answer_from_map(xyz, text_emb, label, score, n_views > 0, map_snap,
+                                                    window_cos=cos, depth_tested=use_depth)
         t_done = time.perf_counter()
         return Segmentation(
             label=label,
@@ -1431,16 +1432,34 @@ class MapperNode:
         score: np.ndarray,  # (N,) float32 the window's scores
         window_seen: np.ndarray,  # (N,) bool: the window answered the point
         snap: GlobalMapSnapshot | None = None,  # the snapshot to use (default: the current one)
+        window_cos: np.ndarray | None = None,  # (N, T) the window's cosines (for queries.map_blend)
+        depth_tested: bool = False,  # the window's answer already passed a depth test
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Fill the points the window did not answer from the global map's snapshot (nearest point
-        with a feature within ``queries.map_radius_voxels`` voxels): (label, score, source (N,)
-        uint8), see :func:`mapper.node.queries.fill_from_map`. Used by every segment method."""
+        with a feature within ``queries.map_radius_voxels`` voxels) and, with ``window_cos``, blend
+        the two where both answer (``queries.map_blend``): (label, score, source (N,) uint8), see
+        :func:`mapper.node.queries.fill_from_map`. Used by every segment method."""
         from mapper.node.queries import fill_from_map
 
         if snap is None:
             snap = self.state.global_map.snapshot()
         return fill_from_map(snap, xyz, text_emb, label, score, window_seen, self.map_radius_m,
-                             more_confident=self.config.queries.map_when_more_confident)
+                             more_confident=self.config.queries.map_when_more_confident,
+                             window_cos=window_cos, blend=self.map_blend(depth_tested=depth_tested))
+
+    def map_blend(self, *, depth_tested: bool = False) -> float:
+        """The weight of the global map's cosines where the window answers a ``segment_points`` point
+        too (see :func:`mapper.node.queries.blend_with_map`): 0 for answers that already passed a
+        depth test (``average_depth``, ``govnesf`` with ``use_depth``: the more-confident rule),
+        else ``queries.map_blend`` while at least half of the window's keyframes carry input
+        depth, else ``queries.map_blend_without_depth``."""
+        if depth_tested:
+            return 0.0
+        with self.state.lock:
+            keyframes = self.state.window.keyframes
+        with_depth = sum(k.depth_m is not None for k in keyframes)
+        q = self.config.queries
+        return q.map_blend if keyframes and 2 * with_depth >= len(keyframes) else q.map_blend_without_depth
 
     @property
     def map_radius_m(self) -> float:

@@ -995,6 +995,32 @@ class ModelRuntime:
             score: (N,) float32 cosine similarity of that label (0 where label is -1);
             timing_ms: stage timings.
         """
+        label, score, _, timing = self._segment(points, texts, use_depth=use_depth, keep_cosines=False)
+        return label, score, timing
+
+    @torch.no_grad()
+    def segment_cosines(
+        self,
+        points: np.ndarray | Tensor,  # (N, 3) float32 world points (m)
+        texts: Sequence[str],
+        *,
+        use_depth: bool = False,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, float]]:
+        """:meth:`segment` with every text's cosine: (label (N,) int32, score (N,) float32, cosines
+        (N, T) float32 of the blended feature with each text, zero rows where label is -1,
+        timing_ms). The node blends them with the global map's (``queries.map_blend``)."""
+        label, score, cos, timing = self._segment(points, texts, use_depth=use_depth, keep_cosines=True)
+        assert cos is not None
+        return label, score, cos, timing
+
+    def _segment(
+        self,
+        points: np.ndarray | Tensor,  # (N, 3) float32 world points (m)
+        texts: Sequence[str],
+        *,
+        use_depth: bool,
+        keep_cosines: bool,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict[str, float]]:
         pts = points if isinstance(points, Tensor) else torch.tensor(np.array(points, dtype=np.float32))
         if pts.ndim != 2 or pts.shape[-1] != 3:
             raise ValueError(f"points must have shape (N, 3), got {tuple(pts.shape)}")
@@ -1021,6 +1047,9 @@ class ModelRuntime:
             n = pts.shape[0]
             label = torch.full((n,), -1, dtype=torch.int32, device=self.device)
             score = torch.zeros(n, dtype=torch.float32, device=self.device)
+            cosines = None  # (N, T) every text's cosine, only when asked for
+            if keep_cosines:
+                cosines = torch.zeros(n, emb.shape[0], dtype=torch.float32, device=self.device)
             groups = self._view_groups(prep, pts, prep.has_ov, self.point_source_views)
             t3 = time.perf_counter()
             timing["view_selection"] = (t3 - t2) * 1e3
@@ -1030,6 +1059,8 @@ class ModelRuntime:
                 best, arg = cos.max(dim=-1)
                 label[sub] = torch.where(out.valid, arg.to(torch.int32), label[sub])
                 score[sub] = torch.where(out.valid, best, score[sub])
+                if cosines is not None:
+                    cosines[sub] = torch.where(out.valid[:, None], cos.float(), cosines[sub])
 
             if self.config.batched_view_groups and groups:
                 # one network pass over every view group (each point with its own views)
@@ -1048,7 +1079,8 @@ class ModelRuntime:
                     answer(sub, out)
             timing["network"] = (time.perf_counter() - t3) * 1e3
         timing["total"] = (time.perf_counter() - t0) * 1e3
-        return label.cpu().numpy(), score.cpu().numpy(), timing
+        cos_np = None if cosines is None else cosines.cpu().numpy()
+        return label.cpu().numpy(), score.cpu().numpy(), cos_np, timing
 
     def _point_outputs(
         self, model: GovNeSF, prep: _Prepared, pts: Tensor, idx: Tensor, views_idx: Tensor, use_depth: bool

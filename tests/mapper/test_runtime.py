@@ -262,6 +262,32 @@ def test_segment_labels_points_that_views_see_and_minus_one_elsewhere(model: Gov
     assert empty_label.shape == (0,) and empty_score.shape == (0,)
 
 
+def test_segment_cosines_are_the_segment_answers_with_every_text(model: GovNeSF) -> None:
+    """``segment_cosines`` (the node blends them with the map's): the same labels and scores as
+    ``segment``, and per text the cosine of the blended feature (argmax = label, max = score, zero
+    rows where unseen)."""
+    runtime = make_runtime(model, source_views=2, view_cell_m=0.25)
+    window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    rng = np.random.default_rng(1)
+    for i in range(5):
+        ov = rng.standard_normal((4, 5, D)).astype(np.float32)  # features that disagree across views
+        window.consider(keyframe(i, orbit(i), ov=ov))
+    pts = np.concatenate([rng.uniform([-0.4, -0.4, 0.3], [0.4, 0.4, 0.7], (200, 3)),
+                          [[0.0, 0.0, 30.0]]]).astype(np.float32)  # fmt: skip
+    texts = ["a", "b", "c"]
+    label, score, _ = runtime.segment(pts, texts)
+    label_c, score_c, cos, _ = runtime.segment_cosines(pts, texts)
+    assert cos.shape == (201, 3) and cos.dtype == np.float32
+    np.testing.assert_array_equal(label_c, label)
+    np.testing.assert_allclose(score_c, score, atol=1e-6)
+    seen = label >= 0
+    assert seen[:200].all() and not seen[200]
+    np.testing.assert_array_equal(np.argmax(cos[seen], axis=1), label[seen])
+    np.testing.assert_allclose(cos[seen].max(axis=1), score[seen], atol=1e-6)
+    assert (cos[~seen] == 0).all() and (np.abs(cos) <= 1 + 1e-5).all()
+
+
 def test_view_groups_use_at_most_k_views_that_see_the_points(model: GovNeSF) -> None:
     runtime = make_runtime(model, source_views=2, view_cell_m=0.3)
     window = KeyframeWindow(WindowConfig(max_keyframes=8, min_translation_m=0.05, min_rotation_deg=5))

@@ -20,7 +20,14 @@ from mapper.node.config import GlobalMapConfig, config_from_dict
 from mapper.node.global_map import GlobalMapSnapshot, GlobalSemanticMap
 from mapper.node.map_features import PreEvictionFeatures
 from mapper.node.plugins.learned import make_render_handler, make_segment_handler
-from mapper.node.queries import SOURCE_MAP, SOURCE_NONE, SOURCE_WINDOW, fill_from_map, render_from_map
+from mapper.node.queries import (
+    SOURCE_MAP,
+    SOURCE_NONE,
+    SOURCE_WINDOW,
+    blend_with_map,
+    fill_from_map,
+    render_from_map,
+)
 from mapper.node.service import MapperNode
 from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
 from mapper.runtime.model_runtime import ModelRuntimeConfig, RenderFrame
@@ -152,6 +159,15 @@ class StubRuntime:
         seen = np.asarray(xyz)[:, 0] > 1.0
         return np.where(seen, 1, -1).astype(np.int32), np.where(seen, 0.9, 0.0).astype(np.float32), {"n": 1.0}
 
+    def segment_cosines(
+        self, xyz: np.ndarray, texts: Sequence[str], *, use_depth: bool
+    ) -> tuple[Any, Any, Any, dict]:
+        label, score, timing = self.segment(xyz, texts, use_depth=use_depth)
+        cos = np.zeros((label.shape[0], len(texts)), np.float32)
+        seen = label >= 0
+        cos[seen, label[seen]] = score[seen]
+        return label, score, cos, timing
+
     def render(
         self, K: Any, pose: Any, width: int, height: int, outputs: Sequence[str], texts: Any,
         surface_depth_m: np.ndarray | None = None,
@@ -179,7 +195,7 @@ def test_govnesf_segment_falls_back_to_the_map(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("depth", [2.0, 0.0], ids=["surface", "splat"])
 def test_render_labels_the_pixels_the_window_leaves_from_the_map(tmp_path: Path, depth: float) -> None:
-    node = _node(tmp_path, map_when_more_confident=False)  # window first
+    node = _node(tmp_path, map_when_more_confident=False, map_blend=0.0)  # window first
     _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
     runtime = StubRuntime(depth)
     handler = make_render_handler(runtime, node)  # type: ignore[arg-type]
@@ -203,7 +219,7 @@ def test_render_takes_the_more_confident_map_where_the_surface_is_known(tmp_path
     """Default rule: the window's left quarter says class 2 at cosine 0.8; the map point at the
     rendered surface (A's wall) says class 0 at cosine 1: the map answers there. Without a rendered
     surface (depth 0) nothing is compared (no splat), so the window's answer stays. The reply
-    carries only the outputs asked for."""
+    carries only the outputs asked for. (``queries.map_blend`` is for ``segment_points`` only.)"""
     node = _node(tmp_path)
     _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
     runtime = StubRuntime(depth)
@@ -352,7 +368,7 @@ def test_fill_from_map_takes_a_more_confident_map_answer_only_when_asked() -> No
 def test_node_prefers_the_more_confident_map_as_configured(tmp_path: Path, more_confident: bool) -> None:
     """ON_B is in the window, seen as class 1 by a view with a weak feature; the map fused it as
     class 3 from a view that left (a strong feature): the map answers when configured to."""
-    node = _node(tmp_path, map_when_more_confident=more_confident)
+    node = _node(tmp_path, map_when_more_confident=more_confident, map_blend=0.0)
     strong = _frame(0, LOOK_X, 3)
     weak = _frame(1, np.eye(4), 0)  # A's wall, so that `strong` leaves the window ...
     ov = np.zeros((6, 8, D), np.float16)
@@ -391,3 +407,106 @@ def test_map_similarities_equal_a_float64_reference_across_blocks() -> None:
     assert got.shape == (2000, 3) and got.dtype == np.float32
     np.testing.assert_allclose(got, want, atol=2e-6)
     assert _map_similarities(snap, rows[:0], emb).shape == (0, 3)
+
+
+def test_fill_from_map_blends_the_cosines_where_both_answer() -> None:
+    """``queries.map_blend``: where the window and the map both answer, the best text of
+    (1 - w) window + w map; ``source`` says map only where that changed the window's label."""
+    snap = _one_point_snapshot()  # class 0 at cosine 1
+    emb = np.eye(D, dtype=np.float32)
+    xyz = np.array([[0.0, 0.0, 2.0]] * 3 + [[0.0, 5.0, 2.0]], np.float32)  # three at the map point, one far
+    window_cos = np.zeros((4, D), np.float32)
+    window_cos[0, 1] = 0.6  # the window says 1: the blend (0.75 x 1 for text 0) says 0
+    window_cos[1, 0], window_cos[1, 1] = 0.2, 0.95  # a confident 1: 0.25 x 0.95 < 0.75 x 1 + 0.25 x 0.2
+    window_cos[3, 2] = 0.4  # far from every map point: the window's answer stays
+    label = np.array([1, 1, -1, 2], np.int32)
+    score = np.array([0.6, 0.95, 0.0, 0.4], np.float32)
+    seen = label >= 0
+    lab, sc, src = fill_from_map(snap, xyz, emb, label, score, seen, 0.075, window_cos=window_cos, blend=0.75)
+    assert lab.tolist() == [0, 0, 0, 2]
+    assert src.tolist() == [SOURCE_MAP, SOURCE_MAP, SOURCE_MAP, SOURCE_WINDOW]
+    # float64 reference of the blended score; the unseen point takes the map's own cosine
+    want0 = 0.25 * 0.0 + 0.75 * 1.0
+    want1 = 0.25 * 0.2 + 0.75 * 1.0
+    assert sc[0] == pytest.approx(want0, abs=1e-3) and sc[1] == pytest.approx(want1, abs=1e-3)
+    assert sc[2] == pytest.approx(1.0, abs=1e-3) and sc[3] == pytest.approx(0.4)
+    # a light map weight keeps the confident window answer (and says so)
+    lab, sc, src = fill_from_map(snap, xyz, emb, label, score, seen, 0.075, window_cos=window_cos, blend=0.1)
+    assert lab.tolist() == [1, 1, 0, 2]
+    assert src.tolist() == [SOURCE_WINDOW, SOURCE_WINDOW, SOURCE_MAP, SOURCE_WINDOW]
+    assert sc[1] == pytest.approx(0.9 * 0.95, abs=1e-3)  # the blended cosine, not the window's
+    # blend 0 (or no window cosines): the more-confident rule / window first, as before
+    lab0, _, src0 = fill_from_map(snap, xyz, emb, label, score, seen, 0.075, window_cos=window_cos, blend=0.0)
+    assert lab0.tolist() == [1, 1, 0, 2] and src0.tolist() == [1, 1, 2, 1]
+    with pytest.raises(ValueError, match="window_cos has shape"):
+        fill_from_map(snap, xyz, emb, label, score, seen, 0.075, window_cos=window_cos[:2], blend=0.5)
+
+
+def test_blend_with_map_ends_and_bad_weights() -> None:
+    rng = np.random.default_rng(0)
+    w, m = rng.uniform(-1, 1, (5, 3)).astype(np.float32), rng.uniform(-1, 1, (5, 3)).astype(np.float32)
+    assert np.array_equal(blend_with_map(w, m, 0.0), w) and np.array_equal(blend_with_map(w, m, 1.0), m)
+    half = blend_with_map(w, m, 0.5)
+    assert np.allclose(half, 0.5 * (w.astype(np.float64) + m.astype(np.float64)), atol=1e-7)
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="must be in"):
+            blend_with_map(w, m, bad)
+
+
+@pytest.mark.parametrize("blend", [0.75, 0.05])
+def test_node_blends_window_and_map_as_configured(tmp_path: Path, blend: float) -> None:
+    """The stream of the test above: the window (one view, mostly 1) and the map (which also fused
+    the strong view of 3 that left) disagree at ON_B; the shipped weight takes the map's text, a
+    light one keeps the window's. ``govnesf`` (a stub runtime that reports its cosines) the same."""
+    node = _node(tmp_path, map_blend=blend)
+    strong = _frame(0, LOOK_X, 3)
+    weak = _frame(1, np.eye(4), 0)
+    ov = np.zeros((6, 8, D), np.float16)
+    ov[..., 1], ov[..., 3] = 0.6, 0.55
+    again = _frame(2, LOOK_X, 1)
+    again.ov = ov
+    _stream(node, [strong, weak, again])
+    reply = _segment(node, "average", [ON_B])
+    assert reply.source is not None
+    if blend > 0.5:
+        assert reply.label.tolist() == [3] and reply.source.tolist() == [SOURCE_MAP]
+    else:
+        assert reply.label.tolist() == [1] and reply.source.tolist() == [SOURCE_WINDOW]
+    handler = make_segment_handler(StubRuntime(), None, node)  # type: ignore[arg-type]
+    got = handler(SegmentPoints(xyz=np.array([ON_B], np.float32), texts=["c0", "c1", "c2", "c3"]))
+    assert isinstance(got, Segmentation) and got.source is not None
+    # the stub's window says 1 at 0.9; the map point says mostly 3
+    assert got.label.tolist() == ([3] if blend > 0.5 else [1])
+
+
+def test_map_blend_follows_the_window_depth(tmp_path: Path) -> None:
+    """``queries.map_blend`` while at least half of the window's keyframes carry input depth,
+    ``map_blend_without_depth`` otherwise (an RGB-only robot's map holds estimated surfaces)."""
+    node = _node(tmp_path, map_blend=0.6, map_blend_without_depth=0.2)
+    assert node.map_blend() == 0.2  # empty window: nothing measured
+    _stream(node, [_frame(0, np.eye(4), 0)])
+    assert node.map_blend() == 0.6
+    rgb_only = _frame(1, LOOK_X, 1)
+    rgb_only.depth_m = None
+    _stream(node, [rgb_only])  # the window (one keyframe) now has no depth
+    assert node.map_blend() == 0.2
+    assert node.map_blend(depth_tested=True) == 0.0  # a depth-tested answer: the more-confident rule
+
+
+def test_depth_tested_answers_keep_the_more_confident_rule(tmp_path: Path) -> None:
+    """``average_depth`` (and ``govnesf`` with ``use_depth``) already passed a depth test: the blend
+    is not applied to them (measured: it cost them), the more-confident rule is."""
+    node = _node(tmp_path, map_blend=0.75)
+    strong = _frame(0, LOOK_X, 3)
+    weak = _frame(1, np.eye(4), 0)
+    ov = np.zeros((6, 8, D), np.float16)
+    ov[..., 1], ov[..., 3] = 0.6, 0.55
+    again = _frame(2, LOOK_X, 1)
+    again.ov = ov
+    _stream(node, [strong, weak, again])
+    plain, tested = _segment(node, "average", [ON_B]), _segment(node, "average_depth", [ON_B])
+    more_confident = _node(tmp_path / "b", map_blend=0.0)
+    _stream(more_confident, [strong, weak, again])
+    want = _segment(more_confident, "average_depth", [ON_B])
+    assert plain.label.tolist() == [3]  # blended
+    assert tested.label.tolist() == want.label.tolist() and tested.score.tolist() == want.score.tolist()

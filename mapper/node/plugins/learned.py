@@ -75,8 +75,15 @@ def make_segment_handler(
                 raise ProtocolError("not_ready", f"segment_points method {msg.method!r} is not served")
             return previous(msg)
         started = time.perf_counter()
+        blend = node is not None and node.map_blend(depth_tested=msg.use_depth) > 0 and node.map_radius_m > 0
+        cos = None
         try:
-            label, score, timing = runtime.segment(msg.xyz, msg.texts, use_depth=msg.use_depth)
+            if blend:  # every text's cosine, for the blend with the map's
+                label, score, cos, timing = runtime.segment_cosines(
+                    msg.xyz, msg.texts, use_depth=msg.use_depth
+                )
+            else:
+                label, score, timing = runtime.segment(msg.xyz, msg.texts, use_depth=msg.use_depth)
         except RuntimeNotReady as exc:
             raise ProtocolError("not_ready", f"segment_points (govnesf): {exc}") from None
         except ValueError as exc:
@@ -89,7 +96,8 @@ def make_segment_handler(
             seen = label >= 0
             if emb is not None:
                 label, score, source = node.answer_from_map(
-                    np.asarray(msg.xyz, np.float32), emb, label, score, seen
+                    np.asarray(msg.xyz, np.float32), emb, label, score, seen, window_cos=cos,
+                    depth_tested=msg.use_depth,
                 )
             else:
                 source = seen.astype(np.uint8)  # 1 = window, 0 = none
