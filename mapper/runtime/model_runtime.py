@@ -1256,9 +1256,12 @@ class ModelRuntime:
             if skip and ov is not None and emb is not None and self._refines(emb.shape[0]):
                 # coarse-to-fine labels: pixels whose best two texts are close get every sample's
                 # appearance (their weight groups could have swapped the two)
-                # (surface pixels had one exact evaluation at their point: nothing to refine)
+                # (surface pixels had one exact evaluation at their point: nothing to refine; nor
+                # have rays below min_opacity, which no refinement can label: covered <= opacity,
+                # and the opacity depends on the density only)
                 top2 = (F.normalize(ov[marched], dim=-1) @ emb.T).topk(2, dim=-1).values
-                redo = marched[top2[:, 0] - top2[:, 1] < self.config.refine_margin]
+                close = top2[:, 0] - top2[:, 1] < self.config.refine_margin
+                redo = marched[close & (opacity[marched] >= self.config.min_opacity)]
                 stats["refined_rays"] = int(redo.numel())
                 again = {"samples": 0, "density_evals": 0, "appearance_evals": 0, "view_groups": 0}
                 for i in range(0, redo.numel(), self.config.chunk_rays):

@@ -394,3 +394,30 @@ def test_refining_every_pixel_is_the_per_sample_appearance_and_a_zero_margin_ref
     assert 0 < int(redo.sum()) <= some.stats["refined_rays"] < 20 * 15
     np.testing.assert_array_equal(some.label[redo], per_sample.label[redo])  # type: ignore[index]
     np.testing.assert_array_equal(some.label[~redo & drawn], coarse.label[~redo & drawn])  # type: ignore[index]
+
+
+@torch.no_grad()
+def test_rays_below_min_opacity_are_not_refined_and_their_labels_match_the_per_sample_render(
+    runtime: ModelRuntime,
+) -> None:
+    """A view half off the volume: the refinement re-renders only rays that can be labelled
+    (opacity >= min_opacity; ``covered`` never exceeds the opacity, which depends on the density
+    only), and every label still equals the per-sample render's."""
+    K, pose = [20.0, 20.0, 10.0, 7.5], look_at((2.0, 0.5, 1.1), (0.0, 0.0, 2.4))
+    outputs, texts = ["rgb", "depth", "label", "score"], ["a", "b", "c"]
+    saved = runtime.config
+    common = dict(occupancy_threshold=0.0, stop_transmittance=1e-3, min_opacity=0.3)
+    try:
+        runtime.config = dataclasses.replace(saved, appearance_groups=0, **common)  # type: ignore[arg-type]
+        per_sample = runtime.render(K, pose, 20, 15, outputs, texts)
+        runtime.config = dataclasses.replace(saved, appearance_groups=2, refine_margin=2.0, **common)  # type: ignore[arg-type]
+        refined = runtime.render(K, pose, 20, 15, outputs, texts)
+    finally:
+        runtime.config = saved
+    labelled = refined.opacity >= 0.3
+    assert 0 < int(labelled.sum()) < 20 * 15  # the view is partly off the volume
+    assert refined.stats["refined_rays"] == int(labelled.sum())
+    np.testing.assert_array_equal(refined.label, per_sample.label)
+    np.testing.assert_array_equal(refined.opacity, per_sample.opacity)
+    assert (refined.label[~labelled] == -1).all()  # type: ignore[index]
+    np.testing.assert_array_equal(refined.rgb[labelled], per_sample.rgb[labelled])  # type: ignore[index]
