@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -53,10 +54,15 @@ def backproject(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, stride: int 
 
 def run(args: argparse.Namespace, with_depth: bool, consistency: bool = True) -> dict[str, Any]:
     stream = sim_stream(args.seed, args.frames, depth=with_depth)
-    config = config_from_dict(
-        {"map_dir": "/tmp/govnesf-bench-maps", "autosave_name": "", "save_on_exit": False,
-         "global_map": {"rendered_consistency": consistency}}
-    )
+    overrides: dict[str, Any] = {"map_dir": "/tmp/govnesf-bench-maps", "autosave_name": "", "save_on_exit": False,
+                                 "global_map": {"rendered_consistency": consistency}}
+    for item in args.set:  # SECTION.KEY=VALUE (TOML value), e.g. global_map.rendered_consistency_voxels=1.0
+        key, _, value = item.partition("=")
+        section, _, name = key.partition(".")
+        if not (section and name and value):
+            raise SystemExit(f"--set {item!r}: expected SECTION.KEY=VALUE")
+        overrides.setdefault(section, {})[name] = tomllib.loads(f"v = {value}")["v"]
+    config = config_from_dict(overrides)
     node = MapperNode(config)
     runtime = ModelRuntime(ModelRuntimeConfig(checkpoint=str(args.checkpoint), device="cpu"))
     if not runtime.ready:
@@ -120,6 +126,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--consistency", default="on,off",
                    help="rows without depth: rendered_consistency on and/or off (comma separated)")
     p.add_argument("--no-depth-row", action="store_true", help="skip the row with input depth")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override a node config key (TOML value); repeatable")
     args = p.parse_args(argv)
     modes = [m.strip() for m in args.consistency.split(",") if m.strip()]
     if not modes or any(m not in ("on", "off") for m in modes):
