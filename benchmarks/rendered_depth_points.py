@@ -25,11 +25,11 @@ from __future__ import annotations
 import argparse
 import os
 import time
-import tomllib
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tomllib
 import torch
 from scipy.spatial import cKDTree
 
