@@ -54,8 +54,10 @@ def backproject(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, stride: int 
 
 def run(args: argparse.Namespace, with_depth: bool, consistency: bool = True) -> dict[str, Any]:
     stream = sim_stream(args.seed, args.frames, depth=with_depth)
-    overrides: dict[str, Any] = {"map_dir": "/tmp/govnesf-bench-maps", "autosave_name": "", "save_on_exit": False,
-                                 "global_map": {"rendered_consistency": consistency}}
+    overrides: dict[str, Any] = {
+        "map_dir": "/tmp/govnesf-bench-maps", "autosave_name": "", "save_on_exit": False,
+        "global_map": {"rendered_consistency": consistency},
+    }
     for item in args.set:  # SECTION.KEY=VALUE (TOML value), e.g. global_map.rendered_consistency_voxels=1.0
         key, _, value = item.partition("=")
         section, _, name = key.partition(".")
