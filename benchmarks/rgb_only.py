@@ -27,7 +27,9 @@ Reported per run (``--json`` writes them all):
 * at held-out poses (``clients.sim.export.novel_view_poses``): the node's ``render`` depth (median
   relative error) and colour (PSNR against the simulator's image, mean over the poses), at the
   measured surfaces where there are some (``model.surface_from_map``: the global map with depth,
-  the triangulated and swept points without; their share of the pixels); the model's march alone
+  the triangulated and swept points without, and their planes, ``model.surface_planes``; the share
+  of the pixels at a surface, of those on a plane, the planes' count, and the surface step's time
+  in the first render, which fits the planes, and the later ones); the model's march alone
   (every pixel marched: depth and PSNR); the global map's surface alone
   (:func:`mapper.node.queries.map_surface_depth`: its error and its share of the pixels).
 
@@ -184,6 +186,9 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
     # one, model.surface_from_map), the model's march alone, and the map's surface alone
     cfg = config.model
     rel_node, rel_march, rel_map, cover, psnr, psnr_march, at_surface = [], [], [], [], [], [], []
+    at_plane: list[float] = []
+    surface_ms: list[float] = []  # the first render fits the planes of the geometry, the others reuse them
+    n_planes = 0.0
     for pose in poses:
         truth = stream.renderer.render(stream.K, pose, args.width, args.height)
         ok = (truth.depth_m > 0) & np.isfinite(truth.depth_m)
@@ -193,6 +198,9 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         assert isinstance(reply, RenderResult) and reply.depth_m is not None and reply.rgb is not None, reply
         rel_node.append(np.abs(reply.depth_m[ok] - gt) / gt)
         at_surface.append(reply.timing_ms.get("surface_pixels", 0.0) / (args.width * args.height))
+        at_plane.append(reply.timing_ms.get("plane_pixels", 0.0) / (args.width * args.height))
+        surface_ms.append(reply.timing_ms.get("map_surface", 0.0))
+        n_planes = reply.timing_ms.get("planes", 0.0)
         psnr.append(masked_psnr(reply.rgb, truth.rgb, max_value=255.0))
         march = runtime.render(stream.K, pose, args.width, args.height, outputs=("rgb", "depth"))
         assert march.depth_m is not None and march.rgb is not None
@@ -205,6 +213,10 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
     row["render_depth_median_rel_err"] = float(np.median(np.concatenate(rel_node)))
     row["render_psnr_db"] = float(np.mean(psnr))
     row["render_surface_share"] = float(np.mean(at_surface))  # pixels rendered at a measured surface
+    row["render_plane_share"] = float(np.mean(at_plane))  # ... of which on a plane of the geometry
+    row["render_planes"] = n_planes
+    row["render_surface_ms_first"] = surface_ms[0] if surface_ms else None
+    row["render_surface_ms_later"] = float(np.median(surface_ms[1:])) if len(surface_ms) > 1 else None
     row["march_depth_median_rel_err"] = float(np.median(np.concatenate(rel_march)))
     row["march_psnr_db"] = float(np.mean(psnr_march))
     on_map = np.concatenate(rel_map)

@@ -47,6 +47,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from mapper.geometry.planes import Plane, fit_planes, plane_depth, point_normals
 from mapper.geometry.splat import fill_holes, remove_speckles, see_through, splat_points
 from mapper.node.config import QueryConfig
 from mapper.node.global_map import UNIT_BLOCK_ROWS, GlobalMapSnapshot
@@ -884,6 +885,66 @@ def surface_depth(
     hole = see_through(z, config.surface_see_through_px, config.surface_see_through_rel)
     z = remove_speckles(np.where(hole, np.float32(0), z), config.surface_speckle_px, config.surface_fill_rel)
     return fill_holes(z, config.surface_fill_px, config.surface_fill_rel)
+
+
+def geometry_planes(
+    xyz: np.ndarray,  # (N, 3) world points of measured RGB-only geometry
+    config: ModelRuntimeConfig,
+) -> list[Plane]:
+    """The planes of an RGB-only robot's measured geometry (``model.surface_plane_*``): at most
+    ``surface_plane_max_points`` of the points (a fixed random subset beyond it), their local
+    normals, and :func:`mapper.geometry.planes.fit_planes` with normal agreement."""
+    pts = np.asarray(xyz, np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if config.surface_plane_max == 0 or len(pts) < max(config.surface_plane_min_points, 3):
+        return []
+    if len(pts) > config.surface_plane_max_points:
+        pick = np.random.default_rng(0).choice(len(pts), config.surface_plane_max_points, replace=False)
+        pts = pts[np.sort(pick)]
+    normals, _ = point_normals(pts, config.surface_plane_neighbours)
+    return fit_planes(
+        pts, normals=normals, max_normal_deg=config.surface_plane_normal_deg,
+        inlier_m=config.surface_plane_inlier_m, min_inliers=config.surface_plane_min_points,
+        cell_m=config.surface_plane_cell_m, max_planes=config.surface_plane_max,
+    )
+
+
+class PlaneCache:
+    """:func:`geometry_planes` of the latest geometry, refitted only when the points changed
+    (their count or coordinate sum). Thread-safe."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._key: tuple[int, float, ModelRuntimeConfig] | None = None
+        self._planes: list[Plane] = []
+        self.fits = 0
+        """Fits so far (the others were reused)."""
+
+    def planes(self, xyz: np.ndarray, config: ModelRuntimeConfig) -> list[Plane]:
+        pts = np.asarray(xyz, np.float64).reshape(-1, 3)
+        key = (len(pts), float(np.nansum(pts)), config)
+        with self._lock:
+            if key != self._key:
+                self._planes = geometry_planes(pts, config)
+                self._key = key
+                self.fits += 1
+            return self._planes
+
+
+def with_planes(
+    surface: np.ndarray,  # (H, W) float32 z-depth of the measured points, 0 = none
+    planes: list[Plane],
+    K: np.ndarray,  # (4,) [fx, fy, cx, cy] for width x height
+    world_from_cam: np.ndarray,  # (4, 4) camera-to-world
+) -> tuple[np.ndarray, int]:
+    """``surface`` with its empty pixels (0) set to the nearest supported plane's depth where a
+    plane is hit (:func:`mapper.geometry.planes.plane_depth`); and how many pixels that set."""
+    if not planes:
+        return surface, 0
+    height, width = surface.shape
+    z_plane, _ = plane_depth(planes, K, world_from_cam, width, height)
+    fill = (surface <= 0) & (z_plane > 0)
+    return np.where(fill, z_plane, surface).astype(np.float32), int(np.count_nonzero(fill))
 
 
 def map_surface_depth(

@@ -183,6 +183,37 @@ class ModelRuntimeConfig:
     surface_fill_rel: float = 0.05
     """See ``surface_fill_px``. 0..10."""
 
+    surface_planes: bool = True
+    """RGB-only renders (``surface_from_map`` taking the node's measured RGB-only geometry): pixels
+    that no geometry point covers take the nearest supported plane fitted to those points, where
+    one is hit (:mod:`mapper.geometry.planes`: sequential RANSAC with normal agreement; each plane
+    only over the region its points cover), instead of marching. Walls and floors of a room are
+    flat-shaded and carry few measured points; their planes do. False = march those pixels."""
+
+    surface_plane_inlier_m: float = 0.03
+    """A geometry point belongs to a plane within this distance (m). 0.001..1."""
+
+    surface_plane_normal_deg: float = 25.0
+    """...and when its local normal (``surface_plane_neighbours`` nearest points) is within this
+    angle of the plane's, so that no plane cuts across several surfaces. 1..90."""
+
+    surface_plane_neighbours: int = 30
+    """Points of a geometry point's neighbourhood for its local normal. 3..1000."""
+
+    surface_plane_min_points: int = 200
+    """Smallest plane kept, in geometry points (of at most ``surface_plane_max_points``). 3..10^7."""
+
+    surface_plane_cell_m: float = 0.25
+    """Side (m) of the cells of a plane's supported region (a cell with 2 of its points counts;
+    gaps of up to 2 cells are closed). 0.01..10."""
+
+    surface_plane_max: int = 16
+    """Most planes fitted. 0..256."""
+
+    surface_plane_max_points: int = 20_000
+    """The planes are fitted to at most this many geometry points (a fixed random subset beyond
+    it), once per change of the geometry. 100..10^7."""
+
     min_view_support: int = 1
     """Density is forced to 0 where fewer than this many keyframes see the cost-volume voxel (a
     voxel seen by one view has zero feature variance, which reads as a surface). 1 = off. 1..1000."""
@@ -249,6 +280,13 @@ class ModelRuntimeConfig:
         check("surface_speckle_px", self.surface_speckle_px, 0, 100_000)
         check("surface_fill_px", self.surface_fill_px, 0, 32)
         check("surface_fill_rel", self.surface_fill_rel, 0.0, 10.0)
+        check("surface_plane_inlier_m", self.surface_plane_inlier_m, 0.001, 1.0)
+        check("surface_plane_normal_deg", self.surface_plane_normal_deg, 1.0, 90.0)
+        check("surface_plane_neighbours", self.surface_plane_neighbours, 3, 1000)
+        check("surface_plane_min_points", self.surface_plane_min_points, 3, 10_000_000)
+        check("surface_plane_cell_m", self.surface_plane_cell_m, 0.01, 10.0)
+        check("surface_plane_max", self.surface_plane_max, 0, 256)
+        check("surface_plane_max_points", self.surface_plane_max_points, 100, 10_000_000)
         check("min_view_support", self.min_view_support, 1, 1000)
         check("min_opacity", self.min_opacity, 0.0, 1.0)
         check("max_render_pixels", self.max_render_pixels, 1, 4096 * 4096)

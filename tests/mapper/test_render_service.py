@@ -255,5 +255,46 @@ def test_rgb_only_render_takes_the_surfaces_of_the_measured_geometry(
     reply = query(node, Render(width=12, height=9, K=K, world_from_cam=pose, outputs=["depth"]))
     assert isinstance(reply, RenderResult) and reply.depth_m is not None
     np.testing.assert_allclose(reply.depth_m[on], expected[on], rtol=1e-5)
-    assert reply.timing_ms["surface_pixels"] == on.sum() and reply.timing_ms["surface_from_geometry"] == 1.0
+    # (the wall's plane adds the pixels the points' splat does not reach: model.surface_planes)
+    assert reply.timing_ms["surface_pixels"] == on.sum() + reply.timing_ms["plane_pixels"]
+    assert reply.timing_ms["surface_from_geometry"] == 1.0
     np.testing.assert_allclose(reply.depth_m[on], 2.5, rtol=0.01)  # the plane is 2.5 m ahead
+
+
+@pytest.mark.parametrize("planes", [True, False])
+def test_rgb_only_render_takes_the_plane_of_the_geometry_across_a_gap(
+    node: MapperNode, model: GovNeSF, planes: bool
+) -> None:
+    from dataclasses import replace
+
+    from mapper.node.queries import surface_depth
+
+    runtime = ModelRuntime(replace(ModelRuntimeConfig(device="cpu"), surface_planes=planes), model=model,
+                           text_encoder=lambda space: FakeEncoder())  # fmt: skip
+    install_learned_handlers(node, runtime)
+    for seq in range(4):
+        rgb_only = frame(seq)
+        rgb_only.depth_m = None
+        node.handle_ingest(encode(rgb_only))
+    node.drain_integrations()
+    # a wall x = -0.3 m with no measured points in the band 0.3 m < z < 0.9 m (flat-shaded there)
+    yy, zz = np.meshgrid(np.linspace(-1, 1, 60), np.linspace(0, 1.2, 40), indexing="ij")
+    wall = np.column_stack([np.full(yy.size, -0.3), yy.ravel(), zz.ravel()])
+    points = wall[(wall[:, 2] < 0.3) | (wall[:, 2] > 0.9)]
+    node.surface_points.append(lambda: points)
+    K, pose = np.array([40.0, 40.0, 24.0, 18.0]), look_at((2.2, 0.0, 0.6), (0.0, 0.0, 0.6))
+    footprint = runtime.config.surface_geometry_footprint * node.state.global_map.snapshot().voxel_size_m
+    splat = surface_depth(points, footprint, K, pose, 48, 36, runtime.config)
+    gap = np.zeros((36, 48), bool)
+    gap[13:23, 20:28] = True  # rows of 0.3 m < z < 0.9 m around the image centre, on the wall
+    assert (splat[gap] == 0).all()  # the points leave the band empty (too wide to fill)
+    reply = query(node, Render(width=48, height=36, K=K, world_from_cam=pose, outputs=["depth"]))
+    assert isinstance(reply, RenderResult) and reply.depth_m is not None
+    on = splat > 0
+    np.testing.assert_allclose(reply.depth_m[on], splat[on], rtol=1e-5)  # the points' own surfaces
+    if planes:  # the band is rendered at the wall's plane, 2.5 m ahead
+        assert reply.timing_ms["planes"] == 1.0 and reply.timing_ms["plane_pixels"] >= gap.sum()
+        np.testing.assert_allclose(reply.depth_m[gap], 2.5, rtol=0.01)
+        assert reply.timing_ms["surface_pixels"] == on.sum() + reply.timing_ms["plane_pixels"]
+    else:
+        assert "planes" not in reply.timing_ms and reply.timing_ms["surface_pixels"] == on.sum()

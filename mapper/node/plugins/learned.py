@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mapper.geometry.planes import Plane
 from mapper.node.map_features import PreEvictionFeatures
 from mapper.node.plugins.depth_points import RenderedDepthPoints
 from mapper.runtime.config import ModelRuntimeConfig
@@ -137,6 +138,10 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
     """A ``Render`` handler backed by the runtime. With ``node``, pixels the window does not label
     are answered from its global map (the render then also computes depth and label)."""
 
+    from mapper.node.queries import PlaneCache
+
+    plane_cache = PlaneCache()  # the planes of the RGB-only geometry (model.surface_planes)
+
     def handle_render(msg: Message) -> Message:
         assert isinstance(msg, Render)
         started = time.perf_counter()
@@ -146,16 +151,21 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
         if node is not None and semantic:
             wanted = ("depth", "label", "score") if more_confident else ("depth", "label")
             outputs += [o for o in wanted if o not in outputs]
-        surface, surface_source = None, None
+        surface, surface_source, plane_pixels = None, None, 0
+        planes: list[Plane] | None = None
         t_surface = time.perf_counter()
         points = _surface_points(node, runtime.config) if node is not None else None
         if points is not None:
             # pixels with a measured surface are rendered at it (docs/RENDERING.md)
-            from mapper.node.queries import surface_depth
+            from mapper.node.queries import surface_depth, with_planes
 
             xyz, footprint_m, surface_source = points
             surface = surface_depth(xyz, footprint_m, np.asarray(msg.K, np.float64), msg.world_from_cam,
                                     msg.width, msg.height, runtime.config)  # fmt: skip
+            if surface_source == "geometry" and runtime.config.surface_planes:
+                planes = plane_cache.planes(xyz, runtime.config)
+                surface, plane_pixels = with_planes(surface, planes, np.asarray(msg.K, np.float64),
+                                                    np.asarray(msg.world_from_cam, np.float64))
         surface_ms = (time.perf_counter() - t_surface) * 1e3
         try:
             frame = runtime.render(
@@ -170,6 +180,9 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
             timing["map_surface"] = surface_ms
             timing["surface_pixels"] = float(np.count_nonzero(surface))
             timing["surface_from_geometry"] = float(surface_source == "geometry")
+            if planes is not None:
+                timing["planes"] = float(len(planes))
+                timing["plane_pixels"] = float(plane_pixels)
         source = None
         if node is not None and semantic and frame.label is not None and msg.texts:
             t_map = time.perf_counter()
