@@ -21,6 +21,7 @@ the default):
 Usage::
 
     OMP_NUM_THREADS=1 python benchmarks/real_rgb_only_map.py [--width 320] [--modes rgb+tri,rgb+tri+stereo]
+        [--set model.surface_planes=false]     # node config overrides, as in rgb_only.py
 
 Skips (exit 0, says so) when the sequence is absent.
 """
@@ -44,6 +45,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from real_sequence import DEFAULT_DATA, ICL_K, PosedFrame, load_sequence  # noqa: E402
+from rgb_only import parse_overrides  # noqa: E402
 
 from mapper.node.config import config_from_dict  # noqa: E402
 from mapper.node.plugins.learned import install_learned_handlers  # noqa: E402
@@ -121,11 +123,15 @@ def _held_out_renders(node: MapperNode, runtime: ModelRuntime, frames: list[Pose
 
 
 def run(frames: list[PosedFrame], tree: cKDTree, args: argparse.Namespace, stereo: bool) -> dict[str, Any]:
-    config = config_from_dict({
-        "map_dir": "/tmp/govnesf-bench-maps", "autosave_name": "", "save_on_exit": False,
+    sections: dict[str, dict[str, Any]] = {
         "window": {"max_keyframes": args.window},
         "model": {"checkpoint": str(args.checkpoint), "device": "cpu"},
         "stereo": {"enabled": stereo},
+    }
+    for section, name, value in args.overrides:  # checked in main()
+        sections.setdefault(section, {})[name] = value
+    config = config_from_dict({
+        "map_dir": "/tmp/govnesf-bench-maps", "autosave_name": "", "save_on_exit": False, **sections,
     })  # fmt: skip
     node = MapperNode(config)
     runtime = ModelRuntime(config.model)
@@ -186,7 +192,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--render-width", type=int, default=160, help="width of the held-out renders")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--json", type=Path)
+    p.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE",
+                   help="node config overrides, e.g. model.surface_planes=false")
     args = p.parse_args(argv)
+    args.overrides = parse_overrides(args.set)
     if args.holdout_every < 0 or not 8 <= args.render_width <= 4096:
         p.error(f"--holdout-every must be >= 0 (got {args.holdout_every}) and --render-width 8..4096 "
                 f"(got {args.render_width})")
