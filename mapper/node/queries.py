@@ -910,23 +910,26 @@ def geometry_planes(
 
 
 class PlaneCache:
-    """:func:`geometry_planes` of the latest geometry, refitted only when the points changed
-    (their count or coordinate sum). Thread-safe."""
+    """:func:`geometry_planes` of the latest geometry, refitted only when the number of points
+    moved by more than ``config.surface_plane_refit`` (relative) since the last fit, or the config
+    changed: a streaming robot's geometry grows with every keyframe, and a fit (a few hundred ms)
+    on every render would slow renders down for planes that barely moved. Thread-safe."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._key: tuple[int, float, ModelRuntimeConfig] | None = None
+        self._count = -1
+        self._config: ModelRuntimeConfig | None = None
         self._planes: list[Plane] = []
         self.fits = 0
-        """Fits so far (the others were reused)."""
+        """Fits so far (the other calls reused the planes)."""
 
     def planes(self, xyz: np.ndarray, config: ModelRuntimeConfig) -> list[Plane]:
         pts = np.asarray(xyz, np.float64).reshape(-1, 3)
-        key = (len(pts), float(np.nansum(pts)), config)
         with self._lock:
-            if key != self._key:
+            moved = abs(len(pts) - self._count) > config.surface_plane_refit * max(self._count, 0)
+            if self._count < 0 or moved or config != self._config:
                 self._planes = geometry_planes(pts, config)
-                self._key = key
+                self._count, self._config = len(pts), config
                 self.fits += 1
             return self._planes
 

@@ -212,7 +212,12 @@ class ModelRuntimeConfig:
 
     surface_plane_max_points: int = 20_000
     """The planes are fitted to at most this many geometry points (a fixed random subset beyond
-    it), once per change of the geometry. 100..10^7."""
+    it). 100..10^7."""
+
+    surface_plane_refit: float = 0.1
+    """The planes are refitted when the number of geometry points moved by more than this share
+    since the last fit (the first render after that pays for the fit); in between, renders reuse
+    them. 0 = refit on every change of the count. 0..10."""
 
     min_view_support: int = 1
     """Density is forced to 0 where fewer than this many keyframes see the cost-volume voxel (a
@@ -287,6 +292,7 @@ class ModelRuntimeConfig:
         check("surface_plane_cell_m", self.surface_plane_cell_m, 0.01, 10.0)
         check("surface_plane_max", self.surface_plane_max, 0, 256)
         check("surface_plane_max_points", self.surface_plane_max_points, 100, 10_000_000)
+        check("surface_plane_refit", self.surface_plane_refit, 0.0, 10.0)
         check("min_view_support", self.min_view_support, 1, 1000)
         check("min_opacity", self.min_opacity, 0.0, 1.0)
         check("max_render_pixels", self.max_render_pixels, 1, 4096 * 4096)

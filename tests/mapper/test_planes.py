@@ -173,12 +173,20 @@ def test_geometry_planes_follow_the_node_config_and_the_cache_refits_only_on_cha
     few = geometry_planes(pts, replace(config, surface_plane_max_points=1000))  # a subset of 1000
     assert len(few) == 3 and sum(p.inliers for p in few) <= 1000
     cache = PlaneCache()
-    cache.planes(pts, config)
-    cache.planes(pts.copy(), config)
+    first = cache.planes(pts, config)
+    assert cache.planes(pts.copy(), config) is first
+    assert cache.planes(pts[: int(0.95 * len(pts))], config) is first  # moved by 5% <= 10%: reused
     assert cache.fits == 1
-    cache.planes(pts[:-1], config)
-    cache.planes(pts[:-1], replace(config, surface_plane_inlier_m=0.05))
+    cache.planes(pts[: int(0.85 * len(pts))], config)  # 15%: refitted
+    assert cache.fits == 2
+    cache.planes(pts[: int(0.85 * len(pts))], replace(config, surface_plane_inlier_m=0.05))
     assert cache.fits == 3
+    every = replace(config, surface_plane_refit=0.0)
+    cache.planes(pts, every)
+    cache.planes(pts, every)
+    assert cache.fits == 4
+    cache.planes(pts[:-1], every)
+    assert cache.fits == 5  # refit 0: every change of the count
     # with_planes sets only the pixels without a surface
     floor = [p for p in planes if _axis_of(p) == 2]
     surface = np.zeros((120, 160), np.float32)
