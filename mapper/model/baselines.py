@@ -9,7 +9,9 @@ Chunked over points. Per chunk the points are projected into every view at once 
 before); the samples of all views are then gathered as one weighted sum per point with
 ``embedding_bag`` over the views' flattened (h * w, D) maps (bilinear corners and weights
 computed exactly as ``grid_sample`` with border padding does), so the (m, D) samples are never
-materialised per view. ``average_features_reference`` is the previous per-view implementation.
+materialised per view; the selection, depth test and corners run once over all (view, point)
+pairs of a chunk, taken point-major so that each point's taps are contiguous for the bag.
+``average_features_reference`` is the previous per-view implementation.
 """
 
 from __future__ import annotations
@@ -343,16 +345,35 @@ def _chunks(
     max_table_bytes: int,
 ) -> Iterator[tuple[int, Tensor | None, Tensor]]:
     # The projection (one batched op per chunk) and the gather (one embedding_bag per chunk and
-    # group) run in torch; the per-view selection, depth test and corner weights are small
-    # float32 numpy ops (the same IEEE arithmetic as the torch ops of the reference): many tiny
-    # torch ops, each a parallel region, slow down badly when the cores are shared.
+    # group) run in torch; the selection, depth test and corner weights are float32 numpy ops over
+    # all (view, point) pairs of a chunk at once, with each view's sizes broadcast per pair (the
+    # same IEEE arithmetic as the torch ops of the reference). The pairs are taken point-major
+    # (``nonzero`` of the (n, V) mask), so each point's taps are contiguous for ``embedding_bag``
+    # in view order, as the reference sums them, without sorting.
     n_pts = pts.shape[0]
+    n_views = len(parsed)
     cam_from_world = invert_pose(torch.stack([_as_tensor(v.world_from_cam, torch.float32, device)
                                               for v in parsed]))  # (V, 4, 4)
     Ks = torch.stack([_as_tensor(v.K, torch.float32, device) for v in parsed])  # (V, 4)
+    vw_np = None if vw is None else vw.cpu().numpy()  # (V, N) float32
+    # per view: image size, ov size, depth-map size and offset into the concatenated depth maps
+    img_w = np.array([int(v.image_wh[0]) for v in parsed], np.int64)  # (V,)
+    img_h = np.array([int(v.image_wh[1]) for v in parsed], np.int64)
+    ov_w = np.array([int(v.ov.shape[1]) for v in parsed], np.int64)
+    ov_h = np.array([int(v.ov.shape[0]) for v in parsed], np.int64)
+    ov_scale = np.stack([np.array([w_ / w, h_ / h], np.float32)  # as the per-view np.array(..., float32)
+                         for w_, h_, w, h in zip(ov_w, ov_h, img_w, img_h, strict=True)])  # (V, 2)
     depths = [np.asarray(v.depth_m.cpu().numpy() if isinstance(v.depth_m, Tensor) else v.depth_m, np.float32)
               if use_depth and v.depth_m is not None else None for v in parsed]  # (H', W') each
-    vw_np = None if vw is None else vw.cpu().numpy()  # (V, N) float32
+    has_depth = np.array([d is not None for d in depths], bool)  # (V,)
+    d_w = np.array([d.shape[1] if d is not None else 1 for d in depths], np.int64)
+    d_h = np.array([d.shape[0] if d is not None else 1 for d in depths], np.int64)
+    d_scale = np.stack([np.array([dw / w, dh / h], np.float32)
+                        for dw, dh, w, h in zip(d_w, d_h, img_w, img_h, strict=True)])  # (V, 2)
+    d_off = np.concatenate([[0], np.cumsum(d_w * d_h)])[:-1]  # (V,)
+    depth_flat = None  # the views' depth maps, flattened one after another
+    if has_depth.any():
+        depth_flat = np.concatenate([np.zeros(1, np.float32) if d is None else d.reshape(-1) for d in depths])
     # Groups of views whose flattened maps form one gather table of <= max_table_bytes.
     groups: list[list[int]] = []
     size = 0
@@ -363,67 +384,66 @@ def _chunks(
             size = 0
         groups[-1].append(i)
         size += nbytes
-    tables: list[Tensor | None] = [None] * len(groups)  # (sum h * w, D) float32, built when first hit
-    offsets: list[int] = [0] * len(parsed)
-    for group in groups:
+    group_of = np.zeros(n_views, np.int64)
+    offsets = np.zeros(n_views, np.int64)  # each view's first row in its group's table
+    for g, group in enumerate(groups):
         off = 0
         for i in group:
-            offsets[i] = off
-            off += int(parsed[i].ov.shape[0]) * int(parsed[i].ov.shape[1])
+            group_of[i], offsets[i] = g, off
+            off += int(ov_w[i] * ov_h[i])
+    tables: list[Tensor | None] = [None] * len(groups)  # (sum h * w, D) float32, built when first hit
     eps = np.float32(DEFAULT_EPS)
+    right = (img_w - border_px)[:, None]  # (V, 1) float64, as ``width - border_px`` per view
+    bottom = (img_h - border_px)[:, None]
+
+    def per_pair(values: np.ndarray, view: np.ndarray) -> np.ndarray:
+        """A per-view value (V, ...) for each pair: one row when every view has the same (a
+        window of one camera: no (m, ...) gather), else ``values[view]``."""
+        return values[0] if (values == values[0]).all() else values[view]
 
     for start in range(0, n_pts, chunk):
         p = pts[start:start + chunk]  # (n, 3)
         n = p.shape[0]
-        wsum = np.zeros(n, np.float32)
-        count = np.zeros(n, np.int64)
         uv_t, z_t = project_points(p, Ks, cam_from_world)  # (V, n, 2), (V, n)
         uv_all, z_all = uv_t.cpu().numpy(), z_t.cpu().numpy()
-        # per group: point index (S,), table row (S, 4), weight (S, 4) of every counted sample
-        samples: list[list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = [[] for _ in groups]
-        for g, group in enumerate(groups):
-            for i in group:
-                v = parsed[i]
-                width, height = int(v.image_wh[0]), int(v.image_wh[1])
-                uv, z = uv_all[i], z_all[i]
-                u_px, v_px = uv[:, 0], uv[:, 1]
-                ok = ((z > eps) & (u_px >= border_px) & (u_px <= width - border_px)
-                      & (v_px >= border_px) & (v_px <= height - border_px))  # in_view, (n,)
-                if vw_np is not None:
-                    ok &= vw_np[i, start:start + chunk] > 0
-                idx = np.flatnonzero(ok)
-                if idx.size == 0:
-                    continue
-                uv_ok, z_ok = uv[idx], z[idx]
-                depth = depths[i]
-                if depth is not None:
-                    dh, dw = depth.shape
-                    duv = uv_ok * np.array([dw / width, dh / height], np.float32)  # scale_uv
-                    col = np.clip(np.floor(duv[:, 0]), 0, dw - 1).astype(np.int64)  # sample_nearest
-                    row = np.clip(np.floor(duv[:, 1]), 0, dh - 1).astype(np.int64)
-                    d = depth[row, col]
-                    keep = (d > 0) & (np.abs(d - z_ok) <= depth_rel_tol * d)
-                    idx, uv_ok, z_ok = idx[keep], uv_ok[keep], z_ok[keep]
-                    if idx.size == 0:
-                        continue
-                h_ov, w_ov = int(v.ov.shape[0]), int(v.ov.shape[1])
-                fuv = uv_ok * np.array([w_ov / width, h_ov / height], np.float32)
-                corner, bw = _bilinear_corners_np(fuv, w_ov, h_ov)  # (m, 4), (m, 4)
-                if distance_power:
-                    w = np.maximum(z_ok, np.float32(1e-6)) ** np.float32(-distance_power)
-                else:
-                    w = np.ones_like(z_ok)
-                if vw_np is not None:
-                    w = w * vw_np[i, start:start + chunk][idx]
-                wsum[idx] += w  # idx is unique within a view
-                count[idx] += 1
-                samples[g].append((idx, corner + offsets[i], bw * w[:, None]))
+        u_px, v_px = uv_all[..., 0], uv_all[..., 1]  # (V, n)
+        ok = ((z_all > eps) & (u_px >= border_px) & (u_px <= right)
+              & (v_px >= border_px) & (v_px <= bottom))  # in_view, (V, n)
+        if vw_np is not None:
+            ok &= vw_np[:, start:start + chunk] > 0
+        pt, view = np.nonzero(ok.T)  # (m,) pairs, point-major, views ascending within a point
+        uv_ok, z_ok = uv_all[view, pt], z_all[view, pt]  # (m, 2), (m,)
+        if depth_flat is not None and use_depth:
+            tested = per_pair(has_depth, view)
+            duv = uv_ok * per_pair(d_scale, view)  # scale_uv
+            dw_pair = per_pair(d_w, view)
+            col = np.clip(np.floor(duv[:, 0]), 0, dw_pair - 1).astype(np.int64)  # sample_nearest
+            row = np.clip(np.floor(duv[:, 1]), 0, per_pair(d_h, view) - 1).astype(np.int64)
+            d = depth_flat[d_off[view] + row * dw_pair + col]
+            keep = (d > 0) & (np.abs(d - z_ok) <= depth_rel_tol * d)
+            if not tested.all():
+                keep |= ~tested
+            pt, view, uv_ok, z_ok = pt[keep], view[keep], uv_ok[keep], z_ok[keep]
+        if distance_power:
+            w = np.maximum(z_ok, np.float32(1e-6)) ** np.float32(-distance_power)
+        else:
+            w = np.ones_like(z_ok)
+        if vw_np is not None:
+            w = w * vw_np[view, start + pt]
+        count = np.bincount(pt, minlength=n).astype(np.int64)  # (n,)
+        wsum = np.bincount(pt, weights=w, minlength=n).astype(np.float32)
         seen = count > 0
         inv = np.zeros(n, np.float32)
         inv[seen] = np.float32(1.0) / wsum[seen]
+        corner, bw = _bilinear_corners_np(uv_ok * per_pair(ov_scale, view), per_pair(ov_w, view),
+                                          per_pair(ov_h, view))  # (m, 4) each
+        cols_all = corner + offsets[view, None]
+        wts_all = bw * (w * inv[pt])[:, None]
         acc: Tensor | None = None  # (n, D) weighted means; rows without samples are zero
         for g, group in enumerate(groups):
-            if not samples[g]:
+            sel = slice(None) if len(groups) == 1 else np.flatnonzero(group_of[view] == g)
+            rows = pt[sel]
+            if rows.size == 0:
                 continue
             table = tables[g]
             if table is None:
@@ -431,36 +451,36 @@ def _chunks(
                     _as_tensor(parsed[i].ov, torch.float32, device).reshape(-1, dim) for i in group
                 ])
                 tables[g] = table
-            rows = np.concatenate([s[0] for s in samples[g]])  # (S,)
-            order = np.argsort(rows, kind="stable")
-            rows = rows[order]
-            cols = np.concatenate([s[1] for s in samples[g]])[order].reshape(-1)  # (S * 4,)
-            wts = (np.concatenate([s[2] for s in samples[g]])[order] * inv[rows, None]).reshape(-1)
             bag_len = np.bincount(rows, minlength=n) * 4  # (n,)
             bag_off = np.cumsum(bag_len) - bag_len
             part = F.embedding_bag(
-                torch.from_numpy(cols).to(device), table, torch.from_numpy(bag_off).to(device),
-                mode="sum", per_sample_weights=torch.from_numpy(wts).to(device),
+                torch.from_numpy(np.ascontiguousarray(cols_all[sel]).reshape(-1)).to(device), table,
+                torch.from_numpy(bag_off).to(device), mode="sum",
+                per_sample_weights=torch.from_numpy(np.ascontiguousarray(wts_all[sel]).reshape(-1)).to(device),
             )  # (n, D)
             acc = part if acc is None else acc.add_(part)
         yield start, acc, torch.from_numpy(count).to(device)
 
 
 def _bilinear_corners_np(
-    fuv: np.ndarray, width: int, height: int
+    fuv: np.ndarray, width: int | np.ndarray, height: int | np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Corners and weights of ``grid_sample(mode="bilinear", padding_mode="border",
-    align_corners=False)`` at float32 pixel coordinates ``fuv`` (m, 2) of a (height, width) map:
-    flat indices (m, 4) int64 into the row-major map and float32 weights (m, 4)."""
-    size = np.array([width, height], np.float32)
+    align_corners=False)`` at float32 pixel coordinates ``fuv`` (m, 2) of a (height, width) map
+    (one size, or (m,) int sizes, one per coordinate): flat indices (m, 4) int64 into the
+    row-major map and float32 weights (m, 4)."""
+    w_i = np.asarray(width, np.int64)
+    h_i = np.asarray(height, np.int64)
+    w_f, h_f = w_i.astype(np.float32), h_i.astype(np.float32)  # exact for any map size
+    size = np.stack(np.broadcast_arrays(w_f, h_f), axis=-1)  # (2,) or (m, 2)
     grid = np.clip(2.0 * fuv / size - 1.0, -2.0, 2.0)
     # grid_sample's unnormalisation (align_corners=False) and border padding (clip the coordinate)
-    ix = np.clip(((grid[:, 0] + 1.0) * width - 1.0) / 2.0, 0.0, width - 1.0)
-    iy = np.clip(((grid[:, 1] + 1.0) * height - 1.0) / 2.0, 0.0, height - 1.0)
+    ix = np.clip(((grid[:, 0] + 1.0) * w_f - 1.0) / 2.0, 0.0, w_f - 1.0)
+    iy = np.clip(((grid[:, 1] + 1.0) * h_f - 1.0) / 2.0, 0.0, h_f - 1.0)
     x0f, y0f = np.floor(ix), np.floor(iy)
     tx, ty = ix - x0f, iy - y0f
     x0, y0 = x0f.astype(np.int64), y0f.astype(np.int64)
-    x1, y1 = np.minimum(x0 + 1, width - 1), np.minimum(y0 + 1, height - 1)
-    idx = np.stack([y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1], axis=1)
+    x1, y1 = np.minimum(x0 + 1, w_i - 1), np.minimum(y0 + 1, h_i - 1)
+    idx = np.stack([y0 * w_i + x0, y0 * w_i + x1, y1 * w_i + x0, y1 * w_i + x1], axis=1)
     w = np.stack([(1 - tx) * (1 - ty), tx * (1 - ty), (1 - tx) * ty, tx * ty], axis=1)
     return idx, w
