@@ -50,6 +50,21 @@ def test_fast_average_equals_the_reference(seed: int, use_depth: bool) -> None:
         assert torch.allclose(f, f_ref, atol=1e-5, rtol=0)
 
 
+@pytest.mark.parametrize("use_depth", [False, True])
+def test_one_camera_window_equals_the_reference(use_depth: bool) -> None:
+    # every view of the same size (one robot's camera): the per-view sizes are one value for all
+    # pairs (no per-pair gather), as in a node's window
+    pts, views = random_scene(4)
+    rng = np.random.default_rng(4)
+    same = [OVView(rng.standard_normal((5, 7, 24)).astype(np.float32), views[0].K, v.world_from_cam,
+                   views[0].image_wh, None if v.depth_m is None else views[0].depth_m) for v in views]
+    for chunk, table_bytes in ((16384, 256 << 20), (333, 1)):
+        f_ref, n_ref = average_features_reference(pts, same, use_depth=use_depth, chunk=chunk)
+        f, n = average_features(pts, same, use_depth=use_depth, chunk=chunk, max_table_bytes=table_bytes)
+        assert torch.equal(n, n_ref) and int((n > 0).sum()) > 100
+        assert torch.allclose(f, f_ref, atol=1e-5, rtol=0)
+
+
 def test_view_weights_and_table_groups_equal_the_reference() -> None:
     pts, views = random_scene(3)
     vw = np.random.default_rng(3).random((len(views), pts.shape[0])).astype(np.float32)
