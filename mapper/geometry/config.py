@@ -284,6 +284,17 @@ class StereoConfig:
     max_points: int = 400_000
     """Swept points kept for that check (the oldest keyframes' go first). 0 = none kept. 0..1e8."""
 
+    prior_geometry: bool = True
+    """The holes left in a keyframe's depth prior (after ``prior_fill_px``) take the surface that
+    the node's whole RGB-only geometry (every keyframe's triangulated and kept swept points, splat
+    as ``render`` splats them: ``mapper.node.queries.surface_depth``) shows at the keyframe's pose.
+    The priors of the latest ``window.max_keyframes`` keyframes are filled again when the number of
+    geometry points moved by more than ``prior_geometry_refresh`` since they last were. Measured:
+    +0.05 to +3.1 mIoU for ``govnesf`` + DGM on four RGB-only rooms (docs/RGB_ONLY.md)."""
+
+    prior_geometry_refresh: float = 0.1
+    """See ``prior_geometry`` (relative change of the geometry's point count). 0..10."""
+
     prior_fill_px: int = 8
     """Holes of the prior are filled from the depths within this radius (pixels at the working
     size) of similar intensity (``plane_sweep.fill_depth``); 0 = no filling. 0..64."""
@@ -330,6 +341,7 @@ class StereoConfig:
         check("min_agreeing", self.min_agreeing, 0, 16)
         check("global_map_weight", self.global_map_weight, 0.0, 1.0)
         check("prior_fill_px", self.prior_fill_px, 0, 64)
+        check("prior_geometry_refresh", self.prior_geometry_refresh, 0.0, 10.0)
         check("prior_fill_sigma", self.prior_fill_sigma, 1e-3, 1.0)
         check("prior_fill_spread", self.prior_fill_spread, 0.0, 1.0)
         check("sigma_rel", self.sigma_rel, 1e-4, 1.0)

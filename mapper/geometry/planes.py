@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from mapper.geometry.splat import check_camera
+
 __all__ = ["Plane", "fit_planes", "plane_depth", "point_normals"]
 
 
@@ -273,16 +275,7 @@ def plane_depth(
         depth: (H, W) float32 z-depth (m), 0 where no plane is hit;
         index: (H, W) int64 index into ``planes`` of the plane hit, -1 where none.
     """
-    K = np.asarray(K, np.float64).reshape(-1)
-    pose = np.asarray(world_from_cam, np.float64)
-    if K.shape != (4,) or pose.shape != (4, 4) or not (np.isfinite(K).all() and np.isfinite(pose).all()):
-        raise ValueError(
-            f"K must be 4 finite numbers and world_from_cam a finite (4, 4), got {K.shape}, {pose.shape}"
-        )
-    if not (K[0] > 0 and K[1] > 0):
-        raise ValueError(f"K: fx, fy must be > 0, got {K[:2].tolist()}")
-    if not (width >= 1 and height >= 1):
-        raise ValueError(f"image size {width}x{height} out of range: width and height must be >= 1")
+    K, pose = check_camera(K, world_from_cam, width, height)
     fx, fy, cx, cy = K
     cols, rows = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
     rays = np.stack([(cols - cx) / fx, (rows - cy) / fy, np.ones_like(cols)], axis=-1).reshape(-1, 3)  # z = 1

@@ -15,10 +15,28 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["MAX_REACH_PX", "fill_holes", "remove_speckles", "see_through", "splat_points"]
+__all__ = ["MAX_REACH_PX", "check_camera", "fill_holes", "remove_speckles", "see_through", "splat_points"]
 
 MAX_REACH_PX = 2
 """A point covers at most (2 * MAX_REACH_PX + 1)^2 pixels (its footprint's half width, clipped)."""
+
+
+def check_camera(
+    K: np.ndarray, world_from_cam: np.ndarray, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(K (4,), world_from_cam (4, 4))`` as float64, or ``ValueError`` naming what is wrong:
+    non-finite or misshapen arrays, fx or fy <= 0, an image size below 1 x 1."""
+    K = np.asarray(K, np.float64).reshape(-1)
+    pose = np.asarray(world_from_cam, np.float64)
+    if K.shape != (4,) or pose.shape != (4, 4) or not (np.isfinite(K).all() and np.isfinite(pose).all()):
+        raise ValueError(
+            f"K must be 4 finite numbers and world_from_cam a finite (4, 4), got {K.shape}, {pose.shape}"
+        )
+    if not (K[0] > 0 and K[1] > 0):
+        raise ValueError(f"K: fx, fy must be > 0, got {K[:2].tolist()}")
+    if not (width >= 1 and height >= 1):
+        raise ValueError(f"image size {width}x{height} out of range: width and height must be >= 1")
+    return K, pose
 
 
 def splat_points(
@@ -43,16 +61,7 @@ def splat_points(
     xyz = np.asarray(xyz)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"xyz must have shape (N, 3), got {xyz.shape}")
-    K = np.asarray(K, np.float64).reshape(-1)
-    pose = np.asarray(world_from_cam, np.float64)
-    if K.shape != (4,) or pose.shape != (4, 4) or not (np.isfinite(K).all() and np.isfinite(pose).all()):
-        raise ValueError(
-            f"K must be 4 finite numbers and world_from_cam a finite (4, 4), got {K.shape}, {pose.shape}"
-        )
-    if not (K[0] > 0 and K[1] > 0):
-        raise ValueError(f"K: fx, fy must be > 0, got {K[:2].tolist()}")
-    if not (width >= 1 and height >= 1):
-        raise ValueError(f"image size {width}x{height} out of range: width and height must be >= 1")
+    K, pose = check_camera(K, world_from_cam, width, height)
     if not (np.isfinite(footprint_m) and footprint_m >= 0):
         raise ValueError(f"footprint_m must be finite and >= 0, got {footprint_m}")
     index = np.full(height * width, -1, np.int64)

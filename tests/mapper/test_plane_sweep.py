@@ -409,3 +409,47 @@ def test_features_that_arrive_later_reach_the_triangulated_and_swept_points(
         assert tri.stats()["late_feature_points"] == stats["late_feature_points"]
     finally:
         node.stop()
+
+
+def test_priors_take_the_whole_geometry_where_their_own_depth_has_holes(
+    tmp_path: Path, texture: np.ndarray
+) -> None:
+    own_only = make_node(tmp_path / "own", {"top_k": 1, "prior_geometry": False})
+    node = make_node(tmp_path / "geometry", {"top_k": 1, "prior_geometry_refresh": 0.0})
+    try:
+        priors = {}
+        for mapper in (own_only, node):
+            sink = Sink()
+            tri = SparseTriangulation(mapper, runtime=sink)
+            tri.install()
+            mapper.handle_ingest(encode(plane_frame(0, texture, depth=True)))
+            for i in (1, 2, 3):
+                mapper.handle_ingest(encode(plane_frame(i, texture)))
+            assert tri.process_pending() == 3
+            priors[mapper is node] = (sink, tri)
+        (sink_own, _), (sink, tri) = priors[False], priors[True]
+        key = keyframe_key(plane_frame(1, texture))
+        own, filled = sink_own.priors[key], sink.priors[key]
+        assert own is not None and filled is not None and filled.shape == own.shape
+        # the own depths are kept; holes take the geometry's surface, which is on the plane too
+        np.testing.assert_array_equal(filled[own > 0], own[own > 0])
+        assert (filled > 0).sum() >= (own > 0).sum()
+        truth = plane_depth(POSES[1])
+        on = filled > 0
+        assert np.median(np.abs(filled[on] - truth[on]) / truth[on]) < 0.01
+        stats = tri.stats()["stereo"]
+        assert stats["prior_refreshes"] >= 1  # refresh 0: after every batch that changed the geometry
+        assert tri.refresh_priors() == 0  # nothing changed since
+        assert tri.refresh_priors(force=True) == 3  # the three RGB-only keyframes' priors
+        # a load forgets them
+        tri.on_map_loaded(node.state.global_map, 10)
+        assert tri.refresh_priors(force=True) == 0
+    finally:
+        own_only.stop()
+        node.stop()
+
+
+def test_prior_geometry_config_is_validated() -> None:
+    assert config_from_dict({}).stereo.prior_geometry is True
+    with pytest.raises(ConfigError, match="stereo.prior_geometry_refresh"):
+        config_from_dict({"stereo": {"prior_geometry_refresh": -1.0}})

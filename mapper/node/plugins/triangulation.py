@@ -309,6 +309,11 @@ class SparseTriangulation:
         self.stereo_map_points = 0
         self.stereo_seconds_total = 0.0
         self.stereo_skipped_busy = 0
+        # each keyframe's own depth prior (the latest window.max_keyframes), to fill its holes from
+        # the whole geometry again as it grows (stereo.prior_geometry)
+        self._own_priors: OrderedDict[KeyframeKey, tuple[np.ndarray, PosedView]] = OrderedDict()
+        self._prior_geometry_count = 0  # geometry points when the priors were last filled
+        self.prior_refreshes = 0
         self._log = LimitedLog(log)
 
     # -- wiring -------------------------------------------------------------------------------
@@ -362,6 +367,11 @@ class SparseTriangulation:
                     done += self._process_one(kf, version, target)
                 finally:
                     self._in_batch -= 1
+            if done:
+                try:
+                    self.refresh_priors()
+                except Exception as exc:  # a bad geometry point must not kill the worker
+                    self._log.warning("priors", "triangulation: refreshing the depth priors failed: %s", exc)
             return done
         finally:
             self._in_batch = 0
@@ -479,8 +489,52 @@ class SparseTriangulation:
             prior = swept.depth_m if prior is None else np.where(swept.depth_m > 0, swept.depth_m, prior)
             if cfg.prior_fill_px > 0 and image is not None:
                 prior = self._filled(prior, image)
+        if cfg.prior_geometry:  # its holes from the whole geometry (now, and as it grows)
+            height, width = keyframe.rgb.shape[:2]
+            view = PosedView(np.asarray(keyframe.K, np.float64),
+                             np.asarray(keyframe.world_from_cam, np.float64), int(width), int(height))
+            own = (np.zeros((int(height), int(width)), np.float32) if prior is None
+                   else np.asarray(prior, np.float32))
+            with self._lock:
+                self._own_priors[keyframe_key(keyframe)] = (own, view)
+                while len(self._own_priors) > max(1, self.node.config.window.max_keyframes):
+                    self._own_priors.popitem(last=False)
+            geometry = self.geometry_points()[0]
+            prior = self._with_geometry(own, view, geometry)
         if prior is not None:
             self.runtime.set_view_depth_prior(keyframe_key(keyframe), np.asarray(prior, np.float32))
+
+    def _with_geometry(self, own: np.ndarray, view: PosedView, geometry: np.ndarray) -> np.ndarray:
+        """``own`` (h, w) prior with its holes (0) set to the surface the (N, 3) geometry shows at
+        ``view`` (``mapper.node.queries.surface_depth``, each point over
+        ``model.surface_geometry_footprint`` map voxels, as ``render`` splats it)."""
+        from mapper.node.queries import surface_depth  # SciPy; only with stereo.prior_geometry
+
+        cfg = self.node.config
+        footprint_m = cfg.model.surface_geometry_footprint * cfg.global_map.voxel_size_m
+        z = surface_depth(geometry, footprint_m, view.K, view.world_from_cam, view.width, view.height,
+                          cfg.model)
+        if z.shape != own.shape:
+            z = cv2.resize(z, (own.shape[1], own.shape[0]), interpolation=cv2.INTER_NEAREST)
+        return np.where(own > 0, own, z).astype(np.float32)
+
+    def refresh_priors(self, force: bool = False) -> int:
+        """Fill the kept keyframes' own priors from the current geometry again when its point count
+        moved by more than ``stereo.prior_geometry_refresh`` since the last fill (or ``force``);
+        returns the priors set (worker thread, after a batch)."""
+        if self.runtime is None or not self.stereo.prior_geometry:
+            return 0
+        geometry = self.geometry_points()[0]
+        last = self._prior_geometry_count
+        if not force and abs(len(geometry) - last) <= self.stereo.prior_geometry_refresh * last:
+            return 0
+        with self._lock:
+            kept = list(self._own_priors.items())
+        for key, (own, view) in kept:
+            self.runtime.set_view_depth_prior(key, self._with_geometry(own, view, geometry))
+        self._prior_geometry_count = len(geometry)
+        self.prior_refreshes += 1
+        return len(kept)
 
     def _filled(self, prior: np.ndarray, image: _StereoImage) -> np.ndarray:
         """``prior`` (H, W) with its holes filled at the working size, back at (H, W)."""
@@ -514,6 +568,8 @@ class SparseTriangulation:
         self._candidates.clear()
         self._room_depths.clear()
         self._without_extent.clear()
+        self._own_priors.clear()
+        self._prior_geometry_count = 0
         self._map = None
 
     def _set_extent(self, key: KeyframeKey, view: PosedView, points: SparsePoints) -> None:
@@ -653,6 +709,7 @@ class SparseTriangulation:
         restores it)."""
         with self._lock:
             pts = sum(p.xyz.nbytes + p.sigma_m.nbytes * 5 + p.uv.nbytes for p in self._points.items.values())
+            pts += sum(own.nbytes for own, _ in self._own_priors.values())
             candidates = list(self._candidates)
         feats = 0
         for c in candidates:
@@ -707,6 +764,7 @@ class SparseTriangulation:
                 "points": self._swept.total,
                 "skipped_busy": self.stereo_skipped_busy,
                 "mean_ms": round(1e3 * self.stereo_seconds_total / max(self.stereo_keyframes, 1), 1),
+                "prior_refreshes": self.prior_refreshes,
             },
         }
 
