@@ -32,6 +32,7 @@ from mapper.model.fusion import DensityMLP, DistillHead, FusionNet, blend, blend
 from mapper.model.ops.checks import check_shape
 from mapper.model.ops.cost_volume import VolumeBounds, build_cost_volume, cost_volume_features, sample_volume
 from mapper.model.ops.geometry import (
+    bilinear_corners,
     camera_centers,
     in_view,
     invert_pose,
@@ -288,32 +289,28 @@ class GovNeSF(nn.Module):
         uv, z = uv[:, 0], z[:, 0]
         mask = in_view(uv, z, wh[0], wh[1]) & slot_mask.T.reshape(-1)
         maps = (views.rgb, views.features, views.ov)
-        bufs = [uv.new_zeros(m.shape[1], N * P) for m in maps]  # (C, N*P) each
-        order = torch.argsort(flat_v, stable=True)
-        counts = torch.bincount(flat_v, minlength=len(views)).tolist()
-        start = 0
-        for m, count in enumerate(counts):
-            if not count:
-                continue
-            sel = order[start : start + count]
-            start += count
-            uv_m = uv[sel]
-            for image, buf in zip(maps, bufs, strict=True):
-                size = uv_m.new_tensor([image.shape[-1], image.shape[-2]])
-                at = scale_uv(uv_m, wh, (image.shape[-1], image.shape[-2]))
-                grid = (2.0 * at / size - 1.0).clamp(-2.0, 2.0)
-                out = F.grid_sample(  # as sample_bilinear, without its transposes: (1, C, 1, L)
-                    image[m : m + 1], grid.to(image.dtype)[None, None], mode="bilinear",
-                    padding_mode="border", align_corners=False,
-                )  # fmt: skip
-                buf.index_copy_(1, sel, out[0, :, 0])
-            if depth_guided_masking and views.depth_m is not None:
-                d_m = views.depth_m[m][None]
-                d_wh = (d_m.shape[-1], d_m.shape[-2])
-                measured = sample_nearest(d_m, scale_uv(uv_m, wh, d_wh))[0][:, 0]
-                has_depth = torch.isfinite(measured) & (measured > 0)
-                agrees = (z[sel] - measured).abs() <= self.cfg.render.depth_mask_ratio * measured
-                mask[sel] = mask[sel] & (agrees | ~has_depth)
+        # every pair's bilinear taps in its own view's map, all views at once: one embedding_bag
+        # per map over the views' channel-last maps (the taps of ``grid_sample``, bilinear_corners)
+        bufs = []  # (C, N*P) each
+        bag_offsets = torch.arange(0, 4 * N * P, 4, device=uv.device)
+        for image in maps:
+            M, C, h, w = image.shape
+            at = scale_uv(uv, wh, (w, h))
+            index, tap = bilinear_corners(at, w, h)  # (N*P, 4)
+            index = index + (flat_v * (h * w)).unsqueeze(-1)
+            table = image.permute(0, 2, 3, 1).reshape(M * h * w, C)
+            out = F.embedding_bag(index.reshape(-1), table, bag_offsets, mode="sum",
+                                  per_sample_weights=tap.reshape(-1).to(table.dtype))  # (N*P, C)
+            bufs.append(out.T.to(uv.dtype))
+        if depth_guided_masking and views.depth_m is not None:
+            d_wh = (views.depth_m.shape[-1], views.depth_m.shape[-2])
+            at = scale_uv(uv, wh, d_wh)
+            col = at[:, 0].floor().clamp(0, d_wh[0] - 1).long()  # sample_nearest
+            row = at[:, 1].floor().clamp(0, d_wh[1] - 1).long()
+            measured = views.depth_m.reshape(-1)[flat_v * (d_wh[0] * d_wh[1]) + row * d_wh[0] + col]
+            has_depth = torch.isfinite(measured) & (measured > 0)
+            agrees = (z - measured).abs() <= self.cfg.render.depth_mask_ratio * measured
+            mask = mask & (agrees | ~has_depth)
         centres = camera_centers(views.world_from_cam)[flat_v]  # (N*P, 3)
         dirs = F.normalize(pts[:, 0] - centres, dim=-1, eps=1e-9)
 
