@@ -364,18 +364,25 @@ def test_fill_from_map_takes_a_more_confident_map_answer_only_when_asked() -> No
     assert sc[0] == pytest.approx(0.3)
 
 
+def _disagreeing_frames() -> list:
+    """A strong view of text 3 at ON_B, a view of A's wall (so that the strong one leaves a window of
+    one), then B's wall again, mostly 1 (0.6 against 0.55 for 3): the window and the map disagree at
+    ON_B."""
+    strong = _frame(0, LOOK_X, 3)
+    weak = _frame(1, np.eye(4), 0)
+    ov = np.zeros((6, 8, D), np.float16)
+    ov[..., 1], ov[..., 3] = 0.6, 0.55
+    again = _frame(2, LOOK_X, 1)
+    again.ov = ov
+    return [strong, weak, again]
+
+
 @pytest.mark.parametrize("more_confident", [True, False])
 def test_node_prefers_the_more_confident_map_as_configured(tmp_path: Path, more_confident: bool) -> None:
     """ON_B is in the window, seen as class 1 by a view with a weak feature; the map fused it as
     class 3 from a view that left (a strong feature): the map answers when configured to."""
     node = _node(tmp_path, map_when_more_confident=more_confident, map_blend=0.0)
-    strong = _frame(0, LOOK_X, 3)
-    weak = _frame(1, np.eye(4), 0)  # A's wall, so that `strong` leaves the window ...
-    ov = np.zeros((6, 8, D), np.float16)
-    ov[..., 1], ov[..., 3] = 0.6, 0.55  # ... then B's wall again: mostly 1, some 3
-    again = _frame(2, LOOK_X, 1)
-    again.ov = ov
-    _stream(node, [strong, weak, again])
+    _stream(node, _disagreeing_frames())
     reply = _segment(node, "average", [ON_B])
     assert reply.source is not None
     if more_confident:
@@ -459,13 +466,8 @@ def test_node_blends_window_and_map_as_configured(tmp_path: Path, blend: float) 
     the strong view of 3 that left) disagree at ON_B; the shipped weight takes the map's text, a
     light one keeps the window's. ``govnesf`` (a stub runtime that reports its cosines) the same."""
     node = _node(tmp_path, map_blend=blend)
-    strong = _frame(0, LOOK_X, 3)
-    weak = _frame(1, np.eye(4), 0)
-    ov = np.zeros((6, 8, D), np.float16)
-    ov[..., 1], ov[..., 3] = 0.6, 0.55
-    again = _frame(2, LOOK_X, 1)
-    again.ov = ov
-    _stream(node, [strong, weak, again])
+    frames = _disagreeing_frames()
+    _stream(node, frames)
     reply = _segment(node, "average", [ON_B])
     assert reply.source is not None
     if blend > 0.5:
@@ -497,16 +499,11 @@ def test_depth_tested_answers_keep_the_more_confident_rule(tmp_path: Path) -> No
     """``average_depth`` (and ``govnesf`` with ``use_depth``) already passed a depth test: the blend
     is not applied to them (measured: it cost them), the more-confident rule is."""
     node = _node(tmp_path, map_blend=0.75)
-    strong = _frame(0, LOOK_X, 3)
-    weak = _frame(1, np.eye(4), 0)
-    ov = np.zeros((6, 8, D), np.float16)
-    ov[..., 1], ov[..., 3] = 0.6, 0.55
-    again = _frame(2, LOOK_X, 1)
-    again.ov = ov
-    _stream(node, [strong, weak, again])
+    frames = _disagreeing_frames()
+    _stream(node, frames)
     plain, tested = _segment(node, "average", [ON_B]), _segment(node, "average_depth", [ON_B])
     more_confident = _node(tmp_path / "b", map_blend=0.0)
-    _stream(more_confident, [strong, weak, again])
+    _stream(more_confident, frames)
     want = _segment(more_confident, "average_depth", [ON_B])
     assert plain.label.tolist() == [3]  # blended
     assert tested.label.tolist() == want.label.tolist() and tested.score.tolist() == want.score.tolist()
