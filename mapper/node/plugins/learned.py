@@ -43,6 +43,7 @@ from protocol.errors import ProtocolError
 from protocol.messages import Message, Render, RenderResult, Segmentation, SegmentPoints
 
 if TYPE_CHECKING:
+    from mapper.node.queries import PlaneCache
     from mapper.node.service import MapperNode, QueryHandler
 
 __all__ = [
@@ -138,9 +139,7 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
     """A ``Render`` handler backed by the runtime. With ``node``, pixels the window does not label
     are answered from its global map (the render then also computes depth and label)."""
 
-    from mapper.node.queries import PlaneCache
-
-    plane_cache = PlaneCache()  # the planes of the RGB-only geometry (model.surface_planes)
+    plane_cache: list[PlaneCache] = []  # the planes of the RGB-only geometry, made when first needed
 
     def handle_render(msg: Message) -> Message:
         assert isinstance(msg, Render)
@@ -157,13 +156,15 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
         points = _surface_points(node, runtime.config) if node is not None else None
         if points is not None:
             # pixels with a measured surface are rendered at it (docs/RENDERING.md)
-            from mapper.node.queries import surface_depth, with_planes
+            from mapper.node.queries import PlaneCache, surface_depth, with_planes
 
             xyz, footprint_m, surface_source = points
             surface = surface_depth(xyz, footprint_m, np.asarray(msg.K, np.float64), msg.world_from_cam,
                                     msg.width, msg.height, runtime.config)  # fmt: skip
             if surface_source == "geometry" and runtime.config.surface_planes:
-                planes = plane_cache.planes(xyz, runtime.config)
+                if not plane_cache:
+                    plane_cache.append(PlaneCache())
+                planes = plane_cache[0].planes(xyz, runtime.config)
                 surface, plane_pixels = with_planes(surface, planes, np.asarray(msg.K, np.float64),
                                                     np.asarray(msg.world_from_cam, np.float64))
         surface_ms = (time.perf_counter() - t_surface) * 1e3
