@@ -57,9 +57,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--checkpoint", type=Path, default=ROOT / "checkpoints" / "cpu-small.json")
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args(argv)
+    if min(args.frames, args.window, args.threads) < 1:
+        p.error("--frames, --window and --threads must be >= 1")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     torch.set_num_threads(args.threads)
-    stream = sim_stream(args.seed, args.frames, 160, 120, depth=False, style=args.style)
+    try:
+        stream = sim_stream(args.seed, args.frames, 160, 120, depth=False, style=args.style)
+    except ValueError as exc:  # e.g. an unknown --style
+        p.error(str(exc))
     config = config_from_dict({
         "map_dir": "/tmp/govnesf-bench-maps", "autosave_name": "", "save_on_exit": False,
         "window": {"max_keyframes": args.window},

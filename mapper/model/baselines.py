@@ -413,7 +413,7 @@ def _chunks(
             ok &= vw_np[:, start:start + chunk] > 0
         pt, view = np.nonzero(ok.T)  # (m,) pairs, point-major, views ascending within a point
         uv_ok, z_ok = uv_all[view, pt], z_all[view, pt]  # (m, 2), (m,)
-        if depth_flat is not None and use_depth:
+        if depth_flat is not None:  # only with use_depth
             tested = per_pair(has_depth, view)
             duv = uv_ok * per_pair(d_scale, view)  # scale_uv
             dw_pair = per_pair(d_w, view)

@@ -19,7 +19,7 @@ sample (3D segmentation). Distill mode (``mode="distill"``): the OV feature is r
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import torch
@@ -32,7 +32,6 @@ from mapper.model.fusion import DensityMLP, DistillHead, FusionNet, blend, blend
 from mapper.model.ops.checks import check_shape
 from mapper.model.ops.cost_volume import VolumeBounds, build_cost_volume, cost_volume_features, sample_volume
 from mapper.model.ops.geometry import (
-    bilinear_corners,
     camera_centers,
     in_view,
     invert_pose,
@@ -81,6 +80,8 @@ class SourceViews:
     """(N, 4, 4) camera-to-world poses."""
     depth_m: Tensor | None = None
     """(N, H_d, W_d) optional z-depth maps (m); 0 or non-finite = no measurement."""
+    _channel_last: tuple[Tensor, Tensor, Tensor] | None = field(default=None, init=False, repr=False,
+                                                                compare=False)
 
     def __post_init__(self) -> None:
         n = self.rgb.shape[0]
@@ -114,6 +115,15 @@ class SourceViews:
     @property
     def image_wh(self) -> tuple[int, int]:
         return int(self.rgb.shape[-1]), int(self.rgb.shape[-2])
+
+    def channel_last(self) -> tuple[Tensor, Tensor, Tensor]:
+        """``rgb``, ``features`` and ``ov`` as (N * h * w, C) channel-last, view-major tables (the
+        layout of ``fusion.blend_from_maps``), made once per SourceViews (the maps must not change)."""
+        if self._channel_last is None:
+            rgb, features, ov = (m.permute(0, 2, 3, 1).reshape(-1, m.shape[1]).contiguous()
+                                 for m in (self.rgb, self.features, self.ov))
+            self._channel_last = (rgb, features, ov)
+        return self._channel_last
 
     def __len__(self) -> int:
         return int(self.rgb.shape[0])
@@ -288,19 +298,14 @@ class GovNeSF(nn.Module):
         uv, z = project_points(pts, views.K[flat_v], cam_from_world[flat_v])  # (N*P, 1, 2), (N*P, 1)
         uv, z = uv[:, 0], z[:, 0]
         mask = in_view(uv, z, wh[0], wh[1]) & slot_mask.T.reshape(-1)
-        maps = (views.rgb, views.features, views.ov)
-        # every pair's bilinear taps in its own view's map, all views at once: one embedding_bag
-        # per map over the views' channel-last maps (the taps of ``grid_sample``, bilinear_corners)
+        # every pair's bilinear sample of its own view's maps, all views at once: blend_from_maps
+        # with one slot a pair, of weight 1, over the views' channel-last maps
         bufs = []  # (C, N*P) each
-        bag_offsets = torch.arange(0, 4 * N * P, 4, device=uv.device)
-        for image in maps:
-            M, C, h, w = image.shape
-            at = scale_uv(uv, wh, (w, h))
-            index, tap = bilinear_corners(at, w, h)  # (N*P, 4)
-            index = index + (flat_v * (h * w)).unsqueeze(-1)
-            table = image.permute(0, 2, 3, 1).reshape(M * h * w, C)
-            out = F.embedding_bag(index.reshape(-1), table, bag_offsets, mode="sum",
-                                  per_sample_weights=tap.reshape(-1).to(table.dtype))  # (N*P, C)
+        ones = uv.new_ones(N * P, 1)
+        for image, table in zip((views.rgb, views.features, views.ov), views.channel_last(), strict=True):
+            map_wh = (image.shape[-1], image.shape[-2])
+            at = scale_uv(uv, wh, map_wh)[:, None]  # (N*P, 1, 2)
+            out = blend_from_maps(table, map_wh, flat_v[:, None], at, ones)  # (N*P, C)
             bufs.append(out.T.to(uv.dtype))
         if depth_guided_masking and views.depth_m is not None:
             d_wh = (views.depth_m.shape[-1], views.depth_m.shape[-2])

@@ -1455,11 +1455,16 @@ class MapperNode:
         depth, else ``queries.map_blend_without_depth``."""
         if depth_tested:
             return 0.0
+        q = self.config.queries
+        return q.map_blend if self.window_has_depth() else q.map_blend_without_depth
+
+    def window_has_depth(self) -> bool:
+        """Whether at least half of the window's keyframes carry input depth (an empty window has
+        none): the global map's surfaces are then measured ones, not an RGB-only robot's estimates."""
         with self.state.lock:
             keyframes = self.state.window.keyframes
         with_depth = sum(k.depth_m is not None for k in keyframes)
-        q = self.config.queries
-        return q.map_blend if keyframes and 2 * with_depth >= len(keyframes) else q.map_blend_without_depth
+        return bool(keyframes) and 2 * with_depth >= len(keyframes)
 
     @property
     def map_radius_m(self) -> float:

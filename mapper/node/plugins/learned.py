@@ -122,10 +122,7 @@ def _surface_points(node: MapperNode, config: ModelRuntimeConfig) -> tuple[np.nd
     if mode == "off":
         return None
     if mode == "auto":
-        with node.state.lock:
-            keyframes = node.state.window.keyframes
-        with_depth = sum(k.depth_m is not None for k in keyframes)
-        if not (keyframes and 2 * with_depth >= len(keyframes)):  # mostly RGB-only: its geometry
+        if not node.window_has_depth():  # mostly RGB-only: its geometry
             parts = [np.asarray(provide(), np.float64).reshape(-1, 3) for provide in node.surface_points]
             if not parts:
                 return None
