@@ -46,6 +46,7 @@ __all__ = [
     "load_metadata",
     "load_model",
     "load_training_state",
+    "load_weights_except",
     "save_checkpoint",
 ]
 
@@ -267,6 +268,31 @@ def load_model(path: str | Path, *, device: str | torch.device = "cpu") -> tuple
     model.to(device)
     model.eval()
     return model, meta
+
+
+def load_weights_except(path: str | Path, model: GovNeSF, *, prefix: str) -> dict[str, Any]:
+    """Load a checkpoint's weights into ``model`` in place (float32), where the model has extra
+    parameters under ``prefix`` that the checkpoint lacks (they keep their values); returns the
+    metadata. Every other parameter must match by name and shape, and the checkpoint may not hold
+    anything the model lacks."""
+    if not prefix:
+        raise ValueError("prefix must name the model's extra parameters")
+    meta = load_metadata(path)
+    weights_path, _, _ = checkpoint_paths(path)
+    state = _read_verified(weights_path, meta.get("weights_sha256"))
+    ours = model.state_dict()
+    missing = sorted(k for k in ours if k not in state and not k.startswith(prefix))
+    unexpected = sorted(k for k in state if k not in ours or k.startswith(prefix))
+    if missing or unexpected:
+        raise ValueError(
+            f"checkpoint {path}: missing {missing}, unexpected {unexpected} (extra prefix {prefix!r})"
+        )
+    device = next(model.parameters()).device
+    model.load_state_dict(
+        {k: v.to(device, torch.float32) if v.is_floating_point() else v.to(device) for k, v in state.items()},
+        strict=False,
+    )
+    return meta
 
 
 def load_training_state(

@@ -92,6 +92,10 @@ class FusionConfig:
     """Width of the Distill head's hidden layers (0: ``2 * hidden_dim``, the first checkpoints')."""
     distill_layers: int = 1
     """Hidden layers of the Distill head (1: the first checkpoints')."""
+    range_encoding: bool = False
+    """Feed each view's camera-to-point distance to the blend (``x^n += RE(log r^n)``, next to
+    the direction encoding DE): 2D OV models see near surfaces better than far ones. Off: the
+    paper's inputs (and the checkpoints made before it)."""
 
     def __post_init__(self) -> None:
         if self.attention_dim % self.num_heads:

@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mapper.model.config import ModelConfig
@@ -139,6 +138,7 @@ class PointViewSamples:
     mask: Tensor  # (P, N) bool: the view sees the point (and passes depth masking)
     source_dirs: Tensor  # (P, N, 3) unit directions source camera -> point
     uv: Tensor | None = None  # (P, N, 2) pixel coordinates in the source images (sample_views)
+    source_range: Tensor | None = None  # (P, N) distances (m) source camera -> point
 
 
 @dataclass
@@ -257,7 +257,9 @@ class GovNeSF(nn.Module):
         )
         ov, _ = sample_bilinear(views.ov, scale_uv(uv, wh, (views.ov.shape[-1], views.ov.shape[-2])))
         centres = camera_centers(views.world_from_cam)  # (N, 3)
-        dirs = F.normalize(pts - centres.unsqueeze(1), dim=-1, eps=1e-9)
+        offsets = pts - centres.unsqueeze(1)  # (N, P, 3)
+        dist = offsets.norm(dim=-1)  # (N, P)
+        dirs = offsets / dist.clamp_min(1e-9).unsqueeze(-1)  # = F.normalize(offsets, eps=1e-9)
         return PointViewSamples(
             rgb=rgb.transpose(0, 1),
             features=feat.transpose(0, 1),
@@ -265,6 +267,7 @@ class GovNeSF(nn.Module):
             mask=mask.transpose(0, 1),
             source_dirs=dirs.transpose(0, 1),
             uv=uv.transpose(0, 1),
+            source_range=dist.transpose(0, 1),
         )
 
     def sample_views_indexed(
@@ -317,7 +320,9 @@ class GovNeSF(nn.Module):
             agrees = (z - measured).abs() <= self.cfg.render.depth_mask_ratio * measured
             mask = mask & (agrees | ~has_depth)
         centres = camera_centers(views.world_from_cam)[flat_v]  # (N*P, 3)
-        dirs = F.normalize(pts[:, 0] - centres, dim=-1, eps=1e-9)
+        offsets = pts[:, 0] - centres
+        dist = offsets.norm(dim=-1)  # (N*P,)
+        dirs = offsets / dist.clamp_min(1e-9).unsqueeze(-1)
 
         def per_point(buf: Tensor) -> Tensor:  # (C, N*P) -> (P, N, C), P fastest
             return buf.reshape(buf.shape[0], N, P).permute(2, 1, 0)
@@ -330,6 +335,7 @@ class GovNeSF(nn.Module):
             mask=mask.reshape(N, P).T,
             source_dirs=dirs.reshape(N, P, 3).transpose(0, 1),
             uv=uv.reshape(N, P, 2).transpose(0, 1),
+            source_range=dist.reshape(N, P).T,
         )
 
     def forward(
@@ -397,7 +403,10 @@ class GovNeSF(nn.Module):
             v: (P, Dv) volume features; view_dirs: (P, 3) unit query directions.
             ov_maps: blend the OV features straight from the maps (as in :meth:`point_outputs`).
         """
-        fused = self.fusion(samples.rgb, samples.features, v, samples.source_dirs, samples.mask, view_dirs)
+        fused = self.fusion(
+            samples.rgb, samples.features, v, samples.source_dirs, samples.mask, view_dirs,
+            samples.source_range,
+        )
         assert fused.color_weights is not None
         rgb = blend(fused.color_weights, samples.rgb)
         if self.distill is not None:
@@ -471,7 +480,9 @@ class GovNeSF(nn.Module):
         ``ov_maps``: blend the OV features straight from the views' maps at ``samples.uv``
         (``sample_views``' samples; their ``ov`` is then ignored) instead of from ``samples.ov``:
         the same result up to float rounding, without the (P, N, D) samples."""
-        fused = self.fusion(samples.rgb, samples.features, v, samples.source_dirs, samples.mask, None)
+        fused = self.fusion(
+            samples.rgb, samples.features, v, samples.source_dirs, samples.mask, None, samples.source_range
+        )
         if self.distill is not None:
             ov = self.distill(fused.x_att, samples.mask, v) * fused.valid.unsqueeze(-1)
             weights = None

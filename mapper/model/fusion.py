@@ -3,7 +3,8 @@
 For P points and N source views (a view that does not see a point is masked out):
 
     x^n   = [mean_n f, var_n f, v, rgb^n, f^n]        cross-view statistics + volume + own view
-    x^n   = MLP_a(x^n) + DE(d^n)                      d^n: unit direction source camera -> point
+    x^n   = MLP_a(x^n) + DE(d^n) [+ RE(log r^n)]       d^n: unit direction source camera -> point,
+                                                      r^n: its distance (``range_encoding``)
     x_att = CVA(x^n)                                  linear attention over views + extra token
     w_c^n = MLP_c(x_att^n + RDE(d_q, d^n))            colour weights, depend on the query ray
     w_s^n = MLP_s(x_att^n)                            OV weights, source-view agnostic
@@ -35,6 +36,10 @@ __all__ = [
     "masked_mean_var",
     "masked_softmax",
 ]
+
+
+RANGE_MIN_M = 0.05
+"""Distances below this (m) read as this in the range encoding (log of a positive number)."""
 
 
 def _at_least_float32(x: Tensor) -> Tensor:
@@ -227,6 +232,11 @@ class FusionNet(nn.Module):
             nn.Linear(in_dim, cfg.hidden_dim), nn.ELU(), nn.Linear(cfg.hidden_dim, a), nn.ELU()
         )
         self.dir_encoding = nn.Linear(3, a)  # DE(d^n)
+        self.range_encoding: nn.Linear | None = None
+        if cfg.range_encoding:  # RE(log r^n), zero at first: the blend starts as without it
+            self.range_encoding = nn.Linear(1, a)
+            nn.init.zeros_(self.range_encoding.weight)
+            nn.init.zeros_(self.range_encoding.bias)
         self.attention = CrossViewAttention(a, cfg.num_heads)
         self.rel_dir_encoding = nn.Linear(4, a)  # RDE(d_q, d^n)
         self.mlp_c = _mlp(a, a, 1)
@@ -242,6 +252,7 @@ class FusionNet(nn.Module):
         source_dirs: Tensor,
         mask: Tensor,
         query_dirs: Tensor | None,
+        source_range: Tensor | None = None,
     ) -> FusionOutputs:
         """Blending weights.
 
@@ -252,6 +263,8 @@ class FusionNet(nn.Module):
             source_dirs: (P, N, 3) unit directions from each source camera to the point.
             mask: (P, N) bool, the view sees the point (and passes depth masking).
             query_dirs: (P, 3) unit query-ray directions, or None (point mode: OV weights only).
+            source_range: (P, N) distances (m) from each source camera to the point; needed (and
+                only used) with ``range_encoding``.
 
         Without autograd recording (``torch.no_grad`` / ``inference_mode``, how rendering and
         ``segment_points`` call it), outside autocast and with ``fast_inference`` set, this runs
@@ -259,9 +272,18 @@ class FusionNet(nn.Module):
         (tests/mapper/test_fusion_fast.py). Training (and autocast) runs ``forward_reference``.
         """
         autocast = torch.is_autocast_enabled(rgb.device.type)
+        args = (rgb, features, volume_features, source_dirs, mask, query_dirs, source_range)
         if self.fast_inference and not torch.is_grad_enabled() and not autocast:
-            return self.forward_fast(rgb, features, volume_features, source_dirs, mask, query_dirs)
-        return self.forward_reference(rgb, features, volume_features, source_dirs, mask, query_dirs)
+            return self.forward_fast(*args)
+        return self.forward_reference(*args)
+
+    def _range_input(self, source_range: Tensor | None, shape: tuple[int, int], dtype: torch.dtype) -> Tensor:
+        """(P * N, 1) log distance, the input of RE (``range_encoding`` only)."""
+        if source_range is None:
+            raise ValueError("this FusionNet has range_encoding: pass source_range (P, N) distances (m)")
+        if tuple(source_range.shape) != shape:
+            raise ValueError(f"source_range shape {tuple(source_range.shape)}, expected {shape}")
+        return source_range.to(dtype).clamp_min(RANGE_MIN_M).log().reshape(-1, 1)
 
     def forward_reference(
         self,
@@ -271,6 +293,7 @@ class FusionNet(nn.Module):
         source_dirs: Tensor,
         mask: Tensor,
         query_dirs: Tensor | None,
+        source_range: Tensor | None = None,
     ) -> FusionOutputs:
         """The original forward pass (the definition; training uses it). Arguments as ``forward``."""
         P, N, _ = features.shape
@@ -286,6 +309,8 @@ class FusionNet(nn.Module):
             dim=-1,
         )
         x = self.mlp_a(x) + self.dir_encoding(source_dirs.to(x.dtype))
+        if self.range_encoding is not None:
+            x = x + self.range_encoding(self._range_input(source_range, (P, N), x.dtype)).view(P, N, -1)
         x_att = self.attention(x, mask)
         ov_weights, valid = masked_softmax(self.mlp_s(x_att).squeeze(-1), mask)
         color_weights = None
@@ -307,6 +332,7 @@ class FusionNet(nn.Module):
         source_dirs: Tensor,
         mask: Tensor,
         query_dirs: Tensor | None,
+        source_range: Tensor | None = None,
     ) -> FusionOutputs:
         """``forward_reference`` rearranged for inference (no autograd); arguments as ``forward``.
 
@@ -338,6 +364,9 @@ class FusionNet(nn.Module):
         x = F.elu(torch.addmm(lin2.bias, h, lin2.weight.T), inplace=True)  # (P*N, A)
         de = self.dir_encoding
         x = x.addmm_(source_dirs.to(dtype).reshape(P * N, 3), de.weight.T).add_(de.bias)
+        if self.range_encoding is not None:
+            re = self.range_encoding
+            x = x.addmm_(self._range_input(source_range, (P, N), dtype), re.weight.T).add_(re.bias)
         A = x.shape[-1]
         x_att = self._attention_fast(x.view(P, N, A), mask)  # (P, N, A)
         flat = x_att.view(P * N, A)

@@ -396,7 +396,7 @@ def _blend_chunk(model: GovNeSF, views: SourceViews, volume: Tensor, bounds: Vol
         ov[rows, slots] = sample_bilinear(views.ov[n], scale_uv(uv_n, wh, o_wh))[0]
     dirs = F.normalize(pts.unsqueeze(1) - centres[idx], dim=-1, eps=1e-9)  # (P, k, 3)
     v, _ = sample_volume(volume, bounds, points.to(volume.dtype))
-    fused = model.fusion(rgb, feat, v, dirs, sel, None)
+    fused = model.fusion(rgb, feat, v, dirs, sel, None, dist.gather(1, idx))
     if model.distill is not None:
         out = model.distill(fused.x_att, sel, v) * fused.valid.unsqueeze(-1)
         weights = sel.float() / sel.sum(dim=1, keepdim=True).clamp_min(1)

@@ -45,6 +45,7 @@ from mapper.model.checkpoint import (
     config_from_dict,
     load_metadata,
     load_training_state,
+    load_weights_except,
     save_checkpoint,
 )
 from mapper.model.config import ModelConfig, get_preset
@@ -93,6 +94,10 @@ class TrainConfig:
     """Distill head width (``FusionConfig.distill_hidden_dim``; 0 = the preset's, ``2 * hidden_dim``)."""
     distill_layers: int = 0
     """Distill head hidden layers (``FusionConfig.distill_layers``; 0 = the preset's, 1)."""
+    range_encoding: bool = False
+    """Give the blend each view's camera-to-point distance (``FusionConfig.range_encoding``).
+    With ``init_weights`` from a checkpoint without it, the new layer starts at zero (the
+    checkpoint's blend) and everything else loads as usual."""
     train_dir: str = "data/train"
     val_dir: str = "data/val"
     out_dir: str = "out/train/cpu-small"
@@ -104,7 +109,8 @@ class TrainConfig:
     init_weights: str = ""
     """Fine-tune: start from this checkpoint's weights (``NAME`` / ``NAME.json`` of an export or a
     training checkpoint, e.g. ``checkpoints/cpu-small``) with a fresh optimiser and schedule
-    (step 0). Its model config and mode must be the run's. Empty = random init. Ignored on resume
+    (step 0). Its model config and mode must be the run's (except ``range_encoding``, see there).
+    Empty = random init. Ignored on resume
     (the training checkpoint has the weights)."""
     max_steps: int = 2000
     """Length of the run (the cosine schedule ends here)."""
@@ -159,6 +165,11 @@ class TrainConfig:
     photometric_strength: float = 0.2
     """Size of that jitter (0 <= s < 1)."""
     depth_guided_masking: bool = False
+    """Depth Guided Masking in every example (the rays' samples and the surface points)."""
+    depth_guided_masking_prob: float = 0.0
+    """Fraction of the examples (drawn per example from its seed) that use Depth Guided Masking
+    when ``depth_guided_masking`` is off, so the blend also learns the view sets a robot with depth
+    gives it (the depth test has already removed the occluded views). 0 = never."""
     clip_to_volume: bool = True
     """Spend the ray samples inside the volume bounds (density is 0 outside; ``render_rays``)."""
     seed: int = 0
@@ -216,6 +227,7 @@ class TrainConfig:
             (self.visibility_weight >= 0, "visibility_weight", ">= 0"),
             (self.visibility_rel_tol >= 0, "visibility_rel_tol", ">= 0"),
             (0.0 <= self.photometric_prob <= 1.0, "photometric_prob", "in [0, 1]"),
+            (0.0 <= self.depth_guided_masking_prob <= 1.0, "depth_guided_masking_prob", "in [0, 1]"),
             (0.0 <= self.photometric_strength < 1.0, "photometric_strength", "in [0, 1)"),
             (self.log_every >= 1, "log_every", ">= 1"),
             (self.checkpoint_every >= 1, "checkpoint_every", ">= 1"),
@@ -347,6 +359,7 @@ def _loss_for_sample(
     """The total loss of one example (to back-propagate) and its detached terms (``LOSS_TERMS``)."""
     s = sampler.sample(step, item).to(device)
     src = s.sources
+    dgm = uses_depth_guided_masking(cfg, s.seed)
     views = model.make_source_views(src.rgb, src.ov, src.K, src.world_from_cam, src.depth_m)
     volume = model.build_volume(views, src.bounds)
     gen = torch.Generator(device=device)
@@ -360,7 +373,7 @@ def _loss_for_sample(
         n_samples=cfg.n_samples or None,
         stratified=True,
         generator=gen,
-        depth_guided_masking=cfg.depth_guided_masking,
+        depth_guided_masking=dgm,
         clip_to_volume=cfg.clip_to_volume,
     )
     # An example without OV supervision (a real RGB-D scene, s.has_ov False) keeps its OV terms in
@@ -378,7 +391,7 @@ def _loss_for_sample(
         total = total + cfg.depth_weight * depth + cfg.surface_weight * surface
         terms.update(depth=float(depth.detach()), surface=float(surface.detach()))
     if target_t is not None and (cfg.point_ov_weight > 0 or cfg.visibility_weight > 0):
-        point_terms = _surface_point_losses(model, views, volume, s, cfg)
+        point_terms = _surface_point_losses(model, views, volume, s, cfg, dgm)
         point_ov_weight = cfg.point_ov_weight if s.has_ov else 0.0
         for name, weight in (("point_ov", point_ov_weight), ("visibility", cfg.visibility_weight)):
             if name in point_terms:
@@ -388,15 +401,26 @@ def _loss_for_sample(
     return total, terms
 
 
+def uses_depth_guided_masking(cfg: TrainConfig, seed: int) -> bool:
+    """Whether the example of this seed uses Depth Guided Masking (``depth_guided_masking`` or a
+    draw of probability ``depth_guided_masking_prob``, the same on every rank and every rerun)."""
+    if cfg.depth_guided_masking:
+        return True
+    if cfg.depth_guided_masking_prob <= 0:
+        return False
+    draw = np.random.default_rng([seed, 0x6D61736B]).random()  # its own stream ("mask")
+    return bool(draw < cfg.depth_guided_masking_prob)
+
+
 def _surface_point_losses(
-    model: GovNeSF, views: SourceViews, volume: torch.Tensor, s: TrainSample, cfg: TrainConfig
+    model: GovNeSF, views: SourceViews, volume: torch.Tensor, s: TrainSample, cfg: TrainConfig, dgm: bool
 ) -> dict[str, torch.Tensor]:
     """Point-level OV and visibility losses at the true surface points of the target rays."""
     assert s.target_t is not None
     keep = s.target_t > 0
     src = s.sources
     points = surface_points(s.origins[keep], s.directions[keep], s.target_t[keep])  # (P, 3)
-    po = model.query_points(views, volume, src.bounds, points, depth_guided_masking=cfg.depth_guided_masking)
+    po = model.query_points(views, volume, src.bounds, points, depth_guided_masking=dgm)
     out: dict[str, torch.Tensor] = {}
     if cfg.point_ov_weight > 0:
         out["point_ov"] = ov_cosine_loss(po.ov, s.target_ov[keep], po.valid)
@@ -630,11 +654,13 @@ class _Data:
     """The ``extra_train_dirs`` scenes (empty when ``extra_train_weight`` is 0)."""
 
 
-def _with_distill_head(mcfg: ModelConfig, cfg: TrainConfig) -> ModelConfig:
-    """The preset with the run's Distill head sizes (0 keeps the preset's)."""
+def _with_fusion_options(mcfg: ModelConfig, cfg: TrainConfig) -> ModelConfig:
+    """The preset with the run's Distill head sizes (0 keeps the preset's) and range encoding."""
     pairs = (("distill_hidden_dim", cfg.distill_hidden_dim), ("distill_layers", cfg.distill_layers))
-    sizes = {k: v for k, v in pairs if v}
-    return replace(mcfg, fusion=replace(mcfg.fusion, **sizes)) if sizes else mcfg
+    options: dict[str, Any] = {k: v for k, v in pairs if v}
+    if cfg.range_encoding:
+        options["range_encoding"] = True
+    return replace(mcfg, fusion=replace(mcfg.fusion, **options)) if options else mcfg
 
 
 def _load_data(cfg: TrainConfig, dd: _Dist, model_cfg: ModelConfig | None) -> _Data:
@@ -643,7 +669,7 @@ def _load_data(cfg: TrainConfig, dd: _Dist, model_cfg: ModelConfig | None) -> _D
     t_load = time.perf_counter()
     train_scenes = _load_scenes(cfg.train_dir, limit=cfg.max_train_scenes)
     ov_dim = train_scenes[0].ov_dim
-    mcfg = model_cfg or _with_distill_head(get_preset(cfg.preset, ov_dim=ov_dim), cfg)
+    mcfg = _with_fusion_options(model_cfg or get_preset(cfg.preset, ov_dim=ov_dim), cfg)
     extra_scenes = _load_extra_scenes(cfg, train_scenes[0], mcfg.fusion.ov_dim)
     sampler = RaySampler(
         train_scenes,
@@ -703,20 +729,40 @@ def _build_model(cfg: TrainConfig, mcfg: ModelConfig, dd: _Dist, resume: str | P
     return built
 
 
+def _config_diff(ours: dict[str, Any], theirs: dict[str, Any], prefix: str = "") -> list[str]:
+    """Dotted names of the (nested) config fields that differ."""
+    out: list[str] = []
+    for key, value in ours.items():
+        other = theirs.get(key)
+        if isinstance(value, dict) and isinstance(other, dict):
+            out += _config_diff(value, other, f"{prefix}{key}.")
+        elif value != other:
+            out.append(f"{prefix}{key}")
+    return sorted(out)
+
+
 def _init_from(model: GovNeSF, path: str, mcfg: ModelConfig, mode: str) -> None:
     """Load ``path``'s weights into ``model`` in place (float32), refusing another config or mode."""
     meta = load_metadata(path)
     theirs = config_from_dict(meta["config"])
+    # a checkpoint without the range encoding fine-tunes into a run with it: the new layer starts
+    # at zero, so the run starts as the checkpoint's blend
+    adds_range = mcfg.fusion.range_encoding and not theirs.fusion.range_encoding
+    if adds_range:
+        theirs = replace(theirs, fusion=replace(theirs.fusion, range_encoding=True))
     if theirs != mcfg:
-        ours, other = dataclasses.asdict(mcfg), dataclasses.asdict(theirs)
-        diff = sorted(k for k in ours if ours[k] != other.get(k))
+        diff = _config_diff(dataclasses.asdict(mcfg), dataclasses.asdict(theirs))
         raise ValueError(
             f"init_weights {path}: its model config differs from the run's in {diff}; "
-            "fine-tuning needs the same preset, OV size and Distill head"
+            "fine-tuning needs the same preset, OV size and Distill head (a checkpoint without "
+            "range_encoding may fine-tune into a run with it, not the other way round)"
         )
     if meta.get("mode", "blend") != mode:
         raise ValueError(f"init_weights {path}: mode {meta.get('mode', 'blend')!r}, the run's is {mode!r}")
-    load_training_state(path, model)  # the weights only, in place (no optimiser state)
+    if adds_range:
+        load_weights_except(path, model, prefix="fusion.range_encoding.")
+    else:
+        load_training_state(path, model)  # the weights only, in place (no optimiser state)
 
 
 class _Run:

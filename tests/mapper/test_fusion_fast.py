@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -153,3 +154,59 @@ def test_shipped_checkpoint_float32() -> None:
         for q in (query, None):
             ref = net.forward_reference(rgb, feat, vol, dirs, mask, q)
             _assert_same(ref, net(rgb, feat, vol, dirs, mask, q), atol=1e-5)
+
+
+# ---- the range encoding (issue 10: each view's camera-to-point distance as a blend input) --------
+RANGED = replace(SMALL.fusion, range_encoding=True)
+
+
+def _ranges(P: int, N: int, seed: int, *, p_fastest: bool) -> torch.Tensor:
+    """(P, N) distances in [0, 8) m, some at 0 (clamped to RANGE_MIN_M inside)."""
+    g = torch.Generator().manual_seed(seed)
+    r = torch.rand(N, P, generator=g, dtype=torch.float64) * 8.0
+    r[0, :3] = 0.0
+    return r.T if p_fastest else r.T.contiguous()
+
+
+@pytest.mark.parametrize("p_fastest", [False, True])
+@pytest.mark.parametrize("with_query", [False, True])
+def test_range_encoding_fast_equals_reference(with_query: bool, p_fastest: bool) -> None:
+    net = _net(RANGED, 16, 8, seed=11)  # RE random and non-zero here
+    rgb, feat, vol, dirs, mask, query = _inputs(129, 6, 16, 8, seed=12, p_fastest=p_fastest)
+    r = _ranges(129, 6, seed=13, p_fastest=p_fastest)
+    q = query if with_query else None
+    with torch.no_grad():
+        ref = net.forward_reference(rgb, feat, vol, dirs, mask, q, r)
+        _assert_same(ref, net.forward_fast(rgb, feat, vol, dirs, mask, q, r), atol=1e-10)
+        # the distances change the weights (a different input), and only through RE
+        other = net.forward_reference(rgb, feat, vol, dirs, mask, q, r * 2.0)
+    assert not torch.allclose(other.ov_weights, ref.ov_weights)
+
+
+def test_range_encoding_starts_as_the_blend_without_it() -> None:
+    """A fresh RE is zero: the same weights as a net without it that shares every other parameter."""
+    plain = _net(SMALL.fusion, 16, 8, seed=14)
+    torch.manual_seed(0)
+    ranged = FusionNet(16, 8, RANGED).double().eval()
+    assert ranged.range_encoding is not None
+    assert torch.all(ranged.range_encoding.weight == 0) and torch.all(ranged.range_encoding.bias == 0)
+    missing, unexpected = ranged.load_state_dict(plain.state_dict(), strict=False)
+    assert sorted(missing) == ["range_encoding.bias", "range_encoding.weight"] and not unexpected
+    args = _inputs(64, 5, 16, 8, seed=15, p_fastest=False)
+    r = _ranges(64, 5, seed=16, p_fastest=False)
+    with torch.no_grad():
+        _assert_same(plain(*args), ranged(*args, r), atol=1e-12)
+
+
+def test_range_encoding_needs_ranges() -> None:
+    net = _net(RANGED, 16, 8, seed=17)
+    args = _inputs(10, 3, 16, 8, seed=18, p_fastest=False)
+    for fwd in (net.forward_reference, net.forward_fast):
+        with torch.no_grad(), pytest.raises(ValueError, match="range_encoding: pass source_range"):
+            fwd(*args)
+        with torch.no_grad(), pytest.raises(ValueError, match="source_range shape"):
+            fwd(*args, torch.ones(10, 4, dtype=torch.float64))
+    # a net without it ignores them
+    plain = _net(SMALL.fusion, 16, 8, seed=19)
+    with torch.no_grad():
+        _assert_same(plain(*args), plain(*args, torch.ones(10, 3, dtype=torch.float64)), atol=0.0)

@@ -157,13 +157,16 @@ def test_config_errors(tmp_path: Path) -> None:
 
 def test_distill_head_sizes_reach_the_model_config() -> None:
     from mapper.model.config import get_preset
-    from mapper.training.train import _with_distill_head
+    from mapper.training.train import _with_fusion_options
 
     preset = get_preset("cpu-small", ov_dim=384)
-    assert _with_distill_head(preset, TrainConfig()) is preset
-    sized = _with_distill_head(preset, TrainConfig(mode="distill", distill_hidden_dim=256, distill_layers=2))
+    assert _with_fusion_options(preset, TrainConfig()) is preset
+    head = TrainConfig(mode="distill", distill_hidden_dim=256, distill_layers=2)
+    sized = _with_fusion_options(preset, head)
     assert (sized.fusion.distill_hidden_dim, sized.fusion.distill_layers) == (256, 2)
     assert sized.fusion.ov_dim == 384 and sized.encoder == preset.encoder
+    ranged = _with_fusion_options(preset, TrainConfig(range_encoding=True))
+    assert ranged.fusion.range_encoding and not preset.fusion.range_encoding
 
 
 def test_launch_configs_load() -> None:
@@ -265,3 +268,57 @@ def test_init_weights_refuses_another_config_or_mode(data_root: Path, tmp_path: 
         train(_cfg(data_root, tmp_path / "c", init_weights=str(tmp_path / "nowhere")),
               model_cfg=tiny_model_config(), progress=False)  # fmt: skip
     assert not any((tmp_path / d / "last.json").exists() for d in "abc")
+
+
+def test_init_weights_adds_the_range_encoding(data_root: Path, tmp_path: Path) -> None:
+    """A checkpoint without the range encoding fine-tunes into a run with it: everything loads, the
+    new layer starts at zero, and the export records the new config."""
+    train(_cfg(data_root, tmp_path / "base", max_steps=2), model_cfg=tiny_model_config(), progress=False)
+    base = _params(tmp_path / "base" / "last")
+    tuned_cfg = _cfg(data_root, tmp_path / "tuned", max_steps=1, lr=1e-12, range_encoding=True,
+                     init_weights=str(tmp_path / "base" / "last"))  # fmt: skip
+    train(tuned_cfg, model_cfg=tiny_model_config(), progress=False)
+    model, _ = load_model(tmp_path / "tuned" / "last")
+    assert model.cfg.fusion.range_encoding
+    tuned = model.state_dict()
+    added = sorted(set(tuned) - set(base))
+    assert added == ["fusion.range_encoding.bias", "fusion.range_encoding.weight"]
+    for k in base:
+        torch.testing.assert_close(tuned[k], base[k], atol=1e-6, rtol=0, msg=lambda m, k=k: f"{k}: {m}")
+    for k in added:
+        assert float(tuned[k].abs().max()) < 1e-6
+    # the other way round (a checkpoint WITH it into a run without) is refused
+    with pytest.raises(ValueError, match="range_encoding"):
+        train(_cfg(data_root, tmp_path / "back", max_steps=1, init_weights=str(tmp_path / "tuned" / "last")),
+              model_cfg=tiny_model_config(), progress=False)  # fmt: skip
+
+
+def test_depth_guided_masking_prob_draws_per_example() -> None:
+    from mapper.training.train import uses_depth_guided_masking
+
+    seeds = range(4000)
+    half = TrainConfig(depth_guided_masking_prob=0.5)
+    draws = [uses_depth_guided_masking(half, s) for s in seeds]
+    assert 0.46 < float(np.mean(draws)) < 0.54
+    assert draws == [uses_depth_guided_masking(half, s) for s in seeds]  # the same on a rerun
+    assert not any(uses_depth_guided_masking(TrainConfig(), s) for s in seeds)
+    always = TrainConfig(depth_guided_masking_prob=1.0)
+    assert all(uses_depth_guided_masking(always, s) for s in seeds)
+    assert all(uses_depth_guided_masking(TrainConfig(depth_guided_masking=True), s) for s in seeds)
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="depth_guided_masking_prob"):
+            TrainConfig(depth_guided_masking_prob=bad)
+
+
+def test_depth_guided_masking_prob_one_trains_as_always_on(data_root: Path, tmp_path: Path) -> None:
+    """Probability 1 takes the same steps as ``depth_guided_masking = true``, and masking changes
+    the steps (the tiny scenes' depth hides some views)."""
+    runs = {"on": {"depth_guided_masking": True}, "p1": {"depth_guided_masking_prob": 1.0}, "off": {}}
+    params = {}
+    for name, kw in runs.items():
+        train(_cfg(data_root, tmp_path / name, max_steps=2, point_ov_weight=1.0, **kw),
+              model_cfg=tiny_model_config(), progress=False)  # fmt: skip
+        params[name] = _params(tmp_path / name / "last")
+    for k in params["on"]:
+        assert torch.equal(params["on"][k], params["p1"][k]), k
+    assert any(not torch.equal(params["on"][k], params["off"][k]) for k in params["on"])
