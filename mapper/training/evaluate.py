@@ -115,6 +115,7 @@ class NovelViews:
     rgb: np.ndarray  # (V, H, W, 3) uint8
     label: np.ndarray  # (V, H, W) int, -1 = none
     ov: np.ndarray | None  # (V, h, w, D) float16: SimLSeg at the ground-truth view, if present
+    depth_m: np.ndarray | None = None  # (V, H, W) float32 true z-depth, 0 = none (when recorded)
 
 
 @dataclass
@@ -204,6 +205,7 @@ def load_scene(path: str | Path) -> EvalScene:
         novel = NovelViews(
             K=nv["K"].astype(np.float64), world_from_cam=nv["world_from_cam"].astype(np.float64),
             rgb=nv["rgb"], label=nv["label"].astype(np.int64), ov=nov_ov,
+            depth_m=nv["depth_m"].astype(np.float32) if "depth_m" in nv.files else None,
         )
     info: dict[str, Any] = {}
     if (gt / "scene.json").is_file():
@@ -470,26 +472,126 @@ def render_view(model: GovNeSF, views: SourceViews, volume: Tensor, bounds: Volu
         K: (4,) intrinsics for ``image_wh``; world_from_cam: (4, 4).
         render_kwargs: forwarded to ``render_rays`` (n_samples, clip_to_volume, weight_threshold).
     """
+    rgb, ov, _, _ = render_view_full(model, views, volume, bounds, K, world_from_cam, image_wh,
+                                     pixel_stride=pixel_stride, chunk_rays=chunk_rays, **render_kwargs)
+    return rgb, ov
+
+
+def render_view_full(model: GovNeSF, views: SourceViews, volume: Tensor, bounds: VolumeBounds, K: np.ndarray,
+                     world_from_cam: np.ndarray, image_wh: tuple[int, int], *, pixel_stride: int = 1,
+                     chunk_rays: int = 1024, surface_depth_m: np.ndarray | None = None,
+                     **render_kwargs: Any) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``render_view`` plus the rendered z-depth (h', w') (m) and, with ``surface_depth_m``
+    ((H, W) z-depth of known surfaces at full resolution, 0 = none), rendering as the node's
+    ``render`` does at measured surfaces (docs/RENDERING.md): a pixel with a surface gets one
+    appearance evaluation at that point (depth = the surface's), the others are marched.
+
+    Returns:
+        rgb (h', w', 3), OV (h', w', D), z-depth (h', w'), at_surface (h', w') bool.
+    """
     if pixel_stride < 1:
         raise ValueError(f"pixel_stride {pixel_stride} out of range: must be >= 1")
     dev = views.K.device
-    origins, dirs = pixel_rays(torch.as_tensor(K, dtype=torch.float32, device=dev),
-                               torch.as_tensor(world_from_cam, dtype=torch.float32, device=dev), *image_wh)
+    pose = torch.as_tensor(world_from_cam, dtype=torch.float32, device=dev)
+    origins, dirs = pixel_rays(torch.as_tensor(K, dtype=torch.float32, device=dev), pose, *image_wh)
     off = pixel_stride // 2
     origins = origins[off::pixel_stride, off::pixel_stride]
     dirs = dirs[off::pixel_stride, off::pixel_stride]
     h, w = origins.shape[:2]
     origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
-    rgb, ov = [], []
-    for i in range(0, origins.shape[0], chunk_rays):
-        rays = Rays(origins[i : i + chunk_rays], dirs[i : i + chunk_rays])
-        out = render_rays(model, views, volume, bounds, rays, **render_kwargs)
-        rgb.append(out.rgb)
-        ov.append(out.ov)
-    return torch.cat(rgb).reshape(h, w, 3), torch.cat(ov).reshape(h, w, -1)
+    axis = pose[:3, 2]
+    cos = (dirs @ axis).clamp_min(1e-6)  # (R,) ray distance -> z-depth
+    if surface_depth_m is not None:
+        if np.shape(surface_depth_m) != (image_wh[1], image_wh[0]):
+            raise ValueError(f"surface_depth_m shape {np.shape(surface_depth_m)}, expected (H, W) = "
+                             f"{(image_wh[1], image_wh[0])}")
+        z_s = torch.as_tensor(np.asarray(surface_depth_m, np.float32)[off::pixel_stride, off::pixel_stride],
+                              device=dev).reshape(-1)
+        at_surface = torch.isfinite(z_s) & (z_s > 0)
+    else:
+        z_s = torch.zeros(origins.shape[0], device=dev)
+        at_surface = torch.zeros(origins.shape[0], dtype=torch.bool, device=dev)
+    rgb = torch.zeros(origins.shape[0], 3, device=dev)
+    ov = torch.zeros(origins.shape[0], views.ov.shape[1], device=dev)
+    z = torch.zeros(origins.shape[0], device=dev)
+    for sel, surface in ((torch.nonzero(~at_surface)[:, 0], False), (torch.nonzero(at_surface)[:, 0], True)):
+        for i in range(0, sel.numel(), chunk_rays):
+            idx = sel[i : i + chunk_rays]
+            if surface:
+                points = origins[idx] + (z_s[idx] / cos[idx]).unsqueeze(-1) * dirs[idx]
+                v, _ = sample_volume(volume, bounds, points.to(volume.dtype))
+                rgb_k, ov_k, _ = model.appearance(views, v, points, dirs[idx], False)
+                rgb[idx], ov[idx], z[idx] = rgb_k.to(rgb.dtype), ov_k.to(ov.dtype), z_s[idx]
+            else:
+                rays = Rays(origins[idx], dirs[idx])
+                out = render_rays(model, views, volume, bounds, rays, **render_kwargs)
+                rgb[idx], ov[idx] = out.rgb.to(rgb.dtype), out.ov.to(ov.dtype)
+                z[idx] = out.depth_m.to(z.dtype) * cos[idx]
+    return rgb.reshape(h, w, 3), ov.reshape(h, w, -1), z.reshape(h, w), at_surface.reshape(h, w)
+
+
+def seen_by_sources(views: SourceViews, K: np.ndarray, world_from_cam: np.ndarray, image_wh: tuple[int, int],
+                    true_depth_m: np.ndarray, *, pixel_stride: int = 1, rel_tol: float = 0.05) -> Tensor:
+    """(h', w') bool: the pixels (every ``pixel_stride``-th centre, as ``render_view``) whose true
+    surface point (``true_depth_m`` (H, W) z-depth of the view, 0 = none) some source view truly
+    sees: inside its image and its measured depth there within ``rel_tol`` of the point's. What
+    no source sees, no blend of the sources can know (it renders as "not covered")."""
+    if views.depth_m is None:
+        raise ValueError("seen_by_sources needs the source views' depth")
+    dev = views.K.device
+    pose = torch.as_tensor(world_from_cam, dtype=torch.float32, device=dev)
+    origins, dirs = pixel_rays(torch.as_tensor(K, dtype=torch.float32, device=dev), pose, *image_wh)
+    off = pixel_stride // 2
+    origins = origins[off::pixel_stride, off::pixel_stride]
+    dirs = dirs[off::pixel_stride, off::pixel_stride]
+    z = torch.as_tensor(np.asarray(true_depth_m, np.float32), device=dev)
+    z = z[off::pixel_stride, off::pixel_stride]
+    h, w = z.shape
+    pts = (origins + (z / (dirs @ pose[:3, 2]).clamp_min(1e-6)).unsqueeze(-1) * dirs).reshape(-1, 3)
+    n = len(views)
+    uv, zz = project_points(pts.unsqueeze(0).expand(n, -1, -1), views.K, invert_pose(views.world_from_cam))
+    d_wh = (views.depth_m.shape[-1], views.depth_m.shape[-2])
+    measured, _ = sample_nearest(views.depth_m.unsqueeze(1), scale_uv(uv, views.image_wh, d_wh))
+    measured = measured.squeeze(-1)
+    sees = in_view(uv, zz, *views.image_wh) & (measured > 0) & ((zz - measured).abs() <= rel_tol * measured)
+    return (sees.any(dim=0) & (z.reshape(-1) > 0)).reshape(h, w)
+
+
+def sources_surface_depth(views: SourceViews, K: np.ndarray, world_from_cam: np.ndarray,
+                          image_wh: tuple[int, int], footprint_m: float) -> np.ndarray:
+    """(H, W) z-depth of the surfaces the source views' depth maps measured, seen from a new view:
+    every source pixel with depth back-projected and splatted as the node splats its map
+    (``mapper.node.queries.surface_depth``, the default ``model`` settings; 0 = no surface).
+    Sources without depth give zeros."""
+    from mapper.geometry.triangulation import backproject
+    from mapper.node.queries import surface_depth
+    from mapper.runtime.config import ModelRuntimeConfig
+
+    w, h = image_wh
+    if views.depth_m is None:
+        return np.zeros((h, w), np.float32)
+    depth = views.depth_m.detach().cpu().numpy()
+    Ks = views.K.detach().cpu().numpy()
+    poses = views.world_from_cam.detach().cpu().numpy()
+    d_wh = (depth.shape[-1], depth.shape[-2])
+    scale = np.array([d_wh[0] / views.image_wh[0], d_wh[1] / views.image_wh[1]] * 2)
+    pts = [backproject(depth[n], Ks[n] * scale, poses[n])[2] for n in range(len(depth))]
+    xyz = np.concatenate(pts) if pts else np.zeros((0, 3))
+    return surface_depth(xyz, footprint_m, np.asarray(K, np.float64), np.asarray(world_from_cam, np.float64),
+                         w, h, ModelRuntimeConfig())
 
 
 # ---- image metrics ------------------------------------------------------------------------------
+def _median_rel_err(z: Tensor, true_z: np.ndarray) -> float:
+    """Median |z - true| / true over the pixels with a true depth (a pixel rendered without any
+    depth counts as 100% off); nan without any true depth."""
+    t = torch.as_tensor(np.asarray(true_z, np.float32))
+    has = torch.isfinite(t) & (t > 0)
+    if not bool(has.any()):
+        return float("nan")
+    return float(((z.float() - t).abs() / t.clamp_min(1e-6))[has].median())
+
+
 def psnr(pred: Tensor, target: Tensor) -> float:
     """Peak signal-to-noise ratio (dB) of images in [0, 1]: (..., 3) each."""
     mse = float(((pred.double() - target.double()) ** 2).mean())
@@ -574,6 +676,12 @@ class EvalSettings:
     frustum_range_m: float = 4.0
     rendered_depth_stride: int = 4
     seed: int = 0
+    surface_renders: bool = True
+    """2D: also each model rendered as the node renders with depth: at the surfaces the source
+    views' depth measured (splatted into the novel view), marching only the other pixels
+    (``render_view_full``); rows "... at measured surfaces (depth input)"."""
+    surface_footprint_m: float = 0.05
+    """Footprint of each source depth point in that splat (the node's map voxel, 5 cm)."""
     rgb_only_node: str | None = None
     """3D: the checkpoint path to serve in an in-process node that the scene is streamed into
     WITHOUT depth, with the plugins ``govnesf serve`` installs; its ``segment_points`` answers
@@ -845,16 +953,35 @@ def _evaluate_2d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
             views, bounds = scene_sources(model, scene, novel_view_sources(scene, v, n_src), device=device)
             with torch.no_grad():
                 volume = model.build_volume(views, bounds)
-                rgb_r, ov_r = render_view(
-                    model, views, volume, bounds, novel.K[v], novel.world_from_cam[v], wh, pixel_stride=st,
-                    chunk_rays=settings.chunk_rays, n_samples=settings.n_samples,
-                    clip_to_volume=settings.clip_to_volume, weight_threshold=settings.weight_threshold)
-            secs = time.perf_counter() - t0
-            rgb = rgb_r.clamp(0, 1).cpu().double()
-            extra = {"psnr": psnr(rgb, target_rgb), "seconds": secs}
-            if min(rgb.shape[:2]) >= 11:
-                extra["ssim"] = ssim(rgb, target_rgb)
-            add(mname, gt, _labels_2d(ov_r.cpu(), text_emb), **extra)
+            t_volume = time.perf_counter() - t0
+            kinds = [(mname, None)]
+            if settings.surface_renders:
+                kinds.append((f"{mname} at measured surfaces (depth input)", sources_surface_depth(
+                    views, novel.K[v], novel.world_from_cam[v], wh, settings.surface_footprint_m)))
+            for name, surface in kinds:
+                t0 = time.perf_counter()
+                with torch.no_grad():
+                    rgb_r, ov_r, z_r, at_surface = render_view_full(
+                        model, views, volume, bounds, novel.K[v], novel.world_from_cam[v], wh,
+                        pixel_stride=st, chunk_rays=settings.chunk_rays, surface_depth_m=surface,
+                        n_samples=settings.n_samples, clip_to_volume=settings.clip_to_volume,
+                        weight_threshold=settings.weight_threshold)
+                secs = time.perf_counter() - t0 + t_volume
+                rgb = rgb_r.clamp(0, 1).cpu().double()
+                extra = {"psnr": psnr(rgb, target_rgb), "seconds": secs,
+                         "surface_share": float(at_surface.float().mean())}
+                if min(rgb.shape[:2]) >= 11:
+                    extra["ssim"] = ssim(rgb, target_rgb)
+                if novel.depth_m is not None:
+                    true_z = novel.depth_m[v][off::st, off::st]
+                    extra["depth_median_rel_err"] = _median_rel_err(z_r.cpu(), true_z)
+                    if views.depth_m is not None:
+                        seen = seen_by_sources(views, novel.K[v], novel.world_from_cam[v], wh,
+                                               novel.depth_m[v], pixel_stride=st).cpu()
+                        extra["seen_share"] = float(seen.float().mean())
+                        if bool(seen.any()):
+                            extra["psnr_seen"] = psnr(rgb[seen], target_rgb[seen])
+                add(name, gt, _labels_2d(ov_r.cpu(), text_emb), **extra)
     for name, cm in cms.items():
         ex = {k: float(np.mean(v)) for k, v in extras.get(name, {}).items()}
         res[name] = MethodResult(np.asarray(cm), ex)
@@ -922,15 +1049,19 @@ def format_report(summary: dict[str, Any], *, training_style: str = "apartment")
     # Table 1: 2D novel views.
     if any(styles[s]["2d"] for s in order):
         lines += ["### Table 1: 2D semantic segmentation and colour at novel views", "",
-                  "| style | method | mIoU | mAcc | oAcc | PSNR (dB) | SSIM | s / view |",
-                  "|---|---|---|---|---|---|---|---|"]
+                  "| style | method | mIoU | mAcc | oAcc | PSNR (dB) | PSNR where a source sees (dB) | SSIM "
+                  "| depth error (median rel.) | pixels at a measured surface | s / view |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
         for s in order:
             for m, r in styles[s]["2d"].items():
                 ps = "-" if r.get("psnr") is None else f"{r['psnr']:.2f}"
                 ss = "-" if r.get("ssim") is None else f"{r['ssim']:.3f}"
                 sec = "-" if r.get("seconds") is None else f"{r['seconds']:.1f}"
+                de = "-" if r.get("depth_median_rel_err") is None else f"{r['depth_median_rel_err']:.3f}"
+                sh = _pct(r.get("surface_share")) + ("%" if r.get("surface_share") is not None else "")
+                pv = "-" if r.get("psnr_seen") is None else f"{r['psnr_seen']:.2f}"
                 lines.append(f"| {label(s)} | {m} | {_pct(r['miou'])} | {_pct(r['macc'])} | "
-                             f"{_pct(r['oacc'])} | {ps} | {ss} | {sec} |")
+                             f"{_pct(r['oacc'])} | {ps} | {pv} | {ss} | {de} | {sh} | {sec} |")
         lines.append("")
     # Tables 2-3: 3D.
     for i, s in enumerate(order):

@@ -322,3 +322,79 @@ def test_view_transmittance_is_a_non_increasing_probability_along_a_ray(scene: e
     stop = 1.5 * bounds.voxel_size_m
     near = (pts - centre).norm(dim=1) <= stop
     assert bool(near.any()) and bool((T[near, 0] == 1).all())  # shorter than the stop: nothing in between
+
+
+# ---- renders at measured surfaces, depth error, pixels a source sees (2D protocol) -----------------
+def _floor_views(scene: ev.EvalScene) -> tuple[GovNeSF, SourceViews, VolumeBounds, torch.Tensor, tuple]:
+    model = tiny_model()
+    views, bounds, volume = sources(model, scene)
+    at = (scene.novel.K[0], scene.novel.world_from_cam[0], (W, H))
+    return model, views, bounds, volume, at
+
+
+def test_render_view_full_at_known_surfaces(scene: ev.EvalScene) -> None:
+    model, views, bounds, volume, (Kn, pose, wh) = _floor_views(scene)
+    args = (model, views, volume, bounds, Kn, pose, wh)
+    floor = np.full((H, W), HEIGHT_M, np.float32)
+    floor[:4] = 0.0  # a band without a surface: marched
+    with torch.no_grad():
+        rgb, ov, z, at = ev.render_view_full(*args, pixel_stride=2, chunk_rays=100, surface_depth_m=floor)
+        marched_rgb, marched_ov = ev.render_view(*args, pixel_stride=2, chunk_rays=100)
+        _, _, marched_z, none = ev.render_view_full(*args, pixel_stride=2, chunk_rays=100)
+        # the surface pixels: one appearance evaluation at the floor point of each ray
+        origins, dirs = ev.pixel_rays(torch.tensor(Kn).float(), torch.tensor(pose).float(), W, H)
+        o, d = origins[1::2, 1::2].reshape(-1, 3), dirs[1::2, 1::2].reshape(-1, 3)
+        t = HEIGHT_M / (d @ torch.tensor(pose).float()[:3, 2])
+        pts = o + t[:, None] * d
+        v, _ = ev.sample_volume(volume, bounds, pts)
+        ref_rgb, ref_ov, _ = model.appearance(views, v, pts, d, False)
+    assert at.shape == (H // 2, W // 2) and not at[:2].any() and at[2:].all() and not none.any()
+    torch.testing.assert_close(z[2:], torch.full_like(z[2:], HEIGHT_M))
+    torch.testing.assert_close(rgb.reshape(-1, 3)[at.reshape(-1)], ref_rgb[at.reshape(-1)], atol=1e-5, rtol=0)
+    torch.testing.assert_close(ov.reshape(-1, D)[at.reshape(-1)], ref_ov[at.reshape(-1)], atol=1e-5, rtol=0)
+    # the other pixels are marched exactly as render_view marches them, depth from the march
+    torch.testing.assert_close(rgb[:2], marched_rgb[:2], atol=1e-6, rtol=0)
+    torch.testing.assert_close(ov[:2], marched_ov[:2], atol=1e-6, rtol=0)
+    torch.testing.assert_close(z[:2], marched_z[:2], atol=1e-5, rtol=0)
+    assert torch.isfinite(marched_z).all() and (marched_z >= 0).all()
+    with pytest.raises(ValueError, match="surface_depth_m shape"):
+        ev.render_view_full(*args, surface_depth_m=floor[:-1])
+
+
+def test_sources_surface_depth_and_seen_pixels_of_the_floor(scene: ev.EvalScene) -> None:
+    import dataclasses
+
+    _, views, _, _, (Kn, pose, wh) = _floor_views(scene)
+    z = ev.sources_surface_depth(views, Kn, pose, wh, footprint_m=0.05)
+    has = z > 0
+    assert z.shape == (H, W) and has.mean() > 0.9
+    np.testing.assert_allclose(z[has], HEIGHT_M, atol=1e-4)
+    assert not ev.sources_surface_depth(dataclasses.replace(views, depth_m=None), Kn, pose, wh, 0.05).any()
+    true = np.full((H, W), HEIGHT_M, np.float32)
+    seen = ev.seen_by_sources(views, Kn, pose, wh, true, pixel_stride=2)
+    assert seen.shape == (H // 2, W // 2) and bool(seen.all())  # the sources cover the floor
+    assert not ev.seen_by_sources(views, Kn, pose, wh, 0.5 * true).any()  # above the floor: hidden
+    true[:, :10] = 0.0
+    assert not ev.seen_by_sources(views, Kn, pose, wh, true)[:, :10].any()  # no true depth: not counted
+    with pytest.raises(ValueError, match="needs the source views' depth"):
+        ev.seen_by_sources(dataclasses.replace(views, depth_m=None), Kn, pose, wh, true)
+
+
+def test_2d_rows_at_measured_surfaces(scene: ev.EvalScene) -> None:
+    import dataclasses
+
+    novel = dataclasses.replace(scene.novel, depth_m=np.full((1, H, W), HEIGHT_M, np.float32))
+    with_depth = dataclasses.replace(scene, novel=novel)
+    settings = ev.EvalSettings(do_3d=False)
+    res = ev.evaluate_scene(with_depth, {"tiny": tiny_model()}, text_embeddings(), settings)
+    two = res["2d"]
+    surf = two["tiny at measured surfaces (depth input)"].extra
+    marched = two["tiny"].extra
+    assert surf["depth_median_rel_err"] < 1e-3 and surf["surface_share"] > 0.9
+    assert marched["surface_share"] == 0.0 and np.isfinite(marched["depth_median_rel_err"])
+    assert surf["seen_share"] > 0.95 and np.isfinite(surf["psnr_seen"])  # all but the image border
+    text = ev.format_report(ev.summarise({"floor": res}, {"floor": "apartment"}, scene.class_names))
+    assert "at measured surfaces (depth input)" in text and "PSNR where a source sees" in text
+    off = ev.evaluate_scene(with_depth, {"tiny": tiny_model()}, text_embeddings(),
+                            ev.EvalSettings(do_3d=False, surface_renders=False))["2d"]
+    assert "tiny at measured surfaces (depth input)" not in off

@@ -1,0 +1,119 @@
+"""Which weighting of the same candidate views helps 3D segmentation? (issue 10, the blend's cues)
+
+On the evaluation's points (``mapper.training.evaluate``: labelled, seen by > 1 frame), every view
+that sees a point (and, with DGM, passes the depth test) is sampled once; the OV features are then
+blended with different per-view weights over exactly those views:
+
+* ``learned``: FusionNet's OV blending weights (``blend_points``), ``uniform``: plain averaging;
+* ``x dist(a, s)``: times ``exp(-max(r - a, 0) / s)`` of the camera-to-point distance ``r``
+  (2D OV models see far surfaces worse; SimLSeg's own rule is a = 2, s = 6 m);
+* ``x agree(k)``: times ``exp(k (cos(f_n, m) - 1))``, the agreement of the view's OV feature with
+  the weighted mean ``m`` (one pass of robust averaging);
+* ``nearest K``: only the K nearest of those views.
+
+It tells which cues a blend could learn from (the range encoding, ``FusionConfig.range_encoding``,
+feeds the distance), without training. Tune on validation scenes (``data/val``).
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/view_weights.py data/val/apartment_s100[0-2]   # ~4 min
+
+Prints per-scene mIoU (%) and the mean per row.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+
+def weightings(learned: torch.Tensor, mask: torch.Tensor, dist: torch.Tensor, ov: torch.Tensor,
+               ) -> dict[str, torch.Tensor]:
+    """Per-view weights (P, k) of every row. learned / mask / dist: (P, k), views sorted by
+    distance; ov: (P, k, D) the views' OV features (0 where masked)."""
+    sel = mask.float()
+    rows = {"learned": learned * sel, "uniform": sel}
+    for a, s in ((2.0, 6.0), (1.0, 2.0), (0.0, 1.0)):
+        q = torch.exp(-(dist - a).clamp_min(0) / s)
+        rows[f"learned x dist({a:g}, {s:g})"] = learned * sel * q
+        rows[f"uniform x dist({a:g}, {s:g})"] = sel * q
+    unit = F.normalize(ov, dim=-1)
+    for kappa in (2.0, 5.0, 10.0):
+        for name, base in (("learned", learned * sel), ("uniform", sel)):
+            m = F.normalize((base.unsqueeze(-1) * unit).sum(1), dim=-1)
+            agree = (unit * m.unsqueeze(1)).sum(-1)
+            rows[f"{name} x agree({kappa:g})"] = base * torch.exp(kappa * (agree - 1))
+    rank = torch.arange(mask.shape[1]).expand_as(sel)
+    for k in (8, 16):
+        rows[f"learned, nearest {k}"] = learned * sel * (rank < k)
+        rows[f"uniform, nearest {k}"] = sel * (rank < k)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    from mapper.model.checkpoint import load_model
+    from mapper.model.fusion import blend
+    from mapper.model.ops.geometry import camera_centers, sample_bilinear, scale_uv
+    from mapper.ov.encoders import get_text_encoder
+    from mapper.training import evaluate as ev
+    from mapper.training.metrics import (
+        NUM_SCANNET_CLASSES,
+        confusion_matrix,
+        predict_labels,
+        segmentation_scores,
+    )
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("scenes", nargs="+", type=Path)
+    parser.add_argument("--checkpoint", default="checkpoints/cpu-small.json")
+    parser.add_argument("--max-points", type=int, default=8000)
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args(argv)
+    if args.max_points < 1 or args.threads < 1:
+        parser.error("--max-points and --threads must be >= 1")
+    for s in args.scenes:
+        if not s.is_dir():
+            parser.error(f"no scene folder {s}")
+    torch.set_num_threads(args.threads)
+    model, _ = load_model(args.checkpoint, device="cpu")
+    settings = ev.EvalSettings(max_points=args.max_points, do_2d=False)
+    table: dict[str, list[float]] = {}
+    for scene_dir in args.scenes:
+        scene = ev.load_scene(scene_dir)
+        emb = torch.from_numpy(get_text_encoder().encode(scene.class_names[:NUM_SCANNET_CLASSES]))
+        sp = ev.scene_points(scene, settings)
+        views, bounds = ev.scene_sources(model, scene)
+        with torch.no_grad():
+            volume = model.build_volume(views, bounds)
+        for dgm in (False, True):
+            pb = ev.blend_points(model, views, volume, bounds, sp.xyz, depth_guided_masking=dgm)
+            uv, _, _ = ev.candidate_views(views, sp.xyz, depth_guided_masking=dgm)
+            idx, sel = pb.view_index, pb.mask  # (P, k), nearest first
+            dist = torch.cdist(sp.xyz, camera_centers(views.world_from_cam)).gather(1, idx)
+            o_wh = (views.ov.shape[-1], views.ov.shape[-2])
+            ov = torch.zeros(*idx.shape, views.ov.shape[1])
+            for n in torch.unique(idx[sel]).tolist():
+                r, s = torch.nonzero((idx == n) & sel, as_tuple=True)
+                ov[r, s] = sample_bilinear(views.ov[n], scale_uv(uv[n, r], views.image_wh, o_wh))[0]
+            for name, w in weightings(pb.weights, sel, dist, ov).items():
+                w = w / w.sum(1, keepdim=True).clamp_min(1e-12)
+                pred = np.asarray(predict_labels(blend(w, ov), emb))
+                miou = 100 * segmentation_scores(confusion_matrix(sp.gt, pred)).miou
+                table.setdefault(("with DGM: " if dgm else "no depth: ") + name, []).append(miou)
+        print(f"{scene.name} done", file=sys.stderr, flush=True)
+    print("| row | " + " | ".join(p.name for p in args.scenes) + " | mean |")
+    print("|---|" + "---|" * (len(args.scenes) + 1))
+    for name, values in table.items():
+        print(f"| {name} | " + " | ".join(f"{v:.1f}" for v in values) + f" | {np.mean(values):.2f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
