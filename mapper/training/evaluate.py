@@ -477,6 +477,18 @@ def render_view(model: GovNeSF, views: SourceViews, volume: Tensor, bounds: Volu
     return rgb, ov
 
 
+def _strided_rays(K: np.ndarray, world_from_cam: np.ndarray, image_wh: tuple[int, int], pixel_stride: int,
+                  device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    """Rays through the centres of every ``pixel_stride``-th pixel (from ``pixel_stride // 2``):
+    origins (h', w', 3), unit directions (h', w', 3), and the float32 pose (4, 4)."""
+    if pixel_stride < 1:
+        raise ValueError(f"pixel_stride {pixel_stride} out of range: must be >= 1")
+    pose = torch.as_tensor(world_from_cam, dtype=torch.float32, device=device)
+    origins, dirs = pixel_rays(torch.as_tensor(K, dtype=torch.float32, device=device), pose, *image_wh)
+    off = pixel_stride // 2
+    return origins[off::pixel_stride, off::pixel_stride], dirs[off::pixel_stride, off::pixel_stride], pose
+
+
 def render_view_full(model: GovNeSF, views: SourceViews, volume: Tensor, bounds: VolumeBounds, K: np.ndarray,
                      world_from_cam: np.ndarray, image_wh: tuple[int, int], *, pixel_stride: int = 1,
                      chunk_rays: int = 1024, surface_depth_m: np.ndarray | None = None,
@@ -489,15 +501,10 @@ def render_view_full(model: GovNeSF, views: SourceViews, volume: Tensor, bounds:
     Returns:
         rgb (h', w', 3), OV (h', w', D), z-depth (h', w'), at_surface (h', w') bool.
     """
-    if pixel_stride < 1:
-        raise ValueError(f"pixel_stride {pixel_stride} out of range: must be >= 1")
     dev = views.K.device
-    pose = torch.as_tensor(world_from_cam, dtype=torch.float32, device=dev)
-    origins, dirs = pixel_rays(torch.as_tensor(K, dtype=torch.float32, device=dev), pose, *image_wh)
-    off = pixel_stride // 2
-    origins = origins[off::pixel_stride, off::pixel_stride]
-    dirs = dirs[off::pixel_stride, off::pixel_stride]
+    origins, dirs, pose = _strided_rays(K, world_from_cam, image_wh, pixel_stride, dev)
     h, w = origins.shape[:2]
+    off = pixel_stride // 2
     origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
     axis = pose[:3, 2]
     cos = (dirs @ axis).clamp_min(1e-6)  # (R,) ray distance -> z-depth
@@ -539,11 +546,8 @@ def seen_by_sources(views: SourceViews, K: np.ndarray, world_from_cam: np.ndarra
     if views.depth_m is None:
         raise ValueError("seen_by_sources needs the source views' depth")
     dev = views.K.device
-    pose = torch.as_tensor(world_from_cam, dtype=torch.float32, device=dev)
-    origins, dirs = pixel_rays(torch.as_tensor(K, dtype=torch.float32, device=dev), pose, *image_wh)
+    origins, dirs, pose = _strided_rays(K, world_from_cam, image_wh, pixel_stride, dev)
     off = pixel_stride // 2
-    origins = origins[off::pixel_stride, off::pixel_stride]
-    dirs = dirs[off::pixel_stride, off::pixel_stride]
     z = torch.as_tensor(np.asarray(true_depth_m, np.float32), device=dev)
     z = z[off::pixel_stride, off::pixel_stride]
     h, w = z.shape

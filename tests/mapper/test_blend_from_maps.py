@@ -72,16 +72,20 @@ def test_blend_from_maps_equals_sampling_then_blending(per_point_views: bool) ->
         blend_from_maps(table[:-1], (w, h), view_idx, uv, weights)
 
 
-def test_point_outputs_from_maps_equal_the_sampled_path() -> None:
-    """GovNeSF.point_outputs(..., ov_maps=...) on dummy-ov samples == on fully sampled views."""
-    torch.manual_seed(0)
-    model = GovNeSF(TINY).eval()
+def _runtime_with_six_keyframes(model: GovNeSF):  # -> (ModelRuntime, its prepared window)
     runtime = make_runtime(model, source_views=3)
     window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
     runtime.attach(window)
     for i in range(6):
         window.consider(keyframe(i, orbit(i)))
-    prep = runtime._prepare()
+    return runtime, runtime._prepare()
+
+
+def test_point_outputs_from_maps_equal_the_sampled_path() -> None:
+    """GovNeSF.point_outputs(..., ov_maps=...) on dummy-ov samples == on fully sampled views."""
+    torch.manual_seed(0)
+    model = GovNeSF(TINY).eval()
+    runtime, prep = _runtime_with_six_keyframes(model)
     seen = np.random.default_rng(2).uniform([-0.6, -0.6, 0.1], [0.6, 0.6, 0.9], (400, 3))
     unseen = np.array([[0.0, 0.0, 30.0], [50.0, 50.0, 0.0]])  # above / far behind every camera
     pts = torch.from_numpy(np.concatenate([seen, unseen]).astype(np.float32))
@@ -131,12 +135,7 @@ def test_samples_carry_each_views_distance_to_the_point() -> None:
     with torch.no_grad():
         assert model.fusion.range_encoding is not None
         model.fusion.range_encoding.weight.normal_(0.0, 1.0)  # make the distances matter
-    runtime = make_runtime(model, source_views=3)
-    window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
-    runtime.attach(window)
-    for i in range(6):
-        window.consider(keyframe(i, orbit(i)))
-    prep = runtime._prepare()
+    runtime, prep = _runtime_with_six_keyframes(model)
     rng = np.random.default_rng(3)
     pts = torch.from_numpy(rng.uniform([-0.6, -0.6, 0.1], [0.6, 0.6, 0.9], (200, 3))).float()
     views = runtime._source_views(prep, torch.arange(6), need_ov=True, use_depth=False)
