@@ -42,6 +42,14 @@ def tempered(model: torch.nn.Module, t: float) -> torch.nn.Module:
     return m
 
 
+def scene_table(scenes: list[str], rows: dict[str, list[float]]) -> str:
+    """Markdown: one row per name with its per-scene values (%) and their mean."""
+    lines = ["| row | " + " | ".join(scenes) + " | mean |", "|---|" + "---|" * (len(scenes) + 1)]
+    for name, values in rows.items():
+        lines.append(f"| {name} | " + " | ".join(f"{v:.1f}" for v in values) + f" | {np.mean(values):.2f} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     from mapper.model.checkpoint import load_model
     from mapper.ov.encoders import get_text_encoder
@@ -68,10 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         for name, result in ev.evaluate_scene(scene, models, emb, settings)["3d"].items():
             rows.setdefault(name, []).append(100 * result.scores().miou)
         print(f"{scene.name} done", file=sys.stderr, flush=True)
-    print("| row | " + " | ".join(p.name for p in args.scenes) + " | mean |")
-    print("|---|" + "---|" * (len(args.scenes) + 1))
-    for name, values in rows.items():
-        print(f"| {name} | " + " | ".join(f"{v:.1f}" for v in values) + f" | {np.mean(values):.2f} |")
+    print(scene_table([p.name for p in args.scenes], rows))
     return 0
 
 

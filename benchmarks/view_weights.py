@@ -58,6 +58,7 @@ def weightings(learned: torch.Tensor, mask: torch.Tensor, dist: torch.Tensor, ov
 
 
 def main(argv: list[str] | None = None) -> int:
+    from benchmarks.ov_temperature import scene_table
     from mapper.model.checkpoint import load_model
     from mapper.model.fusion import blend
     from mapper.model.ops.geometry import camera_centers, sample_bilinear, scale_uv
@@ -108,10 +109,7 @@ def main(argv: list[str] | None = None) -> int:
                 miou = 100 * segmentation_scores(confusion_matrix(sp.gt, pred)).miou
                 table.setdefault(("with DGM: " if dgm else "no depth: ") + name, []).append(miou)
         print(f"{scene.name} done", file=sys.stderr, flush=True)
-    print("| row | " + " | ".join(p.name for p in args.scenes) + " | mean |")
-    print("|---|" + "---|" * (len(args.scenes) + 1))
-    for name, values in table.items():
-        print(f"| {name} | " + " | ".join(f"{v:.1f}" for v in values) + f" | {np.mean(values):.2f} |")
+    print(scene_table([p.name for p in args.scenes], table))
     return 0
 
 
