@@ -110,8 +110,7 @@ class TrainConfig:
     """Fine-tune: start from this checkpoint's weights (``NAME`` / ``NAME.json`` of an export or a
     training checkpoint, e.g. ``checkpoints/cpu-small``) with a fresh optimiser and schedule
     (step 0). Its model config and mode must be the run's (except ``range_encoding``, see there).
-    Empty = random init. Ignored on resume
-    (the training checkpoint has the weights)."""
+    Empty = random init. Ignored on resume (the training checkpoint has the weights)."""
     max_steps: int = 2000
     """Length of the run (the cosine schedule ends here)."""
     batch_views: int = 2
