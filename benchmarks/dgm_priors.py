@@ -39,11 +39,10 @@ from clients.sim.export import count_views  # noqa: E402
 from clients.sim.scenes import CLASS_NAMES, LABEL_OF  # noqa: E402
 from mapper.geometry.planes import plane_depth  # noqa: E402
 from mapper.node.config import config_from_dict  # noqa: E402
-from mapper.node.plugins.learned import install_learned_handlers  # noqa: E402
-from mapper.node.plugins.triangulation import install_triangulation, keyframe_key  # noqa: E402
+from mapper.node.plugins.serve import install_serve_plugins  # noqa: E402
+from mapper.node.plugins.triangulation import keyframe_key  # noqa: E402
 from mapper.node.queries import geometry_planes, map_surface_depth, surface_depth  # noqa: E402
 from mapper.node.service import MapperNode  # noqa: E402
-from mapper.runtime.model_runtime import ModelRuntime  # noqa: E402
 from protocol import decode, encode  # noqa: E402
 from protocol.messages import Segmentation, SegmentPoints  # noqa: E402
 
@@ -72,11 +71,10 @@ def main(argv: list[str] | None = None) -> int:
         "stereo": {"prior_geometry": False},  # the keyframes' own priors; the candidates below
     })  # fmt: skip
     node = MapperNode(config)
-    runtime = ModelRuntime(config.model)
-    if not runtime.ready:
-        raise SystemExit(runtime.load_error)
-    rendered = install_learned_handlers(node, runtime)
-    tri = install_triangulation(node, runtime)
+    plugins = install_serve_plugins(node)  # as `govnesf serve` builds it
+    runtime, rendered, tri = plugins.runtime, plugins.rendered_depth, plugins.triangulation
+    if runtime is None or not runtime.ready:
+        raise SystemExit(runtime.load_error if runtime is not None else "serve_model is off")
     assert tri is not None and rendered is not None
     gt_xyz, gt_label, _ = stream.scene.sample_surface(250_000, seed=args.seed,
                                                       exclude_labels=(LABEL_OF["ceiling"],))

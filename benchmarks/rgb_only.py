@@ -60,11 +60,9 @@ from clients.sim.export import count_views, novel_view_poses
 from clients.sim.scenes import CLASS_NAMES, LABEL_OF
 from mapper.errors import ConfigError
 from mapper.node.config import config_from_dict
-from mapper.node.plugins.learned import install_learned_handlers
-from mapper.node.plugins.triangulation import install_triangulation
+from mapper.node.plugins.serve import install_serve_plugins
 from mapper.node.queries import map_surface_depth
 from mapper.node.service import MapperNode
-from mapper.runtime.model_runtime import ModelRuntime
 from mapper.training.metrics import masked_psnr
 from protocol.messages import (
     Points,
@@ -113,11 +111,10 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         current = _as_dict(config)
         config = config_from_dict({**current, section: {**current.get(section, {}), name: value}})
     node = MapperNode(config)
-    runtime = ModelRuntime(config.model)
-    if not runtime.ready:
-        raise SystemExit(runtime.load_error)
-    rendered = install_learned_handlers(node, runtime)
-    tri = install_triangulation(node, runtime)
+    plugins = install_serve_plugins(node)  # as `govnesf serve` builds it
+    runtime, rendered, tri = plugins.runtime, plugins.rendered_depth, plugins.triangulation
+    if runtime is None or not runtime.ready:
+        raise SystemExit(runtime.load_error if runtime is not None else "serve_model is off")
     n_gt = args.gt_samples
     gt_xyz, gt_label, _ = scene.sample_surface(n_gt, seed=args.seed, exclude_labels=(LABEL_OF["ceiling"],))
     surface, _, _ = scene.sample_surface(args.gt_samples * 4, seed=args.seed + 1)

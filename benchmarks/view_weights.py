@@ -83,7 +83,10 @@ def main(argv: list[str] | None = None) -> int:
         if not s.is_dir():
             parser.error(f"no scene folder {s}")
     torch.set_num_threads(args.threads)
-    model, _ = load_model(args.checkpoint, device="cpu")
+    try:
+        model, _ = load_model(args.checkpoint, device="cpu")
+    except (FileNotFoundError, ValueError) as exc:
+        parser.error(str(exc))
     settings = ev.EvalSettings(max_points=args.max_points, do_2d=False)
     table: dict[str, list[float]] = {}
     for scene_dir in args.scenes:

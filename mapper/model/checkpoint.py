@@ -270,6 +270,15 @@ def load_model(path: str | Path, *, device: str | torch.device = "cpu") -> tuple
     return model, meta
 
 
+def _load_into(model: GovNeSF, state: dict[str, torch.Tensor], *, strict: bool) -> None:
+    """``model.load_state_dict`` of ``state`` moved to the model's device, floats as float32."""
+    device = next(model.parameters()).device
+    model.load_state_dict(
+        {k: v.to(device, torch.float32) if v.is_floating_point() else v.to(device) for k, v in state.items()},
+        strict=strict,
+    )
+
+
 def load_weights_except(path: str | Path, model: GovNeSF, *, prefix: str) -> dict[str, Any]:
     """Load a checkpoint's weights into ``model`` in place (float32), where the model has extra
     parameters under ``prefix`` that the checkpoint lacks (they keep their values); returns the
@@ -287,11 +296,7 @@ def load_weights_except(path: str | Path, model: GovNeSF, *, prefix: str) -> dic
         raise ValueError(
             f"checkpoint {path}: missing {missing}, unexpected {unexpected} (extra prefix {prefix!r})"
         )
-    device = next(model.parameters()).device
-    model.load_state_dict(
-        {k: v.to(device, torch.float32) if v.is_floating_point() else v.to(device) for k, v in state.items()},
-        strict=False,
-    )
+    _load_into(model, state, strict=False)
     return meta
 
 
@@ -311,11 +316,7 @@ def load_training_state(
             f"into a {model.mode} model with config {model.cfg.name!r} (settings differ)"
         )
     state = _read_verified(weights_path, meta.get("weights_sha256"))
-    device = next(model.parameters()).device
-    model.load_state_dict(
-        {k: v.to(device, torch.float32) if v.is_floating_point() else v.to(device) for k, v in state.items()},
-        strict=True,
-    )
+    _load_into(model, state, strict=True)
     extra: dict[str, torch.Tensor] = {}
     train_meta = meta.get("train_state")
     if train_meta is None:

@@ -96,25 +96,11 @@ def serve_main(argv: list[str] | None = None) -> int:
         datefmt="%Y-%m-%dT%H:%M:%S",
         stream=sys.stderr,
     )
+    from mapper.node.plugins.serve import install_serve_plugins
     from mapper.node.service import MapperNode  # after logging is set up
 
     node = MapperNode(config)
-    runtime = None
-    if config.serve_model:
-        from mapper.node.plugins.learned import install_learned_handlers
-        from mapper.runtime.model_runtime import ModelRuntime
-
-        runtime = ModelRuntime(config.model)
-        install_learned_handlers(node, runtime)
-    if config.triangulation.enabled:
-        from mapper.node.plugins.triangulation import install_triangulation
-
-        # RGB-only keyframes: sparse points for the global map and the model's volume bounds
-        install_triangulation(node, runtime if runtime is not None and runtime.ready else None)
-    if config.ov_backend.kind:
-        from mapper.node.plugins.ov_features import install_ov_backend
-
-        install_ov_backend(node)  # after the learned handlers: it adds its notes to their not_ready
+    install_serve_plugins(node)  # learned model, triangulation, OV backend (from the config)
     node.install_signal_handlers()
     try:
         node.start()

@@ -104,10 +104,8 @@ def node_rgb_only_rows(
         RuntimeError: the node could not load ``checkpoint`` or refused a query.
     """
     from mapper.node.config import load_config
-    from mapper.node.plugins.learned import install_learned_handlers
-    from mapper.node.plugins.triangulation import install_triangulation
+    from mapper.node.plugins.serve import install_serve_plugins
     from mapper.node.service import MapperNode
-    from mapper.runtime.model_runtime import ModelRuntime
     from protocol.messages import Frame, Segmentation, SegmentPoints, decode, encode
 
     st = settings or NodeEvalSettings()
@@ -119,16 +117,12 @@ def node_rgb_only_rows(
             "model.device": st.device,
         })
         node = MapperNode(config)
-        # the plugins `govnesf serve` installs (mapper/node/cli.py), in the same order
-        runtime = ModelRuntime(config.model)
-        if not runtime.ready:
-            raise RuntimeError(f"the node could not load {checkpoint}: {runtime.load_error}")
-        rendered = install_learned_handlers(node, runtime)
-        tri = install_triangulation(node, runtime) if config.triangulation.enabled else None
-        if config.ov_backend.kind:
-            from mapper.node.plugins.ov_features import install_ov_backend
-
-            install_ov_backend(node)
+        plugins = install_serve_plugins(node)  # as `govnesf serve` builds it
+        runtime = plugins.runtime
+        if runtime is None or not runtime.ready:
+            why = "serve_model is off" if runtime is None else runtime.load_error
+            raise RuntimeError(f"the node could not load {checkpoint}: {why}")
+        rendered, tri = plugins.rendered_depth, plugins.triangulation
         try:
             t0 = time.perf_counter()
             w, h = scene.image_wh

@@ -958,6 +958,12 @@ def _evaluate_2d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
             with torch.no_grad():
                 volume = model.build_volume(views, bounds)
             t_volume = time.perf_counter() - t0
+            true_z = seen = None
+            if novel.depth_m is not None:
+                true_z = novel.depth_m[v][off::st, off::st]
+                if views.depth_m is not None:  # the same pixels for every row of this model
+                    seen = seen_by_sources(views, novel.K[v], novel.world_from_cam[v], wh, novel.depth_m[v],
+                                           pixel_stride=st).cpu()
             kinds = [(mname, None)]
             if settings.surface_renders:
                 kinds.append((f"{mname} at measured surfaces (depth input)", sources_surface_depth(
@@ -976,15 +982,12 @@ def _evaluate_2d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
                          "surface_share": float(at_surface.float().mean())}
                 if min(rgb.shape[:2]) >= 11:
                     extra["ssim"] = ssim(rgb, target_rgb)
-                if novel.depth_m is not None:
-                    true_z = novel.depth_m[v][off::st, off::st]
+                if true_z is not None:
                     extra["depth_median_rel_err"] = _median_rel_err(z_r.cpu(), true_z)
-                    if views.depth_m is not None:
-                        seen = seen_by_sources(views, novel.K[v], novel.world_from_cam[v], wh,
-                                               novel.depth_m[v], pixel_stride=st).cpu()
-                        extra["seen_share"] = float(seen.float().mean())
-                        if bool(seen.any()):
-                            extra["psnr_seen"] = psnr(rgb[seen], target_rgb[seen])
+                if seen is not None:
+                    extra["seen_share"] = float(seen.float().mean())
+                    if bool(seen.any()):
+                        extra["psnr_seen"] = psnr(rgb[seen], target_rgb[seen])
                 add(name, gt, _labels_2d(ov_r.cpu(), text_emb), **extra)
     for name, cm in cms.items():
         ex = {k: float(np.mean(v)) for k, v in extras.get(name, {}).items()}

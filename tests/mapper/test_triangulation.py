@@ -495,3 +495,28 @@ def test_a_stopping_node_leaves_the_rest_of_the_batch(node: MapperNode, texture:
     tri.run(stop)  # returns at once (stop is set) and keeps the event for the batches
     assert tri.process_pending() == 0
     assert tri.stats()["left_at_stop"] == 3 and tri.pending == 0 and tri.processed == 0
+
+
+def test_serve_plugins_follow_the_config(tmp_path: Path) -> None:
+    """install_serve_plugins installs what the config asks for, as `govnesf serve` does."""
+    from mapper.node.plugins.serve import install_serve_plugins
+    from mapper.node.plugins.triangulation import SparseTriangulation
+
+    def build(**extra: object) -> MapperNode:
+        return MapperNode(config_from_dict({
+            "map_dir": str(tmp_path / "maps"), "autosave_name": "", "save_on_exit": False, "serve_model": False,
+            **extra,
+        }))  # fmt: skip
+
+    on = build()
+    try:
+        plugins = install_serve_plugins(on)
+        assert plugins.runtime is None and plugins.rendered_depth is None and plugins.ov_backend is None
+        assert isinstance(plugins.triangulation, SparseTriangulation)  # enabled by default
+    finally:
+        on.stop()
+    off = build(triangulation={"enabled": False})
+    try:
+        assert install_serve_plugins(off).triangulation is None
+    finally:
+        off.stop()
