@@ -504,8 +504,8 @@ def test_serve_plugins_follow_the_config(tmp_path: Path) -> None:
 
     def build(**extra: object) -> MapperNode:
         return MapperNode(config_from_dict({
-            "map_dir": str(tmp_path / "maps"), "autosave_name": "", "save_on_exit": False, "serve_model": False,
-            **extra,
+            "map_dir": str(tmp_path / "maps"), "autosave_name": "", "save_on_exit": False,
+            "serve_model": False, **extra,
         }))  # fmt: skip
 
     on = build()
