@@ -12,6 +12,10 @@ computed exactly as ``grid_sample`` with border padding does), so the (m, D) sam
 materialised per view; the selection, depth test and corners run once over all (view, point)
 pairs of a chunk, taken point-major so that each point's taps are contiguous for the bag.
 ``average_features_reference`` is the previous per-view implementation.
+
+On a CPU device both run as one compiled kernel instead
+(:mod:`mapper.model.ops.average_kernel`: the same views and taps per point, no per-pair arrays);
+``impl="torch"`` keeps the torch / numpy path above (what other devices use).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from mapper.model.ops import average_kernel as _kernel
 from mapper.model.ops.checks import check_shape
 from mapper.model.ops.geometry import (
     DEFAULT_EPS,
@@ -104,6 +109,82 @@ def _parse_inputs(
         vw = vw[view_ids]
     parsed = [parsed[i] for i in view_ids]
     return pts, parsed, vw, dim
+
+
+class _ViewArrays(NamedTuple):
+    """Per-view constants of the averaging, V views."""
+
+    cam_from_world: Tensor  # (V, 4, 4) float32
+    K: Tensor  # (V, 4) float32
+    img_w: np.ndarray  # (V,) int64 image size
+    img_h: np.ndarray
+    ov_w: np.ndarray  # (V,) int64 OV map size
+    ov_h: np.ndarray
+    ov_scale: np.ndarray  # (V, 2) float32 OV map size / image size
+    has_depth: np.ndarray  # (V,) bool: a depth map that the depth test reads
+    d_w: np.ndarray  # (V,) int64 depth map size (1 without)
+    d_h: np.ndarray
+    d_scale: np.ndarray  # (V, 2) float32 depth map size / image size
+    d_off: np.ndarray  # (V,) int64 offset of each view's depth map in ``depth_flat``
+    depth_flat: np.ndarray | None  # (S,) float32 the depth maps one after another; None without
+
+
+def _view_arrays(parsed: list[OVView], *, use_depth: bool, device: torch.device) -> _ViewArrays:
+    cam_from_world = invert_pose(torch.stack([_as_tensor(v.world_from_cam, torch.float32, device)
+                                              for v in parsed]))  # (V, 4, 4)
+    Ks = torch.stack([_as_tensor(v.K, torch.float32, device) for v in parsed])  # (V, 4)
+    img_w = np.array([int(v.image_wh[0]) for v in parsed], np.int64)  # (V,)
+    img_h = np.array([int(v.image_wh[1]) for v in parsed], np.int64)
+    ov_w = np.array([int(v.ov.shape[1]) for v in parsed], np.int64)
+    ov_h = np.array([int(v.ov.shape[0]) for v in parsed], np.int64)
+    ov_scale = np.stack([np.array([w_ / w, h_ / h], np.float32)  # as the per-view np.array(..., float32)
+                         for w_, h_, w, h in zip(ov_w, ov_h, img_w, img_h, strict=True)])  # (V, 2)
+    depths = [np.asarray(v.depth_m.cpu().numpy() if isinstance(v.depth_m, Tensor) else v.depth_m, np.float32)
+              if use_depth and v.depth_m is not None else None for v in parsed]  # (H', W') each
+    has_depth = np.array([d is not None for d in depths], bool)  # (V,)
+    d_w = np.array([d.shape[1] if d is not None else 1 for d in depths], np.int64)
+    d_h = np.array([d.shape[0] if d is not None else 1 for d in depths], np.int64)
+    d_scale = np.stack([np.array([dw / w, dh / h], np.float32)
+                        for dw, dh, w, h in zip(d_w, d_h, img_w, img_h, strict=True)])  # (V, 2)
+    d_off = np.concatenate([[0], np.cumsum(d_w * d_h)])[:-1]  # (V,)
+    depth_flat = None  # the views' depth maps, flattened one after another
+    if has_depth.any():
+        depth_flat = np.concatenate([np.zeros(1, np.float32) if d is None else d.reshape(-1) for d in depths])
+    return _ViewArrays(cam_from_world, Ks, img_w, img_h, ov_w, ov_h, ov_scale, has_depth, d_w, d_h, d_scale,
+                       d_off, depth_flat)
+
+
+def _kernel_average(
+    pts: Tensor,  # (N, 3) float32
+    parsed: list[OVView],
+    *,
+    use_depth: bool,
+    border_px: float,
+    depth_rel_tol: float,
+    distance_power: float,
+    vw: Tensor | None,  # (V, N) float32
+    dim: int,
+    texts: Tensor | None,  # (T, D) float32
+) -> tuple[Tensor, Tensor]:
+    """The CPU path of :func:`average_features` (``texts`` None: (N, D) unit features) and
+    :func:`average_similarities` ((N, T) cosines): one compiled kernel, and the views counted (N,)."""
+    cpu = torch.device("cpu")
+    va = _view_arrays(parsed, use_depth=use_depth, device=cpu)
+    ov_off = np.concatenate([[0], np.cumsum(va.ov_w * va.ov_h)])[:-1]  # (V,)
+    table = np.concatenate([np.asarray(v.ov.cpu().numpy() if isinstance(v.ov, Tensor) else v.ov,
+                                       np.float32).reshape(-1, dim) for v in parsed])  # (R, D)
+    right = (va.img_w - border_px).astype(np.float64)  # (V,) as ``width - border_px`` per view
+    bottom = (va.img_h - border_px).astype(np.float64)
+    depth_flat = np.zeros(1, np.float32) if va.depth_flat is None else va.depth_flat
+    out, count = _kernel.average_kernel(
+        pts.cpu().numpy(), va.cam_from_world.numpy(), va.K.numpy(), right, bottom, float(border_px),
+        float(DEFAULT_EPS), ov_off, va.ov_w, va.ov_h, va.ov_scale, table,
+        use_depth=use_depth and va.depth_flat is not None, has_depth=va.has_depth, depth_flat=depth_flat,
+        d_off=va.d_off, d_w=va.d_w, d_h=va.d_h, d_scale=va.d_scale, depth_tol=depth_rel_tol,
+        distance_power=distance_power, view_weights=None if vw is None else vw.cpu().numpy(),
+        texts=None if texts is None else texts.cpu().numpy(), threads=torch.get_num_threads())
+    return torch.from_numpy(out), torch.from_numpy(count)
+
 
 def average_features_reference(
     points: np.ndarray | Tensor,
@@ -212,6 +293,7 @@ def average_features(
     view_weights: np.ndarray | Tensor | None = None,
     device: str | torch.device = "cpu",
     max_table_bytes: int = 256 << 20,
+    impl: str = "auto",
 ) -> tuple[Tensor, Tensor]:
     """Multi-view average of OV features at 3D points (OpenScene-2D baseline).
 
@@ -232,12 +314,25 @@ def average_features(
             oracle, or an oracle weighting by known view quality). Rows follow ``views``.
         device: torch device for the computation.
         max_table_bytes: the views' float32 (h * w, D) maps are gathered from tables of at most
-            about this size (views are taken in groups; one view larger than this is one group).
+            about this size (views are taken in groups; one view larger than this is one group);
+            the torch path only.
+        impl: ``"auto"`` (the compiled kernel on a CPU device, the torch path elsewhere),
+            ``"kernel"`` or ``"torch"``.
 
     Returns:
         features: (N, D) float32, L2-normalised weighted mean (zero rows where no view counts).
         n_views: (N,) int64, number of views that counted for each point.
     """
+    if _use_kernel(impl, device, max_table_bytes):
+        pts, parsed, vw, dim = _parse_inputs(points, views, use_depth=use_depth, border_px=border_px,
+                                             depth_rel_tol=depth_rel_tol, chunk=chunk,
+                                             view_weights=view_weights, device=torch.device("cpu"))
+        if not parsed or pts.shape[0] == 0:
+            return (torch.zeros(pts.shape[0], dim, dtype=torch.float32),
+                    torch.zeros(pts.shape[0], dtype=torch.int64))
+        return _kernel_average(pts, parsed, use_depth=use_depth, border_px=border_px,
+                               depth_rel_tol=depth_rel_tol, distance_power=distance_power, vw=vw, dim=dim,
+                               texts=None)
     n_pts, dim, chunks = _average_chunks(
         points, views, use_depth=use_depth, border_px=border_px, depth_rel_tol=depth_rel_tol, chunk=chunk,
         distance_power=distance_power, view_weights=view_weights, device=device,
@@ -267,12 +362,13 @@ def average_similarities(
     chunk: int = 16384,
     device: str | torch.device = "cpu",
     max_table_bytes: int = 256 << 20,
+    impl: str = "auto",
 ) -> tuple[Tensor, Tensor]:
     """Cosines between :func:`average_features` and texts, without keeping the (N, D) features.
 
     Args:
-        points, views, use_depth, border_px, depth_rel_tol, chunk, device, max_table_bytes: as in
-            :func:`average_features`.
+        points, views, use_depth, border_px, depth_rel_tol, chunk, device, max_table_bytes, impl: as
+            in :func:`average_features`.
         text_emb: (T, D) float32 text embeddings (unit rows for cosines).
 
     Returns:
@@ -283,6 +379,17 @@ def average_similarities(
     device = torch.device(device)
     texts = _as_tensor(text_emb, torch.float32, device)
     check_shape(texts, "T D", "text_emb must have shape (T texts, D)")
+    if _use_kernel(impl, device, max_table_bytes):
+        pts, parsed, _, dim = _parse_inputs(points, views, use_depth=use_depth, border_px=border_px,
+                                            depth_rel_tol=depth_rel_tol, chunk=chunk, view_weights=None,
+                                            device=torch.device("cpu"))
+        if dim and texts.shape[1] != dim:
+            raise ValueError(f"text_emb has dimension {texts.shape[1]}, the views' features {dim}")
+        if not parsed or pts.shape[0] == 0:
+            return (torch.zeros(pts.shape[0], texts.shape[0], dtype=torch.float32),
+                    torch.zeros(pts.shape[0], dtype=torch.int64))
+        return _kernel_average(pts, parsed, use_depth=use_depth, border_px=border_px,
+                               depth_rel_tol=depth_rel_tol, distance_power=0.0, vw=None, dim=dim, texts=texts)
     n_pts, dim, chunks = _average_chunks(
         points, views, use_depth=use_depth, border_px=border_px, depth_rel_tol=depth_rel_tol, chunk=chunk,
         distance_power=0.0, view_weights=None, device=device, max_table_bytes=max_table_bytes)
@@ -297,6 +404,18 @@ def average_similarities(
             sims[start:stop] = (acc @ texts.T) / norm
         n_views[start:stop] = count
     return sims, n_views
+
+
+def _use_kernel(impl: str, device: str | torch.device, max_table_bytes: int) -> bool:
+    """Whether the compiled CPU kernel answers (``impl`` "auto" on a CPU device, or "kernel");
+    checks the arguments both paths share."""
+    if max_table_bytes < 1:
+        raise ValueError(f"max_table_bytes {max_table_bytes} must be >= 1")
+    if impl not in ("auto", "kernel", "torch"):
+        raise ValueError(f"impl {impl!r} must be one of auto, kernel, torch")
+    if impl == "kernel" and torch.device(device).type != "cpu":
+        raise ValueError(f"impl 'kernel' runs on the CPU, not on device {device}")
+    return impl == "kernel" or (impl == "auto" and torch.device(device).type == "cpu")
 
 
 def _average_chunks(
@@ -352,28 +471,12 @@ def _chunks(
     # in view order, as the reference sums them, without sorting.
     n_pts = pts.shape[0]
     n_views = len(parsed)
-    cam_from_world = invert_pose(torch.stack([_as_tensor(v.world_from_cam, torch.float32, device)
-                                              for v in parsed]))  # (V, 4, 4)
-    Ks = torch.stack([_as_tensor(v.K, torch.float32, device) for v in parsed])  # (V, 4)
+    va = _view_arrays(parsed, use_depth=use_depth, device=device)
+    cam_from_world, Ks = va.cam_from_world, va.K
     vw_np = None if vw is None else vw.cpu().numpy()  # (V, N) float32
-    # per view: image size, ov size, depth-map size and offset into the concatenated depth maps
-    img_w = np.array([int(v.image_wh[0]) for v in parsed], np.int64)  # (V,)
-    img_h = np.array([int(v.image_wh[1]) for v in parsed], np.int64)
-    ov_w = np.array([int(v.ov.shape[1]) for v in parsed], np.int64)
-    ov_h = np.array([int(v.ov.shape[0]) for v in parsed], np.int64)
-    ov_scale = np.stack([np.array([w_ / w, h_ / h], np.float32)  # as the per-view np.array(..., float32)
-                         for w_, h_, w, h in zip(ov_w, ov_h, img_w, img_h, strict=True)])  # (V, 2)
-    depths = [np.asarray(v.depth_m.cpu().numpy() if isinstance(v.depth_m, Tensor) else v.depth_m, np.float32)
-              if use_depth and v.depth_m is not None else None for v in parsed]  # (H', W') each
-    has_depth = np.array([d is not None for d in depths], bool)  # (V,)
-    d_w = np.array([d.shape[1] if d is not None else 1 for d in depths], np.int64)
-    d_h = np.array([d.shape[0] if d is not None else 1 for d in depths], np.int64)
-    d_scale = np.stack([np.array([dw / w, dh / h], np.float32)
-                        for dw, dh, w, h in zip(d_w, d_h, img_w, img_h, strict=True)])  # (V, 2)
-    d_off = np.concatenate([[0], np.cumsum(d_w * d_h)])[:-1]  # (V,)
-    depth_flat = None  # the views' depth maps, flattened one after another
-    if has_depth.any():
-        depth_flat = np.concatenate([np.zeros(1, np.float32) if d is None else d.reshape(-1) for d in depths])
+    img_w, img_h, ov_w, ov_h, ov_scale = va.img_w, va.img_h, va.ov_w, va.ov_h, va.ov_scale
+    has_depth, d_w, d_h, d_scale, d_off, depth_flat = (va.has_depth, va.d_w, va.d_h, va.d_scale, va.d_off,
+                                                       va.depth_flat)
     # Groups of views whose flattened maps form one gather table of <= max_table_bytes.
     groups: list[list[int]] = []
     size = 0

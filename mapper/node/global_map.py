@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import sys
 import threading
 import time
 import warnings
@@ -413,10 +414,17 @@ class GlobalMapSnapshot:
         tree, rows = entry
         if tree is None:
             return out
-        dist, idx = tree.query(pts, distance_upper_bound=radius_m)
+        dist, idx = tree.query(pts, distance_upper_bound=radius_m, workers=_query_workers())
         hit = np.isfinite(dist)
         out[hit] = rows[idx[hit]]
         return out
+
+
+def _query_workers() -> int:
+    """Threads of a k-d tree query: torch's (the node's compute threads, OMP_NUM_THREADS) where
+    torch is loaded (this module stays torch-free), else 1."""
+    torch = sys.modules.get("torch")
+    return max(1, int(torch.get_num_threads())) if torch is not None else 1
 
 
 class GlobalSemanticMap:

@@ -1232,9 +1232,12 @@ class MapperNode:
             raise ProtocolError("not_ready", f"{what}: {exc}") from None
 
     def _warm_text_encoder(self, space: str) -> None:
-        """Load the text encoder of ``space`` in the background once, so the first query is fast."""
+        """Load the text encoder of ``space`` in the background once, so the first query is fast;
+        the first time, also the averaging kernel (``segment_points`` ``average`` /
+        ``average_depth``: compiled, or loaded from numba's cache)."""
         if space in self._warmed_spaces:
             return
+        first = not self._warmed_spaces
         self._warmed_spaces.add(space)
 
         def warm() -> None:
@@ -1246,6 +1249,13 @@ class MapperNode:
                 log.info("no text encoder for ov_space %r: semantic queries will answer not_ready", space)
             except Exception:  # a broken encoder must not take the node down; queries report it
                 log.exception("text encoder warm-up for %r failed", space)
+            if first:
+                try:
+                    from mapper.model.ops.average_kernel import warm_up
+
+                    warm_up()
+                except Exception:  # the first averaging query compiles it instead (and reports a failure)
+                    log.exception("averaging kernel warm-up failed")
 
         threading.Thread(target=warm, name="mapper-encoder-warmup", daemon=True).start()
 

@@ -1,5 +1,7 @@
 """The gather-based averaging (``average_features`` / ``average_similarities``) against the previous
-per-view ``grid_sample`` implementation (``average_features_reference``) on random scenes."""
+per-view ``grid_sample`` implementation (``average_features_reference``) on random scenes, for both
+implementations: the compiled CPU kernel (``impl="kernel"``, what a CPU device runs) and the torch
+path (``impl="torch"``, what other devices run)."""
 
 from typing import Any
 
@@ -36,22 +38,27 @@ def random_scene(seed: int, n_points: int = 3000, n_views: int = 7) -> tuple[np.
     return pts, views
 
 
+IMPLS = ["kernel", "torch"]
+
+
+@pytest.mark.parametrize("impl", IMPLS)
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("use_depth", [False, True])
-def test_fast_average_equals_the_reference(seed: int, use_depth: bool) -> None:
+def test_fast_average_equals_the_reference(seed: int, use_depth: bool, impl: str) -> None:
     pts, views = random_scene(seed)
     options: list[dict[str, Any]] = [{}, {"border_px": 0.0}, {"distance_power": 1.5, "chunk": 500},
                                      {"depth_rel_tol": 0.6}]
     for kwargs in options:
         f_ref, n_ref = average_features_reference(pts, views, use_depth=use_depth, **kwargs)
-        f, n = average_features(pts, views, use_depth=use_depth, **kwargs)
+        f, n = average_features(pts, views, use_depth=use_depth, impl=impl, **kwargs)
         assert torch.equal(n, n_ref)
         assert int((n > 0).sum()) > 100  # the scene exercises the averaging
         assert torch.allclose(f, f_ref, atol=1e-5, rtol=0)
 
 
+@pytest.mark.parametrize("impl", IMPLS)
 @pytest.mark.parametrize("use_depth", [False, True])
-def test_one_camera_window_equals_the_reference(use_depth: bool) -> None:
+def test_one_camera_window_equals_the_reference(use_depth: bool, impl: str) -> None:
     # every view of the same size (one robot's camera): the per-view sizes are one value for all
     # pairs (no per-pair gather), as in a node's window
     pts, views = random_scene(4)
@@ -60,30 +67,34 @@ def test_one_camera_window_equals_the_reference(use_depth: bool) -> None:
                    views[0].image_wh, None if v.depth_m is None else views[0].depth_m) for v in views]
     for chunk, table_bytes in ((16384, 256 << 20), (333, 1)):
         f_ref, n_ref = average_features_reference(pts, same, use_depth=use_depth, chunk=chunk)
-        f, n = average_features(pts, same, use_depth=use_depth, chunk=chunk, max_table_bytes=table_bytes)
+        f, n = average_features(pts, same, use_depth=use_depth, chunk=chunk, max_table_bytes=table_bytes,
+                                impl=impl)
         assert torch.equal(n, n_ref) and int((n > 0).sum()) > 100
         assert torch.allclose(f, f_ref, atol=1e-5, rtol=0)
 
 
-def test_view_weights_and_table_groups_equal_the_reference() -> None:
+@pytest.mark.parametrize("impl", IMPLS)
+def test_view_weights_and_table_groups_equal_the_reference(impl: str) -> None:
     pts, views = random_scene(3)
     vw = np.random.default_rng(3).random((len(views), pts.shape[0])).astype(np.float32)
     vw[vw < 0.3] = 0.0
     f_ref, n_ref = average_features_reference(pts, views, use_depth=False, view_weights=vw)
     # a tiny table bound puts every view in its own gather table
-    f, n = average_features(pts, views, use_depth=False, view_weights=vw, max_table_bytes=1, chunk=700)
+    f, n = average_features(pts, views, use_depth=False, view_weights=vw, max_table_bytes=1, chunk=700,
+                            impl=impl)
     assert torch.equal(n, n_ref)
     assert torch.allclose(f, f_ref, atol=1e-5, rtol=0)
 
 
+@pytest.mark.parametrize("impl", IMPLS)
 @pytest.mark.parametrize("use_depth", [False, True])
-def test_similarities_and_segment_average_match_the_reference(use_depth: bool) -> None:
+def test_similarities_and_segment_average_match_the_reference(use_depth: bool, impl: str) -> None:
     pts, views = random_scene(4)
     texts = np.random.default_rng(4).standard_normal((5, 24)).astype(np.float32)
     texts /= np.linalg.norm(texts, axis=1, keepdims=True)
     f_ref, n_ref = average_features_reference(pts, views, use_depth=use_depth)
     sims_ref = f_ref.numpy() @ texts.T
-    sims, n = average_similarities(pts, views, texts, use_depth=use_depth, chunk=1000)
+    sims, n = average_similarities(pts, views, texts, use_depth=use_depth, chunk=1000, impl=impl)
     assert torch.equal(n, n_ref)
     np.testing.assert_allclose(sims.numpy(), sims_ref, atol=1e-5, rtol=0)
     label, score, n_seg = segment_average(pts, views, texts, use_depth=use_depth)  # type: ignore[arg-type]
@@ -97,13 +108,73 @@ def test_similarities_and_segment_average_match_the_reference(use_depth: bool) -
     np.testing.assert_allclose(score[seen], sims_ref[seen].max(axis=1), atol=1e-5)
 
 
-def test_no_views_and_bad_input() -> None:
+@pytest.mark.parametrize("impl", IMPLS)
+def test_no_views_and_bad_input(impl: str) -> None:
     pts, views = random_scene(5, n_points=50)
-    f, n = average_features(pts, [], use_depth=False)
+    f, n = average_features(pts, [], use_depth=False, impl=impl)
     assert f.shape == (50, 0) and int(n.sum()) == 0
-    f, n = average_features(pts, [views[-1]], use_depth=True)  # the one view without depth
+    f, n = average_features(pts, [views[-1]], use_depth=True, impl=impl)  # the one view without depth
     assert f.shape == (50, 24) and int(n.sum()) == 0 and float(f.abs().sum()) == 0.0
+    s, n = average_similarities(pts, [views[-1]], np.ones((2, 24), np.float32), use_depth=True, impl=impl)
+    assert s.shape == (50, 2) and int(n.sum()) == 0 and float(s.abs().sum()) == 0.0
+    f, n = average_features(pts[:0], views, use_depth=False, impl=impl)
+    assert f.shape == (0, 24) and n.shape == (0,)
     with pytest.raises(ValueError, match="max_table_bytes"):
-        average_features(pts, views, use_depth=False, max_table_bytes=0)
+        average_features(pts, views, use_depth=False, max_table_bytes=0, impl=impl)
     with pytest.raises(ValueError, match="dimension"):
-        average_similarities(pts, views, np.ones((2, 7), np.float32), use_depth=False)
+        average_similarities(pts, views, np.ones((2, 7), np.float32), use_depth=False, impl=impl)
+    with pytest.raises(ValueError, match="impl"):
+        average_features(pts, views, use_depth=False, impl="fast")
+    with pytest.raises(ValueError, match="CPU"):
+        average_features(pts, views, use_depth=False, impl="kernel", device="meta")
+
+
+def test_kernel_is_the_same_for_any_thread_count_and_under_concurrent_calls() -> None:
+    # every point is summed by one thread in a fixed order: bitwise the same answer for 1 or 2
+    # threads, and for calls from several Python threads at once (launches are serialised)
+    import threading
+
+    pts, views = random_scene(6, n_points=4000)
+    texts = np.random.default_rng(6).standard_normal((3, 24)).astype(np.float32)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one, n_one = average_similarities(pts, views, texts, use_depth=True, impl="kernel")
+        torch.set_num_threads(2)
+        two, n_two = average_similarities(pts, views, texts, use_depth=True, impl="kernel")
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(one, two) and torch.equal(n_one, n_two) and int((n_one > 0).sum()) > 100
+    results: list[tuple[torch.Tensor, torch.Tensor]] = []
+    errors: list[BaseException] = []
+
+    def call() -> None:
+        try:
+            results.append(average_similarities(pts, views, texts, use_depth=True, impl="kernel"))
+        except BaseException as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=call) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and len(results) == 4
+    for sims, n in results:
+        assert torch.equal(sims, one) and torch.equal(n, n_one)
+
+
+@pytest.mark.parametrize("impl", IMPLS)
+def test_extreme_points_count_no_view(impl: str) -> None:
+    # behind every camera, on a camera's plane and far out (1e30 m, out of every image): no view
+    # counts and the rows are zero; near float32's limit (3e38 m: camera coordinates overflow to
+    # inf) and on a camera's axis: the same views as the reference, finite features
+    _, views = random_scene(7, n_points=10)
+    centre = np.asarray(views[0].world_from_cam, np.float64)[:3, 3]
+    pts = np.array([[0.0, 0.0, -50.0], centre, [1e30, -1e30, 1e30], [3e38, 3e38, 3e38],
+                    [0.0, 0.0, 1e-30]], np.float32)
+    f_ref, n_ref = average_features_reference(pts, views, use_depth=False)
+    f, n = average_features(pts, views, use_depth=False, impl=impl)
+    assert torch.equal(n, n_ref)
+    assert int(n[:3].sum()) == 0 and bool(torch.isfinite(f).all()) and float(f[:3].abs().sum()) == 0.0
+    assert torch.allclose(f, f_ref, atol=1e-5, rtol=0)

@@ -1,0 +1,224 @@
+"""The multi-view averaging of OV features as one compiled CPU kernel (numba).
+
+:func:`mapper.model.baselines.average_features` and ``average_similarities`` (what the node's
+``segment_points`` methods ``average`` and ``average_depth`` call) on a CPU device run here: each
+point, in parallel over blocks of points, is projected into every view, tested (in front of the
+camera, inside the image less the border, optionally the depth test and a view weight), and the
+bilinear taps of its views are summed into one D-vector, from which the normalised feature or its
+cosines with the texts are written. Nothing of size (pairs, ...) or (points, views) is
+materialised; the torch / numpy path (``baselines._chunks``) made those arrays and spent most of
+its time there (docs/BENCHMARKS.md).
+
+The selection arithmetic is the reference's, in float32 and in the same order (projection
+``R p + t`` without contraction, ``x / z * f + c``; the depth test's nearest pixel; the corners
+and weights of ``grid_sample(bilinear, border, align_corners=False)``), so the views that count
+are the same; only the D-dimensional sums are vectorised (``fastmath``, reassociated), which moves
+the features by float rounding (about 1e-7).
+
+The first call in a process compiles the kernel (a few seconds) or loads it from numba's cache
+(``__pycache__`` beside this file, or numba's user cache where that is read-only); :func:`warm_up`
+does that ahead of a first query.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numba
+import numpy as np
+
+__all__ = ["average_kernel", "kernel_threads", "warm_up"]
+
+_F0 = np.float32(0.0)
+_F1 = np.float32(1.0)
+_F2 = np.float32(2.0)
+_LOCK = threading.Lock()  # one kernel launch at a time (it uses every thread it is given)
+
+
+@numba.njit(fastmath=True, boundscheck=False, cache=True)
+def _add_taps(acc, table, r00, r01, r10, r11, w00, w01, w10, w11):  # pragma: no cover - compiled
+    a, b, c, d = table[r00], table[r01], table[r10], table[r11]
+    for k in range(acc.shape[0]):
+        acc[k] += w00 * a[k] + w01 * b[k] + w10 * c[k] + w11 * d[k]
+
+
+@numba.njit(fastmath=True, boundscheck=False, cache=True)
+def _dot(a, b):  # pragma: no cover - compiled
+    s = _F0
+    for k in range(a.shape[0]):
+        s += a[k] * b[k]
+    return s
+
+
+@numba.njit(parallel=True, cache=True, boundscheck=False)
+def _kernel(
+    pts,  # (N, 3) float32 world points
+    cam_from_world,  # (V, 4, 4) float32
+    K,  # (V, 4) float32 fx, fy, cx, cy
+    right,  # (V,) float64: image width - border
+    bottom,  # (V,) float64: image height - border
+    border,  # float64
+    eps,  # float32: smallest depth in front of the camera
+    ov_off,  # (V,) int64: each view's first row in ``table``
+    ov_w,  # (V,) int64 OV map sizes
+    ov_h,  # (V,) int64
+    ov_scale,  # (V, 2) float32: OV map size / image size
+    table,  # (R, D) float32: the views' OV maps, row-major, one after another
+    use_depth,  # bool
+    has_depth,  # (V,) bool
+    depth_flat,  # (S,) float32: the views' depth maps, flattened one after another
+    d_off,  # (V,) int64
+    d_w,  # (V,) int64
+    d_h,  # (V,) int64
+    d_scale,  # (V, 2) float32: depth map size / image size
+    depth_tol,  # float32: relative tolerance of the depth test
+    distance_power,  # float32: weight z ** -distance_power (0: none)
+    view_weights,  # (V, N) float32, or (V, 0) for none
+    texts,  # (T, D) float32; T = 0: write features instead of cosines
+    out,  # (N, T) cosines or (N, D) features, float32, zeroed by the caller
+    count,  # (N,) int64 views that counted, zeroed by the caller
+    block,  # int: points per parallel task
+):  # pragma: no cover - compiled
+    n_pts = pts.shape[0]
+    n_views = cam_from_world.shape[0]
+    dim = table.shape[1]
+    n_texts = texts.shape[0]
+    weighted = view_weights.shape[1] > 0
+    n_blocks = (n_pts + block - 1) // block
+    for blk in numba.prange(n_blocks):
+        acc = np.empty(dim, np.float32)
+        p_view = np.empty(n_views, np.int64)
+        p_u = np.empty(n_views, np.float32)
+        p_v = np.empty(n_views, np.float32)
+        p_w = np.empty(n_views, np.float32)
+        for i in range(blk * block, min(n_pts, (blk + 1) * block)):
+            x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
+            m = 0
+            wsum = _F0
+            for v in range(n_views):
+                R = cam_from_world[v]
+                cz = x * R[2, 0] + y * R[2, 1] + z * R[2, 2] + R[2, 3]
+                if not cz > eps:
+                    continue
+                cx = x * R[0, 0] + y * R[0, 1] + z * R[0, 2] + R[0, 3]
+                cy = x * R[1, 0] + y * R[1, 1] + z * R[1, 2] + R[1, 3]
+                u = cx / cz * K[v, 0] + K[v, 2]
+                vv = cy / cz * K[v, 1] + K[v, 3]
+                if not (u >= border and u <= right[v] and vv >= border and vv <= bottom[v]):
+                    continue
+                if weighted and not view_weights[v, i] > 0:
+                    continue
+                if use_depth and has_depth[v]:
+                    col = min(max(np.floor(u * d_scale[v, 0]), _F0), np.float32(d_w[v] - 1))
+                    row = min(max(np.floor(vv * d_scale[v, 1]), _F0), np.float32(d_h[v] - 1))
+                    d = depth_flat[d_off[v] + np.int64(row) * d_w[v] + np.int64(col)]
+                    if not (d > 0 and abs(d - cz) <= depth_tol * d):
+                        continue
+                w = _F1
+                if distance_power != 0:
+                    w = max(cz, np.float32(1e-6)) ** (-distance_power)
+                if weighted:
+                    w = w * view_weights[v, i]
+                p_view[m], p_u[m], p_v[m], p_w[m] = v, u, vv, w
+                wsum += w
+                m += 1
+            count[i] = m
+            if m == 0:
+                continue
+            inv = _F1 / wsum
+            acc[:] = _F0
+            for k in range(m):
+                v = p_view[k]
+                wf, hf = np.float32(ov_w[v]), np.float32(ov_h[v])
+                gx = min(max(_F2 * (p_u[k] * ov_scale[v, 0]) / wf - _F1, -_F2), _F2)
+                gy = min(max(_F2 * (p_v[k] * ov_scale[v, 1]) / hf - _F1, -_F2), _F2)
+                ix = min(max(((gx + _F1) * wf - _F1) / _F2, _F0), wf - _F1)
+                iy = min(max(((gy + _F1) * hf - _F1) / _F2, _F0), hf - _F1)
+                x0f, y0f = np.floor(ix), np.floor(iy)
+                tx, ty = ix - x0f, iy - y0f
+                x0, y0 = np.int64(x0f), np.int64(y0f)
+                x1, y1 = min(x0 + 1, ov_w[v] - 1), min(y0 + 1, ov_h[v] - 1)
+                r0, r1 = ov_off[v] + y0 * ov_w[v], ov_off[v] + y1 * ov_w[v]
+                s = p_w[k] * inv
+                _add_taps(acc, table, r0 + x0, r0 + x1, r1 + x0, r1 + x1,
+                          (_F1 - tx) * (_F1 - ty) * s, tx * (_F1 - ty) * s, (_F1 - tx) * ty * s, tx * ty * s)
+            norm = max(np.sqrt(_dot(acc, acc)), np.float32(1e-12))
+            if n_texts == 0:
+                for k in range(dim):
+                    out[i, k] = acc[k] / norm
+            else:
+                for t in range(n_texts):
+                    out[i, t] = _dot(acc, texts[t]) / norm
+
+
+def kernel_threads(threads: int) -> int:
+    """The threads a launch may use: ``threads`` within numba's pool (1..NUMBA_NUM_THREADS)."""
+    return max(1, min(int(threads), int(numba.config.NUMBA_NUM_THREADS)))  # type: ignore[attr-defined]
+
+
+def average_kernel(
+    pts: np.ndarray,  # (N, 3) float32
+    cam_from_world: np.ndarray,  # (V, 4, 4) float32
+    K: np.ndarray,  # (V, 4) float32
+    right: np.ndarray,  # (V,) float64
+    bottom: np.ndarray,  # (V,) float64
+    border: float,
+    eps: float,
+    ov_off: np.ndarray,  # (V,) int64
+    ov_w: np.ndarray,  # (V,) int64
+    ov_h: np.ndarray,  # (V,) int64
+    ov_scale: np.ndarray,  # (V, 2) float32
+    table: np.ndarray,  # (R, D) float32
+    *,
+    use_depth: bool,
+    has_depth: np.ndarray,  # (V,) bool
+    depth_flat: np.ndarray,  # (S,) float32
+    d_off: np.ndarray,  # (V,) int64
+    d_w: np.ndarray,  # (V,) int64
+    d_h: np.ndarray,  # (V,) int64
+    d_scale: np.ndarray,  # (V, 2) float32
+    depth_tol: float,
+    distance_power: float,
+    view_weights: np.ndarray | None,  # (V, N) float32
+    texts: np.ndarray | None,  # (T, D) float32
+    threads: int,
+    block: int = 64,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Run the kernel; returns (cosines (N, T) with ``texts``, else unit features (N, D); zero rows
+    where no view counts) and the views that counted (N,) int64. Arguments as the kernel's (checked
+    by the caller, :mod:`mapper.model.baselines`)."""
+    n_pts, dim = pts.shape[0], table.shape[1]
+    n_views = cam_from_world.shape[0]
+    txt = np.zeros((0, dim), np.float32) if texts is None else np.ascontiguousarray(texts, np.float32)
+    out = np.zeros((n_pts, dim if texts is None else txt.shape[0]), np.float32)
+    count = np.zeros(n_pts, np.int64)
+    vw = np.zeros((n_views, 0), np.float32) if view_weights is None else np.ascontiguousarray(view_weights,
+                                                                                               np.float32)
+    with _LOCK:
+        previous = numba.get_num_threads()
+        numba.set_num_threads(kernel_threads(threads))
+        try:
+            _kernel(np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(cam_from_world, np.float32),
+                    np.ascontiguousarray(K, np.float32), np.ascontiguousarray(right, np.float64),
+                    np.ascontiguousarray(bottom, np.float64), float(border), np.float32(eps),
+                    ov_off.astype(np.int64), ov_w.astype(np.int64), ov_h.astype(np.int64),
+                    np.ascontiguousarray(ov_scale, np.float32), np.ascontiguousarray(table, np.float32),
+                    bool(use_depth), has_depth.astype(np.bool_), np.ascontiguousarray(depth_flat, np.float32),
+                    d_off.astype(np.int64), d_w.astype(np.int64), d_h.astype(np.int64),
+                    np.ascontiguousarray(d_scale, np.float32), np.float32(depth_tol),
+                    np.float32(distance_power), vw, txt, out, count, int(block))
+        finally:
+            numba.set_num_threads(previous)
+    return out, count
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the kernel now, on a one-point problem."""
+    one = np.ones(1, np.int64)
+    eye = np.eye(4, dtype=np.float32)[None]
+    average_kernel(
+        np.zeros((1, 3), np.float32), eye, np.ones((1, 4), np.float32), np.ones(1), np.ones(1), 0.0, 1e-6,
+        np.zeros(1, np.int64), one, one, np.ones((1, 2), np.float32), np.zeros((1, 2), np.float32),
+        use_depth=False, has_depth=np.zeros(1, bool), depth_flat=np.zeros(1, np.float32),
+        d_off=np.zeros(1, np.int64), d_w=one, d_h=one, d_scale=np.ones((1, 2), np.float32), depth_tol=0.25,
+        distance_power=0.0, view_weights=None, texts=np.zeros((1, 2), np.float32), threads=1)
