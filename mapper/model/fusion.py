@@ -126,6 +126,8 @@ def blend_from_maps(
 
     Inference only (no autograd through ``table``'s rows is needed, though it is supported).
     Equal to sampling then blending up to float rounding (tests/mapper/test_blend_from_maps.py).
+    On the CPU in float32 without autograd it runs as one compiled kernel
+    (:func:`mapper.model.ops.average_kernel.blend_kernel`: the same taps, no (P, N, 4) arrays).
     """
     w, h = map_wh
     P, N = weights.shape
@@ -136,6 +138,12 @@ def blend_from_maps(
             f"{tuple(uv.shape)} is not ({P}, {N}, 2)"
         )
     view_idx = view_idx.expand(P, N) if view_idx.dim() == 1 else view_idx
+    if _blend_kernel_applies(table, uv, weights):
+        from mapper.model.ops.average_kernel import blend_kernel
+
+        return torch.from_numpy(blend_kernel(table.numpy(), (w, h), view_idx.numpy(), uv.numpy(),
+                                             weights.to(torch.float32).numpy(),
+                                             threads=torch.get_num_threads()))
     index, tap = bilinear_corners(uv, w, h)  # (P, N, 4)
     index = index + (view_idx * (w * h)).unsqueeze(-1)
     tap_w = (weights.to(tap.dtype).unsqueeze(-1) * tap).reshape(P, N * 4)
@@ -146,6 +154,14 @@ def blend_from_maps(
     return F.embedding_bag(
         index[keep], table, offsets, mode="sum", per_sample_weights=tap_w[keep].to(table.dtype)
     )
+
+
+def _blend_kernel_applies(table: Tensor, uv: Tensor, weights: Tensor) -> bool:
+    """``blend_from_maps`` takes the compiled CPU kernel: every tensor on the CPU, float32 table and
+    coordinates, and no gradient to record."""
+    on_cpu = table.device.type == uv.device.type == weights.device.type == "cpu"
+    grad = torch.is_grad_enabled() and (table.requires_grad or uv.requires_grad or weights.requires_grad)
+    return on_cpu and not grad and table.dtype == uv.dtype == torch.float32 and weights.is_floating_point()
 
 
 class CrossViewAttention(nn.Module):

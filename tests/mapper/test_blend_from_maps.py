@@ -158,3 +158,33 @@ def test_samples_carry_each_views_distance_to_the_point() -> None:
             setattr(ref_samples, name, torch.stack([t[p, idx[p]] for p in range(200)]))
         b = model.point_outputs(ref_samples, v)
     torch.testing.assert_close(a.ov, b.ov, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("per_point_views", [False, True])
+def test_blend_kernel_equals_the_torch_path(per_point_views: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the compiled CPU kernel (float32, no autograd) against the embedding_bag path, with
+    # coordinates far outside the maps and non-finite ones (bilinear_corners reads them at 0),
+    # zero weights (skipped) and 1-pixel-wide maps
+    import mapper.model.fusion as fusion
+
+    gen = torch.Generator().manual_seed(7)
+    for m, c, h, w in ((4, 9, 5, 7), (3, 384, 15, 20), (2, 3, 1, 6)):
+        P, N = 500, 5
+        table = _maps(m, c, h, w).permute(0, 2, 3, 1).reshape(-1, c).contiguous()
+        view_idx = torch.randint(0, m, (P, N), generator=gen) if per_point_views else torch.arange(N) % m
+        uv = torch.rand(P, N, 2, generator=gen) * torch.tensor([w + 8.0, h + 8.0]) - 4.0
+        uv[0, 0, 0], uv[1, 1, 1], uv[2, 2] = float("nan"), float("inf"), torch.tensor([-1e30, 1e30])
+        weights = torch.rand(P, N, generator=gen) * (torch.rand(P, N, generator=gen) > 0.25)
+        assert fusion._blend_kernel_applies(table, uv, weights)
+        mine = blend_from_maps(table, (w, h), view_idx, uv, weights)
+        monkeypatch.setattr(fusion, "_blend_kernel_applies", lambda *_: False)
+        ref = blend_from_maps(table, (w, h), view_idx, uv, weights)
+        monkeypatch.undo()
+        assert bool(torch.isfinite(mine).all())
+        torch.testing.assert_close(mine, ref, rtol=1e-5, atol=1e-5)
+    # autograd, float64 or another device keep the torch path
+    grad_table = table.clone().requires_grad_(True)
+    assert not fusion._blend_kernel_applies(grad_table, uv, weights)
+    assert not fusion._blend_kernel_applies(table.double(), uv.double(), weights)
+    with torch.no_grad():
+        assert fusion._blend_kernel_applies(grad_table, uv, weights)

@@ -27,7 +27,7 @@ import threading
 import numba
 import numpy as np
 
-__all__ = ["average_kernel", "kernel_threads", "warm_up"]
+__all__ = ["average_kernel", "blend_kernel", "kernel_threads", "warm_up"]
 
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
@@ -151,6 +151,72 @@ def _kernel(
                     out[i, t] = _dot(acc, texts[t]) / norm
 
 
+@numba.njit(parallel=True, cache=True, boundscheck=False)
+def _blend_kernel(
+    table,  # (R, C) float32: M maps of h x w rows, channel-last, view-major
+    map_w,  # int
+    map_h,  # int
+    view_idx,  # (P, N) int64: the map behind each slot
+    uv,  # (P, N, 2) float32 pixel coordinates in the maps' resolution
+    weights,  # (P, N) float32
+    out,  # (P, C) float32, zeroed by the caller
+    block,  # int: points per parallel task
+):  # pragma: no cover - compiled
+    n_pts, n_slots = weights.shape
+    wf, hf = np.float32(map_w), np.float32(map_h)
+    n_blocks = (n_pts + block - 1) // block
+    for blk in numba.prange(n_blocks):
+        for p in range(blk * block, min(n_pts, (blk + 1) * block)):
+            acc = out[p]
+            for n in range(n_slots):
+                w = weights[p, n]
+                if w == 0:
+                    continue
+                u, v = uv[p, n, 0], uv[p, n, 1]
+                if not np.isfinite(u):  # bilinear_corners' nan_to_num
+                    u = _F0
+                if not np.isfinite(v):
+                    v = _F0
+                gx = min(max(_F2 * u / wf - _F1, -_F2), _F2)
+                gy = min(max(_F2 * v / hf - _F1, -_F2), _F2)
+                ix = min(max(((gx + _F1) * wf - _F1) / _F2, _F0), wf - _F1)
+                iy = min(max(((gy + _F1) * hf - _F1) / _F2, _F0), hf - _F1)
+                x0f, y0f = np.floor(ix), np.floor(iy)
+                tx, ty = ix - x0f, iy - y0f
+                x0, y0 = np.int64(x0f), np.int64(y0f)
+                x1, y1 = min(x0 + 1, map_w - 1), min(y0 + 1, map_h - 1)
+                base = view_idx[p, n] * map_w * map_h
+                r0, r1 = base + y0 * map_w, base + y1 * map_w
+                _add_taps(acc, table, r0 + x0, r0 + x1, r1 + x0, r1 + x1, w * ((_F1 - tx) * (_F1 - ty)),
+                          w * (tx * (_F1 - ty)), w * ((_F1 - tx) * ty), w * (tx * ty))
+
+
+def blend_kernel(
+    table: np.ndarray,  # (M * h * w, C) float32
+    map_wh: tuple[int, int],
+    view_idx: np.ndarray,  # (P, N) int64
+    uv: np.ndarray,  # (P, N, 2) float32
+    weights: np.ndarray,  # (P, N) float32
+    *,
+    threads: int,
+    block: int = 64,
+) -> np.ndarray:  # (P, C) float32
+    """``fusion.blend_from_maps`` on the CPU: each point's weighted sum of the bilinear samples of
+    its slots' maps (``bilinear_corners``' taps; slots of weight 0 are skipped). Arguments checked
+    by the caller."""
+    out = np.zeros((weights.shape[0], table.shape[1]), np.float32)
+    with _LOCK:
+        previous = numba.get_num_threads()
+        numba.set_num_threads(kernel_threads(threads))
+        try:
+            _blend_kernel(np.ascontiguousarray(table, np.float32), int(map_wh[0]), int(map_wh[1]),
+                          np.ascontiguousarray(view_idx, np.int64), np.ascontiguousarray(uv, np.float32),
+                          np.ascontiguousarray(weights, np.float32), out, int(block))
+        finally:
+            numba.set_num_threads(previous)
+    return out
+
+
 def kernel_threads(threads: int) -> int:
     """The threads a launch may use: ``threads`` within numba's pool (1..NUMBA_NUM_THREADS)."""
     return max(1, min(int(threads), int(numba.config.NUMBA_NUM_THREADS)))  # type: ignore[attr-defined]
@@ -213,7 +279,9 @@ def average_kernel(
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the kernel now, on a one-point problem."""
+    """Compile (or load from numba's cache) the kernels now, on one-point problems."""
+    blend_kernel(np.zeros((1, 2), np.float32), (1, 1), np.zeros((1, 1), np.int64),
+                 np.zeros((1, 1, 2), np.float32), np.ones((1, 1), np.float32), threads=1)
     one = np.ones(1, np.int64)
     eye = np.eye(4, dtype=np.float32)[None]
     average_kernel(
