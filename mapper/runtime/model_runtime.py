@@ -69,6 +69,7 @@ from mapper.model.ops.cost_volume import (
     sample_volume,
 )
 from mapper.model.ops.geometry import (
+    DEFAULT_EPS,
     camera_centers,
     frustum_points,
     in_view,
@@ -886,12 +887,19 @@ class ModelRuntime:
         width, height = self.image_wh
         cam_from_world = invert_pose(prep.world_from_cam[candidates])  # (M, 4, 4)
         Ks = prep.K[candidates]
-        vis_parts = []
-        for i in range(0, n_points, 65536):
-            chunk = points[i : i + 65536]
-            uv, z = project_points(chunk.unsqueeze(0).expand(len(candidates), -1, -1), Ks, cam_from_world)
-            vis_parts.append(in_view(uv, z, width, height).T)  # (p, M)
-        vis = torch.cat(vis_parts)  # (P, M)
+        if points.device.type == "cpu" and points.dtype == cam_from_world.dtype == Ks.dtype == torch.float32:
+            from mapper.model.ops.average_kernel import in_view_matrix
+
+            vis = torch.from_numpy(in_view_matrix(points.numpy(), cam_from_world.numpy(), Ks.numpy(),
+                                                  (width, height), DEFAULT_EPS,
+                                                  threads=torch.get_num_threads()))  # (P, M)
+        else:
+            vis_parts = []
+            for i in range(0, n_points, 65536):
+                chunk = points[i : i + 65536]
+                uv, z = project_points(chunk.unsqueeze(0).expand(len(candidates), -1, -1), Ks, cam_from_world)
+                vis_parts.append(in_view(uv, z, width, height).T)  # (p, M)
+            vis = torch.cat(vis_parts)  # (P, M)
         seen = vis.any(dim=1)
         if candidates.numel() <= k:
             idx = seen.nonzero().squeeze(-1)
@@ -923,9 +931,13 @@ class ModelRuntime:
         for g, views in enumerate(keys):
             cell_group[torch.tensor(groups[views], device=self.device)] = g
         point_group = torch.where(seen, cell_group[inverse], torch.full_like(inverse, -1))
+        # each group's points in ascending order, from one stable sort (was a scan per group)
+        by_group = torch.argsort(point_group, stable=True)
+        sizes = torch.bincount(point_group + 1, minlength=len(keys) + 1).tolist()  # [unseen, g0, g1, ...]
+        parts = torch.split(by_group, sizes)
         out = []
         for g, views in enumerate(keys):
-            idx = (point_group == g).nonzero().squeeze(-1)
+            idx = parts[g + 1]
             if idx.numel():
                 out.append((idx, candidates[torch.tensor(views, device=self.device)]))
         return out

@@ -178,3 +178,23 @@ def test_extreme_points_count_no_view(impl: str) -> None:
     assert torch.equal(n, n_ref)
     assert int(n[:3].sum()) == 0 and bool(torch.isfinite(f).all()) and float(f[:3].abs().sum()) == 0.0
     assert torch.allclose(f, f_ref, atol=1e-5, rtol=0)
+
+
+def test_in_view_matrix_equals_torch_projection() -> None:
+    # the view selection's (point, view) visibility: the compiled kernel against in_view of
+    # project_points, with points behind the cameras, on their planes, on the image edges and far
+    from mapper.model.ops.average_kernel import in_view_matrix
+    from mapper.model.ops.geometry import DEFAULT_EPS, in_view, invert_pose, project_points
+
+    pts, views = random_scene(8, n_points=5000)
+    rng = np.random.default_rng(8)
+    extra = np.array([[0.0, 0.0, -50.0], [1e30, -1e30, 1e30], [0.0, 0.0, 1e-7]], np.float32)
+    pts = np.concatenate([pts, extra, (rng.standard_normal((500, 3)) * 20).astype(np.float32)])
+    width, height = 64, 48
+    cfw = invert_pose(torch.stack([torch.as_tensor(v.world_from_cam, dtype=torch.float32) for v in views]))
+    K = torch.stack([torch.as_tensor(v.K, dtype=torch.float32) for v in views])
+    uv, z = project_points(torch.from_numpy(pts).expand(len(views), -1, -1), K, cfw)
+    ref = in_view(uv, z, width, height).T.numpy()  # (P, M)
+    mine = in_view_matrix(pts, cfw.numpy(), K.numpy(), (width, height), DEFAULT_EPS, threads=2)
+    assert mine.shape == ref.shape and 0.05 < ref.mean() < 0.95
+    np.testing.assert_array_equal(mine, ref)

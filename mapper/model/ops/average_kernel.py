@@ -27,7 +27,7 @@ import threading
 import numba
 import numpy as np
 
-__all__ = ["average_kernel", "blend_kernel", "kernel_threads", "warm_up"]
+__all__ = ["average_kernel", "blend_kernel", "in_view_matrix", "kernel_threads", "warm_up"]
 
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
@@ -217,6 +217,54 @@ def blend_kernel(
     return out
 
 
+@numba.njit(parallel=True, cache=True, boundscheck=False)
+def _in_view_kernel(pts, cam_from_world, K, width, height, eps, out, block):  # pragma: no cover - compiled
+    # pts (P, 3) float32; cam_from_world (M, 4, 4) float32; K (M, 4) float32; out (P, M) bool
+    n_pts, n_views = out.shape
+    n_blocks = (n_pts + block - 1) // block
+    for blk in numba.prange(n_blocks):
+        for i in range(blk * block, min(n_pts, (blk + 1) * block)):
+            x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
+            for v in range(n_views):
+                R = cam_from_world[v]
+                cz = x * R[2, 0] + y * R[2, 1] + z * R[2, 2] + R[2, 3]
+                if not cz > eps:
+                    out[i, v] = False
+                    continue
+                cx = x * R[0, 0] + y * R[0, 1] + z * R[0, 2] + R[0, 3]
+                cy = x * R[1, 0] + y * R[1, 1] + z * R[1, 2] + R[1, 3]
+                u = cx / cz * K[v, 0] + K[v, 2]
+                vv = cy / cz * K[v, 1] + K[v, 3]
+                out[i, v] = u >= 0 and u <= width and vv >= 0 and vv <= height
+
+
+def in_view_matrix(
+    pts: np.ndarray,  # (P, 3) float32 world points
+    cam_from_world: np.ndarray,  # (M, 4, 4) float32
+    K: np.ndarray,  # (M, 4) float32
+    image_wh: tuple[int, int],
+    eps: float,
+    *,
+    threads: int,
+    block: int = 256,
+) -> np.ndarray:  # (P, M) bool
+    """``in_view(*project_points(pts, K, cam_from_world), W, H)`` for every (point, view) at once
+    (no border), as one compiled CPU kernel: the same float32 arithmetic, without the (M, P, 2)
+    projections."""
+    out = np.empty((pts.shape[0], cam_from_world.shape[0]), np.bool_)
+    with _LOCK:
+        previous = numba.get_num_threads()
+        numba.set_num_threads(kernel_threads(threads))
+        try:
+            _in_view_kernel(np.ascontiguousarray(pts, np.float32),
+                            np.ascontiguousarray(cam_from_world, np.float32),
+                            np.ascontiguousarray(K, np.float32), np.float32(image_wh[0]),
+                            np.float32(image_wh[1]), np.float32(eps), out, int(block))
+        finally:
+            numba.set_num_threads(previous)
+    return out
+
+
 def kernel_threads(threads: int) -> int:
     """The threads a launch may use: ``threads`` within numba's pool (1..NUMBA_NUM_THREADS)."""
     return max(1, min(int(threads), int(numba.config.NUMBA_NUM_THREADS)))  # type: ignore[attr-defined]
@@ -280,6 +328,8 @@ def average_kernel(
 
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels now, on one-point problems."""
+    in_view_matrix(np.zeros((1, 3), np.float32), np.eye(4, dtype=np.float32)[None],
+                   np.ones((1, 4), np.float32), (1, 1), 1e-6, threads=1)
     blend_kernel(np.zeros((1, 2), np.float32), (1, 1), np.zeros((1, 1), np.int64),
                  np.zeros((1, 1, 2), np.float32), np.ones((1, 1), np.float32), threads=1)
     one = np.ones(1, np.int64)
