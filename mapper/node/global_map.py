@@ -93,6 +93,7 @@ _NORMAL_REL_JUMP = 0.1
 """Depth neighbours differing by more than this fraction of the depth are across an edge: no normal."""
 _FORMAT = "global-map-v1"
 _RECENT_INTEGRATES = 1000
+"""``stats`` reports the integrate time percentiles over this many latest keyframes."""
 
 UNIT_BLOCK_ROWS = 16384
 """Rows per block of a snapshot's normalised fp32 features: a new snapshot reuses the blocks of the
@@ -131,6 +132,9 @@ def _row_words(a: np.ndarray) -> np.ndarray:
     return a.view(np.uint8).reshape(a.shape[0], row_bytes).view(word)
 
 
+_BLOCK_TOKENS = itertools.count(1)
+"""Tokens of unit-feature blocks (:meth:`GlobalMapSnapshot.unit_block_tokens`), unique in the process."""
+
 _GENERATIONS = itertools.count(1)
 """Map generations, unique in the process: a new map, a ``restore`` and a ``clear`` each take the
 next, so an answer computed on one map is never taken for another's (``GlobalMapSnapshot.generation``)."""
@@ -145,7 +149,7 @@ class _UnitSource:
         self.version = -1
         self.feat: np.ndarray | None = None  # (M, D) float16, read-only
         self.blocks: list[np.ndarray] = []  # (<= UNIT_BLOCK_ROWS, D) float32 each, read-only
-"""``stats`` reports the integrate time percentiles over this many latest keyframes."""
+        self.tokens: list[int] = []  # each block's token (:meth:`GlobalMapSnapshot.unit_block_tokens`)
 
 
 class KeyframeLike(Protocol):
@@ -316,14 +320,19 @@ class GlobalMapSnapshot:
             if blocks is not None:
                 return blocks
             n = len(self)
+            tokens: list[int]
+            patches: list[tuple[int, np.ndarray] | None]
             if self.feat is None:
                 blocks = [np.zeros((min(UNIT_BLOCK_ROWS, n - lo), 0), np.float32)
                           for lo in range(0, n, UNIT_BLOCK_ROWS)]
+                tokens = [next(_BLOCK_TOKENS) for _ in blocks]
+                patches = [None] * len(blocks)
             else:
-                prev_feat, prev_blocks, prev_version = None, [], -1
+                prev_feat, prev_blocks, prev_tokens, prev_version = None, [], [], -1
                 if self._unit_source is not None:
                     with self._unit_source.lock:
                         prev_feat, prev_blocks = self._unit_source.feat, self._unit_source.blocks
+                        prev_tokens = self._unit_source.tokens
                         prev_version = self._unit_source.version
                 # the rows written since the previous blocks, from the stamps (no row compare) when
                 # those blocks are of an older version of this snapshot's rows
@@ -331,11 +340,13 @@ class GlobalMapSnapshot:
                           and self.feat_reset <= prev_version <= self.version else None)
                 same_dim = (prev_feat is not None and prev_feat.shape[1] == self.feat.shape[1]
                             and prev_feat.dtype == self.feat.dtype)
-                blocks = []
+                blocks, tokens, patches = [], [], []
                 for b, lo in enumerate(range(0, n, UNIT_BLOCK_ROWS)):
+                    patches.append(None)
+                    tokens.append(prev_tokens[b] if b < len(prev_tokens) else -1)
                     hi = min(lo + UNIT_BLOCK_ROWS, n)
                     cur = self.feat[lo:hi]
-                    if (same_dim and prev_feat is not None and b < len(prev_blocks)
+                    if (same_dim and prev_feat is not None and b < min(len(prev_blocks), len(prev_tokens))
                             and prev_blocks[b].shape[0] == hi - lo and prev_feat.shape[0] >= hi):
                         # rows written (stamps) or whose bytes changed since the previous blocks
                         if stamps is not None:
@@ -343,14 +354,17 @@ class GlobalMapSnapshot:
                         else:
                             changed = (_row_words(prev_feat[lo:hi]) != _row_words(cur)).any(axis=1)
                         if not changed.any():
-                            blocks.append(prev_blocks[b])
+                            blocks.append(prev_blocks[b])  # shared, with its token
                             continue
+                        tokens[b] = next(_BLOCK_TOKENS)
                         if np.count_nonzero(changed) * 4 < hi - lo:  # few rows: copy and patch them
                             block = prev_blocks[b].copy()
                             block[changed] = _unit_rows(cur[changed])
                             block.setflags(write=False)
                             blocks.append(block)
+                            patches[b] = (prev_tokens[b], np.flatnonzero(changed))
                             continue
+                    tokens[b] = next(_BLOCK_TOKENS)
                     block = _unit_rows(cur)
                     block.setflags(write=False)
                     blocks.append(block)
@@ -359,8 +373,28 @@ class GlobalMapSnapshot:
                         if self.version >= self._unit_source.version:
                             self._unit_source.version = self.version
                             self._unit_source.feat, self._unit_source.blocks = self.feat, blocks
+                            self._unit_source.tokens = tokens
+            self._cache["unit_tokens"] = tokens
+            self._cache["unit_patches"] = patches
             self._cache["unit_blocks"] = blocks
             return blocks
+
+    def unit_block_tokens(self) -> list[int]:
+        """A token per block of :meth:`unit_feature_blocks`, unique in the process for the block's
+        contents: a block shared with an earlier snapshot keeps its token, a new or changed block
+        takes a new one. Results kept per block (the label cache) are keyed by it."""
+        self.unit_feature_blocks()
+        with self._cache_lock:
+            return list(self._cache["unit_tokens"])
+
+    def unit_block_patches(self) -> list[tuple[int, np.ndarray] | None]:
+        """For each block of :meth:`unit_feature_blocks`: ``(parent token, rows)`` when the block is
+        a copy of an earlier snapshot's block (that token, :meth:`unit_block_tokens`) with only
+        ``rows`` (int64 indices into the block) normalised again, else None. Lets a per-block result
+        (the label cache's scores) be patched instead of recomputed."""
+        self.unit_feature_blocks()
+        with self._cache_lock:
+            return list(self._cache["unit_patches"])
 
     def unit_features_f32(self) -> np.ndarray:
         """(N, D) float32 L2-normalised features (zero rows where none) in one read-only array,
@@ -381,14 +415,19 @@ class GlobalMapSnapshot:
             return cached
 
     def similarities(self, emb: np.ndarray) -> np.ndarray:
-        """(N, K) float32 cosines of the unit features with ``emb`` (K, D) float32 rows: one
-        product per block of :meth:`unit_feature_blocks`."""
+        """(N, K) float32 cosines of the unit features with ``emb`` (K, D) float32 rows, per block
+        of :meth:`unit_feature_blocks` (:func:`mapper.node.query_kernels.row_cosines`: each row's
+        bits independent of the other rows, so a patched block's scores can be patched)."""
+        from mapper.node.query_kernels import row_cosines  # numba: compiled or loaded when first used
+
         blocks = self.unit_feature_blocks()
         out = np.empty((len(self), emb.shape[0]), np.float32)
         lo = 0
-        emb_t = np.ascontiguousarray(emb.T, dtype=np.float32)
         for block in blocks:
-            np.matmul(block, emb_t, out=out[lo:lo + block.shape[0]])
+            if block.shape[1] == 0:
+                out[lo:lo + block.shape[0]] = 0.0
+            else:
+                out[lo:lo + block.shape[0]] = row_cosines(block, emb)
             lo += block.shape[0]
         return out
 

@@ -33,7 +33,6 @@ from __future__ import annotations
 import copy
 import functools
 import hashlib
-import itertools
 import re
 import threading
 import time
@@ -142,21 +141,6 @@ class Cluster:
     score: float
 
 
-_CELL_OFFSETS = sorted(
-    (d for d in itertools.product(range(-2, 3), repeat=3) if d > (0, 0, 0)),
-    key=lambda d: (d[0] ** 2 + d[1] ** 2 + d[2] ** 2, d),
-)
-"""Half of the cell offsets whose cells (side radius / sqrt(3)) can hold points within the radius
-(3 cells apart along an axis are >= 2 sides = 1.15 radius apart), nearest first."""
-
-_DENSE_TABLE_ENTRIES = 1 << 22
-"""Cell grids up to this many cells (or 8x the occupied cells) find neighbours in a dense table."""
-
-_DENSE_POINTS_PER_CELL = 24.0
-"""Above this mean number of points per cell, the point-pair test between cells costs more than
-the k-d tree's pair search: :func:`radius_components` uses the latter."""
-
-
 def _pair_components(pts: np.ndarray, radius_m: float) -> tuple[int, np.ndarray]:
     """(n_components, (N,) component) of the graph linking points within ``radius_m``, from the
     k-d tree's point pairs (the reference for :func:`radius_components`)."""
@@ -169,111 +153,33 @@ def _pair_components(pts: np.ndarray, radius_m: float) -> tuple[int, np.ndarray]
 
 def radius_components(pts: np.ndarray, radius_m: float) -> tuple[int, np.ndarray]:
     """Connected components of the graph linking points (N, 3) float64 at most ``radius_m``
-    apart: (n_components, (N,) int component id). Points are hashed into cubic cells of side
-    ``radius_m / sqrt(3)`` (all points of a cell are linked to each other); neighbouring cells
-    are joined when some pair of their points is within the radius, testing only cell pairs
-    that are not already in one component (nearest offsets first, so a dense surface is joined
-    after a few offsets), and for each such pair one representative pair of points first (in a
-    dense surface that links most of them) before every point pair. The same components as
-    linking every point pair (``_pair_components``)."""
+    apart: (n_components, (N,) int64 component id). Points are hashed into cubic cells of side
+    ``radius_m / sqrt(3)`` (all points of a cell are linked to each other); two cells up to two
+    apart per axis are joined when some pair of their points is within the radius, tested in
+    compiled code only while the cells are in different components
+    (:func:`mapper.node.query_kernels.component_cells`). The same components as linking every
+    point pair (``_pair_components``); ids in order of each component's first cell."""
+    from mapper.node.query_kernels import component_cells  # numba: compiled or loaded when first used
+
     n = pts.shape[0]
     if n == 0:
-        return 0, np.zeros(0, np.int32)
+        return 0, np.zeros(0, np.int64)
     side = radius_m / np.sqrt(3.0) * (1.0 - 1e-9)
     cell = np.floor(pts / side).astype(np.int64)
-    cell -= cell.min(axis=0) - 2  # >= 2: offsets of -2 stay non-negative
+    cell -= cell.min(axis=0) - 2  # >= 2: neighbours up to 2 cells away keep distinct keys
     dims = cell.max(axis=0) + 3
     key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
-    ukeys, point_cell = np.unique(key, return_inverse=True)
-    point_cell = point_cell.ravel()
-    n_cells = ukeys.shape[0]
-    if n > _DENSE_POINTS_PER_CELL * n_cells:
-        return _pair_components(pts, radius_m)
-    order = np.argsort(point_cell, kind="stable")  # points grouped by cell
-    counts = np.bincount(point_cell, minlength=n_cells)
-    starts = np.cumsum(counts) - counts
-    cells = np.arange(n_cells)
-    rep = pts[order[starts]]  # (n_cells, 3): one point of each cell
-    cell_comp = cells.copy()  # component of each cell, labels 0 .. n_comp - 1
-    r2 = radius_m * radius_m
-    n_comp = n_cells
-    # neighbour lookup: a dense key -> cell table when the grid is small, else a binary search
-    table = None
-    if int(np.prod(dims)) <= max(_DENSE_TABLE_ENTRIES, 8 * n_cells):
-        table = np.full(int(np.prod(dims)), -1, np.int64)
-        table[ukeys] = cells
-    for dx, dy, dz in _CELL_OFFSETS:
-        if n_comp == 1:
-            break
-        target = ukeys + (dx * dims[1] + dy) * dims[2] + dz
-        if table is not None:
-            pos = table[target]
-            hit = pos >= 0
-        else:
-            pos = np.minimum(np.searchsorted(ukeys, target), n_cells - 1)
-            hit = ukeys[pos] == target
-        a, b = cells[hit], pos[hit]
-        differ = cell_comp[a] != cell_comp[b]
-        a, b = a[differ], b[differ]
-        if a.size == 0:
-            continue
-        d_rep = rep[a] - rep[b]
-        by_rep = np.einsum("pk,pk->p", d_rep, d_rep) <= r2  # linked by their representatives
-        rest = np.flatnonzero(~by_rep)
-        linked = np.concatenate([np.flatnonzero(by_rep),
-                                 rest[_cell_pairs_linked(pts, order, starts, counts, a[rest], b[rest], r2)]])
-        if linked.size == 0:
-            continue
-        # join the components the new cell links connect
-        n_comp, relabel = _join_components(n_comp, cell_comp[a[linked]], cell_comp[b[linked]])
-        cell_comp = relabel[cell_comp]
-    return int(n_comp), cell_comp[point_cell]
-
-
-def _join_components(n: int, ca: np.ndarray, cb: np.ndarray) -> tuple[int, np.ndarray]:
-    """Components of the graph over ``n`` nodes with edges ``ca[i] -- cb[i]``: (count, (n,) label
-    0 .. count - 1, in order of each component's smallest node). Union-find in numpy (hook each
-    edge's larger root under the smaller, then pointer jumping), without the sparse-matrix set-up
-    that ``connected_components`` costs per call."""
-    parent = np.arange(n)
-    while True:
-        ra, rb = parent[ca], parent[cb]
-        differ = ra != rb
-        if not differ.any():
-            break
-        ra, rb = ra[differ], rb[differ]
-        np.minimum.at(parent, np.maximum(ra, rb), np.minimum(ra, rb))
-        while True:  # pointer jumping until every node points at its root
-            grand = parent[parent]
-            if np.array_equal(grand, parent):
-                break
-            parent = grand
-    roots, label = np.unique(parent, return_inverse=True)
-    return int(roots.size), label.ravel()
-
-
-def _cell_pairs_linked(
-    pts: np.ndarray,  # (N, 3) float64
-    order: np.ndarray,  # (N,) point indices grouped by cell
-    starts: np.ndarray,  # (C,) position of each cell's first point in ``order``
-    counts: np.ndarray,  # (C,) points per cell
-    a: np.ndarray,  # (P,) cell ids
-    b: np.ndarray,  # (P,) cell ids
-    r2: float,
-) -> np.ndarray:
-    """(P,) bool: some point of cell ``a[i]`` is within sqrt(``r2``) of some point of cell ``b[i]``
-    (every point pair of each cell pair tested)."""
-    if a.size == 0:
-        return np.zeros(0, bool)
-    na, nb = counts[a], counts[b]
-    total = na * nb
-    pair = np.repeat(np.arange(a.size), total)  # (pair, i in a, j in b) for every point pair
-    local = np.arange(int(total.sum())) - np.repeat(np.cumsum(total) - total, total)
-    ia = order[starts[a][pair] + local // nb[pair]]
-    ib = order[starts[b][pair] + local % nb[pair]]
-    diff = pts[ia] - pts[ib]
-    close = np.einsum("pk,pk->p", diff, diff) <= r2
-    return np.bincount(pair[close], minlength=a.size) > 0
+    order = np.argsort(key, kind="stable")  # points grouped by cell, cells in key order
+    sorted_key = key[order]
+    first = np.empty(n, bool)
+    first[0] = True
+    np.not_equal(sorted_key[1:], sorted_key[:-1], out=first[1:])
+    starts = np.flatnonzero(first)
+    counts = np.diff(np.append(starts, n))
+    point_cell = np.empty(n, np.int64)
+    point_cell[order] = np.cumsum(first) - 1
+    n_comp, cell_label = component_cells(pts[order], sorted_key[starts], dims, starts, counts, radius_m)
+    return n_comp, cell_label[point_cell]
 
 
 def support_factor(n_points: int, support_points: float) -> float:
@@ -392,6 +298,8 @@ def label_from_similarities(
 
 _LabelEntry = tuple["weakref.ReferenceType[np.ndarray]", np.ndarray, np.ndarray, np.ndarray]
 """A :class:`BlockLabelCache` entry: (the block, label, score, beats_negatives)."""
+_LabelResult = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""A block's (label, score, beats_negatives)."""
 
 
 class BlockLabelCache:
@@ -399,27 +307,54 @@ class BlockLabelCache:
     versions: (label, score, beats_negatives) of each block of
     :meth:`GlobalMapSnapshot.unit_feature_blocks` for one set of text + negative embeddings. A new
     snapshot shares the blocks whose rows did not change, so a query after an integrate scores only
-    the changed blocks, and a repeated query scores nothing. Entries are keyed by the block object
-    (a weak reference: the cache never keeps a block of an old map version alive, and an entry
-    whose block is gone is dropped) and the embeddings' bytes; least recently used entries beyond
-    ``max_blocks`` are dropped. Thread-safe; 0 blocks = no caching."""
+    the changed blocks, and of a block copied from a scored one with a few rows normalised again
+    (:meth:`GlobalMapSnapshot.unit_block_patches`) only those rows (every row is scored by
+    :func:`mapper.node.query_kernels.row_cosines`, whose bits do not depend on the other rows); a
+    repeated query scores nothing.
+
+    Entries are keyed by the block's token (:meth:`GlobalMapSnapshot.unit_block_tokens`) and the
+    embeddings' bytes and hold their block weakly: the cache never keeps a block of an old map
+    version alive. When a block is freed its entry is retired (the results only, no block), kept
+    for the next snapshot's patched copies of it, at most as many retired entries as the last
+    scored snapshot had blocks. Least recently used live entries beyond ``max_blocks`` are
+    dropped. Thread-safe; 0 blocks = no caching."""
 
     def __init__(self, max_blocks: int) -> None:
         self.max_blocks = max_blocks
         self._entries: OrderedDict[tuple[int, bytes], _LabelEntry] = OrderedDict()
+        self._retired: OrderedDict[tuple[int, bytes], _LabelResult] = OrderedDict()
+        self._max_retired = 0
         self._lock = threading.RLock()  # reentrant: a weakref callback may run while it is held
         self.hits = 0
         self.misses = 0
+        self.patched = 0
+        """Misses answered by rescoring only the changed rows of a copy of a scored block."""
 
     def __len__(self) -> int:
+        """Live entries (their blocks are in use)."""
         return len(self._entries)
 
+    @property
+    def retired(self) -> int:
+        """Entries of freed blocks kept for patching."""
+        return len(self._retired)
+
     def _forget(self, key: tuple[int, bytes], ref: weakref.ReferenceType[np.ndarray]) -> None:
-        """A block was freed: drop its entry (unless the key now holds a newer block's)."""
+        """A block was freed: retire its entry."""
         with self._lock:
             entry = self._entries.get(key)
             if entry is not None and entry[0] is ref:
                 del self._entries[key]
+                if self._max_retired > 0:
+                    self._retired[key] = entry[1:]
+                    while len(self._retired) > self._max_retired:
+                        self._retired.popitem(last=False)
+
+    def _results(self, key: tuple[int, bytes]) -> _LabelResult | None:
+        entry = self._entries.get(key)
+        if entry is not None:
+            return entry[1:]
+        return self._retired.get(key)
 
     def label(
         self,
@@ -429,12 +364,18 @@ class BlockLabelCache:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:func:`label_from_similarities` of the snapshot's cosines with ``emb``: (label (N,)
         int64, score (N,) float32, beats_negatives (N,) bool), equal to scoring every row now."""
+        from mapper.node.query_kernels import row_cosines  # numba: compiled or loaded when first used
+
         emb = np.ascontiguousarray(emb, np.float32)
         digest = hashlib.blake2b(emb.tobytes() + n_texts.to_bytes(4, "little"), digest_size=16).digest()
-        emb_t = np.ascontiguousarray(emb.T)
         parts = []
-        for block in snapshot.unit_feature_blocks():
-            key = (id(block), digest)
+        blocks = snapshot.unit_feature_blocks()
+        tokens = snapshot.unit_block_tokens()
+        patches = snapshot.unit_block_patches()
+        with self._lock:
+            self._max_retired = len(blocks) if self.max_blocks > 0 else 0
+        for block, token, patch in zip(blocks, tokens, patches, strict=True):
+            key = (token, digest)
             with self._lock:
                 entry = self._entries.get(key)
                 if entry is not None and entry[0]() is block:
@@ -442,11 +383,25 @@ class BlockLabelCache:
                     self.hits += 1
                     parts.append(entry[1:])
                     continue
-            label, score, beats = label_from_similarities(np.matmul(block, emb_t), n_texts)  # (rows, T + Q)
-            result = (label.astype(np.int16), score, beats)  # at most 64 texts: 112 KB a full block
+                parent = None if patch is None else self._results((patch[0], digest))
+            if parent is not None and patch is not None:  # rescore only the block's changed rows
+                rows = patch[1]
+                label, score, beats = (a.copy() for a in parent)
+                sims = row_cosines(block, emb, rows)  # (rows, T + Q)
+                label[rows], score[rows], beats[rows] = label_from_similarities(sims, n_texts)
+                result = (label, score, beats)
+            elif block.shape[1] == 0:
+                zeros = np.zeros((block.shape[0], emb.shape[0]), np.float32)
+                label, score, beats = label_from_similarities(zeros, n_texts)
+                result = (label.astype(np.int16), score, beats)
+            else:
+                sims = row_cosines(block, emb)  # (rows, T + Q)
+                label, score, beats = label_from_similarities(sims, n_texts)
+                result = (label.astype(np.int16), score, beats)  # at most 64 texts: 112 KB a full block
             parts.append(result)
             with self._lock:
                 self.misses += 1
+                self.patched += parent is not None
                 if self.max_blocks > 0:
                     self._entries[key] = (weakref.ref(block, functools.partial(self._forget, key)), *result)
                     self._entries.move_to_end(key)

@@ -186,6 +186,17 @@ def _rss_bytes() -> int | None:
         return None
 
 
+
+def _warm_query_kernels() -> None:
+    """Compile (or load from numba's cache: about 0.2 s) ``query_points``' kernels in the
+    background at start, so the first query after a ``load`` does not pay for it."""
+    try:
+        from mapper.node.query_kernels import warm_up
+
+        warm_up()
+    except Exception:  # the first query compiles them instead (and reports a failure)
+        log.exception("query kernel warm-up failed")
+
 class MapperNode:
     """The node. ``start()`` binds the sockets (raising if one cannot be bound), ``run()`` serves
     until a signal or :meth:`request_stop`, ``stop()`` shuts down. Also usable in-process."""
@@ -388,6 +399,7 @@ class MapperNode:
         )
         thread.start()
         self._threads.append(thread)
+        threading.Thread(target=_warm_query_kernels, name="mapper-kernel-warmup", daemon=True).start()
         for name, work in self.workers:
             thread = threading.Thread(target=work, args=(self._stop,), name=f"mapper-{name}", daemon=True)
             thread.start()

@@ -1,6 +1,6 @@
 """``query_points`` with the per-block label cache answers exactly as scoring every row, across
 every kind of map change (integrate, learned features, prune, restore), scores only the blocks
-that changed, and stays within its bound. Also the union-find behind ``radius_components``."""
+that changed, and stays within its bound."""
 
 from __future__ import annotations
 
@@ -8,10 +8,8 @@ import zlib
 
 import numpy as np
 import pytest
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
-from mapper.node import global_map, queries
+from mapper.node import global_map
 from mapper.node.config import GlobalMapConfig, QueryConfig
 from mapper.node.global_map import GlobalSemanticMap
 from mapper.node.queries import BlockLabelCache, query_points
@@ -127,22 +125,9 @@ def test_cache_bound_and_off(monkeypatch: pytest.MonkeyPatch) -> None:
         assert len(off) == 0
 
 
-@pytest.mark.parametrize("seed", range(6))
-def test_join_components_equals_scipy(seed: int) -> None:
-    rng = np.random.default_rng(seed)
-    n = int(rng.integers(1, 300))
-    m = int(rng.integers(0, 2 * n))
-    ca, cb = rng.integers(0, n, m), rng.integers(0, n, m)
-    count, label = queries._join_components(n, ca, cb)
-    graph = coo_matrix((np.ones(m, np.int8), (ca, cb)), shape=(n, n))
-    ref_count, ref = connected_components(graph, directed=False)
-    assert count == ref_count
-    # same partition, labels in order of each component's smallest node (as connected_components)
-    np.testing.assert_array_equal(label, ref)
-
-
 def test_cache_never_keeps_old_blocks_alive(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Entries hold their blocks weakly: once no snapshot uses a block, its entry is gone."""
+    """Entries hold their blocks weakly: once no snapshot uses a block, its entry is retired (its
+    results kept for patching, at most one map's worth of blocks)."""
     import gc
 
     monkeypatch.setattr(global_map, "UNIT_BLOCK_ROWS", 16)
@@ -162,3 +147,53 @@ def test_cache_never_keeps_old_blocks_alive(monkeypatch: pytest.MonkeyPatch) -> 
     gc.collect()
     live = {id(b) for b in gmap.snapshot().unit_feature_blocks()}
     assert len(cache) <= len(live)
+    assert cache.retired <= len(live)  # the results of freed blocks (no blocks), one map's worth
+
+
+@pytest.mark.parametrize("keep_old_snapshot", [True, False])
+def test_a_few_changed_rows_are_rescored_alone(monkeypatch: pytest.MonkeyPatch, keep_old_snapshot: bool) -> None:
+    """A block copied from a scored one with a few rows normalised again is answered by rescoring
+    those rows (from the live entry, or from the retired one once the old snapshot is gone), with
+    the same bits as scoring every row."""
+    import gc
+
+    monkeypatch.setattr(global_map, "UNIT_BLOCK_ROWS", 64)
+    gmap = GlobalSemanticMap(GlobalMapConfig(pixel_stride=2, max_points=1_000_000))
+    for i in range(4):
+        gmap.integrate(keyframe(10.0 * i, i + 1, i), map_version=i + 1)
+    cache = BlockLabelCache(max_blocks=10_000)
+    texts = ["chair", "table"]
+    old = gmap.snapshot()
+    ask(old, cache, texts)
+    assert cache.patched == 0
+    keys, _ = gmap.seen_voxels(keyframe(10.0, 5, 5))
+    rng = np.random.default_rng(0)
+    few = rng.choice(keys, size=5, replace=False)
+    gmap.set_features(few, rng.standard_normal((5, D)).astype(np.float32))
+    if not keep_old_snapshot:
+        del old
+    new = gmap.snapshot()
+    patched = [p for p in new.unit_block_patches() if p is not None]
+    gc.collect()
+    assert (cache.retired > 0) == (not keep_old_snapshot)  # the map let go of the old blocks
+    assert patched and sum(p[1].size for p in patched) == 5
+    answer = ask(new, cache, texts)
+    assert cache.patched == len(patched)
+    assert_same(answer, ask(new, None, texts))
+
+
+def test_row_cosines_are_the_same_bits_for_any_rows() -> None:
+    from mapper.node.query_kernels import row_cosines
+
+    rng = np.random.default_rng(1)
+    feat = rng.standard_normal((1000, 384)).astype(np.float32)
+    feat /= np.linalg.norm(feat, axis=1, keepdims=True)
+    emb = rng.standard_normal((7, 384)).astype(np.float32)
+    emb /= np.linalg.norm(emb, axis=1, keepdims=True)
+    full = row_cosines(feat, emb)
+    np.testing.assert_allclose(full, feat.astype(np.float64) @ emb.T.astype(np.float64), atol=2e-6)
+    for rows in (np.array([3]), np.array([999, 0, 3]), rng.choice(1000, 300, replace=False)):
+        np.testing.assert_array_equal(row_cosines(feat, emb, rows), full[rows])
+    assert row_cosines(feat, emb[:0]).shape == (1000, 0)
+    with pytest.raises(ValueError, match="share D"):
+        row_cosines(feat, emb[:, :10])

@@ -65,3 +65,34 @@ def test_clusters_equal_the_previous_implementation(seed: int) -> None:
             np.testing.assert_array_equal(c.aabb_min, r.aabb_min)
             np.testing.assert_array_equal(c.aabb_max, r.aabb_max)
         assert [c.score for c in new] == [c.score for c in ref]  # the same order up to ties
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_radius_components_ids_in_cell_order(seed: int) -> None:
+    """Component ids count up in the order of the cells (the points' cell keys), so clusters of
+    equal score keep one order between runs; the partition is every point pair's."""
+    rng = np.random.default_rng(seed)
+    pts = blobs(seed, 20_000, rng.uniform(0.02, 0.2), int(rng.integers(5, 200)))
+    radius = float(rng.uniform(0.05, 0.2))
+    n, comp = radius_components(pts, radius)
+    n_ref, ref = _pair_components(pts, radius)
+    assert n == n_ref and same_partition(comp, ref)
+    side = radius / np.sqrt(3.0) * (1.0 - 1e-9)
+    cell = np.floor(pts / side).astype(np.int64)
+    cell -= cell.min(axis=0)
+    dims = cell.max(axis=0) + 1
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    first_seen = comp[np.argsort(key, kind="stable")]
+    _, first = np.unique(first_seen, return_index=True)
+    np.testing.assert_array_equal(first_seen[np.sort(first)], np.arange(n))
+
+
+def test_radius_components_far_apart_points_use_the_hash() -> None:
+    """Points kilometres apart: the key grid is too large for a dense table (the hash path)."""
+    rng = np.random.default_rng(5)
+    pts = np.concatenate([blobs(5, 500, 0.05, 3), blobs(6, 500, 0.05, 3) + [3000.0, -2000.0, 40.0]])
+    pts = pts[rng.permutation(len(pts))]
+    for radius in (0.05, 0.2):
+        n, comp = radius_components(pts, radius)
+        n_ref, ref = _pair_components(pts, radius)
+        assert n == n_ref and same_partition(comp, ref)

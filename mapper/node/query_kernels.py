@@ -1,0 +1,197 @@
+"""Compiled (numba) kernels of ``query_points``: the map rows' cosines with the texts, computed
+the same way for every row (so a cache can rescore a block's changed rows only and get the bits
+that scoring the whole block gives), and the radius components behind the object clusters.
+
+Both are CPU functions of numpy arrays; :func:`warm_up` compiles them (or loads them from numba's
+on-disk cache) on one-row problems, which the node does in its warm-up thread.
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+
+import numba
+import numpy as np
+
+__all__ = ["component_cells", "row_cosines", "warm_up"]
+
+_LOCK = threading.Lock()  # one parallel launch at a time (numba's thread count is process-wide)
+_ROWS_PER_TASK = 256
+_HALF_OFFSETS = np.array(
+    [d for d in itertools.product(range(-2, 3), repeat=3) if d > (0, 0, 0)], np.int64
+)
+"""The 62 cell offsets in [-2, 2]^3 after (0, 0, 0) in lexicographic order, nearest first: cells of
+side r / sqrt(3) up to 2 apart per axis can hold points within r (3 apart cannot), and each
+unordered pair of cells is visited once."""
+_HALF_OFFSETS = _HALF_OFFSETS[np.argsort((_HALF_OFFSETS**2).sum(axis=1), kind="stable")]
+_DENSE_TABLE_ENTRIES = 1 << 22
+"""Key grids up to this many cells (or 8x the occupied cells) find neighbours in a dense table."""
+
+
+@numba.njit(fastmath=True, boundscheck=False, cache=True)
+def _dot(a, b):  # pragma: no cover - compiled
+    s = np.float32(0.0)
+    for k in range(a.shape[0]):
+        s += a[k] * b[k]
+    return s
+
+
+@numba.njit(parallel=True, boundscheck=False, cache=True)
+def _row_cosines(feat, emb, rows, out, block):  # pragma: no cover - compiled
+    n = rows.shape[0]
+    m = emb.shape[0]
+    for task in numba.prange((n + block - 1) // block):
+        for i in range(task * block, min(n, (task + 1) * block)):
+            row = feat[rows[i]]
+            for t in range(m):
+                out[i, t] = _dot(row, emb[t])
+
+
+def row_cosines(
+    feat: np.ndarray,  # (N, D) float32 unit rows
+    emb: np.ndarray,  # (M, D) float32 unit rows
+    rows: np.ndarray | None = None,  # (K,) int row indices; None: every row
+    *,
+    threads: int = 0,
+) -> np.ndarray:
+    """(K, M) float32 ``feat[rows] @ emb.T``, each row's M dot products in one fixed order (the
+    same bits whichever other rows are computed with it, unlike a BLAS product whose kernels
+    depend on the matrix's shape). ``threads`` 0: numba's default."""
+    feat = np.ascontiguousarray(feat, np.float32)
+    emb = np.ascontiguousarray(emb, np.float32)
+    if feat.ndim != 2 or emb.ndim != 2 or feat.shape[1] != emb.shape[1]:
+        raise ValueError(f"feat (N, D) and emb (M, D) must share D, got {feat.shape} and {emb.shape}")
+    idx = np.arange(feat.shape[0], dtype=np.int64) if rows is None else np.ascontiguousarray(rows, np.int64)
+    out = np.empty((idx.shape[0], emb.shape[0]), np.float32)
+    if out.size == 0:
+        return out
+    with _LOCK:
+        previous = numba.get_num_threads()
+        pool = int(numba.config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
+        numba.set_num_threads(max(1, min(threads or previous, pool)))
+        try:
+            _row_cosines(feat, emb, idx, out, _ROWS_PER_TASK)
+        finally:
+            numba.set_num_threads(previous)
+    return out
+
+
+@numba.njit(boundscheck=False, cache=True)
+def _find(parent, a):  # pragma: no cover - compiled
+    root = a
+    while parent[root] != root:
+        root = parent[root]
+    while parent[a] != root:  # path compression
+        nxt = parent[a]
+        parent[a] = root
+        a = nxt
+    return root
+
+
+@numba.njit(boundscheck=False, cache=True)
+def _cells_linked(pts, start_a, count_a, start_b, count_b, r2):  # pragma: no cover - compiled
+    """Some point of one cell (rows start_a .. of ``pts``, grouped by cell) within sqrt(r2) of some
+    point of the other; the cells' first points are tested first."""
+    for i in range(start_a, start_a + count_a):
+        for j in range(start_b, start_b + count_b):
+            dx = pts[i, 0] - pts[j, 0]
+            dy = pts[i, 1] - pts[j, 1]
+            dz = pts[i, 2] - pts[j, 2]
+            if dx * dx + dy * dy + dz * dz <= r2:
+                return True
+    return False
+
+
+@numba.njit(boundscheck=False, cache=True)
+def _component_cells(pts, keys, starts, counts, deltas, dense_entries, r2):  # pragma: no cover - compiled
+    n_cells = keys.shape[0]
+    dense = dense_entries > 0
+    # cell key -> cell index: a dense table over the key range, or an open-addressing hash
+    if dense:
+        table = np.full(dense_entries, -1, np.int64)
+        for c in range(n_cells):
+            table[keys[c]] = c
+        mask = 0
+    else:
+        cap = 1
+        while cap < 2 * n_cells:
+            cap *= 2
+        mask = cap - 1
+        table = np.full(cap, -1, np.int64)
+        for c in range(n_cells):
+            h = (keys[c] * np.int64(-7046029254386353131)) & mask
+            while table[h] >= 0:
+                h = (h + 1) & mask
+            table[h] = c
+    parent = np.arange(n_cells)
+    for c in range(n_cells):
+        for o in range(deltas.shape[0]):
+            target = keys[c] + deltas[o]
+            d = -1
+            if dense:
+                if 0 <= target < dense_entries:
+                    d = table[target]
+            else:
+                h = (target * np.int64(-7046029254386353131)) & mask
+                while table[h] >= 0:
+                    if keys[table[h]] == target:
+                        d = table[h]
+                        break
+                    h = (h + 1) & mask
+            if d < 0:
+                continue
+            ra, rb = _find(parent, c), _find(parent, d)
+            if ra == rb:
+                continue
+            if _cells_linked(pts, starts[c], counts[c], starts[d], counts[d], r2):
+                if ra < rb:
+                    parent[rb] = ra
+                else:
+                    parent[ra] = rb
+    # labels 0 .. n-1 in order of each component's first cell
+    label = np.full(n_cells, -1, np.int64)
+    n_comp = 0
+    for c in range(n_cells):
+        root = _find(parent, c)
+        if label[root] < 0:
+            label[root] = n_comp
+            n_comp += 1
+        label[c] = label[root]
+    return n_comp, label
+
+
+def component_cells(
+    pts_by_cell: np.ndarray,  # (N, 3) float64 points, grouped by cell
+    keys: np.ndarray,  # (C,) int64 ascending cell keys ((x * dims[1] + y) * dims[2] + z)
+    dims: np.ndarray,  # (3,) int64 key grid; every cell coordinate in [2, dims - 3]
+    starts: np.ndarray,  # (C,) int64 first row of each cell in ``pts_by_cell``
+    counts: np.ndarray,  # (C,) int64 points per cell
+    radius_m: float,
+) -> tuple[int, np.ndarray]:
+    """Connected components of the cells (cubes of side ``radius_m / sqrt(3)``: every point of a
+    cell is within the radius of every other) when two cells are joined by any pair of their
+    points at most ``radius_m`` apart: (count, (C,) int64 label, numbered in order of each
+    component's first cell). Union-find; each cell's neighbours up to two cells apart per axis,
+    nearest first, found in a dense table of the key grid (a hash when the grid is large) and
+    tested point pair by point pair only while the two cells are in different components."""
+    if keys.shape[0] == 0:
+        return 0, np.zeros(0, np.int64)
+    d1, d2 = int(dims[1]), int(dims[2])
+    deltas = (_HALF_OFFSETS[:, 0] * d1 + _HALF_OFFSETS[:, 1]) * d2 + _HALF_OFFSETS[:, 2]
+    entries = int(np.prod(dims.astype(np.float64)))
+    dense_entries = entries if entries <= max(_DENSE_TABLE_ENTRIES, 8 * keys.shape[0]) else 0
+    n, label = _component_cells(
+        np.ascontiguousarray(pts_by_cell, np.float64), np.ascontiguousarray(keys, np.int64),
+        np.ascontiguousarray(starts, np.int64), np.ascontiguousarray(counts, np.int64),
+        deltas.astype(np.int64), dense_entries, float(radius_m) * float(radius_m),
+    )
+    return int(n), label
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the kernels now, on one-row problems."""
+    row_cosines(np.ones((1, 2), np.float32), np.ones((1, 2), np.float32), threads=1)
+    cell = np.array([62], np.int64)  # cell (2, 2, 2) of a 5 x 5 x 5 grid
+    one = np.ones(1, np.int64)
+    component_cells(np.zeros((1, 3)), cell, np.full(3, 5, np.int64), one - 1, one, 0.1)
