@@ -1,6 +1,7 @@
-"""Compiled (numba) kernels of ``query_points``: the map rows' cosines with the texts, computed
+"""Compiled (numba) kernels of the node's queries: the map rows' cosines with the texts, computed
 the same way for every row (so a cache can rescore a block's changed rows only and get the bits
-that scoring the whole block gives), and the radius components behind the object clusters.
+that scoring the whole block gives), and the radius components behind ``query_points``' object
+clusters.
 
 Both are CPU functions of numpy arrays; :func:`warm_up` compiles them (or loads them from numba's
 on-disk cache) on one-row problems, which the node does in its warm-up thread.
@@ -104,6 +105,38 @@ def _cells_linked(pts, start_a, count_a, start_b, count_b, r2):  # pragma: no co
 
 
 @numba.njit(boundscheck=False, cache=True)
+def _hash_slot(key, mask):  # pragma: no cover - compiled
+    """A slot for an int64 key: the splitmix64 finaliser (every key bit moves the low bits)."""
+    h = np.uint64(key)
+    h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    h = h ^ (h >> np.uint64(31))
+    return np.int64(h & np.uint64(mask))
+
+
+@numba.njit(boundscheck=False, cache=True)
+def _build_table(keys, mask):  # pragma: no cover - compiled
+    """Open-addressing table (mask + 1 slots) of the distinct ascending ``keys``: slot -> index."""
+    table = np.full(mask + 1, -1, np.int64)
+    for c in range(keys.shape[0]):
+        h = _hash_slot(keys[c], mask)
+        while table[h] >= 0:
+            h = (h + 1) & mask
+        table[h] = c
+    return table
+
+
+@numba.njit(boundscheck=False, cache=True)
+def _lookup(table, keys, mask, key):  # pragma: no cover - compiled
+    h = _hash_slot(key, mask)
+    while table[h] >= 0:
+        if keys[table[h]] == key:
+            return table[h]
+        h = (h + 1) & mask
+    return -1
+
+
+@numba.njit(boundscheck=False, cache=True)
 def _component_cells(pts, keys, starts, counts, deltas, dense_entries, r2):  # pragma: no cover - compiled
     n_cells = keys.shape[0]
     dense = dense_entries > 0
@@ -118,12 +151,7 @@ def _component_cells(pts, keys, starts, counts, deltas, dense_entries, r2):  # p
         while cap < 2 * n_cells:
             cap *= 2
         mask = cap - 1
-        table = np.full(cap, -1, np.int64)
-        for c in range(n_cells):
-            h = (keys[c] * np.int64(-7046029254386353131)) & mask
-            while table[h] >= 0:
-                h = (h + 1) & mask
-            table[h] = c
+        table = _build_table(keys, mask)
     parent = np.arange(n_cells)
     for c in range(n_cells):
         for o in range(deltas.shape[0]):
@@ -133,12 +161,7 @@ def _component_cells(pts, keys, starts, counts, deltas, dense_entries, r2):  # p
                 if 0 <= target < dense_entries:
                     d = table[target]
             else:
-                h = (target * np.int64(-7046029254386353131)) & mask
-                while table[h] >= 0:
-                    if keys[table[h]] == target:
-                        d = table[h]
-                        break
-                    h = (h + 1) & mask
+                d = _lookup(table, keys, mask, target)
             if d < 0:
                 continue
             ra, rb = _find(parent, c), _find(parent, d)

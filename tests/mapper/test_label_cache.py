@@ -151,7 +151,9 @@ def test_cache_never_keeps_old_blocks_alive(monkeypatch: pytest.MonkeyPatch) -> 
 
 
 @pytest.mark.parametrize("keep_old_snapshot", [True, False])
-def test_a_few_changed_rows_are_rescored_alone(monkeypatch: pytest.MonkeyPatch, keep_old_snapshot: bool) -> None:
+def test_a_few_changed_rows_are_rescored_alone(
+    monkeypatch: pytest.MonkeyPatch, keep_old_snapshot: bool
+) -> None:
     """A block copied from a scored one with a few rows normalised again is answered by rescoring
     those rows (from the live entry, or from the retired one once the old snapshot is gone), with
     the same bits as scoring every row."""
