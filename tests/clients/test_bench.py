@@ -30,6 +30,8 @@ def test_bench_quick_writes_json_and_markdown(tmp_path: Path) -> None:
     for method in ("average", "average_depth"):
         assert result["segment_points"][method]["error"] is None
         assert result["segment_points"][method]["per_100k_s"] > 0
+        assert result["segment_points"][method]["first_s"] > 0  # the first call, apart from the repeats
+        assert len(result["segment_points"][method]["seconds"]) == 1
     assert "not_ready" in (result["segment_points"]["govnesf"]["error"] or "")
     assert set(result["render"]) == {"16x12", "20x15"}
     assert result["status_during_render"]["status"]["n"] >= 3
