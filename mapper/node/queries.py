@@ -168,6 +168,8 @@ def radius_components(pts: np.ndarray, radius_m: float) -> tuple[int, np.ndarray
     cell = np.floor(pts / side).astype(np.int64)
     cell -= cell.min(axis=0) - 2  # >= 2: neighbours up to 2 cells away keep distinct keys
     dims = cell.max(axis=0) + 3
+    if float(np.prod(dims.astype(np.float64))) >= 2.0**62:  # keys would overflow int64: every point pair
+        return _pair_components(pts, radius_m)
     key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
     order = np.argsort(key, kind="stable")  # points grouped by cell, cells in key order
     sorted_key = key[order]

@@ -96,3 +96,13 @@ def test_radius_components_far_apart_points_use_the_hash() -> None:
         n, comp = radius_components(pts, radius)
         n_ref, ref = _pair_components(pts, radius)
         assert n == n_ref and same_partition(comp, ref)
+
+
+def test_radius_components_beyond_the_key_range() -> None:
+    """Points so far apart (in cells) that packed cell keys would overflow: the same components."""
+    rng = np.random.default_rng(7)
+    pts = np.concatenate([blobs(7, 300, 0.002, 4), blobs(8, 300, 0.002, 4) + [9e4, -9e4, 9e4]])
+    pts = pts[rng.permutation(len(pts))]
+    n, comp = radius_components(pts, 0.001)
+    n_ref, ref = _pair_components(pts, 0.001)
+    assert n == n_ref and same_partition(comp, ref)
