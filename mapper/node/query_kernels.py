@@ -10,14 +10,15 @@ on-disk cache) on one-row problems, which the node does in its warm-up thread.
 from __future__ import annotations
 
 import itertools
-import threading
 
 import numba
 import numpy as np
 
+from mapper.model.ops.average_kernel import LAUNCH_LOCK  # numba + numpy only (no torch)
+
 __all__ = ["component_cells", "row_cosines", "warm_up"]
 
-_LOCK = threading.Lock()  # one parallel launch at a time (numba's thread count is process-wide)
+_LOCK = LAUNCH_LOCK  # one parallel numba launch at a time in the process
 _ROWS_PER_TASK = 256
 _HALF_OFFSETS = np.array(
     [d for d in itertools.product(range(-2, 3), repeat=3) if d > (0, 0, 0)], np.int64

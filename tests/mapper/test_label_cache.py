@@ -199,3 +199,36 @@ def test_row_cosines_are_the_same_bits_for_any_rows() -> None:
     assert row_cosines(feat, emb[:0]).shape == (1000, 0)
     with pytest.raises(ValueError, match="share D"):
         row_cosines(feat, emb[:, :10])
+
+
+def test_kernels_launched_from_many_threads_at_once() -> None:
+    """The query threads, the answer-refresh thread and the query workers may all launch compiled
+    kernels at once: every launch takes the process-wide launch lock, and each result is the one
+    computed alone."""
+    import threading
+
+    from mapper.node.queries import _pair_components, radius_components
+    from mapper.node.query_kernels import row_cosines
+
+    rng = np.random.default_rng(2)
+    feat = rng.standard_normal((5000, 64)).astype(np.float32)
+    emb = rng.standard_normal((5, 64)).astype(np.float32)
+    pts = rng.uniform(0, 2, (3000, 3))
+    want_cos = row_cosines(feat, emb)
+    want_n = _pair_components(pts, 0.1)[0]
+    errors: list[str] = []
+
+    def work(i: int) -> None:
+        for _ in range(5):
+            if i % 2:
+                if not np.array_equal(row_cosines(feat, emb), want_cos):
+                    errors.append("cosines")
+            elif radius_components(pts, 0.1)[0] != want_n:
+                errors.append("components")
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []

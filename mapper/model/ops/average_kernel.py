@@ -27,12 +27,17 @@ import threading
 import numba
 import numpy as np
 
-__all__ = ["average_kernel", "blend_kernel", "in_view_matrix", "kernel_threads", "warm_up"]
+__all__ = ["LAUNCH_LOCK", "average_kernel", "blend_kernel", "in_view_matrix", "kernel_threads", "warm_up"]
 
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
 _F2 = np.float32(2.0)
-_LOCK = threading.Lock()  # one kernel launch at a time (it uses every thread it is given)
+LAUNCH_LOCK = threading.Lock()
+"""Held around every parallel numba launch of the project (these kernels and
+``mapper.node.query_kernels``): one launch at a time, since each uses every thread it is given and
+the thread count is numba-global, and since numba's fallback threading layer (workqueue, where
+neither OpenMP nor TBB is available) aborts on concurrent launches."""
+_LOCK = LAUNCH_LOCK
 
 
 @numba.njit(fastmath=True, boundscheck=False, cache=True)
