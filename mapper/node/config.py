@@ -365,8 +365,16 @@ class LimitsConfig:
     """With ``curve_dir``: how often (seconds) the node checks ``allowed/`` for added or removed
     client keys. 0.1..3600."""
 
+    blas_threads: int = 1
+    """Threads of numpy's BLAS (OpenBLAS) in the node's process, set when the node is made
+    (``threadpoolctl``). OpenBLAS's idle threads spin for a while after each product, taking a
+    core from the compiled kernels and torch that run next (with two cores: the averaging
+    kernel at one core's speed); the node's numpy products are small. 0 = leave BLAS as it is.
+    0..1024."""
+
     def validate(self, where: str) -> None:
         _check_range(where, "limits.sndhwm", self.sndhwm, 1, 1_000_000)
+        _check_range(where, "limits.blas_threads", self.blas_threads, 0, 1024)
         _check_range(where, "limits.rcvhwm", self.rcvhwm, 1, 1_000_000)
         _check_range(where, "limits.events_queue_max", self.events_queue_max, 1, 1_000_000)
         _check_range(where, "limits.curve_reload_interval_s", self.curve_reload_interval_s, 0.1, 3600.0)

@@ -186,7 +186,6 @@ def _rss_bytes() -> int | None:
         return None
 
 
-
 def _warm_query_kernels() -> None:
     """Compile (or load from numba's cache: about 0.2 s) ``query_points``' kernels in the
     background at start, so the first query after a ``load`` does not pay for it."""
@@ -197,12 +196,27 @@ def _warm_query_kernels() -> None:
     except Exception:  # the first query compiles them instead (and reports a failure)
         log.exception("query kernel warm-up failed")
 
+
+def limit_blas_threads(threads: int) -> None:
+    """numpy's BLAS to at most ``threads`` threads in this process (``limits.blas_threads``; 0 =
+    unchanged). Process-wide and lasting; without ``threadpoolctl`` a warning, nothing else."""
+    if threads <= 0:
+        return
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - a core dependency
+        log.warning("threadpoolctl is missing: numpy's BLAS threads are left as they are")
+        return
+    threadpool_limits(limits=threads, user_api="blas")
+
+
 class MapperNode:
     """The node. ``start()`` binds the sockets (raising if one cannot be bound), ``run()`` serves
     until a signal or :meth:`request_stop`, ``stop()`` shuts down. Also usable in-process."""
 
     def __init__(self, config: NodeConfig) -> None:
         self.config = config
+        limit_blas_threads(config.limits.blas_threads)
         self.state = MapState(config)
         self.store = MapStore(config.map_dir)
         self.query_handlers: dict[type[Message], QueryHandler] = {

@@ -141,3 +141,24 @@ def test_every_launch_preset_loads() -> None:
     for path in presets:
         cfg = load_config(path)
         assert cfg.window.max_keyframes >= 1, path
+
+
+def test_node_limits_numpys_blas_threads(tmp_path: Path) -> None:
+    """``limits.blas_threads``: the node sets numpy's BLAS threads when it is made (process-wide);
+    0 leaves them as they are."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from mapper.node.service import MapperNode
+
+    def blas_threads() -> set[int]:
+        return {int(i["num_threads"]) for i in threadpool_info() if i["user_api"] == "blas"}
+
+    before = threadpool_limits(limits=2, user_api="blas")  # a known starting point, restored below
+    try:
+        base = {"map_dir": str(tmp_path), "autosave_name": "", "save_on_exit": False}
+        MapperNode(config_from_dict({**base, "limits": {"blas_threads": 0}})).stop()
+        assert blas_threads() == {2}
+        MapperNode(config_from_dict(base)).stop()  # the default, 1
+        assert blas_threads() == {1}
+    finally:
+        before.restore_original_limits()
