@@ -54,6 +54,7 @@ Example::
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import logging
 import sys
@@ -94,6 +95,9 @@ _NORMAL_REL_JUMP = 0.1
 _FORMAT = "global-map-v1"
 _RECENT_INTEGRATES = 1000
 """``stats`` reports the integrate time percentiles over this many latest keyframes."""
+
+_SIMILARITY_SETS = 4
+"""Text sets whose cosines with every row a snapshot keeps (:meth:`GlobalMapSnapshot.similarities_cached`)."""
 
 UNIT_BLOCK_ROWS = 16384
 """Rows per block of a snapshot's normalised fp32 features: a new snapshot reuses the blocks of the
@@ -291,7 +295,7 @@ class GlobalMapSnapshot:
     """The map's :attr:`GlobalSemanticMap.generation` (unique in the process; a new map,
     ``restore`` and ``clear`` change it, growing and fusing do not): answers of another generation
     describe another map."""
-    _cache: dict[str, Any] = field(default_factory=dict, repr=False)
+    _cache: dict[Any, Any] = field(default_factory=dict, repr=False)
     _cache_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _unit_source: _UnitSource | None = field(default=None, repr=False)
     """Set by the map: earlier snapshots' unit blocks, reused where the fp16 rows are equal."""
@@ -430,6 +434,24 @@ class GlobalMapSnapshot:
                 out[lo:lo + block.shape[0]] = row_cosines(block, emb)
             lo += block.shape[0]
         return out
+
+    def similarities_cached(self, emb: np.ndarray) -> np.ndarray:
+        """:meth:`similarities` kept per snapshot for the last few ``emb`` (the same texts asked
+        again on the same map version cost a lookup): (N, K) float32, read-only."""
+        emb = np.ascontiguousarray(emb, np.float32)
+        key = ("similarities", emb.shape, hashlib.blake2b(emb.tobytes(), digest_size=16).digest())
+        with self._cache_lock:
+            cached = self._cache.get(key)
+        if cached is not None:
+            return cached
+        sims = self.similarities(emb)
+        sims.setflags(write=False)
+        with self._cache_lock:
+            keys = [k for k in self._cache if isinstance(k, tuple) and k[:1] == ("similarities",)]
+            for old in keys[: max(0, len(keys) - _SIMILARITY_SETS + 1)]:
+                del self._cache[old]
+            self._cache[key] = sims
+        return sims
 
     def nearest_with_feature(
         self,

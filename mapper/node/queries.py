@@ -49,7 +49,7 @@ from scipy.spatial import cKDTree
 from mapper.geometry.planes import Plane, fit_planes, plane_depth, point_normals
 from mapper.geometry.splat import fill_holes, remove_speckles, see_through, splat_points
 from mapper.node.config import QueryConfig
-from mapper.node.global_map import UNIT_BLOCK_ROWS, GlobalMapSnapshot
+from mapper.node.global_map import GlobalMapSnapshot
 from mapper.ov.encoders import TextEncoder
 from mapper.runtime.config import ModelRuntimeConfig
 from protocol.errors import ProtocolError
@@ -686,20 +686,11 @@ def _map_similarities(
     rows: np.ndarray,  # (n,) int64 map rows that carry a feature
     text_emb: np.ndarray,  # (T, D) float32 unit rows
 ) -> np.ndarray:  # (n, T) float32
-    """Cosines of map rows' features with the texts: each distinct row once, from the snapshot's
-    cached fp32 unit blocks (no fp16 conversion per request): the cosines of the rows' fp16
-    features, normalised, with the texts, up to float32 rounding."""
-    uniq, inverse = np.unique(rows, return_inverse=True)
-    blocks = snapshot.unit_feature_blocks()
-    emb_t = np.ascontiguousarray(text_emb.T, np.float32)
-    sims = np.empty((uniq.shape[0], text_emb.shape[0]), np.float32)
-    block_of = uniq // UNIT_BLOCK_ROWS
-    bounds = np.searchsorted(block_of, np.arange(len(blocks) + 1))
-    for b in range(len(blocks)):
-        lo, hi = bounds[b], bounds[b + 1]
-        if hi > lo:
-            sims[lo:hi] = blocks[b][uniq[lo:hi] - b * UNIT_BLOCK_ROWS] @ emb_t
-    return sims[inverse.ravel()]
+    """Cosines of map rows' features with the texts: the snapshot's cosines of every row with these
+    texts (computed once per map version and text set, :meth:`GlobalMapSnapshot.similarities_cached`),
+    taken at ``rows``: the cosines of the rows' fp16 features, normalised, with the texts, up to
+    float32 rounding."""
+    return snapshot.similarities_cached(text_emb)[rows]
 
 
 def _map_compatible(snapshot: GlobalMapSnapshot, text_emb: np.ndarray) -> bool:

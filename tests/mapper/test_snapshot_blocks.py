@@ -174,3 +174,24 @@ def test_stamps_find_the_changed_rows_without_comparing(monkeypatch: pytest.Monk
             gmap.set_features(keys[:5], np.ones((min(5, keys.size), 8)))
         check(gmap.snapshot())
     assert compares == []
+
+
+def test_similarities_kept_per_text_set() -> None:
+    """``similarities_cached``: the same cosines as ``similarities``, computed once per snapshot and
+    text set (read-only), at most a few text sets kept, none carried to the next map version."""
+    gmap = GlobalSemanticMap(GlobalMapConfig(pixel_stride=2, max_points=1_000_000))
+    gmap.integrate(keyframe(0.0, 1, 1), map_version=1)
+    snap = gmap.snapshot()
+    rng = np.random.default_rng(0)
+    sets = [rng.standard_normal((3, 8)).astype(np.float32) for _ in range(global_map._SIMILARITY_SETS + 2)]
+    first = snap.similarities_cached(sets[0])
+    np.testing.assert_array_equal(first, snap.similarities(sets[0]))
+    assert snap.similarities_cached(sets[0].copy()) is first and not first.flags.writeable
+    for emb in sets[1:]:
+        snap.similarities_cached(emb)
+    kept = [k for k in snap._cache if isinstance(k, tuple) and k[0] == "similarities"]
+    assert len(kept) == global_map._SIMILARITY_SETS
+    assert snap.similarities_cached(sets[0]) is not first  # the oldest set was dropped
+    gmap.integrate(keyframe(0.5, 2, 2), map_version=2)
+    later = gmap.snapshot()
+    np.testing.assert_array_equal(later.similarities_cached(sets[0]), later.similarities(sets[0]))
