@@ -8,9 +8,10 @@ What is measured (docs/BENCHMARKS.md explains each number and the targets):
   acks/s; keyframe integration p50 / p95 (the node's status); while a planner asks
   ``query_points`` back to back on a second connection: its answers/s;
 * ``segment_points``: per method (``average``, ``average_depth``, ``govnesf``), seconds for the
-  points (back-projected depth pixels of the stream), and per 100k points: the first call after
-  the stream (``first_s``: it includes the node catching up with the stream, e.g. the learned
-  model encoding the window's new keyframes) and the median of the repeats after it
+  points (back-projected depth pixels of the stream), and per 100k points, once the node has
+  settled after the stream (``settle_s``: its ``status`` shows no integrator backlog and no
+  pending work in the model or the background workers): the first call (``first_s``; the learned
+  model's includes applying the window's last changes) and the median of the repeats after it
   (``per_100k_s``, the steady cost of the query);
 * ``render``: 160x120 and 320x240 (rgb, depth, label), the node's stage timings;
 * ``status_during_render``: ``status`` and ``query_points`` latency p50 / p95 while a 320x240
@@ -258,6 +259,30 @@ def bench_ingest(
     }
 
 
+def _busy_items(extra: dict[str, Any]) -> int:
+    """Work the node still has queued after a stream, from its ``status``: the integrator's backlog,
+    the model's unapplied window changes and the background workers' pending keyframes."""
+    busy = int((extra.get("integration") or {}).get("backlog", 0) or 0)
+    for key in ("model", "map_features", "rendered_depth", "triangulation", "ov_backend"):
+        stats = extra.get(key)
+        if isinstance(stats, dict):
+            busy += int(stats.get("pending", 0) or 0)
+    return busy
+
+
+def wait_until_settled(client: MapperClient, timeout_s: float = 60.0, poll_s: float = 0.1) -> float:
+    """Seconds until the node's ``status`` shows nothing queued twice in a row (at most
+    ``timeout_s``): the heavy queries after a stream are then measured without its catch-up."""
+    t0 = time.perf_counter()
+    quiet = 0
+    while time.perf_counter() - t0 < timeout_s:
+        quiet = quiet + 1 if _busy_items(client.status().extra) == 0 else 0
+        if quiet >= 2:
+            break
+        time.sleep(poll_s)
+    return round(time.perf_counter() - t0, 3)
+
+
 def bench_segment(client: MapperClient, n_points: int, repeats: int) -> dict[str, Any]:
     """Per method: the first call (after the stream), then ``repeats`` more; the per-100k figure
     is the repeats' median (the first when there are none)."""
@@ -493,7 +518,8 @@ def to_markdown(r: dict[str, Any]) -> str:
     seg = r["segment_points"]
     lines += [
         "",
-        f"## segment_points ({seg['points']} points)",
+        f"## segment_points ({seg['points']} points; the node settled {seg.get('settle_s', '-')} s "
+        "after the stream)",
         "",
         "| method | s per 100k points (median of the repeats) | first call after the stream, s | error |",
         "|---|---|---|---|",
@@ -578,10 +604,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             print(f"bench: node up in {result['startup_s']:.2f} s; ingest {len(frames)} frames", flush=True)
             result["ingest"] = bench_ingest(node, frames, query_during=True)
             with node.client(timeout_s=600.0, retries=0) as client:
-                print("bench: segment_points", flush=True)
+                settle_s = wait_until_settled(client)
+                print(f"bench: segment_points (node settled {settle_s:.1f} s after the stream)", flush=True)
                 result["segment_points"] = bench_segment(
                     client, settings["segment_points"], 1 if quick else 3
                 )
+                result["segment_points"]["settle_s"] = settle_s
                 print("bench: render", flush=True)
                 result["render"] = bench_render(client, settings["render_sizes"], settings["render_repeats"])
             print("bench: status during a render", flush=True)

@@ -32,6 +32,7 @@ def test_bench_quick_writes_json_and_markdown(tmp_path: Path) -> None:
         assert result["segment_points"][method]["per_100k_s"] > 0
         assert result["segment_points"][method]["first_s"] > 0  # the first call, apart from the repeats
         assert len(result["segment_points"][method]["seconds"]) == 1
+    assert 0 <= result["segment_points"]["settle_s"] <= 60.0
     assert "not_ready" in (result["segment_points"]["govnesf"]["error"] or "")
     assert set(result["render"]) == {"16x12", "20x15"}
     assert result["status_during_render"]["status"]["n"] >= 3
@@ -56,3 +57,13 @@ def test_bench_refuses_bad_input_before_the_run(tmp_path: Path, capsys: pytest.C
     assert main(["--out", str(afile / "x")]) == 2
     assert "cannot write --out" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+
+
+def test_busy_items_count_what_the_node_still_has_queued() -> None:
+    from clients.cli.bench import _busy_items
+
+    assert _busy_items({}) == 0
+    assert _busy_items({"integration": {"backlog": 0}, "model": {"pending": 0}, "map_features": None}) == 0
+    extra = {"integration": {"backlog": 2}, "model": {"pending": 3}, "map_features": {"pending": 1},
+             "rendered_depth": {"pending": 0}, "other": {"pending": 9}}
+    assert _busy_items(extra) == 6  # keys it does not know are not counted
