@@ -366,11 +366,11 @@ class LimitsConfig:
     client keys. 0.1..3600."""
 
     blas_threads: int = 1
-    """Threads of numpy's BLAS (OpenBLAS) in the node's process, set when the node is made
-    (``threadpoolctl``). OpenBLAS's idle threads spin for a while after each product, taking a
-    core from the compiled kernels and torch that run next (with two cores: the averaging
-    kernel at one core's speed); the node's numpy products are small. 0 = leave BLAS as it is.
-    0..1024."""
+    """Threads of the BLAS libraries loaded in the node's process (numpy's OpenBLAS, OpenCV's), set
+    when the node is made and again when it starts (``threadpoolctl``). OpenBLAS's idle threads
+    spin for a while after each product, taking a core from the compiled kernels and torch that
+    run next (with two cores: the averaging kernel at one core's speed); the node's numpy
+    products are small. 0 = leave BLAS as it is. 0..1024."""
 
     def validate(self, where: str) -> None:
         _check_range(where, "limits.sndhwm", self.sndhwm, 1, 1_000_000)

@@ -198,8 +198,10 @@ def _warm_query_kernels() -> None:
 
 
 def limit_blas_threads(threads: int) -> None:
-    """numpy's BLAS to at most ``threads`` threads in this process (``limits.blas_threads``; 0 =
-    unchanged). Process-wide and lasting; without ``threadpoolctl`` a warning, nothing else."""
+    """Every BLAS library loaded in this process (numpy's, OpenCV's) to at most ``threads`` threads
+    (``limits.blas_threads``; 0 = unchanged). Process-wide and lasting (libraries loaded later keep
+    their own count: the node calls this when made and when started); without ``threadpoolctl`` a
+    warning, nothing else."""
     if threads <= 0:
         return
     try:
@@ -349,6 +351,7 @@ class MapperNode:
         Refuses (``RuntimeError``) a non-loopback bind without ``curve_dir`` unless ``insecure``
         (:func:`mapper.node.security.exposure_problem`); with ``curve_dir`` the key files must load."""
         cfg = self.config
+        limit_blas_threads(cfg.limits.blas_threads)  # again: plugins may have loaded another BLAS (OpenCV's)
         endpoints = self._endpoints()
         problem = exposure_problem(endpoints, cfg.curve_dir, cfg.insecure)
         if problem:
