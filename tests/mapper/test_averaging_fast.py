@@ -198,3 +198,21 @@ def test_in_view_matrix_equals_torch_projection() -> None:
     mine = in_view_matrix(pts, cfw.numpy(), K.numpy(), (width, height), DEFAULT_EPS, threads=2)
     assert mine.shape == ref.shape and 0.05 < ref.mean() < 0.95
     np.testing.assert_array_equal(mine, ref)
+
+
+def test_kernel_table_reused_for_the_same_views_only() -> None:
+    """The kernel's OV table is kept for the same views' ``ov`` objects (a window asked again) and
+    made anew for others, with the same answers as a fresh table."""
+    import mapper.model.baselines as baselines
+
+    pts, views = random_scene(4)
+    first, n_first = average_features(pts, views, use_depth=False, impl="kernel")
+    table = baselines._TABLE_CACHE[0][1]
+    again, n_again = average_features(pts, list(views), use_depth=False, impl="kernel")
+    assert baselines._TABLE_CACHE[0][1] is table and not table.flags.writeable
+    assert torch.equal(again, first) and torch.equal(n_again, n_first)
+    changed = [*views[:-1], views[-1]._replace(ov=np.ascontiguousarray(views[-1].ov[:, ::-1]))]
+    other, _ = average_features(pts, changed, use_depth=False, impl="kernel")
+    assert baselines._TABLE_CACHE[0][1] is not table
+    ref, _ = average_features_reference(pts, changed, use_depth=False)
+    torch.testing.assert_close(other, ref, rtol=1e-5, atol=1e-6)
