@@ -435,14 +435,15 @@ class GlobalMapSnapshot:
             lo += block.shape[0]
         return out
 
-    def similarities_cached(self, emb: np.ndarray) -> np.ndarray:
+    def similarities_cached(self, emb: np.ndarray, *, compute: bool = True) -> np.ndarray | None:
         """:meth:`similarities` kept per snapshot for the last few ``emb`` (the same texts asked
-        again on the same map version cost a lookup): (N, K) float32, read-only."""
+        again on the same map version cost a lookup): (N, K) float32, read-only. ``compute=False``:
+        the kept array or None, nothing computed."""
         emb = np.ascontiguousarray(emb, np.float32)
         key = ("similarities", emb.shape, hashlib.blake2b(emb.tobytes(), digest_size=16).digest())
         with self._cache_lock:
             cached = self._cache.get(key)
-        if cached is not None:
+        if cached is not None or not compute:
             return cached
         sims = self.similarities(emb)
         sims.setflags(write=False)
@@ -452,6 +453,23 @@ class GlobalMapSnapshot:
                 del self._cache[old]
             self._cache[key] = sims
         return sims
+
+    def row_similarities(self, rows: np.ndarray, emb: np.ndarray) -> np.ndarray:
+        """(n, K) float32 cosines of the unit features of ``rows`` (n,) int64 with ``emb`` (K, D):
+        the same values as ``similarities(emb)[rows]``, reading only those rows."""
+        from mapper.node.query_kernels import row_cosines  # numba: compiled or loaded when first used
+
+        blocks = self.unit_feature_blocks()
+        out = np.zeros((rows.shape[0], emb.shape[0]), np.float32)
+        order = np.argsort(rows, kind="stable")
+        block_of = rows[order] // UNIT_BLOCK_ROWS
+        bounds = np.searchsorted(block_of, np.arange(len(blocks) + 1))
+        for b, block in enumerate(blocks):
+            lo, hi = bounds[b], bounds[b + 1]
+            if hi > lo and block.shape[1]:
+                sel = order[lo:hi]
+                out[sel] = row_cosines(block, emb, rows[sel] - b * UNIT_BLOCK_ROWS)
+        return out
 
     def nearest_with_feature(
         self,

@@ -681,16 +681,31 @@ def best_text(
     return label, score
 
 
+_MAP_COSINES_MAX_BYTES = 64 << 20
+"""Largest (map rows x texts) cosine array a snapshot keeps for the map's answers."""
+
+
 def _map_similarities(
     snapshot: GlobalMapSnapshot,
     rows: np.ndarray,  # (n,) int64 map rows that carry a feature
     text_emb: np.ndarray,  # (T, D) float32 unit rows
 ) -> np.ndarray:  # (n, T) float32
-    """Cosines of map rows' features with the texts: the snapshot's cosines of every row with these
-    texts (computed once per map version and text set, :meth:`GlobalMapSnapshot.similarities_cached`),
-    taken at ``rows``: the cosines of the rows' fp16 features, normalised, with the texts, up to
-    float32 rounding."""
-    return snapshot.similarities_cached(text_emb)[rows]
+    """Cosines of map rows' features with the texts (the rows' fp16 features, normalised, up to
+    float32 rounding): from the snapshot's cosines of every row with these texts when it keeps them
+    or when computing them all costs about what the request needs (the map has at most twice as
+    many rows as are asked for, within ``_MAP_COSINES_MAX_BYTES``; they are then kept for the next
+    request, :meth:`GlobalMapSnapshot.similarities_cached`); else of the distinct rows asked for
+    only (:meth:`GlobalMapSnapshot.row_similarities`)."""
+    kept = snapshot.similarities_cached(text_emb, compute=False)
+    if kept is not None:
+        return kept[rows]
+    n_map = len(snapshot)
+    if n_map <= 2 * rows.shape[0] and n_map * text_emb.shape[0] * 4 <= _MAP_COSINES_MAX_BYTES:
+        whole = snapshot.similarities_cached(text_emb)
+        assert whole is not None
+        return whole[rows]
+    uniq, inverse = np.unique(rows, return_inverse=True)
+    return snapshot.row_similarities(uniq, text_emb)[inverse.ravel()]
 
 
 def _map_compatible(snapshot: GlobalMapSnapshot, text_emb: np.ndarray) -> bool:

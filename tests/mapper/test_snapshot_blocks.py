@@ -195,3 +195,28 @@ def test_similarities_kept_per_text_set() -> None:
     gmap.integrate(keyframe(0.5, 2, 2), map_version=2)
     later = gmap.snapshot()
     np.testing.assert_array_equal(later.similarities_cached(sets[0]), later.similarities(sets[0]))
+
+
+def test_map_cosines_of_a_few_rows_or_of_every_row(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``row_similarities`` equals ``similarities`` at the rows (the same per-row bits), across
+    blocks; the map's answers take every row's cosines (kept) only when the map is not much larger
+    than the request, else just the rows asked for (nothing kept)."""
+    from mapper.node import queries
+
+    monkeypatch.setattr(global_map, "UNIT_BLOCK_ROWS", 16)
+    gmap = GlobalSemanticMap(GlobalMapConfig(pixel_stride=2, max_points=1_000_000))
+    for i in range(3):
+        gmap.integrate(keyframe(10.0 * i, i + 1, i), map_version=i + 1)
+    snap = gmap.snapshot()
+    n = len(snap)
+    assert len(snap.unit_feature_blocks()) > 2
+    emb = np.random.default_rng(1).standard_normal((3, 8)).astype(np.float32)
+    rows = np.random.default_rng(2).integers(0, n, 40)
+    np.testing.assert_array_equal(snap.row_similarities(rows, emb), snap.similarities(emb)[rows])
+    assert snap.similarities_cached(emb, compute=False) is None
+    few = rows[: max(1, n // 4)]
+    np.testing.assert_array_equal(queries._map_similarities(snap, few, emb), snap.similarities(emb)[few])
+    assert snap.similarities_cached(emb, compute=False) is None  # a few rows of a larger map: not kept
+    many = np.random.default_rng(3).integers(0, n, n)
+    np.testing.assert_array_equal(queries._map_similarities(snap, many, emb), snap.similarities(emb)[many])
+    assert snap.similarities_cached(emb, compute=False) is not None  # every row's, kept
