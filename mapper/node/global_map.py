@@ -346,8 +346,7 @@ class GlobalMapSnapshot:
                             and prev_feat.dtype == self.feat.dtype)
                 blocks, tokens, patches = [], [], []
                 for b, lo in enumerate(range(0, n, UNIT_BLOCK_ROWS)):
-                    patches.append(None)
-                    tokens.append(prev_tokens[b] if b < len(prev_tokens) else -1)
+                    patch = None  # (parent token, rows normalised again) for a patched copy
                     hi = min(lo + UNIT_BLOCK_ROWS, n)
                     cur = self.feat[lo:hi]
                     if (same_dim and prev_feat is not None and b < min(len(prev_blocks), len(prev_tokens))
@@ -357,21 +356,21 @@ class GlobalMapSnapshot:
                             changed = stamps[lo:hi] > prev_version
                         else:
                             changed = (_row_words(prev_feat[lo:hi]) != _row_words(cur)).any(axis=1)
-                        if not changed.any():
-                            blocks.append(prev_blocks[b])  # shared, with its token
+                        if not changed.any():  # shared, with its token
+                            blocks.append(prev_blocks[b])
+                            tokens.append(prev_tokens[b])
+                            patches.append(None)
                             continue
-                        tokens[b] = next(_BLOCK_TOKENS)
                         if np.count_nonzero(changed) * 4 < hi - lo:  # few rows: copy and patch them
                             block = prev_blocks[b].copy()
                             block[changed] = _unit_rows(cur[changed])
-                            block.setflags(write=False)
-                            blocks.append(block)
-                            patches[b] = (prev_tokens[b], np.flatnonzero(changed))
-                            continue
-                    tokens[b] = next(_BLOCK_TOKENS)
-                    block = _unit_rows(cur)
+                            patch = (prev_tokens[b], np.flatnonzero(changed))
+                    if patch is None:
+                        block = _unit_rows(cur)
                     block.setflags(write=False)
                     blocks.append(block)
+                    tokens.append(next(_BLOCK_TOKENS))
+                    patches.append(patch)
                 if self._unit_source is not None:
                     with self._unit_source.lock:
                         if self.version >= self._unit_source.version:

@@ -392,12 +392,9 @@ class BlockLabelCache:
                 sims = row_cosines(block, emb, rows)  # (rows, T + Q)
                 label[rows], score[rows], beats[rows] = label_from_similarities(sims, n_texts)
                 result = (label, score, beats)
-            elif block.shape[1] == 0:
-                zeros = np.zeros((block.shape[0], emb.shape[0]), np.float32)
-                label, score, beats = label_from_similarities(zeros, n_texts)
-                result = (label.astype(np.int16), score, beats)
-            else:
-                sims = row_cosines(block, emb)  # (rows, T + Q)
+            else:  # (rows, T + Q); a map without features (D = 0) scores 0
+                sims = (row_cosines(block, emb) if block.shape[1]
+                        else np.zeros((block.shape[0], emb.shape[0]), np.float32))
                 label, score, beats = label_from_similarities(sims, n_texts)
                 result = (label.astype(np.int16), score, beats)  # at most 64 texts: 112 KB a full block
             parts.append(result)

@@ -14,11 +14,10 @@ import itertools
 import numba
 import numpy as np
 
-from mapper.model.ops.average_kernel import LAUNCH_LOCK  # numba + numpy only (no torch)
+from mapper.model.ops.average_kernel import _dot, launch  # numba + numpy only (no torch)
 
 __all__ = ["component_cells", "row_cosines", "warm_up"]
 
-_LOCK = LAUNCH_LOCK  # one parallel numba launch at a time in the process
 _ROWS_PER_TASK = 256
 _HALF_OFFSETS = np.array(
     [d for d in itertools.product(range(-2, 3), repeat=3) if d > (0, 0, 0)], np.int64
@@ -29,14 +28,6 @@ unordered pair of cells is visited once."""
 _HALF_OFFSETS = _HALF_OFFSETS[np.argsort((_HALF_OFFSETS**2).sum(axis=1), kind="stable")]
 _DENSE_TABLE_ENTRIES = 1 << 22
 """Key grids up to this many cells (or 8x the occupied cells) find neighbours in a dense table."""
-
-
-@numba.njit(fastmath=True, boundscheck=False, cache=True)
-def _dot(a, b):  # pragma: no cover - compiled
-    s = np.float32(0.0)
-    for k in range(a.shape[0]):
-        s += a[k] * b[k]
-    return s
 
 
 @numba.njit(parallel=True, boundscheck=False, cache=True)
@@ -68,14 +59,8 @@ def row_cosines(
     out = np.empty((idx.shape[0], emb.shape[0]), np.float32)
     if out.size == 0:
         return out
-    with _LOCK:
-        previous = numba.get_num_threads()
-        pool = int(numba.config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
-        numba.set_num_threads(max(1, min(threads or previous, pool)))
-        try:
-            _row_cosines(feat, emb, idx, out, _ROWS_PER_TASK)
-        finally:
-            numba.set_num_threads(previous)
+    with launch(threads):
+        _row_cosines(feat, emb, idx, out, _ROWS_PER_TASK)
     return out
 
 

@@ -52,6 +52,7 @@ callbacks (called under the state lock); saving more state goes through ``MapSta
 
 from __future__ import annotations
 
+import importlib
 import logging
 import math
 import os
@@ -186,15 +187,14 @@ def _rss_bytes() -> int | None:
         return None
 
 
-def _warm_query_kernels() -> None:
-    """Compile (or load from numba's cache: about 0.2 s) ``query_points``' kernels in the
-    background at start, so the first query after a ``load`` does not pay for it."""
+def _warm_kernels(module: str) -> None:
+    """Compile (or load from numba's cache) the compiled kernels of ``module`` (its ``warm_up``), so
+    the first query that needs them does not pay for it; a failure is logged (that query compiles
+    them instead and reports it)."""
     try:
-        from mapper.node.query_kernels import warm_up
-
-        warm_up()
-    except Exception:  # the first query compiles them instead (and reports a failure)
-        log.exception("query kernel warm-up failed")
+        importlib.import_module(module).warm_up()
+    except Exception:
+        log.exception("warm-up of the kernels of %s failed", module)
 
 
 def limit_blas_threads(threads: int) -> None:
@@ -416,7 +416,9 @@ class MapperNode:
         )
         thread.start()
         self._threads.append(thread)
-        threading.Thread(target=_warm_query_kernels, name="mapper-kernel-warmup", daemon=True).start()
+        # query_points' kernels: about 0.2 s from numba's cache
+        threading.Thread(target=_warm_kernels, args=("mapper.node.query_kernels",),
+                         name="mapper-kernel-warmup", daemon=True).start()
         for name, work in self.workers:
             thread = threading.Thread(target=work, args=(self._stop,), name=f"mapper-{name}", daemon=True)
             thread.start()
@@ -1279,12 +1281,7 @@ class MapperNode:
             except Exception:  # a broken encoder must not take the node down; queries report it
                 log.exception("text encoder warm-up for %r failed", space)
             if first:
-                try:
-                    from mapper.model.ops.average_kernel import warm_up
-
-                    warm_up()
-                except Exception:  # the first averaging query compiles it instead (and reports a failure)
-                    log.exception("averaging kernel warm-up failed")
+                _warm_kernels("mapper.model.ops.average_kernel")
 
         threading.Thread(target=warm, name="mapper-encoder-warmup", daemon=True).start()
 

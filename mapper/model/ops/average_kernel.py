@@ -22,12 +22,16 @@ does that ahead of a first query.
 
 from __future__ import annotations
 
+import contextlib
 import threading
+from collections.abc import Iterator
 
 import numba
 import numpy as np
 
-__all__ = ["LAUNCH_LOCK", "average_kernel", "blend_kernel", "in_view_matrix", "kernel_threads", "warm_up"]
+__all__ = [
+    "LAUNCH_LOCK", "average_kernel", "blend_kernel", "in_view_matrix", "kernel_threads", "launch", "warm_up",
+]
 
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
@@ -37,7 +41,6 @@ LAUNCH_LOCK = threading.Lock()
 ``mapper.node.query_kernels``): one launch at a time, since each uses every thread it is given and
 the thread count is numba-global, and since numba's fallback threading layer (workqueue, where
 neither OpenMP nor TBB is available) aborts on concurrent launches."""
-_LOCK = LAUNCH_LOCK
 
 
 @numba.njit(fastmath=True, boundscheck=False, cache=True)
@@ -210,15 +213,10 @@ def blend_kernel(
     its slots' maps (``bilinear_corners``' taps; slots of weight 0 are skipped). Arguments checked
     by the caller."""
     out = np.zeros((weights.shape[0], table.shape[1]), np.float32)
-    with _LOCK:
-        previous = numba.get_num_threads()
-        numba.set_num_threads(kernel_threads(threads))
-        try:
-            _blend_kernel(np.ascontiguousarray(table, np.float32), int(map_wh[0]), int(map_wh[1]),
-                          np.ascontiguousarray(view_idx, np.int64), np.ascontiguousarray(uv, np.float32),
-                          np.ascontiguousarray(weights, np.float32), out, int(block))
-        finally:
-            numba.set_num_threads(previous)
+    with launch(threads):
+        _blend_kernel(np.ascontiguousarray(table, np.float32), int(map_wh[0]), int(map_wh[1]),
+                      np.ascontiguousarray(view_idx, np.int64), np.ascontiguousarray(uv, np.float32),
+                      np.ascontiguousarray(weights, np.float32), out, int(block))
     return out
 
 
@@ -257,17 +255,25 @@ def in_view_matrix(
     (no border), as one compiled CPU kernel: the same float32 arithmetic, without the (M, P, 2)
     projections."""
     out = np.empty((pts.shape[0], cam_from_world.shape[0]), np.bool_)
-    with _LOCK:
+    with launch(threads):
+        _in_view_kernel(np.ascontiguousarray(pts, np.float32),
+                        np.ascontiguousarray(cam_from_world, np.float32),
+                        np.ascontiguousarray(K, np.float32), np.float32(image_wh[0]),
+                        np.float32(image_wh[1]), np.float32(eps), out, int(block))
+    return out
+
+
+@contextlib.contextmanager
+def launch(threads: int) -> Iterator[None]:
+    """Around one parallel numba launch: holds :data:`LAUNCH_LOCK` and sets numba's thread count
+    to ``threads`` (within its pool; 0 = leave it), restoring it after."""
+    with LAUNCH_LOCK:
         previous = numba.get_num_threads()
-        numba.set_num_threads(kernel_threads(threads))
+        numba.set_num_threads(kernel_threads(threads or previous))
         try:
-            _in_view_kernel(np.ascontiguousarray(pts, np.float32),
-                            np.ascontiguousarray(cam_from_world, np.float32),
-                            np.ascontiguousarray(K, np.float32), np.float32(image_wh[0]),
-                            np.float32(image_wh[1]), np.float32(eps), out, int(block))
+            yield
         finally:
             numba.set_num_threads(previous)
-    return out
 
 
 def kernel_threads(threads: int) -> int:
@@ -313,21 +319,16 @@ def average_kernel(
     count = np.zeros(n_pts, np.int64)
     vw = np.zeros((n_views, 0), np.float32) if view_weights is None else np.ascontiguousarray(view_weights,
                                                                                                np.float32)
-    with _LOCK:
-        previous = numba.get_num_threads()
-        numba.set_num_threads(kernel_threads(threads))
-        try:
-            _kernel(np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(cam_from_world, np.float32),
-                    np.ascontiguousarray(K, np.float32), np.ascontiguousarray(right, np.float64),
-                    np.ascontiguousarray(bottom, np.float64), float(border), np.float32(eps),
-                    ov_off.astype(np.int64), ov_w.astype(np.int64), ov_h.astype(np.int64),
-                    np.ascontiguousarray(ov_scale, np.float32), np.ascontiguousarray(table, np.float32),
-                    bool(use_depth), has_depth.astype(np.bool_), np.ascontiguousarray(depth_flat, np.float32),
-                    d_off.astype(np.int64), d_w.astype(np.int64), d_h.astype(np.int64),
-                    np.ascontiguousarray(d_scale, np.float32), np.float32(depth_tol),
-                    np.float32(distance_power), vw, txt, out, count, int(block))
-        finally:
-            numba.set_num_threads(previous)
+    with launch(threads):
+        _kernel(np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(cam_from_world, np.float32),
+                np.ascontiguousarray(K, np.float32), np.ascontiguousarray(right, np.float64),
+                np.ascontiguousarray(bottom, np.float64), float(border), np.float32(eps),
+                ov_off.astype(np.int64), ov_w.astype(np.int64), ov_h.astype(np.int64),
+                np.ascontiguousarray(ov_scale, np.float32), np.ascontiguousarray(table, np.float32),
+                bool(use_depth), has_depth.astype(np.bool_), np.ascontiguousarray(depth_flat, np.float32),
+                d_off.astype(np.int64), d_w.astype(np.int64), d_h.astype(np.int64),
+                np.ascontiguousarray(d_scale, np.float32), np.float32(depth_tol),
+                np.float32(distance_power), vw, txt, out, count, int(block))
     return out, count
 
 
