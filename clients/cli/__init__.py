@@ -29,13 +29,15 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "bench": ("clients.cli.bench", "main", "start a node, measure it, write JSON + Markdown"),
     "evaluate": ("mapper.training.cli_eval", "main", "evaluate the model against baselines"),
     "train": ("mapper.training.cli_train", "main", "train the GOV-NeSF model"),
+    "distill-point-head": ("mapper.training.point_head", "main",
+                           "distill a smaller FusionNet for point answers from a checkpoint"),
 }
 
 
 def _usage() -> str:
     lines = ["usage: govnesf <command> [options]   (govnesf --version)", "", "commands:"]
     for name, (_, _, help_) in SUBCOMMANDS.items():
-        lines.append(f"  {name:<10} {help_}")
+        lines.append(f"  {name:<18} {help_}")
     lines.append("")
     lines.append("Run `govnesf <command> --help` for a command's options.")
     return "\n".join(lines)

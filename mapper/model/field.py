@@ -435,11 +435,14 @@ class GovNeSF(nn.Module):
         depth_guided_masking: bool = False,
         chunk_size: int | None = None,
         ov_maps: OVMaps | None = None,
+        fusion: FusionNet | None = None,
     ) -> PointOutputs:
         """Point mode: source-view-agnostic OV feature at (P, 3) points, each a single sample.
 
         ``chunk_size`` bounds memory (about chunk_size x N x (D + F + 6) floats at a time).
         ``ov_maps``: blend the OV features from these maps (``views.ov`` may then be a dummy).
+        ``fusion``: the network that weighs the views (default the model's FusionNet; see
+        :meth:`point_outputs`).
         """
         if chunk_size is not None:
             if chunk_size < 1:
@@ -452,12 +455,14 @@ class GovNeSF(nn.Module):
                     points[i : i + chunk_size],
                     depth_guided_masking=depth_guided_masking,
                     ov_maps=ov_maps,
+                    fusion=fusion,
                 )
                 for i in range(0, points.shape[0], chunk_size)
             ]
             if not parts:
                 return self.query_points(
-                    views, volume, bounds, points, depth_guided_masking=depth_guided_masking, ov_maps=ov_maps
+                    views, volume, bounds, points, depth_guided_masking=depth_guided_masking, ov_maps=ov_maps,
+                    fusion=fusion,
                 )
             return PointOutputs(
                 ov=torch.cat([p.ov for p in parts]),
@@ -469,18 +474,28 @@ class GovNeSF(nn.Module):
             )
         samples = self.sample_views(views, points, depth_guided_masking)
         v, _ = sample_volume(volume, bounds, points.to(volume.dtype))
-        return self.point_outputs(samples, v, ov_maps=ov_maps)
+        return self.point_outputs(samples, v, ov_maps=ov_maps, fusion=fusion)
 
     def point_outputs(
-        self, samples: PointViewSamples, v: Tensor, *, ov_maps: OVMaps | None = None
+        self,
+        samples: PointViewSamples,
+        v: Tensor,
+        *,
+        ov_maps: OVMaps | None = None,
+        fusion: FusionNet | None = None,
     ) -> PointOutputs:
         """Point mode over sampled views (``sample_views`` or ``sample_views_indexed``) and
         (P, Dv) volume features: the source-view-agnostic OV feature of each point.
 
         ``ov_maps``: blend the OV features straight from the views' maps at ``samples.uv``
         (``sample_views``' samples; their ``ov`` is then ignored) instead of from ``samples.ov``:
-        the same result up to float rounding, without the (P, N, D) samples."""
-        fused = self.fusion(
+        the same result up to float rounding, without the (P, N, D) samples.
+        ``fusion``: the network whose OV weights blend the views, in place of the model's own
+        FusionNet: a smaller point head distilled from it (:mod:`mapper.model.point_head`) that
+        takes the same inputs. Not used in ``distill`` mode (the Distill head reads the model's
+        own attention features)."""
+        net = fusion if (fusion is not None and self.distill is None) else self.fusion
+        fused = net(
             samples.rgb, samples.features, v, samples.source_dirs, samples.mask, None, samples.source_range
         )
         if self.distill is not None:

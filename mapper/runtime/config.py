@@ -22,6 +22,17 @@ class ModelRuntimeConfig:
     root in a checkout, the packaged data of an installed wheel). Missing -> the node answers
     ``not_ready`` naming this path for ``segment_points`` (govnesf) and ``render``."""
 
+    point_head: str = "auto"
+    """A point head (``mapper.model.point_head``: a smaller FusionNet distilled from this
+    checkpoint's, ``govnesf distill-point-head``) that weighs the views of point answers
+    (``segment_points`` with the learned model, the model's features written into the global map)
+    in place of the checkpoint's FusionNet; renders keep the checkpoint's. ``"auto"``: the head
+    ``NAME-point-head`` next to the checkpoint ``NAME`` when there is one distilled from these
+    weights (cpu-small ships one: labels 99.5-99.7% equal to its own network's, docs/TRAINING.md),
+    else the checkpoint's own network. ``""``: always the checkpoint's own. A path (looked up as
+    ``checkpoint`` is): that head; one distilled from other weights, or one that cannot be read,
+    leaves the model unserved with the reason (as a bad checkpoint does)."""
+
     device: str = "auto"
     """Torch device: ``"auto"`` (CUDA when available, else CPU), ``"cpu"``, ``"cuda"``, ``"cuda:1"``."""
 

@@ -60,7 +60,8 @@ from torch import Tensor
 
 from govnesf.resources import data_root
 from mapper.errors import RuntimeNotReady
-from mapper.model.field import GovNeSF, OVMaps, PointOutputs, SourceViews, default_device
+from mapper.model.field import GovNeSF, OVMaps, PointOutputs, PointViewSamples, SourceViews, default_device
+from mapper.model.fusion import FusionNet
 from mapper.model.ops.cost_volume import (
     CostVolume,
     VolumeBounds,
@@ -246,6 +247,9 @@ class ModelRuntime:
         self.load_error: str | None = None
         self.metadata: dict[str, Any] = {}
         self.model: GovNeSF | None = None
+        self.point_head: FusionNet | None = None
+        """The network weighing point answers' views in place of the model's FusionNet (None: the
+        model's own); ``model.point_head`` (:mod:`mapper.model.point_head`)."""
         if model is not None:
             self.model = model.to(self.device).eval()
         else:
@@ -284,10 +288,54 @@ class ModelRuntime:
             )
         except Exception as exc:  # corrupt file, wrong format, ...: serve the rest, say why
             self.load_error = f"the GOV-NeSF checkpoint {str(path)!r} could not be loaded: {exc}"
+        if not self.load_error and self.config.point_head == "auto":
+            self._auto_point_head(path)
+        elif not self.load_error and self.config.point_head:
+            self._load_point_head()
         if self.load_error:
             log.error("%s", self.load_error)
         else:
             log.info("loaded GOV-NeSF checkpoint %s on %s", path, self.device)
+
+    def _auto_point_head(self, checkpoint: Path) -> None:
+        """``model.point_head = "auto"``: the head ``NAME-point-head`` next to the checkpoint
+        ``NAME`` when it exists and was distilled from these weights; else the model's own
+        FusionNet (said in the log, never an error)."""
+        from mapper.model.point_head import head_paths, load_point_head
+
+        stem = checkpoint.with_suffix("") if checkpoint.suffix in (".json", ".safetensors") else checkpoint
+        candidate = stem.with_name(stem.name + "-point-head")
+        if not head_paths(candidate)[1].exists():
+            log.info("point answers use the checkpoint's FusionNet (no %s.json)", candidate)
+            return
+        try:
+            self.point_head, meta = load_point_head(
+                candidate, teacher_sha256=self.metadata.get("weights_sha256"), device=self.device
+            )
+        except (ValueError, OSError) as exc:
+            log.warning("point answers use the checkpoint's FusionNet: %s", exc)
+            return
+        log.info("point answers use the point head %s (%s)", candidate, meta["fusion"])
+
+    def _load_point_head(self) -> None:
+        """``model.point_head`` next to the loaded checkpoint; on failure the model is not served
+        (``load_error`` says why)."""
+        from mapper.model.point_head import load_point_head
+
+        path = _resolve_checkpoint(self.config.point_head)
+        try:
+            self.point_head, meta = load_point_head(
+                path, teacher_sha256=self.metadata.get("weights_sha256"), device=self.device
+            )
+        except FileNotFoundError as exc:
+            self.load_error = f"the point head {str(path)!r} was not found ({exc}); set model.point_head"
+        except (ValueError, OSError) as exc:
+            self.load_error = f"the point head {str(path)!r} could not be loaded: {exc}"
+        if self.load_error:
+            self.model = None
+            self.point_head = None
+        else:
+            log.info("point answers use the point head %s (%s)", path, meta["fusion"])
 
     @property
     def ready(self) -> bool:
@@ -1076,16 +1124,8 @@ class ModelRuntime:
 
             if self.config.batched_view_groups and groups:
                 # one network pass over every view group (each point with its own views)
-                members, view_idx, slots = _group_slots(groups)
-                views = self._all_views(prep, need_ov=False, use_depth=use_depth)
-                for i in range(0, members.numel(), self.config.chunk_points):
-                    sel = slice(i, i + self.config.chunk_points)
-                    sub = members[sel]
-                    chunk_views, chunk_slots = _chunk_slots(view_idx, slots, sel)
-                    samples = model.sample_views_indexed(views, chunk_views, chunk_slots, pts[sub], use_depth)
-                    v, _ = sample_volume(prep.volume, prep.bounds, pts[sub].to(prep.volume.dtype))
-                    ov_maps = prep.ov_maps(chunk_views, self.image_wh)
-                    answer(sub, model.point_outputs(samples, v, ov_maps=ov_maps))
+                for sub, samples, v, ov_maps in self._point_batches(model, prep, pts, groups, use_depth):
+                    answer(sub, model.point_outputs(samples, v, ov_maps=ov_maps, fusion=self.point_head))
             for idx, views_idx in groups if not self.config.batched_view_groups else []:
                 for sub, out in self._point_outputs(model, prep, pts, idx, views_idx, use_depth):
                     answer(sub, out)
@@ -1093,6 +1133,49 @@ class ModelRuntime:
         timing["total"] = (time.perf_counter() - t0) * 1e3
         cos_np = None if cosines is None else cosines.cpu().numpy()
         return label.cpu().numpy(), score.cpu().numpy(), cos_np, timing
+
+    def _point_batches(
+        self,
+        model: GovNeSF,
+        prep: _Prepared,
+        pts: Tensor,
+        groups: list[tuple[Tensor, Tensor]],
+        use_depth: bool,
+    ) -> Iterator[tuple[Tensor, PointViewSamples, Tensor, OVMaps]]:
+        """Every view group's points in chunks of ``chunk_points``, each point with its own views:
+        yields (point indices (p,), samples (``sample_views_indexed``), volume features (p, Dv),
+        the chunk's OV maps). Call with the runtime's lock held."""
+        members, view_idx, slots = _group_slots(groups)
+        views = self._all_views(prep, need_ov=False, use_depth=use_depth)
+        for i in range(0, members.numel(), self.config.chunk_points):
+            sel = slice(i, i + self.config.chunk_points)
+            sub = members[sel]
+            chunk_views, chunk_slots = _chunk_slots(view_idx, slots, sel)
+            samples = model.sample_views_indexed(views, chunk_views, chunk_slots, pts[sub], use_depth)
+            v, _ = sample_volume(prep.volume, prep.bounds, pts[sub].to(prep.volume.dtype))
+            yield sub, samples, v, prep.ov_maps(chunk_views, self.image_wh)
+
+    @torch.no_grad()
+    def point_samples(
+        self,
+        points: np.ndarray,  # (N, 3) float32 world points (m)
+        *,
+        use_depth: bool = False,
+    ) -> list[tuple[Tensor, PointViewSamples, Tensor]]:
+        """What the point answers' network sees, with :meth:`segment`'s view selection: per chunk,
+        (point indices (p,), samples (``sample_views_indexed``, each point's own views), volume
+        features (p, Dv)). Points no keyframe sees are in no chunk. Used to distill a point head
+        (``mapper.training.point_head``)."""
+        pts = torch.tensor(np.array(points, dtype=np.float32)).reshape(-1, 3).to(self.device)
+        if not bool(torch.isfinite(pts).all()):
+            raise ValueError("points must be finite (got NaN or Inf)")
+        model = self._require_model()
+        with self._lock:
+            prep = self._prepare()
+            groups = self._view_groups(prep, pts, prep.has_ov, self.point_source_views)
+            if not groups:
+                return []
+            return [(sub, s, v) for sub, s, v, _ in self._point_batches(model, prep, pts, groups, use_depth)]
 
     def _point_outputs(
         self, model: GovNeSF, prep: _Prepared, pts: Tensor, idx: Tensor, views_idx: Tensor, use_depth: bool
@@ -1106,7 +1189,8 @@ class ModelRuntime:
         for i in range(0, idx.numel(), self.config.chunk_points):
             sub = idx[i : i + self.config.chunk_points]
             yield sub, model.query_points(
-                views, prep.volume, prep.bounds, pts[sub], depth_guided_masking=use_depth, ov_maps=ov_maps
+                views, prep.volume, prep.bounds, pts[sub], depth_guided_masking=use_depth, ov_maps=ov_maps,
+                fusion=self.point_head,
             )
 
     @torch.no_grad()
