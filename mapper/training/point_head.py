@@ -20,7 +20,13 @@
 Example (the committed head, ``checkpoints/cpu-small-point-head``; docs/TRAINING.md)::
 
     scripts/make_train_data.sh data 12 80
-    .venv/bin/python -m clients.cli distill-point-head --out checkpoints/cpu-small-point-head
+    .venv/bin/govnesf distill-point-head --out checkpoints/cpu-small-point-head
+
+``--validate-only`` runs stage 3 alone for the head at ``--out`` on other scenes, e.g. the held-out
+evaluation rooms of both styles (``scripts/make_eval_data.sh``)::
+
+    .venv/bin/govnesf distill-point-head --validate-only --out checkpoints/cpu-small-point-head \
+        --val-dirs data/eval
 """
 
 from __future__ import annotations
@@ -288,6 +294,18 @@ def validate_scene(scene: Path, head: str, cfg: DistillConfig, gen: np.random.Ge
     return row
 
 
+def _validate(
+    scenes: Sequence[Path], head: str, cfg: DistillConfig, gen: np.random.Generator
+) -> tuple[dict[str, dict[str, float]], dict[str, float]]:
+    """Stage 3 on every scene, printed; returns the rows by scene and their mean."""
+    rows = {s.name: validate_scene(s, head, cfg, gen) for s in scenes}
+    for name, row in rows.items():
+        print(f"distill-point-head: {name}: " + ", ".join(f"{k} {v:.1f}" for k, v in row.items()), flush=True)
+    mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in next(iter(rows.values()))}
+    print("distill-point-head: mean " + ", ".join(f"{k} {v:.1f}" for k, v in mean.items()), flush=True)
+    return rows, mean
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="govnesf distill-point-head", description=__doc__.split("\n\n")[0])
     d = DistillConfig()
@@ -300,6 +318,8 @@ def _parser() -> argparse.ArgumentParser:
         else:
             p.add_argument(flag, type=type(default), default=default)
     p.add_argument("--no-progress", action="store_true", help="no per-step lines")
+    p.add_argument("--validate-only", action="store_true",
+                   help="only stage 3: validate the head at --out on the --val-dirs scenes (writes nothing)")
     return p
 
 
@@ -316,8 +336,15 @@ def main(argv: list[str] | None = None) -> int:
     from mapper.model.point_head import save_point_head
 
     try:
-        train_scenes = _scene_dirs(cfg.train_dirs)
         val_scenes = _scene_dirs(cfg.val_dirs)
+        if args.validate_only:
+            from mapper.model.point_head import head_paths
+
+            if not head_paths(cfg.out)[1].exists():
+                raise FileNotFoundError(f"no point head at {cfg.out} (--out)")
+            _validate(val_scenes, cfg.out, cfg, np.random.default_rng(cfg.seed))
+            return 0
+        train_scenes = _scene_dirs(cfg.train_dirs)
     except FileNotFoundError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -358,11 +385,7 @@ def main(argv: list[str] | None = None) -> int:
             "teacher_sha256": meta["weights_sha256"]}
     out = save_point_head(cfg.out, student, scfg, extra=extra, **dims)
     print(f"distill-point-head: wrote {out}; held-out KL {val_kl:.4f}", flush=True)
-    rows = {s.name: validate_scene(s, str(out), cfg, gen) for s in val_scenes}
-    for name, row in rows.items():
-        print(f"distill-point-head: {name}: " + ", ".join(f"{k} {v:.1f}" for k, v in row.items()), flush=True)
-    mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in next(iter(rows.values()))}
-    print("distill-point-head: mean " + ", ".join(f"{k} {v:.1f}" for k, v in mean.items()), flush=True)
+    rows, mean = _validate(val_scenes, str(out), cfg, gen)
     extra.update(validation=rows, validation_mean=mean)
     save_point_head(cfg.out, student, scfg, extra=extra, **dims)
     return 0

@@ -147,7 +147,13 @@ def test_distill_config_and_cli_refuse_bad_settings(
         DistillConfig(steps=0)
     assert main(["--steps", "0"]) == 2
     assert main(["--train-dirs", str(tmp_path / "none"), "--val-dirs", str(tmp_path)]) == 2
-    assert "error:" in capsys.readouterr().err
+    no_head = ["--validate-only", "--out", str(tmp_path / "no-head"), "--val-dirs"]
+    assert main([*no_head, str(tmp_path / "none")]) == 2
+    tmp_path.joinpath("scene").mkdir()
+    tmp_path.joinpath("scene", "frames.govrec").write_bytes(b"")
+    assert main([*no_head, str(tmp_path / "scene")]) == 2
+    err = capsys.readouterr().err
+    assert "error:" in err and "no point head" in err
 
 
 def _window_runtime(model: GovNeSF, **overrides: object) -> tuple[ModelRuntime, KeyframeWindow]:

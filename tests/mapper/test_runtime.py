@@ -461,3 +461,42 @@ def test_surface_depth_is_checked_before_any_work(slab_runtime: ModelRuntime) ->
     ):
         with pytest.raises(ValueError, match=what):
             slab_runtime.render(K, pose, 20, 15, ["rgb"], surface_depth_m=bad)
+
+
+def test_model_work_runs_on_one_thread_whoever_calls(model: GovNeSF, monkeypatch: pytest.MonkeyPatch) -> None:
+    import threading
+
+    runtime = make_runtime(model, source_views=2)
+    window = KeyframeWindow(WindowConfig(max_keyframes=4, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    for i in range(3):
+        window.consider(keyframe(i, orbit(i)))
+    seen: list[tuple[int, int]] = []  # (thread, torch threads) where the model work ran
+    prepare = runtime._prepare
+
+    def recording_prepare() -> object:
+        seen.append((threading.get_ident(), torch.get_num_threads()))
+        return prepare()
+
+    monkeypatch.setattr(runtime, "_prepare", recording_prepare)
+    pts = np.random.default_rng(0).uniform(-0.3, 0.3, (50, 3)).astype(np.float32)
+    from_main = runtime.segment(pts, ["a", "b"])
+    results: list[object] = []
+    worker = threading.Thread(target=lambda: results.append(runtime.segment(pts, ["a", "b"])))
+    worker.start()
+    worker.join()
+    frame = runtime.render([20.0, 20.0, 10.0, 7.5], look_at((2.2, 0.3, 1.1), (0, 0, 0.5)), 20, 15, ["depth"])
+    assert frame.depth_m is not None  # render calls occupancy (a model method) from the model thread
+    threads = {ident for ident, _ in seen}
+    assert len(threads) == 1 and threading.get_ident() not in threads and worker.ident not in threads
+    assert np.array_equal(results[0][0], from_main[0])  # type: ignore[index]
+    # the caller's torch thread count applies there; errors reach the caller
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        runtime.segment(pts, ["a"])
+        assert seen[-1][1] == 1
+    finally:
+        torch.set_num_threads(before)
+    with pytest.raises(ValueError, match="finite"):
+        runtime.segment(np.full((2, 3), np.nan, np.float32), ["a"])
