@@ -30,10 +30,9 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 
-from mapper.model.checkpoint import _atomic_write, _plain, _sha256
+from mapper.model.checkpoint import _atomic_write, _plain, _read_verified, _sha256
 from mapper.model.config import FusionConfig
 from mapper.model.fusion import FusionNet
 
@@ -105,13 +104,12 @@ def load_point_head(
             f"not from the loaded checkpoint's {teacher_sha256!r}; distill one for this checkpoint "
             "(govnesf distill-point-head) or set model.point_head = \"\""
         )
-    data = (json_path.parent / meta.get("weights_file", weights_path.name)).read_bytes()
-    if _sha256(data) != meta.get("weights_sha256"):
-        raise ValueError(f"{weights_path}: weights do not match the SHA-256 in {json_path.name}")
+    state = _read_verified(json_path.parent / meta.get("weights_file", weights_path.name),
+                           str(meta.get("weights_sha256")))  # a JSON without one never matches
     try:
         cfg = FusionConfig(**meta["fusion"])
         head = FusionNet(int(meta["feature_dim"]), int(meta["volume_feature_dim"]), cfg)
-        head.load_state_dict(st_load(data), strict=True)
+        head.load_state_dict(state, strict=True)
     except (KeyError, TypeError, RuntimeError) as exc:
         raise ValueError(f"the point head {json_path} does not fit its config: {exc}") from None
     return head.to(device).eval(), meta

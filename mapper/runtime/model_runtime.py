@@ -1217,6 +1217,13 @@ class ModelRuntime:
             v, _ = sample_volume(prep.volume, prep.bounds, pts[sub].to(prep.volume.dtype))
             yield sub, samples, v, prep.ov_maps(chunk_views, self.image_wh)
 
+    def _world_points(self, points: np.ndarray) -> Tensor:
+        """(N, 3) float32 points on the runtime's device; ``ValueError`` unless every one is finite."""
+        pts = torch.tensor(np.array(points, dtype=np.float32)).reshape(-1, 3).to(self.device)
+        if not bool(torch.isfinite(pts).all()):
+            raise ValueError("points must be finite (got NaN or Inf)")
+        return pts
+
     @_on_model_thread
     @torch.no_grad()
     def point_samples(
@@ -1229,9 +1236,7 @@ class ModelRuntime:
         (point indices (p,), samples (``sample_views_indexed``, each point's own views), volume
         features (p, Dv)). Points no keyframe sees are in no chunk. Used to distill a point head
         (``mapper.training.point_head``)."""
-        pts = torch.tensor(np.array(points, dtype=np.float32)).reshape(-1, 3).to(self.device)
-        if not bool(torch.isfinite(pts).all()):
-            raise ValueError("points must be finite (got NaN or Inf)")
+        pts = self._world_points(points)
         model = self._require_model()
         with self._lock:
             prep = self._prepare()
@@ -1273,9 +1278,7 @@ class ModelRuntime:
             valid: (N,) bool, False where no keyframe with OV sees the point.
         Raises :class:`RuntimeNotReady` without a model or without OV features in the window.
         """
-        pts = torch.tensor(np.array(points, dtype=np.float32)).reshape(-1, 3).to(self.device)
-        if not bool(torch.isfinite(pts).all()):
-            raise ValueError("points must be finite (got NaN or Inf)")
+        pts = self._world_points(points)
         model = self._require_model()
         with self._lock:
             prep = self._prepare()
