@@ -146,6 +146,10 @@ def _on_model_thread(
 
     @functools.wraps(method)
     def run(self: ModelRuntime, *args: _P.args, **kwargs: _P.kwargs) -> _R:
+        if self._lock._is_owned():  # type: ignore[attr-defined]
+            # a caller holding the runtime's lock (tests, internal helpers): the model thread would
+            # wait for that lock, so run in place
+            return method(self, *args, **kwargs)
         result: _R = self._model_thread.call(method, self, *args, **kwargs)
         return result
 
@@ -825,7 +829,7 @@ class ModelRuntime:
     def _prepare(self) -> _Prepared:
         """Sync, then the per-version cache (stacked views, 3D U-Net output). Holds ``_lock``."""
         model = self._require_model()
-        self.sync()
+        self.sync()  # in place: the caller holds the lock (_on_model_thread)
         if self._prepared is not None and self._prepared.version == self.version:
             return self._prepared
         if not self._entries or self._volume is None:

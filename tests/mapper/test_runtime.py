@@ -500,3 +500,17 @@ def test_model_work_runs_on_one_thread_whoever_calls(model: GovNeSF, monkeypatch
         torch.set_num_threads(before)
     with pytest.raises(ValueError, match="finite"):
         runtime.segment(np.full((2, 3), np.nan, np.float32), ["a"])
+    # a caller that holds the runtime's lock runs model methods in place (the model thread would
+    # wait for the lock): no deadlock
+    done = threading.Event()
+
+    def locked_calls() -> None:
+        with runtime._lock:
+            runtime.sync()
+            runtime.segment(pts, ["a"])
+        done.set()
+
+    caller = threading.Thread(target=locked_calls, daemon=True)
+    caller.start()
+    caller.join(timeout=60)
+    assert done.is_set()
