@@ -277,6 +277,8 @@ class GovNeSF(nn.Module):
         slot_mask: Tensor,
         points: Tensor,
         depth_guided_masking: bool,
+        *,
+        sample_ov: bool = True,
     ) -> PointViewSamples:
         """Like ``sample_views``, but every point has its own N source views out of ``views``.
 
@@ -286,6 +288,8 @@ class GovNeSF(nn.Module):
             slot_mask: (P, N) bool, False for padding slots (masked, as a view that does not see
                 the point; the network then treats the point as if the slot were absent).
             points: (P, 3).
+            sample_ov: False when the OV features are blended from the maps afterwards
+                (``OVMaps``): ``ov`` is then an empty (P, N, 0) tensor and the OV maps are not read.
 
         Each map is sampled once per view for all the (point, slot) pairs that use it, so a batch
         of points with different view sets costs one network pass instead of one per view set;
@@ -305,7 +309,8 @@ class GovNeSF(nn.Module):
         # with one slot a pair, of weight 1, over the views' channel-last maps
         bufs = []  # (C, N*P) each
         ones = uv.new_ones(N * P, 1)
-        for image, table in zip((views.rgb, views.features, views.ov), views.channel_last(), strict=True):
+        maps = zip((views.rgb, views.features, views.ov), views.channel_last(), strict=True)
+        for image, table in list(maps)[: 3 if sample_ov else 2]:
             map_wh = (image.shape[-1], image.shape[-2])
             at = scale_uv(uv, wh, map_wh)[:, None]  # (N*P, 1, 2)
             out = blend_from_maps(table, map_wh, flat_v[:, None], at, ones)  # (N*P, C)
@@ -327,6 +332,8 @@ class GovNeSF(nn.Module):
         def per_point(buf: Tensor) -> Tensor:  # (C, N*P) -> (P, N, C), P fastest
             return buf.reshape(buf.shape[0], N, P).permute(2, 1, 0)
 
+        if not sample_ov:
+            bufs.append(uv.new_zeros(0, N * P))
         rgb, feat, ov = (per_point(b) for b in bufs)
         return PointViewSamples(
             rgb=rgb,

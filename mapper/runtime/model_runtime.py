@@ -1217,7 +1217,8 @@ class ModelRuntime:
             sel = slice(i, i + self.config.chunk_points)
             sub = members[sel]
             chunk_views, chunk_slots = _chunk_slots(view_idx, slots, sel)
-            samples = model.sample_views_indexed(views, chunk_views, chunk_slots, pts[sub], use_depth)
+            samples = model.sample_views_indexed(views, chunk_views, chunk_slots, pts[sub], use_depth,
+                                                 sample_ov=False)  # blended from the maps (OVMaps)
             v, _ = sample_volume(prep.volume, prep.bounds, pts[sub].to(prep.volume.dtype))
             yield sub, samples, v, prep.ov_maps(chunk_views, self.image_wh)
 

@@ -149,6 +149,12 @@ def test_samples_carry_each_views_distance_to_the_point() -> None:
     part = model.sample_views_indexed(views, idx, torch.ones(200, 4, dtype=torch.bool), pts, False)
     assert part.source_range is not None
     torch.testing.assert_close(part.source_range, whole.source_range.gather(1, idx))
+    # without the OV maps read (blended from OVMaps later): the same samples, an empty ov
+    lean = model.sample_views_indexed(views, idx, torch.ones(200, 4, dtype=torch.bool), pts, False,
+                                      sample_ov=False)
+    assert lean.ov.shape == (200, 4, 0)
+    for name in ("rgb", "features", "mask", "source_dirs", "source_range", "uv"):
+        assert torch.equal(getattr(lean, name), getattr(part, name)), name
     v, _ = sample_volume(prep.volume, prep.bounds, pts)
     with torch.no_grad():
         a = model.point_outputs(part, v)
