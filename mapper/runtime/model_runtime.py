@@ -41,29 +41,18 @@ every view that does not see the individual point, so a point only ever uses vie
 Frames without ``ov`` still count for geometry (cost volume, rgb and depth renders); semantic
 outputs use the views that carry ``ov`` and answer :class:`RuntimeNotReady` when none does.
 
-One model thread: every method that runs the network (``sync``, ``occupancy``, ``segment``,
-``segment_cosines``, ``point_samples``, ``point_features``, ``render``) runs on the runtime's own
-thread (``mapper-model``), whichever node thread calls it (the caller waits; the runtime's lock
-serialised them anyway). torch's CPU ops run on OpenMP (libgomp), which keeps a team of worker
-threads per calling thread and spins them only briefly once it manages more threads than there are
-CPUs: with the query worker, the learned-features worker and the depth-points worker each calling
-the model, every team's threads then sleep between ops and each op waits for them to wake (a
-`segment_points` of 100k points took 0.45 s in a second thread against 0.33 s in the only one,
-docs/BENCHMARKS.md). One thread keeps one team.
 """
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 import threading
 import time
 from collections.abc import Callable, Hashable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Concatenate, ParamSpec, TypeVar
+from typing import Any
 
 import numpy as np
 import torch
@@ -105,55 +94,6 @@ __all__ = [
 ]
 
 log = logging.getLogger("mapper.runtime.model_runtime")
-
-
-class _ModelThread:
-    """The one thread that runs the runtime's torch work (module docstring, "One model thread"),
-    started on first use; a call from that thread itself runs in place (no deadlock when one
-    model method calls another)."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._executor: ThreadPoolExecutor | None = None
-        self._ident: int | None = None
-
-    def call(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-        if threading.get_ident() == self._ident:
-            return fn(*args, **kwargs)
-        with self._lock:
-            if self._executor is None:
-                self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-model")
-                self._ident = self._executor.submit(threading.get_ident).result()
-            executor = self._executor
-        threads = torch.get_num_threads()  # the caller's setting (a per-thread OpenMP value)
-
-        def task() -> Any:
-            if torch.get_num_threads() != threads:
-                torch.set_num_threads(threads)
-            return fn(*args, **kwargs)
-
-        return executor.submit(task).result()
-
-
-_P = ParamSpec("_P")
-_R = TypeVar("_R")
-
-
-def _on_model_thread(
-    method: Callable[Concatenate[ModelRuntime, _P], _R],
-) -> Callable[Concatenate[ModelRuntime, _P], _R]:
-    """Run a :class:`ModelRuntime` method on the runtime's model thread."""
-
-    @functools.wraps(method)
-    def run(self: ModelRuntime, *args: _P.args, **kwargs: _P.kwargs) -> _R:
-        if self._lock._is_owned():  # type: ignore[attr-defined]
-            # a caller holding the runtime's lock (tests, internal helpers): the model thread would
-            # wait for that lock, so run in place
-            return method(self, *args, **kwargs)
-        result: _R = self._model_thread.call(method, self, *args, **kwargs)
-        return result
-
-    return run
 
 
 @dataclass
@@ -311,11 +251,10 @@ class ModelRuntime:
         self.point_head: FusionNet | None = None
         """The network weighing point answers' views in place of the model's FusionNet (None: the
         model's own); ``model.point_head`` (:mod:`mapper.model.point_head`)."""
-        self._model_thread = _ModelThread()
         if model is not None:
             self.model = model.to(self.device).eval()
-        else:  # on the model thread: loading runs torch ops too (module docstring)
-            self._model_thread.call(self._load_checkpoint)
+        else:
+            self._load_checkpoint()
         self._text_encoder = text_encoder
         self._pending_lock = threading.Lock()
         self._pending: dict[Hashable, tuple[str, Any]] = {}  # key -> ("add", keyframe) | ("evict", None)
@@ -473,7 +412,6 @@ class ModelRuntime:
 
     # -- applying changes ---------------------------------------------------------------------
 
-    @_on_model_thread
     @torch.no_grad()
     def sync(self) -> int:
         """Apply the recorded window changes to the views and the cost volume (incrementally).
@@ -829,7 +767,7 @@ class ModelRuntime:
     def _prepare(self) -> _Prepared:
         """Sync, then the per-version cache (stacked views, 3D U-Net output). Holds ``_lock``."""
         model = self._require_model()
-        self.sync()  # in place: the caller holds the lock (_on_model_thread)
+        self.sync()
         if self._prepared is not None and self._prepared.version == self.version:
             return self._prepared
         if not self._entries or self._volume is None:
@@ -895,7 +833,6 @@ class ModelRuntime:
             sigma = sigma * support[..., 0]
         return sigma, v
 
-    @_on_model_thread
     @torch.no_grad()
     def occupancy(self) -> tuple[VolumeBounds, Tensor]:
         """The occupancy grid (cached per version): (X, Y, Z) bool, True where the density at the
@@ -1104,7 +1041,6 @@ class ModelRuntime:
 
     # -- queries ------------------------------------------------------------------------------
 
-    @_on_model_thread
     @torch.no_grad()
     def segment(
         self,
@@ -1123,7 +1059,6 @@ class ModelRuntime:
         label, score, _, timing = self._segment(points, texts, use_depth=use_depth, keep_cosines=False)
         return label, score, timing
 
-    @_on_model_thread
     @torch.no_grad()
     def segment_cosines(
         self,
@@ -1229,7 +1164,6 @@ class ModelRuntime:
             raise ValueError("points must be finite (got NaN or Inf)")
         return pts
 
-    @_on_model_thread
     @torch.no_grad()
     def point_samples(
         self,
@@ -1266,7 +1200,6 @@ class ModelRuntime:
                 fusion=self.point_head,
             )
 
-    @_on_model_thread
     @torch.no_grad()
     def point_features(
         self,
@@ -1298,7 +1231,6 @@ class ModelRuntime:
                     valid[sub] = out.valid | valid[sub]
         return feats.cpu().numpy(), valid.cpu().numpy()
 
-    @_on_model_thread
     @torch.no_grad()
     def render(
         self,
