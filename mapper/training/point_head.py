@@ -74,14 +74,22 @@ class DistillConfig:
     num_heads: int = 1
     """Its attention heads (teacher: 4); must divide ``attention_dim``."""
     points_per_capture: int = 4000
+    """True surface points drawn per capture (those no keyframe sees are left out)."""
     capture_fractions: tuple[float, ...] = (0.5, 1.0)
+    """Captures after these fractions of a scene's frames (the window then holds different views)."""
     surface_jitter_m: float = 0.03
+    """Standard deviation of the Gaussian moving each captured point off the surface (m)."""
     steps: int = 3000
+    """Adam steps."""
     batch_points: int = 1024
+    """Captured points a step."""
     lr: float = 3e-3
+    """Peak learning rate (cosine decay to ``min_lr_ratio`` of it)."""
     min_lr_ratio: float = 0.05
     seed: int = 0
+    """Seeds the point draws, the batches and the student's initial weights."""
     threads: int = 2
+    """torch threads."""
     max_train_scenes: int = 0
     """0 = every scene found."""
     val_points: int = 20000
