@@ -309,8 +309,9 @@ class GovNeSF(nn.Module):
         # with one slot a pair, of weight 1, over the views' channel-last maps
         bufs = []  # (C, N*P) each
         ones = uv.new_ones(N * P, 1)
-        maps = zip((views.rgb, views.features, views.ov), views.channel_last(), strict=True)
-        for image, table in list(maps)[: 3 if sample_ov else 2]:
+        n_maps = 3 if sample_ov else 2  # rgb, features[, ov]
+        images = (views.rgb, views.features, views.ov)[:n_maps]
+        for image, table in zip(images, views.channel_last()[:n_maps], strict=True):
             map_wh = (image.shape[-1], image.shape[-2])
             at = scale_uv(uv, wh, map_wh)[:, None]  # (N*P, 1, 2)
             out = blend_from_maps(table, map_wh, flat_v[:, None], at, ones)  # (N*P, C)

@@ -32,7 +32,7 @@ from typing import Any
 import torch
 from safetensors.torch import save as st_save
 
-from mapper.model.checkpoint import _atomic_write, _plain, _read_verified, _sha256
+from mapper.model.checkpoint import _atomic_write, _plain, _read_verified, _sha256, checkpoint_paths
 from mapper.model.config import FusionConfig
 from mapper.model.fusion import FusionNet
 
@@ -43,10 +43,10 @@ FORMAT = "govnesf-point-head/1"
 
 
 def head_paths(path: str | Path) -> tuple[Path, Path]:
-    """``NAME``, ``NAME.json`` or ``NAME.safetensors`` -> (weights path, JSON path)."""
-    p = Path(path)
-    stem = p.with_suffix("") if p.suffix in (".json", ".safetensors") else p
-    return stem.with_name(stem.name + ".safetensors"), stem.with_name(stem.name + ".json")
+    """``NAME``, ``NAME.json`` or ``NAME.safetensors`` -> (weights path, JSON path): a checkpoint's
+    naming (:func:`mapper.model.checkpoint.checkpoint_paths`)."""
+    weights, meta, _ = checkpoint_paths(path)
+    return weights, meta
 
 
 def save_point_head(

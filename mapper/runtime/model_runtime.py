@@ -40,7 +40,6 @@ every view that does not see the individual point, so a point only ever uses vie
 
 Frames without ``ov`` still count for geometry (cost volume, rgb and depth renders); semantic
 outputs use the views that carry ``ov`` and answer :class:`RuntimeNotReady` when none does.
-
 """
 
 from __future__ import annotations
@@ -289,54 +288,44 @@ class ModelRuntime:
             )
         except Exception as exc:  # corrupt file, wrong format, ...: serve the rest, say why
             self.load_error = f"the GOV-NeSF checkpoint {str(path)!r} could not be loaded: {exc}"
-        if not self.load_error and self.config.point_head == "auto":
-            self._auto_point_head(path)
-        elif not self.load_error and self.config.point_head:
-            self._load_point_head()
+        if not self.load_error and self.config.point_head:
+            self._load_point_head(path)
         if self.load_error:
             log.error("%s", self.load_error)
         else:
             log.info("loaded GOV-NeSF checkpoint %s on %s", path, self.device)
 
-    def _auto_point_head(self, checkpoint: Path) -> None:
-        """``model.point_head = "auto"``: the head ``NAME-point-head`` next to the checkpoint
-        ``NAME`` when it exists and was distilled from these weights; else the model's own
-        FusionNet (said in the log, never an error)."""
-        from mapper.model.point_head import head_paths, load_point_head
-
-        stem = checkpoint.with_suffix("") if checkpoint.suffix in (".json", ".safetensors") else checkpoint
-        candidate = stem.with_name(stem.name + "-point-head")
-        if not head_paths(candidate)[1].exists():
-            log.info("point answers use the checkpoint's FusionNet (no %s.json)", candidate)
-            return
-        try:
-            self.point_head, meta = load_point_head(
-                candidate, teacher_sha256=self.metadata.get("weights_sha256"), device=self.device
-            )
-        except (ValueError, OSError) as exc:
-            log.warning("point answers use the checkpoint's FusionNet: %s", exc)
-            return
-        log.info("point answers use the point head %s (%s)", candidate, meta["fusion"])
-
-    def _load_point_head(self) -> None:
-        """``model.point_head`` next to the loaded checkpoint; on failure the model is not served
-        (``load_error`` says why)."""
+    def _load_point_head(self, checkpoint: Path) -> None:
+        """``model.point_head`` beside the loaded checkpoint. ``"auto"``: ``NAME-point-head`` next to
+        the checkpoint ``NAME`` when it exists and was distilled from these weights, else the
+        model's own FusionNet (logged, never an error). A named head that is missing, unreadable or
+        distilled from other weights leaves the model unserved (``load_error`` says why)."""
+        from mapper.model.checkpoint import checkpoint_paths
         from mapper.model.point_head import load_point_head
 
-        path = _resolve_checkpoint(self.config.point_head)
+        auto = self.config.point_head == "auto"
+        if auto:
+            meta_path = checkpoint_paths(checkpoint)[1]
+            path = meta_path.with_name(meta_path.stem + "-point-head")
+            if not path.with_name(path.name + ".json").exists():
+                log.info("point answers use the checkpoint's FusionNet (no %s.json)", path)
+                return
+        else:
+            path = _resolve_checkpoint(self.config.point_head)
         try:
             self.point_head, meta = load_point_head(
                 path, teacher_sha256=self.metadata.get("weights_sha256"), device=self.device
             )
-        except FileNotFoundError as exc:
-            self.load_error = f"the point head {str(path)!r} was not found ({exc}); set model.point_head"
         except (ValueError, OSError) as exc:
-            self.load_error = f"the point head {str(path)!r} could not be loaded: {exc}"
-        if self.load_error:
+            if auto:
+                log.warning("point answers use the checkpoint's FusionNet: %s", exc)
+                return
+            missing = isinstance(exc, FileNotFoundError)
+            self.load_error = (f"the point head {str(path)!r} was not found ({exc}); set model.point_head"
+                               if missing else f"the point head {str(path)!r} could not be loaded: {exc}")
             self.model = None
-            self.point_head = None
-        else:
-            log.info("point answers use the point head %s (%s)", path, meta["fusion"])
+            return
+        log.info("point answers use the point head %s (%s)", path, meta["fusion"])
 
     @property
     def ready(self) -> bool:

@@ -49,6 +49,7 @@ from torch import Tensor
 
 from mapper.model.config import FusionConfig
 from mapper.model.fusion import FusionNet
+from mapper.model.point_head import head_paths, load_point_head, save_point_head
 
 log = logging.getLogger(__name__)
 
@@ -157,8 +158,9 @@ def _scene_dirs(roots: Sequence[str]) -> list[Path]:
     return out
 
 
-def _stream(scene: Path, checkpoint: str, point_head: str = "") -> Iterator[tuple[float, Any, Any]]:
-    """Stream ``scene``'s recording into an in-process node serving ``checkpoint``; yields
+def _stream(scene: Path, checkpoint: str) -> Iterator[tuple[float, Any, Any]]:
+    """Stream ``scene``'s recording into an in-process node serving ``checkpoint`` (its own FusionNet
+    for point answers: ``model.point_head = ""``); yields
     (fraction of the frames ingested, node, runtime) after every frame."""
     from mapper.node.config import config_from_dict
     from mapper.node.plugins.learned import install_learned_handlers
@@ -169,7 +171,7 @@ def _stream(scene: Path, checkpoint: str, point_head: str = "") -> Iterator[tupl
     frames = list(read_recording(scene / "frames.govrec"))
     with tempfile.TemporaryDirectory() as tmp:
         cfg = config_from_dict({"map_dir": tmp, "autosave_name": "", "save_on_exit": False,
-                                "model": {"checkpoint": checkpoint, "point_head": point_head}})
+                                "model": {"checkpoint": checkpoint, "point_head": ""}})
         node = MapperNode(cfg)
         runtime = ModelRuntime(cfg.model)
         if runtime.model is None:
@@ -286,19 +288,21 @@ def validate_scene(scene: Path, head: str, cfg: DistillConfig, gen: np.random.Ge
     pick = gen.choice(truth["xyz"].shape[0], size=min(cfg.val_points, truth["xyz"].shape[0]), replace=False)
     pts, labels = truth["xyz"][pick].astype(np.float32), truth["label"][pick]
     row: dict[str, float] = {}
-    for name, path in (("teacher", ""), ("head", head)):
-        for frac, node, runtime in _stream(scene, cfg.checkpoint, point_head=path):
-            if frac < 1.0:
-                continue
-            node.drain_integrations()
+    answers: dict[str, np.ndarray] = {}
+    for frac, node, runtime in _stream(scene, cfg.checkpoint):  # one stream: the same window for both
+        if frac < 1.0:
+            continue
+        node.drain_integrations()
+        student, _ = load_point_head(head, teacher_sha256=runtime.metadata["weights_sha256"])
+        for name, network in (("teacher", None), ("head", student)):
+            runtime.point_head = network
             for use_depth in (False, True):
-                label, _, _ = runtime.segment(pts, names, use_depth=use_depth)
                 key = f"{name}{'_dgm' if use_depth else ''}"
-                row[f"miou_{key}"] = _miou(label, labels, len(names))
-                row[f"_labels_{key}"] = label  # type: ignore[assignment]
+                answers[key], _, _ = runtime.segment(pts, names, use_depth=use_depth)
+                row[f"miou_{key}"] = _miou(answers[key], labels, len(names))
     for suffix in ("", "_dgm"):
-        a, b = row.pop(f"_labels_teacher{suffix}"), row.pop(f"_labels_head{suffix}")
-        row[f"labels_equal{suffix}"] = 100.0 * float(np.mean(np.asarray(a) == np.asarray(b)))
+        same = answers[f"teacher{suffix}"] == answers[f"head{suffix}"]
+        row[f"labels_equal{suffix}"] = 100.0 * float(np.mean(same))
     return row
 
 
@@ -341,13 +345,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     from mapper.model.checkpoint import load_model
-    from mapper.model.point_head import save_point_head
 
     try:
         val_scenes = _scene_dirs(cfg.val_dirs)
         if args.validate_only:
-            from mapper.model.point_head import head_paths
-
             if not head_paths(cfg.out)[1].exists():
                 raise FileNotFoundError(f"no point head at {cfg.out} (--out)")
             _validate(val_scenes, cfg.out, cfg, np.random.default_rng(cfg.seed))
