@@ -28,7 +28,7 @@ class ModelRuntimeConfig:
     (``segment_points`` with the learned model, the model's features written into the global map)
     in place of the checkpoint's FusionNet; renders keep the checkpoint's. ``"auto"``: the head
     ``NAME-point-head`` next to the checkpoint ``NAME`` when there is one distilled from these
-    weights (cpu-small ships one: labels 99.5-99.7% equal to its own network's, docs/TRAINING.md),
+    weights (cpu-small ships one: labels 99.2-99.8% equal to its own network's, docs/TRAINING.md),
     else the checkpoint's own network. ``""``: always the checkpoint's own. A path (looked up as
     ``checkpoint`` is): that head; one distilled from other weights, or one that cannot be read,
     leaves the model unserved with the reason (as a bad checkpoint does)."""
