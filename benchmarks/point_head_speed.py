@@ -6,9 +6,12 @@ answers ``--points`` stream points with the bench's texts, the checkpoint's own 
 point head given (``--heads``, default the shipped ``checkpoints/cpu-small-point-head``)
 alternating, ``--rounds`` times each, with and without depth-guided masking. Prints the minimum and
 median seconds per call, the runtime's ``network`` stage, and how many labels equal the own
-network's. No sockets: the node's own overhead is in ``govnesf bench``.
+network's. No sockets: the node's own overhead is in ``govnesf bench``. ``--kernel-ab``: each
+network also with its compiled point kernel off (``FusionNet.point_kernel = False``: the torch ops
+of ``forward_fast``), alternating.
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/point_head_speed.py
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/point_head_speed.py --kernel-ab
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from clients.cli.bench import SEGMENT_TEXTS, make_frames, stream_points  # noqa: E402
+from mapper.model.fusion import FusionNet  # noqa: E402
 from mapper.model.point_head import load_point_head  # noqa: E402
 from mapper.node.config import config_from_dict  # noqa: E402
 from mapper.node.plugins.learned import install_learned_handlers  # noqa: E402
@@ -40,6 +44,7 @@ def main() -> int:
     p.add_argument("--points", type=int, default=100_000)
     p.add_argument("--rounds", type=int, default=4)
     p.add_argument("--heads", nargs="*", default=["checkpoints/cpu-small-point-head"])
+    p.add_argument("--kernel-ab", action="store_true", help="also each network without its compiled kernel")
     args = p.parse_args()
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "2")))
     with tempfile.TemporaryDirectory() as tmp:
@@ -54,15 +59,23 @@ def main() -> int:
             node.drain_integrations()
             xyz = stream_points(args.points).astype(np.float32)
             sha = runtime.metadata["weights_sha256"]
-            heads = {"own FusionNet": None}
-            heads.update({h: load_point_head(h, teacher_sha256=sha)[0] for h in args.heads})
+            own = runtime.model.fusion if runtime.model is not None else None
+            heads: dict[str, tuple[FusionNet | None, bool]] = {"own FusionNet": (None, True)}
+            heads.update({h: (load_point_head(h, teacher_sha256=sha)[0], True) for h in args.heads})
+            if args.kernel_ab:
+                heads.update({f"{name}, no kernel": (head, False) for name, (head, _) in list(heads.items())})
             for use_depth in (False, True):
                 runtime.point_head = None
+                if own is not None:
+                    own.point_kernel = True
                 reference = runtime.segment(xyz, SEGMENT_TEXTS, use_depth=use_depth)[0]  # also a warm-up
                 stats: dict[str, list[tuple[float, float, float]]] = {name: [] for name in heads}
                 for _ in range(args.rounds):
-                    for name, head in heads.items():
+                    for name, (head, kernel) in heads.items():
                         runtime.point_head = head
+                        for net in (head, own):
+                            if net is not None:
+                                net.point_kernel = kernel
                         t = time.perf_counter()
                         label, _, timing = runtime.segment(xyz, SEGMENT_TEXTS, use_depth=use_depth)
                         dt = time.perf_counter() - t

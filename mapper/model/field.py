@@ -502,17 +502,15 @@ class GovNeSF(nn.Module):
         FusionNet: a smaller point head distilled from it (:mod:`mapper.model.point_head`) that
         takes the same inputs. Not used in ``distill`` mode (the Distill head reads the model's
         own attention features)."""
-        net = fusion if (fusion is not None and self.distill is None) else self.fusion
-        fused = net(
-            samples.rgb, samples.features, v, samples.source_dirs, samples.mask, None, samples.source_range
-        )
+        args = (samples.rgb, samples.features, v, samples.source_dirs, samples.mask)
         if self.distill is not None:
+            fused = self.fusion(*args, None, samples.source_range)
             ov = self.distill(fused.x_att, samples.mask, v) * fused.valid.unsqueeze(-1)
-            weights = None
-        else:
-            ov = self._blend_ov(samples, fused.ov_weights, ov_maps)
-            weights = fused.ov_weights
-        return PointOutputs(ov=ov, valid=fused.valid, num_views=samples.mask.sum(dim=1), ov_weights=weights)
+            return PointOutputs(ov=ov, valid=fused.valid, num_views=samples.mask.sum(dim=1), ov_weights=None)
+        net = self.fusion if fusion is None else fusion
+        weights, valid = net.point_weights(*args, samples.source_range)
+        ov = self._blend_ov(samples, weights, ov_maps)
+        return PointOutputs(ov=ov, valid=valid, num_views=samples.mask.sum(dim=1), ov_weights=weights)
 
 
 def render_rays(

@@ -18,11 +18,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mapper.model.config import FusionConfig
+from mapper.model.ops.fusion_kernel import RANGE_MIN_M, PointKernelWeights, kernel_applies, point_ov_weights
 from mapper.model.ops.geometry import bilinear_corners
 
 __all__ = [
@@ -38,8 +40,6 @@ __all__ = [
 ]
 
 
-RANGE_MIN_M = 0.05
-"""Distances below this (m) read as this in the range encoding (log of a positive number)."""
 
 
 def _at_least_float32(x: Tensor) -> Tensor:
@@ -242,6 +242,8 @@ class FusionNet(nn.Module):
 
     def __init__(self, feature_dim: int, volume_feature_dim: int, cfg: FusionConfig) -> None:
         super().__init__()
+        self.feature_dim = feature_dim
+        self.volume_feature_dim = volume_feature_dim
         a = cfg.attention_dim
         in_dim = 3 * feature_dim + volume_feature_dim + 3
         self.mlp_a = nn.Sequential(
@@ -259,6 +261,10 @@ class FusionNet(nn.Module):
         self.mlp_s = _mlp(a, a, 1)
         self.fast_inference = True
         """Use ``forward_fast`` when autograd does not record (no parameters, not saved)."""
+        self.point_kernel = True
+        """Let :meth:`point_weights` run the compiled CPU kernel where it applies (with
+        ``fast_inference``; off: ``forward_fast``, for comparisons)."""
+        self._kernel_weights: tuple[tuple[tuple[int, int], ...], PointKernelWeights] | None = None
 
     def forward(
         self,
@@ -292,6 +298,79 @@ class FusionNet(nn.Module):
         if self.fast_inference and not torch.is_grad_enabled() and not autocast:
             return self.forward_fast(*args)
         return self.forward_reference(*args)
+
+    def point_weights(
+        self,
+        rgb: Tensor,
+        features: Tensor,
+        volume_features: Tensor,
+        source_dirs: Tensor,
+        mask: Tensor,
+        source_range: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """Point mode, OV weights only: ``forward(..., query_dirs=None)``'s ``(ov_weights, valid)``
+        (arguments as ``forward``; no ``x_att``).
+
+        On the CPU in float32 without autograd (with ``fast_inference`` and ``point_kernel``) this
+        runs the compiled kernel :func:`mapper.model.ops.fusion_kernel.point_ov_weights`: the same
+        function, every
+        intermediate in per-block buffers instead of (P*N, C) tensors (weights within about 1e-7 of
+        ``forward_reference``; tests/mapper/test_fusion_kernel.py).
+        """
+        tensors = (rgb, features, volume_features, source_dirs)
+        if (
+            self.fast_inference
+            and self.point_kernel
+            and kernel_applies(*tensors, mask)
+            and all(t.dtype == torch.float32 for t in tensors)
+            and not torch.is_autocast_enabled(rgb.device.type)
+        ):
+            return point_ov_weights(
+                self.point_kernel_weights(), rgb, features, volume_features, source_dirs, mask, source_range,
+                threads=torch.get_num_threads(),
+            )
+        fused = self.forward(rgb, features, volume_features, source_dirs, mask, None, source_range)
+        return fused.ov_weights, fused.valid
+
+    def point_kernel_weights(self) -> PointKernelWeights:
+        """The parameters laid out for the compiled point kernel, in its argument order; taken again
+        whenever one changed (in place: an optimiser step or ``load_state_dict``; or replaced)."""
+        key = tuple((id(p), p._version) for p in self.parameters())
+        if self._kernel_weights is None or self._kernel_weights[0] != key:
+            self._kernel_weights = (key, self._kernel_params())
+        return self._kernel_weights[1]
+
+    def _kernel_params(self) -> PointKernelWeights:
+        def arr(t: Tensor) -> np.ndarray:
+            return np.ascontiguousarray(t.detach().to(torch.float32).cpu().numpy())
+
+        lin1, lin2, att = self.mlp_a[0], self.mlp_a[2], self.attention
+        f1, f2, s1, s2 = att.ffn[0], att.ffn[2], self.mlp_s[0], self.mlp_s[2]
+        assert isinstance(lin1, nn.Linear) and isinstance(lin2, nn.Linear)
+        assert isinstance(f1, nn.Linear) and isinstance(f2, nn.Linear)
+        assert isinstance(s1, nn.Linear) and isinstance(s2, nn.Linear)
+        A = lin2.weight.shape[0]
+        split = 2 * self.feature_dim + self.volume_feature_dim
+        re = self.range_encoding
+        w, b = att.qkv.weight.detach(), att.qkv.bias.detach()
+        with torch.no_grad():
+            extra = att.qkv(att.extra_token.to(w.dtype))  # the extra token's q, k, v
+        params = (
+            arr(lin1.weight[:, :split]), arr(lin1.bias), arr(lin1.weight[:, split:]),
+            arr(lin2.weight), arr(lin2.bias),
+            arr(self.dir_encoding.weight), arr(self.dir_encoding.bias),
+            arr(re.weight) if re is not None else np.zeros((A, 1), np.float32),
+            arr(re.bias) if re is not None else np.zeros(A, np.float32),
+            arr(w[:A]), arr(b[:A]), arr(w[A : 2 * A]), arr(b[A : 2 * A]), arr(w[2 * A :]), arr(b[2 * A :]),
+            arr(F.elu(extra[A : 2 * A]) + 1.0), arr(extra[2 * A :]),
+            np.arange(A, dtype=np.int64) // (A // att.num_heads),
+            arr(att.out.weight), arr(att.out.bias),
+            arr(att.norm1.weight), arr(att.norm1.bias), np.float32(att.norm1.eps),
+            arr(att.norm2.weight), arr(att.norm2.bias), np.float32(att.norm2.eps),
+            arr(f1.weight), arr(f1.bias), arr(f2.weight), arr(f2.bias),
+            arr(s1.weight), arr(s1.bias), arr(s2.weight[0]), np.float32(s2.bias.item()),
+        )
+        return PointKernelWeights(params, self.feature_dim, self.volume_feature_dim, re is not None)
 
     def _range_input(self, source_range: Tensor | None, shape: tuple[int, int], dtype: torch.dtype) -> Tensor:
         """(P * N, 1) log distance, the input of RE (``range_encoding`` only)."""
