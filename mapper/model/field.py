@@ -31,6 +31,7 @@ from mapper.model.fusion import DensityMLP, DistillHead, FusionNet, blend, blend
 from mapper.model.ops.checks import check_shape
 from mapper.model.ops.cost_volume import VolumeBounds, build_cost_volume, cost_volume_features, sample_volume
 from mapper.model.ops.geometry import (
+    DEFAULT_EPS,
     camera_centers,
     in_view,
     invert_pose,
@@ -210,6 +211,9 @@ class GovNeSF(nn.Module):
         self.fusion = FusionNet(f, dv, cfg.fusion)
         self.density = DensityMLP(dv, cfg.fusion)
         self.distill = DistillHead(dv, cfg.fusion) if mode == "distill" else None
+        self.compiled_sampling = True
+        """Let ``sample_views_indexed`` run the compiled CPU kernel where it applies (off: the
+        torch path, for comparisons)."""
 
     # ---- per-view and per-volume stages -------------------------------------------------------
     def encode(self, rgb: Tensor) -> Tensor:
@@ -297,6 +301,8 @@ class GovNeSF(nn.Module):
         """
         P, N = view_idx.shape
         wh = views.image_wh
+        if self.compiled_sampling and _sample_kernel_applies(views, points, sample_ov):
+            return self._sample_pairs_compiled(views, view_idx, slot_mask, points, depth_guided_masking)
         # slot-major pairs (n * P + p): the samples come out P-fastest, the layout of
         # ``sample_views`` (grid_sample's (N, C, P)) that ``blend``'s fast path wants
         flat_v = view_idx.T.reshape(-1)
@@ -344,6 +350,39 @@ class GovNeSF(nn.Module):
             source_dirs=dirs.reshape(N, P, 3).transpose(0, 1),
             uv=uv.reshape(N, P, 2).transpose(0, 1),
             source_range=dist.reshape(N, P).T,
+        )
+
+    def _sample_pairs_compiled(
+        self, views: SourceViews, view_idx: Tensor, slot_mask: Tensor, points: Tensor, depth_masking: bool
+    ) -> PointViewSamples:
+        """``sample_views_indexed(..., sample_ov=False)`` by the compiled CPU kernel
+        (:func:`mapper.model.ops.sample_kernel.sample_pairs`): the same masks, the samples up to
+        float rounding, 0 colour and features where masked."""
+        from mapper.model.ops.sample_kernel import sample_pairs
+
+        P, N = view_idx.shape
+        rgb_t, feat_t, _ = views.channel_last()
+        depth = None
+        if depth_masking and views.depth_m is not None:
+            d = views.depth_m
+            depth = (d.to(torch.float32).numpy(), (int(d.shape[-1]), int(d.shape[-2])))
+        samples, mask, dirs, dist, uv = sample_pairs(
+            points.numpy(), view_idx.T.numpy(), slot_mask.T.numpy(),
+            invert_pose(views.world_from_cam).to(torch.float32).numpy(), views.K.to(torch.float32).numpy(),
+            camera_centers(views.world_from_cam).to(torch.float32).numpy(), views.image_wh, DEFAULT_EPS,
+            (rgb_t.numpy(), (int(views.rgb.shape[-1]), int(views.rgb.shape[-2]))),
+            (feat_t.numpy(), (int(views.features.shape[-1]), int(views.features.shape[-2]))),
+            depth, self.cfg.render.depth_mask_ratio, threads=torch.get_num_threads(),
+        )
+        per_point = torch.from_numpy(samples).reshape(-1, N, P).permute(2, 1, 0)  # (P, N, 3 + F), P fastest
+        return PointViewSamples(
+            rgb=per_point[..., :3],
+            features=per_point[..., 3:],
+            ov=per_point.new_zeros(P, N, 0),
+            mask=torch.from_numpy(mask).reshape(N, P).T,
+            source_dirs=torch.from_numpy(dirs).reshape(N, P, 3).transpose(0, 1),
+            uv=torch.from_numpy(uv).reshape(N, P, 2).transpose(0, 1),
+            source_range=torch.from_numpy(dist).reshape(N, P).T,
         )
 
     def forward(
@@ -511,6 +550,18 @@ class GovNeSF(nn.Module):
         weights, valid = net.point_weights(*args, samples.source_range)
         ov = self._blend_ov(samples, weights, ov_maps)
         return PointOutputs(ov=ov, valid=valid, num_views=samples.mask.sum(dim=1), ov_weights=weights)
+
+
+
+def _sample_kernel_applies(views: SourceViews, points: Tensor, sample_ov: bool) -> bool:
+    """``sample_views_indexed`` takes the compiled kernel: CPU float32 maps and points, no OV
+    samples asked for, no gradient to record."""
+    tensors = (views.rgb, views.features, views.K, views.world_from_cam, points)
+    return (
+        not sample_ov
+        and not torch.is_grad_enabled()
+        and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)
+    )
 
 
 def render_rays(

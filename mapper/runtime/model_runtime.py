@@ -222,15 +222,16 @@ def _resolve_checkpoint(path: str) -> Path:
 
 
 def _warm_point_kernel() -> None:
-    """Compile (or load from numba's cache) the point answers' kernel
-    (:mod:`mapper.model.ops.fusion_kernel`) ahead of the first learned ``segment_points``; a
-    failure is logged (that call compiles it instead)."""
+    """Compile (or load from numba's cache) the point answers' kernels
+    (:mod:`mapper.model.ops.sample_kernel`, :mod:`mapper.model.ops.fusion_kernel`) ahead of the
+    first learned ``segment_points``; a failure is logged (that call compiles them instead)."""
     try:
-        from mapper.model.ops import fusion_kernel
+        from mapper.model.ops import fusion_kernel, sample_kernel
 
+        sample_kernel.warm_up()
         fusion_kernel.warm_up()
     except Exception:
-        log.exception("warm-up of the point kernel failed")
+        log.exception("warm-up of the point kernels failed")
 
 
 class ModelRuntime:
