@@ -7,8 +7,9 @@ point head given (``--heads``, default the shipped ``checkpoints/cpu-small-point
 alternating, ``--rounds`` times each, with and without depth-guided masking. Prints the minimum and
 median seconds per call, the runtime's ``network`` stage, and how many labels equal the own
 network's. No sockets: the node's own overhead is in ``govnesf bench``. ``--kernel-ab``: each
-network also with its compiled point kernel off (``FusionNet.point_kernel = False``: the torch ops
-of ``forward_fast``), alternating.
+network also with the compiled point kernel and sampling off (``FusionNet.point_kernel`` and
+``GovNeSF.compiled_sampling`` False: the torch ops of ``forward_fast`` and of
+``sample_views_indexed``), alternating.
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/point_head_speed.py
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/point_head_speed.py --kernel-ab
@@ -66,8 +67,8 @@ def main() -> int:
                 heads.update({f"{name}, no kernel": (head, False) for name, (head, _) in list(heads.items())})
             for use_depth in (False, True):
                 runtime.point_head = None
-                if own is not None:
-                    own.point_kernel = True
+                if own is not None and runtime.model is not None:
+                    own.point_kernel = runtime.model.compiled_sampling = True
                 reference = runtime.segment(xyz, SEGMENT_TEXTS, use_depth=use_depth)[0]  # also a warm-up
                 stats: dict[str, list[tuple[float, float, float]]] = {name: [] for name in heads}
                 for _ in range(args.rounds):
@@ -76,6 +77,8 @@ def main() -> int:
                         for net in (head, own):
                             if net is not None:
                                 net.point_kernel = kernel
+                        if runtime.model is not None:
+                            runtime.model.compiled_sampling = kernel
                         t = time.perf_counter()
                         label, _, timing = runtime.segment(xyz, SEGMENT_TEXTS, use_depth=use_depth)
                         dt = time.perf_counter() - t

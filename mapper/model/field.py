@@ -23,11 +23,19 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mapper.model.config import ModelConfig
 from mapper.model.encoder2d import ImageEncoder
-from mapper.model.fusion import DensityMLP, DistillHead, FusionNet, blend, blend_from_maps
+from mapper.model.fusion import (
+    DensityMLP,
+    DistillHead,
+    FusionNet,
+    blend,
+    blend_from_maps,
+    cosines_from_maps,
+)
 from mapper.model.ops.checks import check_shape
 from mapper.model.ops.cost_volume import VolumeBounds, build_cost_volume, cost_volume_features, sample_volume
 from mapper.model.ops.geometry import (
@@ -551,7 +559,34 @@ class GovNeSF(nn.Module):
         ov = self._blend_ov(samples, weights, ov_maps)
         return PointOutputs(ov=ov, valid=valid, num_views=samples.mask.sum(dim=1), ov_weights=weights)
 
+    def point_cosines(
+        self,
+        samples: PointViewSamples,
+        v: Tensor,
+        texts: Tensor,
+        *,
+        ov_maps: OVMaps | None = None,
+        fusion: FusionNet | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Each text's cosine with each point's OV feature: ``F.normalize(point_outputs(...).ov)
+        @ texts.T`` (arguments as :meth:`point_outputs`; texts (T, D)), without the (P, D)
+        features where the blend comes from ``ov_maps`` (:func:`fusion.cosines_from_maps`).
 
+        Returns:
+            cosines (P, T) (0 where no view sees the point), valid (P,) bool, num_views (P,) long.
+        """
+        if self.distill is not None or ov_maps is None:
+            out = self.point_outputs(samples, v, ov_maps=ov_maps, fusion=fusion)
+            return F.normalize(out.ov, dim=-1) @ texts.to(out.ov.dtype).T, out.valid, out.num_views
+        net = self.fusion if fusion is None else fusion
+        weights, valid = net.point_weights(
+            samples.rgb, samples.features, v, samples.source_dirs, samples.mask, samples.source_range
+        )
+        if samples.uv is None:
+            raise ValueError("blending from ov_maps needs samples with uv (sample_views)")
+        uv = scale_uv(samples.uv, ov_maps.image_wh, ov_maps.map_wh)
+        cos = cosines_from_maps(ov_maps.table, ov_maps.map_wh, ov_maps.view_idx, uv, weights, texts)
+        return cos, valid, samples.mask.sum(dim=1)
 
 def _sample_kernel_applies(views: SourceViews, points: Tensor, sample_ov: bool) -> bool:
     """``sample_views_indexed`` takes the compiled kernel: CPU float32 maps and points, no OV

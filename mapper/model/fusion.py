@@ -35,6 +35,7 @@ __all__ = [
     "FusionOutputs",
     "blend",
     "blend_from_maps",
+    "cosines_from_maps",
     "masked_mean_var",
     "masked_softmax",
 ]
@@ -154,6 +155,37 @@ def blend_from_maps(
     return F.embedding_bag(
         index[keep], table, offsets, mode="sum", per_sample_weights=tap_w[keep].to(table.dtype)
     )
+
+
+def cosines_from_maps(
+    table: Tensor,  # (M * h * w, C) the views' maps, channel-last, view-major
+    map_wh: tuple[int, int],  # (w, h) of every map
+    view_idx: Tensor,  # (P, N) or (N,) long
+    uv: Tensor,  # (P, N, 2) pixel coordinates in the maps' resolution
+    weights: Tensor,  # (P, N) blending weights
+    texts: Tensor,  # (T, C)
+) -> Tensor:  # (P, T)
+    """``F.normalize(blend_from_maps(...), dim=-1) @ texts.T``: each text's cosine with each point's
+    blend (0 where the blend is 0). On the CPU in float32 without autograd one compiled kernel
+    (:func:`mapper.model.ops.average_kernel.blend_cosine_kernel`) keeps each blend in a C-vector
+    while its cosines are taken, so the (P, C) blends are never written; otherwise the two steps."""
+    P, N = weights.shape
+    if _blend_kernel_applies(table, uv, weights) and texts.device.type == "cpu" and not texts.requires_grad:
+        from mapper.model.ops.average_kernel import blend_cosine_kernel
+
+        w, h = map_wh
+        if table.shape[0] % (w * h) or uv.shape != (P, N, 2) or texts.shape[-1] != table.shape[1]:
+            raise ValueError(
+                f"cosines_from_maps: table {tuple(table.shape)} is not M x {h} x {w} rows of the texts' "
+                f"{texts.shape[-1]} channels, or uv {tuple(uv.shape)} is not ({P}, {N}, 2)"
+            )
+        view_idx = view_idx.expand(P, N) if view_idx.dim() == 1 else view_idx
+        return torch.from_numpy(blend_cosine_kernel(
+            table.numpy(), (w, h), view_idx.numpy(), uv.numpy(), weights.to(torch.float32).numpy(),
+            texts.to(torch.float32).numpy(), threads=torch.get_num_threads(),
+        ))
+    blended = blend_from_maps(table, map_wh, view_idx, uv, weights)
+    return F.normalize(blended, dim=-1) @ texts.to(blended.dtype).T
 
 
 def _blend_kernel_applies(table: Tensor, uv: Tensor, weights: Tensor) -> bool:

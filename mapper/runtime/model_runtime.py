@@ -1119,21 +1119,22 @@ class ModelRuntime:
             t3 = time.perf_counter()
             timing["view_selection"] = (t3 - t2) * 1e3
 
-            def answer(sub: Tensor, out: Any) -> None:
-                cos = F.normalize(out.ov, dim=-1) @ emb.T  # (p, T)
+            def answer(sub: Tensor, cos: Tensor, valid: Tensor) -> None:  # cos (p, T), valid (p,)
                 best, arg = cos.max(dim=-1)
-                label[sub] = torch.where(out.valid, arg.to(torch.int32), label[sub])
-                score[sub] = torch.where(out.valid, best, score[sub])
+                label[sub] = torch.where(valid, arg.to(torch.int32), label[sub])
+                score[sub] = torch.where(valid, best, score[sub])
                 if cosines is not None:
-                    cosines[sub] = torch.where(out.valid[:, None], cos.float(), cosines[sub])
+                    cosines[sub] = torch.where(valid[:, None], cos.float(), cosines[sub])
 
             if self.config.batched_view_groups and groups:
                 # one network pass over every view group (each point with its own views)
                 for sub, samples, v, ov_maps in self._point_batches(model, prep, pts, groups, use_depth):
-                    answer(sub, model.point_outputs(samples, v, ov_maps=ov_maps, fusion=self.point_head))
+                    cos, valid, _ = model.point_cosines(samples, v, emb, ov_maps=ov_maps,
+                                                        fusion=self.point_head)
+                    answer(sub, cos, valid)
             for idx, views_idx in groups if not self.config.batched_view_groups else []:
                 for sub, out in self._point_outputs(model, prep, pts, idx, views_idx, use_depth):
-                    answer(sub, out)
+                    answer(sub, F.normalize(out.ov, dim=-1) @ emb.T, out.valid)
             timing["network"] = (time.perf_counter() - t3) * 1e3
         timing["total"] = (time.perf_counter() - t0) * 1e3
         cos_np = None if cosines is None else cosines.cpu().numpy()

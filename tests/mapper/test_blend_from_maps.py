@@ -194,3 +194,56 @@ def test_blend_kernel_equals_the_torch_path(per_point_views: bool, monkeypatch: 
     assert not fusion._blend_kernel_applies(table.double(), uv.double(), weights)
     with torch.no_grad():
         assert fusion._blend_kernel_applies(grad_table, uv, weights)
+
+
+def test_cosines_from_maps_equal_normalised_blend_times_texts(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The compiled cosine kernel == F.normalize(blend_from_maps(...)) @ texts.T; points whose
+    weights are all 0 get cosines 0; sizes that do not fit are refused."""
+    import mapper.model.fusion as fusion
+    from mapper.model.fusion import cosines_from_maps
+
+    gen = torch.Generator().manual_seed(8)
+    m, c, h, w, P, N = 3, 384, 15, 20, 400, 6
+    table = _maps(m, c, h, w).permute(0, 2, 3, 1).reshape(-1, c).contiguous()
+    view_idx = torch.randint(0, m, (P, N), generator=gen)
+    uv = torch.rand(P, N, 2, generator=gen) * torch.tensor([w + 8.0, h + 8.0]) - 4.0
+    weights = torch.rand(P, N, generator=gen) * (torch.rand(P, N, generator=gen) > 0.25)
+    weights[:5] = 0.0  # no view: a zero blend
+    texts = torch.nn.functional.normalize(torch.randn(7, c, generator=gen), dim=-1)
+    blended = blend_from_maps(table, (w, h), view_idx, uv, weights)
+    ref = torch.nn.functional.normalize(blended, dim=-1) @ texts.T
+    mine = cosines_from_maps(table, (w, h), view_idx, uv, weights, texts)
+    assert mine.shape == (P, 7) and torch.all(mine[:5] == 0)
+    torch.testing.assert_close(mine, ref, rtol=1e-5, atol=1e-5)
+    monkeypatch.setattr(fusion, "_blend_kernel_applies", lambda *_: False)
+    torch.testing.assert_close(cosines_from_maps(table, (w, h), view_idx, uv, weights, texts), ref)
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match="cosines_from_maps"):
+        cosines_from_maps(table, (w, h), view_idx, uv, weights, texts[:, :10])
+
+
+def test_point_cosines_equal_the_point_outputs() -> None:
+    """GovNeSF.point_cosines (what segment_points answers from) == normalised point_outputs' OV
+    features times the texts, from the maps and from sampled OV alike."""
+    torch.manual_seed(0)
+    model = GovNeSF(TINY).eval()
+    runtime, prep = _runtime_with_six_keyframes(model)
+    pts = torch.from_numpy(np.random.default_rng(5).uniform([-0.6, -0.6, 0.1], [0.6, 0.6, 0.9], (300, 3)))
+    pts = pts.float()
+    views_idx = torch.tensor([5, 1, 3])
+    assert prep.ov is not None
+    texts = torch.nn.functional.normalize(torch.randn(4, prep.ov.shape[1]), dim=-1)
+    with torch.no_grad():
+        lean = runtime._source_views(prep, views_idx, need_ov=False, use_depth=False)
+        samples = model.sample_views(lean, pts, False)
+        v, _ = sample_volume(prep.volume, prep.bounds, pts)
+        ov_maps = prep.ov_maps(views_idx, runtime.image_wh)
+        out = model.point_outputs(samples, v, ov_maps=ov_maps)
+        cos, valid, num_views = model.point_cosines(samples, v, texts, ov_maps=ov_maps)
+        full = runtime._source_views(prep, views_idx, need_ov=True, use_depth=False)
+        sampled = model.sample_views(full, pts, False)
+        cos_sampled, _, _ = model.point_cosines(sampled, v, texts)
+    expected = torch.nn.functional.normalize(out.ov, dim=-1) @ texts.T
+    assert torch.equal(valid, out.valid) and torch.equal(num_views, out.num_views) and bool(valid.any())
+    torch.testing.assert_close(cos, expected, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(cos_sampled, expected, rtol=1e-4, atol=1e-5)

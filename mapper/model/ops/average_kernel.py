@@ -30,7 +30,8 @@ import numba
 import numpy as np
 
 __all__ = [
-    "LAUNCH_LOCK", "average_kernel", "blend_kernel", "in_view_matrix", "kernel_threads", "launch", "warm_up",
+    "LAUNCH_LOCK", "average_kernel", "blend_cosine_kernel", "blend_kernel", "in_view_matrix",
+    "kernel_threads", "launch", "warm_up",
 ]
 
 _F0 = np.float32(0.0)
@@ -159,6 +160,34 @@ def _kernel(
                     out[i, t] = _dot(acc, texts[t]) / norm
 
 
+@numba.njit(cache=True, boundscheck=False, inline="always")
+def _blend_point(acc, table, map_w, map_h, view_idx, uv, weights, p):  # pragma: no cover - compiled
+    """acc += point p's weighted bilinear taps over its slots (``bilinear_corners``' corners and
+    weights; slots of weight 0 skipped)."""
+    wf, hf = np.float32(map_w), np.float32(map_h)
+    for n in range(weights.shape[1]):
+        w = weights[p, n]
+        if w == 0:
+            continue
+        u, v = uv[p, n, 0], uv[p, n, 1]
+        if not np.isfinite(u):  # bilinear_corners' nan_to_num
+            u = _F0
+        if not np.isfinite(v):
+            v = _F0
+        gx = min(max(_F2 * u / wf - _F1, -_F2), _F2)
+        gy = min(max(_F2 * v / hf - _F1, -_F2), _F2)
+        ix = min(max(((gx + _F1) * wf - _F1) / _F2, _F0), wf - _F1)
+        iy = min(max(((gy + _F1) * hf - _F1) / _F2, _F0), hf - _F1)
+        x0f, y0f = np.floor(ix), np.floor(iy)
+        tx, ty = ix - x0f, iy - y0f
+        x0, y0 = np.int64(x0f), np.int64(y0f)
+        x1, y1 = min(x0 + 1, map_w - 1), min(y0 + 1, map_h - 1)
+        base = view_idx[p, n] * map_w * map_h
+        r0, r1 = base + y0 * map_w, base + y1 * map_w
+        _add_taps(acc, table, r0 + x0, r0 + x1, r1 + x0, r1 + x1, w * ((_F1 - tx) * (_F1 - ty)),
+                  w * (tx * (_F1 - ty)), w * ((_F1 - tx) * ty), w * (tx * ty))
+
+
 @numba.njit(parallel=True, cache=True, boundscheck=False)
 def _blend_kernel(
     table,  # (R, C) float32: M maps of h x w rows, channel-last, view-major
@@ -170,33 +199,38 @@ def _blend_kernel(
     out,  # (P, C) float32, zeroed by the caller
     block,  # int: points per parallel task
 ):  # pragma: no cover - compiled
-    n_pts, n_slots = weights.shape
-    wf, hf = np.float32(map_w), np.float32(map_h)
+    n_pts = weights.shape[0]
     n_blocks = (n_pts + block - 1) // block
     for blk in numba.prange(n_blocks):
         for p in range(blk * block, min(n_pts, (blk + 1) * block)):
-            acc = out[p]
-            for n in range(n_slots):
-                w = weights[p, n]
-                if w == 0:
-                    continue
-                u, v = uv[p, n, 0], uv[p, n, 1]
-                if not np.isfinite(u):  # bilinear_corners' nan_to_num
-                    u = _F0
-                if not np.isfinite(v):
-                    v = _F0
-                gx = min(max(_F2 * u / wf - _F1, -_F2), _F2)
-                gy = min(max(_F2 * v / hf - _F1, -_F2), _F2)
-                ix = min(max(((gx + _F1) * wf - _F1) / _F2, _F0), wf - _F1)
-                iy = min(max(((gy + _F1) * hf - _F1) / _F2, _F0), hf - _F1)
-                x0f, y0f = np.floor(ix), np.floor(iy)
-                tx, ty = ix - x0f, iy - y0f
-                x0, y0 = np.int64(x0f), np.int64(y0f)
-                x1, y1 = min(x0 + 1, map_w - 1), min(y0 + 1, map_h - 1)
-                base = view_idx[p, n] * map_w * map_h
-                r0, r1 = base + y0 * map_w, base + y1 * map_w
-                _add_taps(acc, table, r0 + x0, r0 + x1, r1 + x0, r1 + x1, w * ((_F1 - tx) * (_F1 - ty)),
-                          w * (tx * (_F1 - ty)), w * ((_F1 - tx) * ty), w * (tx * ty))
+            _blend_point(out[p], table, map_w, map_h, view_idx, uv, weights, p)
+
+
+@numba.njit(parallel=True, cache=True, boundscheck=False)
+def _blend_cosine_kernel(
+    table,  # (R, C) float32: M maps of h x w rows, channel-last, view-major
+    map_w,  # int
+    map_h,  # int
+    view_idx,  # (P, N) int64: the map behind each slot
+    uv,  # (P, N, 2) float32 pixel coordinates in the maps' resolution
+    weights,  # (P, N) float32
+    texts,  # (T, C) float32
+    out,  # (P, T) float32: each text's cosine with the point's unit blend (0 where the blend is 0)
+    block,  # int: points per parallel task
+):  # pragma: no cover - compiled
+    n_pts = weights.shape[0]
+    dim = table.shape[1]
+    n_texts = texts.shape[0]
+    n_blocks = (n_pts + block - 1) // block
+    for blk in numba.prange(n_blocks):
+        acc = np.empty(dim, np.float32)
+        for p in range(blk * block, min(n_pts, (blk + 1) * block)):
+            acc[:] = _F0
+            _blend_point(acc, table, map_w, map_h, view_idx, uv, weights, p)
+            norm = np.sqrt(_dot(acc, acc))
+            inv = _F1 / max(norm, np.float32(1e-12))  # F.normalize's eps
+            for t in range(n_texts):
+                out[p, t] = _dot(acc, texts[t]) * inv
 
 
 def blend_kernel(
@@ -217,6 +251,28 @@ def blend_kernel(
         _blend_kernel(np.ascontiguousarray(table, np.float32), int(map_wh[0]), int(map_wh[1]),
                       np.ascontiguousarray(view_idx, np.int64), np.ascontiguousarray(uv, np.float32),
                       np.ascontiguousarray(weights, np.float32), out, int(block))
+    return out
+
+
+def blend_cosine_kernel(
+    table: np.ndarray,  # (M * h * w, C) float32
+    map_wh: tuple[int, int],
+    view_idx: np.ndarray,  # (P, N) int64
+    uv: np.ndarray,  # (P, N, 2) float32
+    weights: np.ndarray,  # (P, N) float32
+    texts: np.ndarray,  # (T, C) float32
+    *,
+    threads: int,
+    block: int = 64,
+) -> np.ndarray:  # (P, T) float32
+    """``F.normalize(blend_kernel(...)) @ texts.T`` without the (P, C) blends: each point's blend
+    stays in a C-vector while its cosines are taken. Arguments checked by the caller."""
+    out = np.zeros((weights.shape[0], texts.shape[0]), np.float32)
+    with launch(threads):
+        _blend_cosine_kernel(np.ascontiguousarray(table, np.float32), int(map_wh[0]), int(map_wh[1]),
+                             np.ascontiguousarray(view_idx, np.int64), np.ascontiguousarray(uv, np.float32),
+                             np.ascontiguousarray(weights, np.float32),
+                             np.ascontiguousarray(texts, np.float32), out, int(block))
     return out
 
 
@@ -338,6 +394,9 @@ def warm_up() -> None:
                    np.ones((1, 4), np.float32), (1, 1), 1e-6, threads=1)
     blend_kernel(np.zeros((1, 2), np.float32), (1, 1), np.zeros((1, 1), np.int64),
                  np.zeros((1, 1, 2), np.float32), np.ones((1, 1), np.float32), threads=1)
+    blend_cosine_kernel(np.zeros((1, 2), np.float32), (1, 1), np.zeros((1, 1), np.int64),
+                        np.zeros((1, 1, 2), np.float32), np.ones((1, 1), np.float32),
+                        np.ones((1, 2), np.float32), threads=1)
     one = np.ones(1, np.int64)
     eye = np.eye(4, dtype=np.float32)[None]
     average_kernel(
