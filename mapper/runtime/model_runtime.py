@@ -198,6 +198,26 @@ def _chunk_slots(view_idx: Tensor, slots: Tensor, sel: slice) -> tuple[Tensor, T
     return view_idx[sel, :k], s[:, :k]
 
 
+def _cell_view_sets(order: Tensor, chosen: Tensor, n_views: int) -> tuple[Tensor, list[Tensor]]:
+    """Group cells by their set of chosen views: ``order`` (C, k) view indices, ``chosen`` (C, k)
+    bool, views 0..n_views-1. Returns each cell's group (C,) long (-1 for a cell with no chosen
+    view) and each group's views (ascending), groups in the order of their first cell. Equal to
+    collecting ``tuple(sorted(chosen views))`` per cell in a dict, without a Python loop over
+    cells."""
+    n_cells = order.shape[0]
+    rows = torch.where(chosen, order, torch.full_like(order, n_views)).sort(dim=1).values  # unused last
+    uniq, inverse = torch.unique(rows, dim=0, return_inverse=True)  # (G, k), (C,)
+    first = torch.full((uniq.shape[0],), n_cells, dtype=torch.long, device=order.device)
+    first.scatter_reduce_(0, inverse, torch.arange(n_cells, device=order.device), reduce="amin")
+    by_first = torch.argsort(first)  # groups in the order of their first cell
+    non_empty = uniq[by_first, 0] < n_views
+    kept = by_first[non_empty]
+    new_id = torch.full((uniq.shape[0],), -1, dtype=torch.long, device=order.device)
+    new_id[kept] = torch.arange(kept.numel(), device=order.device)
+    keys = [row[row < n_views] for row in uniq[kept]]
+    return new_id[inverse], keys
+
+
 def _cell_inverse(cell: Tensor) -> Tensor:
     """``torch.unique(cell, dim=0, return_inverse=True)[1]`` for (P, 3) int64 cells: the same
     indices (cells in lexicographic order), from a 1-D unique of one int64 key per cell (the
@@ -973,16 +993,7 @@ class ModelRuntime:
         tier = torch.where(frac >= 0.5, 0.0, torch.where(frac > 0, 1.0, 2.0))
         order = torch.argsort(tier * 1e6 + key, dim=1)[:, :k]  # (C, k)
         chosen_ok = torch.gather(tier, 1, order) < 2
-        groups: dict[tuple[int, ...], list[int]] = {}
-        order_l, ok_l = order.tolist(), chosen_ok.tolist()
-        for c in range(n_cells):
-            views = tuple(sorted(v for v, ok in zip(order_l[c], ok_l[c], strict=True) if ok))
-            if views:
-                groups.setdefault(views, []).append(c)
-        cell_group = torch.full((n_cells,), -1, dtype=torch.long, device=self.device)
-        keys = list(groups)
-        for g, views in enumerate(keys):
-            cell_group[torch.tensor(groups[views], device=self.device)] = g
+        cell_group, keys = _cell_view_sets(order, chosen_ok, len(candidates))
         point_group = torch.where(seen, cell_group[inverse], torch.full_like(inverse, -1))
         # each group's points in ascending order, from one stable sort (was a scan per group)
         by_group = torch.argsort(point_group, stable=True)
@@ -992,7 +1003,7 @@ class ModelRuntime:
         for g, views in enumerate(keys):
             idx = parts[g + 1]
             if idx.numel():
-                out.append((idx, candidates[torch.tensor(views, device=self.device)]))
+                out.append((idx, candidates[views]))
         return out
 
     def _all_views(self, prep: _Prepared, need_ov: bool, use_depth: bool) -> SourceViews:
@@ -1120,11 +1131,12 @@ class ModelRuntime:
             timing["view_selection"] = (t3 - t2) * 1e3
 
             def answer(sub: Tensor, cos: Tensor, valid: Tensor) -> None:  # cos (p, T), valid (p,)
+                # each point is in one view group, so in one chunk: its rows are written once
                 best, arg = cos.max(dim=-1)
-                label[sub] = torch.where(valid, arg.to(torch.int32), label[sub])
-                score[sub] = torch.where(valid, best, score[sub])
+                label[sub] = torch.where(valid, arg.to(torch.int32), -1)
+                score[sub] = torch.where(valid, best, 0.0)
                 if cosines is not None:
-                    cosines[sub] = torch.where(valid[:, None], cos.float(), cosines[sub])
+                    cosines[sub] = cos.float() * valid[:, None]
 
             if self.config.batched_view_groups and groups:
                 # one network pass over every view group (each point with its own views)

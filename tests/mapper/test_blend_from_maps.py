@@ -122,6 +122,29 @@ def test_cell_inverse_equals_the_row_wise_unique() -> None:
         assert torch.equal(_cell_inverse(cells), ref)
 
 
+def test_cell_view_sets_equal_the_dict_of_sorted_tuples() -> None:
+    """Cells grouped by their chosen views: the same groups, in the same order (first cell), as
+    collecting ``tuple(sorted(chosen views))`` per cell in a dict (the loop it replaced)."""
+    from mapper.runtime.model_runtime import _cell_view_sets
+
+    gen = torch.Generator().manual_seed(5)
+    for n_cells, n_views, k in ((500, 12, 4), (1, 3, 3), (200, 30, 16), (300, 5, 3)):  # the last: sets repeat
+        order = torch.stack([torch.randperm(n_views, generator=gen)[:k] for _ in range(n_cells)])
+        chosen = torch.rand(n_cells, k, generator=gen) < 0.7
+        chosen[0] = False  # a cell with no view
+        groups: dict[tuple[int, ...], list[int]] = {}
+        for c in range(n_cells):
+            views = tuple(sorted(int(v) for v, ok in zip(order[c], chosen[c], strict=True) if ok))
+            if views:
+                groups.setdefault(views, []).append(c)
+        cell_group, keys = _cell_view_sets(order, chosen, n_views)
+        assert [tuple(k.tolist()) for k in keys] == list(groups)
+        expected = torch.full((n_cells,), -1, dtype=torch.long)
+        for g, cells in enumerate(groups.values()):
+            expected[cells] = g
+        assert torch.equal(cell_group, expected)
+
+
 def test_samples_carry_each_views_distance_to_the_point() -> None:
     """sample_views / sample_views_indexed: source_range is |point - camera centre| and agrees with
     source_dirs; a model with the range encoding blends the same on both paths."""
