@@ -6,9 +6,11 @@
    is streamed into an in-process node serving the teacher checkpoint, with the node's default
    window. After ``capture_fractions`` of its frames, ``points_per_capture`` of the scene's true
    surface points (``gt/points.npz``), moved by a Gaussian of ``surface_jitter_m``, go through
-   :meth:`ModelRuntime.point_samples` -- the exact inputs ``segment_points`` hands the network
-   (view selection, up to ``model.point_source_views`` views a point, depth-guided masking on every
-   other capture) -- and the teacher's OV weights over those views are kept with them.
+   :meth:`ModelRuntime.point_samples` -- the inputs ``segment_points`` hands the network (view
+   selection, up to ``model.point_source_views`` views a point, depth-guided masking on every
+   other capture), sampled on the torch path (``GovNeSF.compiled_sampling`` off: bit for bit the
+   captures the shipped head was made from; the compiled kernel's samples equal them up to float
+   rounding) -- and the teacher's OV weights over those views are kept with them.
 2. **Train.** The student (the teacher's FusionNet config with ``hidden_dim``, ``attention_dim``,
    ``num_heads`` replaced) learns the teacher's weights: the KL divergence from the teacher's
    softmax over a point's views to the student's, averaged over points, Adam with a cosine
@@ -200,6 +202,10 @@ def capture_scene(scene: Path, cfg: DistillConfig, gen: np.random.Generator) -> 
         pts = truth[pick] + gen.normal(0.0, cfg.surface_jitter_m, size=(pick.size, 3)).astype(np.float32)
         use_depth = len(out) % 2 == 1
         teacher = runtime.model.fusion
+        # the torch sampling path, so that a capture is bit for bit what it was when the shipped
+        # head was made; the compiled path's samples equal it up to float rounding (and zeros in
+        # masked slots, which the network never reads)
+        runtime.model.compiled_sampling = False
         for _, s, v in runtime.point_samples(pts, use_depth=use_depth):
             fused = teacher(s.rgb, s.features, v, s.source_dirs, s.mask, None, s.source_range)
             rng = s.source_range if s.source_range is not None else torch.zeros_like(fused.ov_weights)
