@@ -305,7 +305,10 @@ class GovNeSF(nn.Module):
 
         Each map is sampled once per view for all the (point, slot) pairs that use it, so a batch
         of points with different view sets costs one network pass instead of one per view set;
-        the values equal ``sample_views`` on each point's own views.
+        the values equal ``sample_views`` on each point's own views. With ``sample_ov=False`` on
+        the CPU in float32 without autograd (and ``compiled_sampling``) every pair is done by one
+        compiled kernel (:mod:`mapper.model.ops.sample_kernel`): the same masks, the samples up to
+        float rounding, and 0 colour and features in masked slots (which the network never reads).
         """
         P, N = view_idx.shape
         wh = views.image_wh
@@ -578,15 +581,16 @@ class GovNeSF(nn.Module):
         if self.distill is not None or ov_maps is None:
             out = self.point_outputs(samples, v, ov_maps=ov_maps, fusion=fusion)
             return F.normalize(out.ov, dim=-1) @ texts.to(out.ov.dtype).T, out.valid, out.num_views
+        if samples.uv is None:
+            raise ValueError("blending from ov_maps needs samples with uv (sample_views)")
         net = self.fusion if fusion is None else fusion
         weights, valid = net.point_weights(
             samples.rgb, samples.features, v, samples.source_dirs, samples.mask, samples.source_range
         )
-        if samples.uv is None:
-            raise ValueError("blending from ov_maps needs samples with uv (sample_views)")
         uv = scale_uv(samples.uv, ov_maps.image_wh, ov_maps.map_wh)
         cos = cosines_from_maps(ov_maps.table, ov_maps.map_wh, ov_maps.view_idx, uv, weights, texts)
         return cos, valid, samples.mask.sum(dim=1)
+
 
 def _sample_kernel_applies(views: SourceViews, points: Tensor, sample_ov: bool) -> bool:
     """``sample_views_indexed`` takes the compiled kernel: CPU float32 maps and points, no OV

@@ -41,8 +41,6 @@ __all__ = [
 ]
 
 
-
-
 def _at_least_float32(x: Tensor) -> Tensor:
     return x.float() if x.dtype in (torch.float16, torch.bfloat16) else x
 
@@ -366,7 +364,8 @@ class FusionNet(nn.Module):
 
     def point_kernel_weights(self) -> PointKernelWeights:
         """The parameters laid out for the compiled point kernel, in its argument order; taken again
-        whenever one changed (in place: an optimiser step or ``load_state_dict``; or replaced)."""
+        whenever one changed (in place: an optimiser step or ``load_state_dict``, seen by each
+        tensor's version counter; or replaced)."""
         key = tuple((id(p), p._version) for p in self.parameters())
         if self._kernel_weights is None or self._kernel_weights[0] != key:
             self._kernel_weights = (key, self._kernel_params())

@@ -161,30 +161,37 @@ def _kernel(
 
 
 @numba.njit(cache=True, boundscheck=False, inline="always")
-def _blend_point(acc, table, map_w, map_h, view_idx, uv, weights, p):  # pragma: no cover - compiled
-    """acc += point p's weighted bilinear taps over its slots (``bilinear_corners``' corners and
-    weights; slots of weight 0 skipped)."""
+def corners(u, v, map_w, map_h):  # pragma: no cover - compiled
+    """The four taps of a bilinear sample at pixel (u, v) of a map_w x map_h map, as
+    ``bilinear_corners`` (``grid_sample``, bilinear, border, align_corners=False; non-finite
+    coordinates read as 0): rows (r00, r01, r10, r11) within the map and the fractions (tx, ty)."""
     wf, hf = np.float32(map_w), np.float32(map_h)
+    if not np.isfinite(u):
+        u = _F0
+    if not np.isfinite(v):
+        v = _F0
+    gx = min(max(_F2 * u / wf - _F1, -_F2), _F2)
+    gy = min(max(_F2 * v / hf - _F1, -_F2), _F2)
+    ix = min(max(((gx + _F1) * wf - _F1) / _F2, _F0), wf - _F1)
+    iy = min(max(((gy + _F1) * hf - _F1) / _F2, _F0), hf - _F1)
+    x0f, y0f = np.floor(ix), np.floor(iy)
+    x0, y0 = np.int64(x0f), np.int64(y0f)
+    x1, y1 = min(x0 + 1, map_w - 1), min(y0 + 1, map_h - 1)
+    r0, r1 = y0 * map_w, y1 * map_w
+    return r0 + x0, r0 + x1, r1 + x0, r1 + x1, ix - x0f, iy - y0f
+
+
+@numba.njit(cache=True, boundscheck=False, inline="always")
+def _blend_point(acc, table, map_w, map_h, view_idx, uv, weights, p):  # pragma: no cover - compiled
+    """acc += point p's weighted bilinear taps over its slots (:func:`corners`; slots of weight 0
+    skipped)."""
     for n in range(weights.shape[1]):
         w = weights[p, n]
         if w == 0:
             continue
-        u, v = uv[p, n, 0], uv[p, n, 1]
-        if not np.isfinite(u):  # bilinear_corners' nan_to_num
-            u = _F0
-        if not np.isfinite(v):
-            v = _F0
-        gx = min(max(_F2 * u / wf - _F1, -_F2), _F2)
-        gy = min(max(_F2 * v / hf - _F1, -_F2), _F2)
-        ix = min(max(((gx + _F1) * wf - _F1) / _F2, _F0), wf - _F1)
-        iy = min(max(((gy + _F1) * hf - _F1) / _F2, _F0), hf - _F1)
-        x0f, y0f = np.floor(ix), np.floor(iy)
-        tx, ty = ix - x0f, iy - y0f
-        x0, y0 = np.int64(x0f), np.int64(y0f)
-        x1, y1 = min(x0 + 1, map_w - 1), min(y0 + 1, map_h - 1)
+        r00, r01, r10, r11, tx, ty = corners(uv[p, n, 0], uv[p, n, 1], map_w, map_h)
         base = view_idx[p, n] * map_w * map_h
-        r0, r1 = base + y0 * map_w, base + y1 * map_w
-        _add_taps(acc, table, r0 + x0, r0 + x1, r1 + x0, r1 + x1, w * ((_F1 - tx) * (_F1 - ty)),
+        _add_taps(acc, table, base + r00, base + r01, base + r10, base + r11, w * ((_F1 - tx) * (_F1 - ty)),
                   w * (tx * (_F1 - ty)), w * ((_F1 - tx) * ty), w * (tx * ty))
 
 

@@ -20,37 +20,23 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from mapper.model.ops.average_kernel import launch
+from mapper.model.ops.average_kernel import corners, launch
 
 __all__ = ["sample_pairs", "warm_up"]
 
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
-_F2 = np.float32(2.0)
 _UV_LIMIT = np.float32(6.0e4)  # mapper.model.ops.geometry._UV_LIMIT
 
 
 @numba.njit(cache=True, boundscheck=False, inline="always")
 def _taps(table, base, map_w, map_h, u, v, out, c0, i):  # pragma: no cover - compiled
     """out[c0 + c, i] = the bilinear sample of ``table``'s map at (u, v) (that map's pixels), the
-    corners and weights of ``blend_kernel``."""
-    wf, hf = np.float32(map_w), np.float32(map_h)
-    if not np.isfinite(u):
-        u = _F0
-    if not np.isfinite(v):
-        v = _F0
-    gx = min(max(_F2 * u / wf - _F1, -_F2), _F2)
-    gy = min(max(_F2 * v / hf - _F1, -_F2), _F2)
-    ix = min(max(((gx + _F1) * wf - _F1) / _F2, _F0), wf - _F1)
-    iy = min(max(((gy + _F1) * hf - _F1) / _F2, _F0), hf - _F1)
-    x0f, y0f = np.floor(ix), np.floor(iy)
-    tx, ty = ix - x0f, iy - y0f
-    x0, y0 = np.int64(x0f), np.int64(y0f)
-    x1, y1 = min(x0 + 1, map_w - 1), min(y0 + 1, map_h - 1)
-    r0, r1 = base + y0 * map_w, base + y1 * map_w
+    corners and weights of ``blend_kernel`` (:func:`mapper.model.ops.average_kernel.corners`)."""
+    r00, r01, r10, r11, tx, ty = corners(u, v, map_w, map_h)
     w00, w01 = (_F1 - tx) * (_F1 - ty), tx * (_F1 - ty)
     w10, w11 = (_F1 - tx) * ty, tx * ty
-    a, b, c, d = table[r0 + x0], table[r0 + x1], table[r1 + x0], table[r1 + x1]
+    a, b, c, d = table[base + r00], table[base + r01], table[base + r10], table[base + r11]
     for k in range(table.shape[1]):
         out[c0 + k, i] = _F0 + (w00 * a[k] + w01 * b[k] + w10 * c[k] + w11 * d[k])
 
