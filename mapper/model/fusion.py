@@ -165,11 +165,11 @@ def cosines_from_maps(
 ) -> Tensor:  # (P, T)
     """``F.normalize(blend_from_maps(...), dim=-1) @ texts.T``: each text's cosine with each point's
     blend (0 where the blend is 0). On the CPU in float32 without autograd one compiled kernel
-    (:func:`mapper.model.ops.average_kernel.blend_cosine_kernel`) keeps each blend in a C-vector
+    (:func:`mapper.model.ops.average_kernel.blend_kernel` with ``texts``) keeps each blend in a C-vector
     while its cosines are taken, so the (P, C) blends are never written; otherwise the two steps."""
     P, N = weights.shape
     if _blend_kernel_applies(table, uv, weights) and texts.device.type == "cpu" and not texts.requires_grad:
-        from mapper.model.ops.average_kernel import blend_cosine_kernel
+        from mapper.model.ops.average_kernel import blend_kernel
 
         w, h = map_wh
         if table.shape[0] % (w * h) or uv.shape != (P, N, 2) or texts.shape[-1] != table.shape[1]:
@@ -178,9 +178,9 @@ def cosines_from_maps(
                 f"{texts.shape[-1]} channels, or uv {tuple(uv.shape)} is not ({P}, {N}, 2)"
             )
         view_idx = view_idx.expand(P, N) if view_idx.dim() == 1 else view_idx
-        return torch.from_numpy(blend_cosine_kernel(
+        return torch.from_numpy(blend_kernel(
             table.numpy(), (w, h), view_idx.numpy(), uv.numpy(), weights.to(torch.float32).numpy(),
-            texts.to(torch.float32).numpy(), threads=torch.get_num_threads(),
+            threads=torch.get_num_threads(), texts=texts.to(torch.float32).numpy(),
         ))
     blended = blend_from_maps(table, map_wh, view_idx, uv, weights)
     return F.normalize(blended, dim=-1) @ texts.to(blended.dtype).T

@@ -30,8 +30,7 @@ import numba
 import numpy as np
 
 __all__ = [
-    "LAUNCH_LOCK", "average_kernel", "blend_cosine_kernel", "blend_kernel", "in_view_matrix",
-    "kernel_threads", "launch", "warm_up",
+    "LAUNCH_LOCK", "average_kernel", "blend_kernel", "in_view_matrix", "kernel_threads", "launch", "warm_up",
 ]
 
 _F0 = np.float32(0.0)
@@ -203,39 +202,22 @@ def _blend_kernel(
     view_idx,  # (P, N) int64: the map behind each slot
     uv,  # (P, N, 2) float32 pixel coordinates in the maps' resolution
     weights,  # (P, N) float32
-    out,  # (P, C) float32, zeroed by the caller
+    texts,  # (T, C) float32; T = 0: write the blends themselves
+    out,  # (P, C) blends (zeroed by the caller) or (P, T) each text's cosine with the unit blend
     block,  # int: points per parallel task
 ):  # pragma: no cover - compiled
     n_pts = weights.shape[0]
-    n_blocks = (n_pts + block - 1) // block
-    for blk in numba.prange(n_blocks):
-        for p in range(blk * block, min(n_pts, (blk + 1) * block)):
-            _blend_point(out[p], table, map_w, map_h, view_idx, uv, weights, p)
-
-
-@numba.njit(parallel=True, cache=True, boundscheck=False)
-def _blend_cosine_kernel(
-    table,  # (R, C) float32: M maps of h x w rows, channel-last, view-major
-    map_w,  # int
-    map_h,  # int
-    view_idx,  # (P, N) int64: the map behind each slot
-    uv,  # (P, N, 2) float32 pixel coordinates in the maps' resolution
-    weights,  # (P, N) float32
-    texts,  # (T, C) float32
-    out,  # (P, T) float32: each text's cosine with the point's unit blend (0 where the blend is 0)
-    block,  # int: points per parallel task
-):  # pragma: no cover - compiled
-    n_pts = weights.shape[0]
-    dim = table.shape[1]
     n_texts = texts.shape[0]
     n_blocks = (n_pts + block - 1) // block
     for blk in numba.prange(n_blocks):
-        acc = np.empty(dim, np.float32)
+        acc = np.empty(table.shape[1], np.float32)
         for p in range(blk * block, min(n_pts, (blk + 1) * block)):
+            if n_texts == 0:
+                _blend_point(out[p], table, map_w, map_h, view_idx, uv, weights, p)
+                continue
             acc[:] = _F0
             _blend_point(acc, table, map_w, map_h, view_idx, uv, weights, p)
-            norm = np.sqrt(_dot(acc, acc))
-            inv = _F1 / max(norm, np.float32(1e-12))  # F.normalize's eps
+            inv = _F1 / max(np.sqrt(_dot(acc, acc)), np.float32(1e-12))  # F.normalize's eps
             for t in range(n_texts):
                 out[p, t] = _dot(acc, texts[t]) * inv
 
@@ -248,38 +230,21 @@ def blend_kernel(
     weights: np.ndarray,  # (P, N) float32
     *,
     threads: int,
+    texts: np.ndarray | None = None,  # (T, C) float32
     block: int = 64,
-) -> np.ndarray:  # (P, C) float32
+) -> np.ndarray:  # (P, C) float32, or (P, T) with texts
     """``fusion.blend_from_maps`` on the CPU: each point's weighted sum of the bilinear samples of
-    its slots' maps (``bilinear_corners``' taps; slots of weight 0 are skipped). Arguments checked
-    by the caller."""
-    out = np.zeros((weights.shape[0], table.shape[1]), np.float32)
+    its slots' maps (``bilinear_corners``' taps; slots of weight 0 are skipped). With ``texts``:
+    ``F.normalize(blend) @ texts.T`` instead, each point's blend kept in a C-vector while its
+    cosines are taken (the (P, C) blends are never written). Arguments checked by the caller."""
+    n_out = table.shape[1] if texts is None else texts.shape[0]
+    out = np.zeros((weights.shape[0], n_out), np.float32)
+    txt = np.zeros((0, table.shape[1]), np.float32) if texts is None else texts
     with launch(threads):
         _blend_kernel(np.ascontiguousarray(table, np.float32), int(map_wh[0]), int(map_wh[1]),
                       np.ascontiguousarray(view_idx, np.int64), np.ascontiguousarray(uv, np.float32),
-                      np.ascontiguousarray(weights, np.float32), out, int(block))
-    return out
-
-
-def blend_cosine_kernel(
-    table: np.ndarray,  # (M * h * w, C) float32
-    map_wh: tuple[int, int],
-    view_idx: np.ndarray,  # (P, N) int64
-    uv: np.ndarray,  # (P, N, 2) float32
-    weights: np.ndarray,  # (P, N) float32
-    texts: np.ndarray,  # (T, C) float32
-    *,
-    threads: int,
-    block: int = 64,
-) -> np.ndarray:  # (P, T) float32
-    """``F.normalize(blend_kernel(...)) @ texts.T`` without the (P, C) blends: each point's blend
-    stays in a C-vector while its cosines are taken. Arguments checked by the caller."""
-    out = np.zeros((weights.shape[0], texts.shape[0]), np.float32)
-    with launch(threads):
-        _blend_cosine_kernel(np.ascontiguousarray(table, np.float32), int(map_wh[0]), int(map_wh[1]),
-                             np.ascontiguousarray(view_idx, np.int64), np.ascontiguousarray(uv, np.float32),
-                             np.ascontiguousarray(weights, np.float32),
-                             np.ascontiguousarray(texts, np.float32), out, int(block))
+                      np.ascontiguousarray(weights, np.float32), np.ascontiguousarray(txt, np.float32), out,
+                      int(block))
     return out
 
 
@@ -401,9 +366,9 @@ def warm_up() -> None:
                    np.ones((1, 4), np.float32), (1, 1), 1e-6, threads=1)
     blend_kernel(np.zeros((1, 2), np.float32), (1, 1), np.zeros((1, 1), np.int64),
                  np.zeros((1, 1, 2), np.float32), np.ones((1, 1), np.float32), threads=1)
-    blend_cosine_kernel(np.zeros((1, 2), np.float32), (1, 1), np.zeros((1, 1), np.int64),
-                        np.zeros((1, 1, 2), np.float32), np.ones((1, 1), np.float32),
-                        np.ones((1, 2), np.float32), threads=1)
+    blend_kernel(np.zeros((1, 2), np.float32), (1, 1), np.zeros((1, 1), np.int64),
+                 np.zeros((1, 1, 2), np.float32), np.ones((1, 1), np.float32), threads=1,
+                 texts=np.ones((1, 2), np.float32))
     one = np.ones(1, np.int64)
     eye = np.eye(4, dtype=np.float32)[None]
     average_kernel(

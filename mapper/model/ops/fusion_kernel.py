@@ -129,25 +129,8 @@ def _layer_norm_(y, w, b, eps, nb, mu, var):  # pragma: no cover - compiled
 
 @numba.njit(fastmath=True, error_model="numpy", cache=True, boundscheck=False)
 def _point_block(
-    rgb,  # (3, N, P) float32
-    feat,  # (F, N, P) float32
-    vol,  # (Dv, P) float32
-    dirs,  # (3, N, P) float32
-    mask,  # (N, P) bool
-    log_range,  # (N, P) float32 log distances, or (N, 0) without range encoding
-    w1p, b1,  # (H, 2F + Dv), (H,): MLP_a's first layer, the per-point inputs [mean, var, v]
-    w1n,  # (H, 3 + F): the same layer, the per-view inputs [rgb, f]
-    w2, b2,  # (A, H), (A,)
-    wde, bde,  # (A, 3), (A,)
-    wre, bre,  # (A, 1), (A,) (unused without range encoding)
-    wq, bq, wk, bk, wv, bv,  # (A, A), (A,) each
-    k_extra, v_extra,  # (A,): the extra token's key (after elu + 1) and value
-    head,  # (A,) int64: the attention head of each dimension
-    wo, bo,  # (A, A), (A,)
-    ln1w, ln1b, ln1_eps,  # (A,), (A,), float32: the first LayerNorm
-    ln2w, ln2b, ln2_eps,  # the second
-    wf1, bf1, wf2, bf2,  # (2A, A), (2A,), (A, 2A), (A,)
-    ws1, bs1, ws2, bs2,  # (A, A), (A,), (A,), float32
+    inputs,  # the samples (rgb, feat, vol, dirs, mask, log_range), unpacked below
+    params,  # PointKernelWeights.params: the network, unpacked below
     pow2,  # _POW2
     out,  # (P, N) float32 weights
     valid,  # (P,) bool
@@ -156,6 +139,29 @@ def _point_block(
     block,  # int: the buffers' size (>= nb)
 ):  # pragma: no cover - compiled
     """One block of points (``_point_kernel``'s arguments; points p0 .. p0 + nb - 1)."""
+    (
+        rgb,  # (3, N, P) float32
+        feat,  # (F, N, P) float32
+        vol,  # (Dv, P) float32
+        dirs,  # (3, N, P) float32
+        mask,  # (N, P) bool
+        log_range,  # (N, P) float32 log distances, or (N, 0) without range encoding
+    ) = inputs
+    (
+        w1p, b1,  # (H, 2F + Dv), (H,): MLP_a's first layer, the per-point inputs [mean, var, v]
+        w1n,  # (H, 3 + F): the same layer, the per-view inputs [rgb, f]
+        w2, b2,  # (A, H), (A,)
+        wde, bde,  # (A, 3), (A,)
+        wre, bre,  # (A, 1), (A,) (unused without range encoding)
+        wq, bq, wk, bk, wv, bv,  # (A, A), (A,) each
+        k_extra, v_extra,  # (A,): the extra token's key (after elu + 1) and value
+        head,  # (A,) int64: the attention head of each dimension
+        wo, bo,  # (A, A), (A,)
+        ln1w, ln1b, ln1_eps,  # (A,), (A,), float32: the first LayerNorm
+        ln2w, ln2b, ln2_eps,  # the second
+        wf1, bf1, wf2, bf2,  # (2A, A), (2A,), (A, 2A), (A,)
+        ws1, bs1, ws2, bs2,  # (A, A), (A,), (A,), float32
+    ) = params
     Fd, N, P = feat.shape
     Dv = vol.shape[0]
     H = w1n.shape[0]
@@ -338,39 +344,18 @@ def _point_block(
 
 @numba.njit(parallel=True, fastmath=True, error_model="numpy", cache=True, boundscheck=False)
 def _point_kernel(
-    rgb,  # (3, N, P) float32
-    feat,  # (F, N, P) float32
-    vol,  # (Dv, P) float32
-    dirs,  # (3, N, P) float32
-    mask,  # (N, P) bool
-    log_range,  # (N, P) float32 log distances, or (N, 0) without range encoding
-    w1p, b1,  # (H, 2F + Dv), (H,): MLP_a's first layer, the per-point inputs [mean, var, v]
-    w1n,  # (H, 3 + F): the same layer, the per-view inputs [rgb, f]
-    w2, b2,  # (A, H), (A,)
-    wde, bde,  # (A, 3), (A,)
-    wre, bre,  # (A, 1), (A,) (unused without range encoding)
-    wq, bq, wk, bk, wv, bv,  # (A, A), (A,) each
-    k_extra, v_extra,  # (A,): the extra token's key (after elu + 1) and value
-    head,  # (A,) int64: the attention head of each dimension
-    wo, bo,  # (A, A), (A,)
-    ln1w, ln1b, ln1_eps,  # (A,), (A,), float32: the first LayerNorm
-    ln2w, ln2b, ln2_eps,  # the second
-    wf1, bf1, wf2, bf2,  # (2A, A), (2A,), (A, 2A), (A,)
-    ws1, bs1, ws2, bs2,  # (A, A), (A,), (A,), float32
+    inputs,  # the samples (see _point_block)
+    params,  # PointKernelWeights.params (see _point_block)
     pow2,  # _POW2
     out,  # (P, N) float32 weights
     valid,  # (P,) bool
     block,  # int: points per parallel task
 ):  # pragma: no cover - compiled
-    P = feat.shape[2]
+    P = out.shape[0]
     n_blocks = (P + block - 1) // block
     for blk in numba.prange(n_blocks):
         p0 = blk * block
-        _point_block(
-            rgb, feat, vol, dirs, mask, log_range, w1p, b1, w1n, w2, b2, wde, bde, wre, bre,
-            wq, bq, wk, bk, wv, bv, k_extra, v_extra, head, wo, bo, ln1w, ln1b, ln1_eps, ln2w, ln2b, ln2_eps,
-            wf1, bf1, wf2, bf2, ws1, bs1, ws2, bs2, pow2, out, valid, p0, min(P, p0 + block) - p0, block,
-        )
+        _point_block(inputs, params, pow2, out, valid, p0, min(P, p0 + block) - p0, block)
 
 
 def default_block(n_views: int, attention_dim: int) -> int:
@@ -461,16 +446,15 @@ def point_ov_weights(
     out = np.empty((P, N), np.float32)
     valid = np.empty(P, np.bool_)
     block = block or default_block(N, weights.attention_dim)
-    args: tuple[Any, ...] = (
+    inputs = (
         _cnp(rgb), _cnp(features), np.ascontiguousarray(volume_features.T.to(torch.float32).numpy()),
-        _cnp(source_dirs), np.ascontiguousarray(mask.T.numpy()), log_range, *weights.params, _POW2,
-        out, valid,
+        _cnp(source_dirs), np.ascontiguousarray(mask.T.numpy()), log_range,
     )
     if not _point_block.signatures:  # compile the block outside the launch lock (about 10 s, once)
-        _point_block(*args, 0, 0, 1)  # type: ignore[call-arg]  # (numba's stub: no star-arguments)
+        _point_block(inputs, weights.params, _POW2, out, valid, 0, 0, 1)
     if P:
         with launch(threads):
-            _point_kernel(*args, int(block))  # type: ignore[call-arg]
+            _point_kernel(inputs, weights.params, _POW2, out, valid, int(block))
     return torch.from_numpy(out), torch.from_numpy(valid)
 
 
