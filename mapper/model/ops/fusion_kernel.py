@@ -13,9 +13,11 @@ of a block as the inner, contiguous, vectorised axis (the samples' own layout, P
     masked softmax over the views
 
 The same function of the same parameters as ``forward_reference`` (float32, sums reassociated;
-``exp`` evaluated by range reduction and a polynomial, within a few ulp), so the weights agree
-to about 1e-6 (tests/mapper/test_fusion_kernel.py). The first call in a process compiles the
-kernel or loads it from numba's cache (:func:`warm_up`).
+``exp`` evaluated by range reduction and a polynomial, within a few ulp), so the weights are as
+close to a float64 reference as the float32 torch pass's (tests/mapper/test_fusion_kernel.py;
+about 1e-7 for the shipped point head). The first call in a process compiles the kernel or loads
+it from numba's cache (:func:`warm_up`). The samples and the network's parameters reach the kernel
+as two tuples (``inputs``, ``params``), unpacked in :func:`_point_block`.
 """
 
 from __future__ import annotations
@@ -369,8 +371,9 @@ def default_block(n_views: int, attention_dim: int) -> int:
 
 
 class PointKernelWeights:
-    """A FusionNet's parameters laid out for :func:`_point_kernel` (float32 numpy): ``params`` in
-    the kernel's argument order (``FusionNet.point_kernel_weights`` makes them from a network)."""
+    """A FusionNet's parameters laid out for :func:`_point_kernel` (float32 numpy): ``params`` in the
+    order :func:`_point_block` unpacks them (``FusionNet.point_kernel_weights`` makes them from a
+    network)."""
 
     def __init__(
         self, params: tuple[Any, ...], feature_dim: int, volume_feature_dim: int, range_encoding: bool
