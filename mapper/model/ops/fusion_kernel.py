@@ -49,9 +49,10 @@ RANGE_MIN_M = 0.05
 
 
 @numba.njit(fastmath=True, error_model="numpy", inline="always", cache=True)
-def _exp_neg(x, pow2):  # pragma: no cover - compiled
-    """exp(x) for x <= 0 (float32): x = k ln2 + r, |r| <= ln2 / 2, exp(r) by its Taylor series to
-    r^7 (truncation below 3e-9 relative), times 2^k from a table. x below -87 reads as -87."""
+def _exp_parts(x):  # pragma: no cover - compiled
+    """exp(x) for x <= 0 (float32) as (p, k) with exp(x) = p * 2^k: x = k ln2 + r, |r| <= ln2 / 2,
+    p = exp(r) by its Taylor series to r^7 (truncation below 3e-9 relative). x below -87 reads as
+    -87."""
     x = max(x, _EXP_MIN)
     k = np.floor(x * _LOG2E + np.float32(0.5))
     r = (x - k * _LN2_HI) - k * _LN2_LO
@@ -63,6 +64,13 @@ def _exp_neg(x, pow2):  # pragma: no cover - compiled
     p = p * r + np.float32(0.5)
     p = p * r + _F1
     p = p * r + _F1
+    return p, k
+
+
+@numba.njit(fastmath=True, error_model="numpy", inline="always", cache=True)
+def _exp_neg(x, pow2):  # pragma: no cover - compiled
+    """exp(x) for x <= 0 (float32): :func:`_exp_parts`, 2^k from a table."""
+    p, k = _exp_parts(x)
     return p * pow2[np.int64(k) + 127]
 
 
@@ -81,22 +89,12 @@ def _linear(W, b, x, out, nb):  # pragma: no cover - compiled
 
 @numba.njit(fastmath=True, error_model="numpy", cache=True)
 def _elu_(x, nb, ibuf, pbuf):  # pragma: no cover - compiled
-    """x[:, :nb] = elu(x) in place: ``_exp_neg``'s arithmetic, with 2^k built from its float32 bits
+    """x[:, :nb] = elu(x) in place: :func:`_exp_parts`, with 2^k built from its float32 bits
     (``ibuf`` int32, ``pbuf`` float32 scratch of >= nb), so that both loops vectorise."""
     fbuf = ibuf.view(np.float32)
     for o in range(x.shape[0]):
         for j in range(nb):
-            xm = max(min(x[o, j], _F0), _EXP_MIN)
-            k = np.floor(xm * _LOG2E + np.float32(0.5))
-            r = (xm - k * _LN2_HI) - k * _LN2_LO
-            p = np.float32(1.0 / 5040.0)
-            p = p * r + np.float32(1.0 / 720.0)
-            p = p * r + np.float32(1.0 / 120.0)
-            p = p * r + np.float32(1.0 / 24.0)
-            p = p * r + np.float32(1.0 / 6.0)
-            p = p * r + np.float32(0.5)
-            p = p * r + _F1
-            p = p * r + _F1
+            p, k = _exp_parts(min(x[o, j], _F0))
             pbuf[j] = p
             ibuf[j] = (np.int32(k) + np.int32(127)) << 23
         for j in range(nb):
