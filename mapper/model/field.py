@@ -372,6 +372,12 @@ class GovNeSF(nn.Module):
         from mapper.model.ops.sample_kernel import sample_pairs
 
         P, N = view_idx.shape
+        if points.shape != (P, 3) or slot_mask.shape != (P, N):
+            raise ValueError(f"points {tuple(points.shape)} / slot_mask {tuple(slot_mask.shape)} do not fit "
+                             f"view_idx {tuple(view_idx.shape)}")
+        if view_idx.numel() and not (0 <= int(view_idx.min()) and int(view_idx.max()) < len(views)):
+            raise ValueError(f"view_idx must index the {len(views)} views, got {int(view_idx.min())}.."
+                             f"{int(view_idx.max())}")
         rgb_t, feat_t, _ = views.channel_last()
         depth = None
         if depth_masking and views.depth_m is not None:

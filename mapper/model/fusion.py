@@ -178,6 +178,9 @@ def cosines_from_maps(
                 f"{texts.shape[-1]} channels, or uv {tuple(uv.shape)} is not ({P}, {N}, 2)"
             )
         view_idx = view_idx.expand(P, N) if view_idx.dim() == 1 else view_idx
+        n_maps = table.shape[0] // (w * h)
+        if view_idx.numel() and not (0 <= int(view_idx.min()) and int(view_idx.max()) < n_maps):
+            raise ValueError(f"cosines_from_maps: view_idx must index the {n_maps} maps")
         return torch.from_numpy(blend_kernel(
             table.numpy(), (w, h), view_idx.numpy(), uv.numpy(), weights.to(torch.float32).numpy(),
             threads=torch.get_num_threads(), texts=texts.to(torch.float32).numpy(),

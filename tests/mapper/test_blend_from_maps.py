@@ -243,6 +243,8 @@ def test_cosines_from_maps_equal_normalised_blend_times_texts(monkeypatch: pytes
     monkeypatch.undo()
     with pytest.raises(ValueError, match="cosines_from_maps"):
         cosines_from_maps(table, (w, h), view_idx, uv, weights, texts[:, :10])
+    with pytest.raises(ValueError, match="must index the 3 maps"):
+        cosines_from_maps(table, (w, h), view_idx + 1, uv, weights, texts)
 
 
 def test_point_cosines_equal_the_point_outputs() -> None:

@@ -184,6 +184,11 @@ def test_kernel_refuses_other_sizes() -> None:
     rgb, feat, vol, dirs, mask, _ = _float(*_inputs(10, 3, 12, 8, seed=81, p_fastest=True))
     with pytest.raises(ValueError, match="feature_dim 16"):
         fusion_kernel.point_ov_weights(kw, rgb, feat, vol, dirs, mask, None, threads=1)
+    rgb, feat, vol, dirs, mask, _ = _float(*_inputs(10, 3, 16, 8, seed=82, p_fastest=True))
+    with pytest.raises(ValueError, match="like the features"):
+        fusion_kernel.point_ov_weights(kw, rgb[:, :2], feat, vol, dirs, mask, None, threads=1)
+    with pytest.raises(ValueError, match="like the features"):
+        fusion_kernel.point_ov_weights(kw, rgb, feat, vol, dirs, mask[:, :2], None, threads=1)
 
 
 def test_shipped_point_head_matches_its_torch_pass() -> None:

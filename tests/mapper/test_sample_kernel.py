@@ -122,3 +122,23 @@ def test_kernel_edge_cases() -> None:
     assert dist.tolist() == [0.0, 1.0, 1.0] and samples[:, 1].tolist() == [1.0] * 5
     _, padded, *_ = sample_kernel.sample_pairs(pts, idx, np.zeros((1, 3), np.bool_), *args, threads=1)
     assert not padded.any()
+
+
+def test_compiled_sampling_refuses_bad_indices_and_shapes() -> None:
+    """An index past the views or mismatched shapes raise ValueError (the kernel never reads out of
+    bounds), as the torch path raises for them."""
+    torch.manual_seed(0)
+    model = GovNeSF(TINY).eval()
+    runtime, prep = _runtime_with_six_keyframes(model)
+    views = runtime._all_views(prep, need_ov=False, use_depth=False)
+    pts = _points(10, seed=6)
+    slots = torch.ones(pts.shape[0], 2, dtype=torch.bool)
+    with torch.no_grad():
+        for bad in (len(views), -1):
+            idx = torch.zeros(pts.shape[0], 2, dtype=torch.long)
+            idx[3, 1] = bad
+            with pytest.raises(ValueError, match="view_idx must index"):
+                model.sample_views_indexed(views, idx, slots, pts, False, sample_ov=False)
+        idx = torch.zeros(pts.shape[0], 2, dtype=torch.long)
+        with pytest.raises(ValueError, match="do not fit"):
+            model.sample_views_indexed(views, idx, slots[:, :1], pts, False, sample_ov=False)

@@ -430,6 +430,11 @@ def point_ov_weights(
     ``query_dirs=None`` computes them (see the module docstring). ``block``: points per parallel
     task (0: :func:`default_block`)."""
     P, N, Fd = features.shape
+    if rgb.shape != (P, N, 3) or source_dirs.shape != (P, N, 3) or mask.shape != (P, N):
+        raise ValueError(
+            f"point kernel: rgb {tuple(rgb.shape)}, source_dirs {tuple(source_dirs.shape)} and mask "
+            f"{tuple(mask.shape)} must be ({P}, {N}, 3), ({P}, {N}, 3) and ({P}, {N}) like the features"
+        )
     if Fd != weights.feature_dim or volume_features.shape != (P, weights.volume_feature_dim):
         raise ValueError(
             f"point kernel: features {tuple(features.shape)} / volume features "
