@@ -197,6 +197,12 @@ def _warm_kernels(module: str) -> None:
         log.exception("warm-up of the kernels of %s failed", module)
 
 
+def _warm_all_kernels(modules: list[str]) -> None:
+    """:func:`_warm_kernels` of each module, in order (one background thread)."""
+    for module in modules:
+        _warm_kernels(module)
+
+
 def limit_blas_threads(threads: int) -> None:
     """Every BLAS library loaded in this process (numpy's, OpenCV's) to at most ``threads`` threads
     (``limits.blas_threads``; 0 = unchanged). Process-wide and lasting (libraries loaded later keep
@@ -330,6 +336,10 @@ class MapperNode:
         self.workers: list[tuple[str, Callable[[threading.Event], None]]] = []
         """Background threads ``(name, target)`` started by :meth:`start` after the sockets are
         bound; ``target(stop_event)`` runs until the event is set and must not raise."""
+        self.kernel_modules: list[str] = ["mapper.node.query_kernels"]
+        """Modules whose compiled kernels :meth:`start` warms in the background (each module's
+        ``warm_up``: compiled, or loaded from numba's cache), so that no first query pays for it;
+        plugins add theirs (the learned model: its point kernels)."""
 
     # -- extension points ---------------------------------------------------------------------
 
@@ -416,8 +426,8 @@ class MapperNode:
         )
         thread.start()
         self._threads.append(thread)
-        # query_points' kernels: about 0.2 s from numba's cache
-        threading.Thread(target=_warm_kernels, args=("mapper.node.query_kernels",),
+        # query_points' kernels (about 0.2 s from numba's cache) and the plugins'
+        threading.Thread(target=_warm_all_kernels, args=(list(self.kernel_modules),),
                          name="mapper-kernel-warmup", daemon=True).start()
         for name, work in self.workers:
             thread = threading.Thread(target=work, args=(self._stop,), name=f"mapper-{name}", daemon=True)

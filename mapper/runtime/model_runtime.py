@@ -241,19 +241,6 @@ def _resolve_checkpoint(path: str) -> Path:
     return p
 
 
-def _warm_point_kernel() -> None:
-    """Compile (or load from numba's cache) the point answers' kernels
-    (:mod:`mapper.model.ops.sample_kernel`, :mod:`mapper.model.ops.fusion_kernel`) ahead of the
-    first learned ``segment_points``; a failure is logged (that call compiles them instead)."""
-    try:
-        from mapper.model.ops import fusion_kernel, sample_kernel
-
-        sample_kernel.warm_up()
-        fusion_kernel.warm_up()
-    except Exception:
-        log.exception("warm-up of the point kernels failed")
-
-
 class ModelRuntime:
     """The learned GOV-NeSF model serving a keyframe window.
 
@@ -305,8 +292,6 @@ class ModelRuntime:
         self._extents_changed: set[tuple[str, int, int]] = set()
         self._depth_priors: dict[tuple[str, int, int], Tensor] = {}  # set_view_depth_prior; _pending_lock
         self._priors_changed: set[tuple[str, int, int]] = set()
-        if self.model is not None and self.device.type == "cpu":
-            threading.Thread(target=_warm_point_kernel, name="model-kernel-warmup", daemon=True).start()
 
     # -- set-up -------------------------------------------------------------------------------
 
