@@ -23,6 +23,14 @@ def _points(n: int, seed: int) -> torch.Tensor:
     return torch.from_numpy(np.concatenate([seen, odd]).astype(np.float32))
 
 
+def _window(*, need_ov: bool = False, use_depth: bool = False):  # -> (model, runtime, prep, views)
+    """A TINY model's runtime over six keyframes, and all its views as one SourceViews."""
+    torch.manual_seed(0)
+    model = GovNeSF(TINY).eval()
+    runtime, prep = _runtime_with_six_keyframes(model)
+    return model, runtime, prep, runtime._all_views(prep, need_ov=need_ov, use_depth=use_depth)
+
+
 def _both(model: GovNeSF, *args, **kw) -> tuple[PointViewSamples, PointViewSamples]:
     with torch.no_grad():
         model.compiled_sampling = False
@@ -34,10 +42,7 @@ def _both(model: GovNeSF, *args, **kw) -> tuple[PointViewSamples, PointViewSampl
 
 @pytest.mark.parametrize("use_depth", [False, True])
 def test_compiled_sampling_equals_the_torch_path(use_depth: bool) -> None:
-    torch.manual_seed(0)
-    model = GovNeSF(TINY).eval()
-    runtime, prep = _runtime_with_six_keyframes(model)
-    views = runtime._all_views(prep, need_ov=False, use_depth=use_depth)
+    model, runtime, prep, views = _window(use_depth=use_depth)
     pts = _points(300, seed=1)
     P = pts.shape[0]
     gen = torch.Generator().manual_seed(2)
@@ -71,10 +76,7 @@ def test_compiled_sampling_equals_the_torch_path(use_depth: bool) -> None:
 def test_depth_test_masks_views_that_disagree() -> None:
     """The depth test is applied (a view whose depth map says nearer surface masks the point), the
     same on both paths."""
-    torch.manual_seed(0)
-    model = GovNeSF(TINY).eval()
-    runtime, prep = _runtime_with_six_keyframes(model)
-    views = runtime._all_views(prep, need_ov=False, use_depth=True)
+    model, _, _, views = _window(use_depth=True)
     assert views.depth_m is not None
     pts = _points(300, seed=3)
     idx = torch.arange(len(views)).expand(pts.shape[0], -1)
@@ -87,11 +89,8 @@ def test_depth_test_masks_views_that_disagree() -> None:
 
 
 def test_dispatch() -> None:
-    """The torch path where the kernel does not apply: OV samples asked for, autograd, float64."""
-    torch.manual_seed(0)
-    model = GovNeSF(TINY).eval()
-    runtime, prep = _runtime_with_six_keyframes(model)
-    views = runtime._all_views(prep, need_ov=True, use_depth=False)
+    """The torch path where the kernel does not apply: OV samples asked for, autograd."""
+    model, _, _, views = _window(need_ov=True)
     pts = _points(20, seed=4)
     idx = torch.zeros(pts.shape[0], 2, dtype=torch.long)
     slots = torch.ones(idx.shape, dtype=torch.bool)
@@ -129,10 +128,7 @@ def test_kernel_edge_cases() -> None:
 def test_compiled_sampling_refuses_bad_indices_and_shapes() -> None:
     """An index past the views or mismatched shapes raise ValueError (the kernel never reads out of
     bounds), as the torch path raises for them."""
-    torch.manual_seed(0)
-    model = GovNeSF(TINY).eval()
-    runtime, prep = _runtime_with_six_keyframes(model)
-    views = runtime._all_views(prep, need_ov=False, use_depth=False)
+    model, _, _, views = _window()
     pts = _points(10, seed=6)
     slots = torch.ones(pts.shape[0], 2, dtype=torch.bool)
     with torch.no_grad():
