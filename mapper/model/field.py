@@ -397,7 +397,7 @@ class GovNeSF(nn.Module):
             features=per_point[..., 3:],
             ov=per_point.new_zeros(P, N, 0),
             mask=torch.from_numpy(mask).reshape(N, P).T,
-            source_dirs=torch.from_numpy(dirs).reshape(N, P, 3).transpose(0, 1),
+            source_dirs=torch.from_numpy(dirs).reshape(3, N, P).permute(2, 1, 0),  # P fastest, as samples
             uv=torch.from_numpy(uv).reshape(N, P, 2).transpose(0, 1),
             source_range=torch.from_numpy(dist).reshape(N, P).T,
         )
@@ -484,10 +484,23 @@ class GovNeSF(nn.Module):
         """(P, D) OV blend: from ``samples.ov``, or from ``ov_maps`` at ``samples.uv``."""
         if ov_maps is None:
             return blend(weights, samples.ov)
+        uv = GovNeSF._maps_uv(samples, ov_maps)
+        return blend_from_maps(ov_maps.table, ov_maps.map_wh, ov_maps.view_idx, uv, weights)
+
+    @staticmethod
+    def _maps_uv(samples: PointViewSamples, ov_maps: OVMaps) -> Tensor:
+        """(P, N, 2) the samples' pixel coordinates in ``ov_maps``' resolution."""
         if samples.uv is None:
             raise ValueError("blending from ov_maps needs samples with uv (sample_views)")
-        uv = scale_uv(samples.uv, ov_maps.image_wh, ov_maps.map_wh)
-        return blend_from_maps(ov_maps.table, ov_maps.map_wh, ov_maps.view_idx, uv, weights)
+        return scale_uv(samples.uv, ov_maps.image_wh, ov_maps.map_wh)
+
+    def _point_weights(
+        self, samples: PointViewSamples, v: Tensor, fusion: FusionNet | None
+    ) -> tuple[Tensor, Tensor]:
+        """OV weights (P, N) and validity (P,) of ``fusion`` (default the model's FusionNet)."""
+        net = self.fusion if fusion is None else fusion
+        return net.point_weights(samples.rgb, samples.features, v, samples.source_dirs, samples.mask,
+                                 samples.source_range)
 
     def query_points(
         self,
@@ -558,13 +571,12 @@ class GovNeSF(nn.Module):
         FusionNet: a smaller point head distilled from it (:mod:`mapper.model.point_head`) that
         takes the same inputs. Not used in ``distill`` mode (the Distill head reads the model's
         own attention features)."""
-        args = (samples.rgb, samples.features, v, samples.source_dirs, samples.mask)
         if self.distill is not None:
-            fused = self.fusion(*args, None, samples.source_range)
+            fused = self.fusion(samples.rgb, samples.features, v, samples.source_dirs, samples.mask, None,
+                                samples.source_range)
             ov = self.distill(fused.x_att, samples.mask, v) * fused.valid.unsqueeze(-1)
             return PointOutputs(ov=ov, valid=fused.valid, num_views=samples.mask.sum(dim=1), ov_weights=None)
-        net = self.fusion if fusion is None else fusion
-        weights, valid = net.point_weights(*args, samples.source_range)
+        weights, valid = self._point_weights(samples, v, fusion)
         ov = self._blend_ov(samples, weights, ov_maps)
         return PointOutputs(ov=ov, valid=valid, num_views=samples.mask.sum(dim=1), ov_weights=weights)
 
@@ -587,13 +599,8 @@ class GovNeSF(nn.Module):
         if self.distill is not None or ov_maps is None:
             out = self.point_outputs(samples, v, ov_maps=ov_maps, fusion=fusion)
             return F.normalize(out.ov, dim=-1) @ texts.to(out.ov.dtype).T, out.valid, out.num_views
-        if samples.uv is None:
-            raise ValueError("blending from ov_maps needs samples with uv (sample_views)")
-        net = self.fusion if fusion is None else fusion
-        weights, valid = net.point_weights(
-            samples.rgb, samples.features, v, samples.source_dirs, samples.mask, samples.source_range
-        )
-        uv = scale_uv(samples.uv, ov_maps.image_wh, ov_maps.map_wh)
+        uv = self._maps_uv(samples, ov_maps)  # (checked before the network runs)
+        weights, valid = self._point_weights(samples, v, fusion)
         cos = cosines_from_maps(ov_maps.table, ov_maps.map_wh, ov_maps.view_idx, uv, weights, texts)
         return cos, valid, samples.mask.sum(dim=1)
 

@@ -346,9 +346,8 @@ class FusionNet(nn.Module):
 
         On the CPU in float32 without autograd (with ``fast_inference`` and ``point_kernel``) this
         runs the compiled kernel :func:`mapper.model.ops.fusion_kernel.point_ov_weights`: the same
-        function, every
-        intermediate in per-block buffers instead of (P*N, C) tensors (weights within about 1e-7 of
-        ``forward_reference``; tests/mapper/test_fusion_kernel.py).
+        function, every intermediate in per-block buffers instead of (P*N, C) tensors (weights as
+        close to a float64 reference as the torch float32 pass's; tests/mapper/test_fusion_kernel.py).
         """
         tensors = (rgb, features, volume_features, source_dirs)
         if (

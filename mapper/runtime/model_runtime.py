@@ -321,13 +321,13 @@ class ModelRuntime:
         model's own FusionNet (logged, never an error). A named head that is missing, unreadable or
         distilled from other weights leaves the model unserved (``load_error`` says why)."""
         from mapper.model.checkpoint import checkpoint_paths
-        from mapper.model.point_head import load_point_head
+        from mapper.model.point_head import head_paths, load_point_head
 
         auto = self.config.point_head == "auto"
         if auto:
             meta_path = checkpoint_paths(checkpoint)[1]
             path = meta_path.with_name(meta_path.stem + "-point-head")
-            if not path.with_name(path.name + ".json").exists():
+            if not head_paths(path)[1].exists():
                 log.info("point answers use the checkpoint's FusionNet (no %s.json)", path)
                 return
         else:

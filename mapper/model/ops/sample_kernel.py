@@ -21,12 +21,13 @@ import numba
 import numpy as np
 
 from mapper.model.ops.average_kernel import corners, launch
+from mapper.model.ops.geometry import _UV_LIMIT as UV_LIMIT
 
 __all__ = ["sample_pairs", "warm_up"]
 
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
-_UV_LIMIT = np.float32(6.0e4)  # mapper.model.ops.geometry._UV_LIMIT
+_UV_LIMIT = np.float32(UV_LIMIT)  # project_points' clamp of pixel coordinates
 
 
 @numba.njit(cache=True, boundscheck=False, inline="always")
@@ -60,7 +61,7 @@ def _sample_kernel(
     depth_ratio,  # float32: |z - d| <= ratio * d agrees
     samples,  # out (3 + F, N * P) float32: colour then features, pair n * P + p
     mask,  # out (N * P,) bool
-    dirs,  # out (N * P, 3) float32
+    dirs,  # out (3, N * P) float32 (channel-first: the point kernel's layout)
     dist,  # out (N * P,) float32
     uv,  # out (N * P, 2) float32
     block,  # int: pairs per parallel task
@@ -96,9 +97,9 @@ def _sample_kernel(
             d = np.sqrt(ox * ox + oy * oy + oz * oz)
             dist[i] = d
             dd = max(d, np.float32(1e-9))
-            dirs[i, 0] = ox / dd
-            dirs[i, 1] = oy / dd
-            dirs[i, 2] = oz / dd
+            dirs[0, i] = ox / dd
+            dirs[1, i] = oy / dd
+            dirs[2, i] = oz / dd
             if seen:
                 _taps(rgb_table, view * rgb_w * rgb_h, rgb_w, rgb_h, u * rgb_sx, v * rgb_sy, samples, 0, i)
                 fb = view * feat_w * feat_h
@@ -127,7 +128,7 @@ def sample_pairs(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every (point, slot) pair at once (see the module docstring). Returns, pair ``n * P + p``:
     samples (3 + F, N * P) float32 (colour, then features; 0 where masked), mask (N * P,) bool,
-    dirs (N * P, 3), dist (N * P,), uv (N * P, 2) in ``image_wh`` pixels. Arguments are checked by
+    dirs (3, N * P), dist (N * P,), uv (N * P, 2) in ``image_wh`` pixels. Arguments are checked by
     the caller (``GovNeSF.sample_views_indexed``)."""
     N, P = view_idx.shape
     W, H = image_wh
@@ -135,7 +136,7 @@ def sample_pairs(
     n_feat = feat_t.shape[1]
     samples = np.empty((3 + n_feat, N * P), np.float32)
     mask = np.empty(N * P, np.bool_)
-    dirs = np.empty((N * P, 3), np.float32)
+    dirs = np.empty((3, N * P), np.float32)
     dist = np.empty(N * P, np.float32)
     uv = np.empty((N * P, 2), np.float32)
     if depth is None:
