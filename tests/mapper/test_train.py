@@ -173,17 +173,21 @@ def test_launch_configs_load() -> None:
     root = Path(__file__).resolve().parents[2] / "launch"
     names = ("train_cpu_small.toml", "train_cpu_small_geo.toml", "train_cpu_small_paper_loss.toml",
              "train_cpu_small_distill.toml", "train_cpu_small_real.toml",
-             "train_cpu_small_finetune_real.toml", "train_paper.toml")
+             "train_cpu_small_finetune_real.toml", "train_cpu_small_finetune_los.toml", "train_paper.toml")
     for name in names:
         if (root / name).is_file():
             cfg = load_train_config(root / name)
             assert cfg.batch_views >= 1
     real = load_train_config(root / "train_cpu_small_real.toml")  # run G: the real mix, held-out poses
     assert real.extra_train_weight > 0 and real.extra_holdout_every == 10 and real.depth_weight > 0
-    # cpu-small's two stages: stage 2 starts from stage 1's export and writes the shipped checkpoint
+    # cpu-small's three stages: each starts from the previous one's export, the last writes the
+    # shipped checkpoint
     stage1 = load_train_config(root / "train_cpu_small.toml")
     stage2 = load_train_config(root / "train_cpu_small_finetune_real.toml")
-    assert stage2.init_weights == stage1.export and stage2.export == "checkpoints/cpu-small"
+    stage3 = load_train_config(root / "train_cpu_small_finetune_los.toml")
+    assert stage2.init_weights == stage1.export and stage3.init_weights == stage2.export
+    assert stage3.export == "checkpoints/cpu-small" and stage3.surface_weight > 0
+    assert len({stage1.out_dir, stage2.out_dir, stage3.out_dir}) == 3
 
 
 def test_geometry_and_visibility_supervision_terms(data_root: Path) -> None:
