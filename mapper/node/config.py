@@ -246,6 +246,22 @@ class QueryConfig:
     100), so a few stray high-scoring points do not outrank a well-observed object; objects are
     sorted by that score. 0 = no discount. 0..1000000."""
 
+    object_split_quantile: float = 0.5
+    """An object candidate of at least ``2 * min_object_points`` points whose core, its points
+    scoring at or above this quantile of its scores, falls apart into two or more groups of at
+    least ``min_object_points`` points (``cluster_radius_m`` apart) is reported as those groups
+    (four chairs around a table, not one object on the table;
+    :func:`mapper.node.queries.split_by_score`).
+    0 = never split. 0..0.99."""
+
+    object_split_depth: int = 3
+    """How many times a candidate's parts may be split again (``object_split_quantile``). 0..16."""
+
+    object_split_max_points: int = 20_000
+    """Candidates with more points than this are never split (room-scale surfaces, not groups of
+    furniture: a table with four chairs is 1-3k points in the simulated rooms); the split's cost
+    is a pass over half a candidate's points. 0 = no limit. 0..100000000."""
+
     max_objects: int = 32
     """Most object candidates per reply (best first). >= 1."""
 
@@ -328,6 +344,9 @@ class QueryConfig:
         _check_range(where, "queries.cluster_radius_m", self.cluster_radius_m, 1e-3, 10.0)
         _check_range(where, "queries.min_object_points", self.min_object_points, 1, 1_000_000)
         _check_range(where, "queries.object_support_points", self.object_support_points, 0.0, 1_000_000.0)
+        _check_range(where, "queries.object_split_quantile", self.object_split_quantile, 0.0, 0.99)
+        _check_range(where, "queries.object_split_depth", self.object_split_depth, 0, 16)
+        _check_range(where, "queries.object_split_max_points", self.object_split_max_points, 0, 100_000_000)
         _check_range(where, "queries.max_objects", self.max_objects, 1, 10_000)
 
 

@@ -14,7 +14,11 @@
 3. ``max_points`` keeps the best scores; object candidates are the connected components (points
    at most ``cluster_radius_m`` apart, :func:`radius_components`: a cell hash, not every point
    pair) of each text's points with at least ``min_object_points`` points, scored by the mean of
-   their top half scores, sorted best first.
+   their top half scores, sorted best first. A component whose best-scoring points fall apart
+   into separate groups (the core above its ``object_split_quantile`` score quantile has two or
+   more components of ``min_object_points``) is reported as those groups instead: four chairs
+   around a table, all above the threshold for "chair", become four chairs, not one object
+   centred on the table (:func:`split_by_score`).
 
 ``segment_points`` methods ``average`` / ``average_depth`` average the window keyframes' OV
 features at the points and pick the best text (:func:`mapper.model.baselines.average_similarities`:
@@ -200,14 +204,24 @@ def cluster_points(
     min_points: int,
     *,
     support_points: float = 0.0,
+    split_quantile: float = 0.0,
+    split_depth: int = 0,
+    split_max_points: int = 0,
     reference: bool = False,
 ) -> list[Cluster]:
     """Connected components per label (points at most ``radius_m`` apart are linked), keeping the
     components with at least ``min_points`` points; each scored by the mean of its top half of
     scores, times ``1 - exp(-n / support_points)`` for a component of n points when
-    ``support_points`` > 0 (:func:`support_factor`). Sorted by score, best first. The components
-    come from :func:`radius_components`; ``reference=True`` takes them from every point pair of a
-    k-d tree, as before (for tests)."""
+    ``support_points`` > 0 (:func:`support_factor`). With ``split_quantile`` > 0 and
+    ``split_depth`` > 0, a component (of at most ``split_max_points`` points when > 0) whose
+    high-scoring core falls apart is replaced by the parts (:func:`split_by_score`). Sorted by
+    score, best first. The components come from :func:`radius_components`; ``reference=True``
+    takes them from every point pair of a k-d tree, as before (for tests)."""
+    if split_quantile > 0 and split_depth > 0:
+        whole = cluster_points(xyz, score, label, radius_m, min_points, support_points=support_points,
+                               reference=reference)
+        return split_by_score(xyz, score, whole, radius_m, min_points, split_quantile, split_depth,
+                              support_points=support_points, max_points=split_max_points)
     out: list[Cluster] = []
     if reference:
         return _cluster_points_reference(xyz, score, label, radius_m, min_points, support_points)
@@ -226,13 +240,78 @@ def cluster_points(
         members_all = members_all[np.argsort(comp[members_all], kind="stable")]  # by component, ascending
         bounds = np.cumsum(sizes[big])
         for members in np.split(members_all, bounds[:-1]):
-            p = pts[members]
-            s = np.sort(score[idx[members]])[::-1]
-            top = s[: max(1, (s.size + 1) // 2)]
-            out.append(Cluster(
-                int(lab), idx[members], p.mean(axis=0), p.min(axis=0), p.max(axis=0),
-                float(top.mean()) * support_factor(members.size, support_points),
-            ))
+            out.append(_scored_cluster(int(lab), idx[members], xyz, score, support_points))
+    out.sort(key=lambda c: (-c.score, -c.indices.size))
+    return out
+
+
+def _scored_cluster(
+    label: int, members: np.ndarray, xyz: np.ndarray, score: np.ndarray, support_points: float
+) -> Cluster:
+    """A :class:`Cluster` of ``members`` (n,) int64 rows of ``xyz`` (N, 3) / ``score`` (N,): centroid,
+    box, and the mean of its top half of scores times :func:`support_factor`."""
+    p = xyz[members].astype(np.float64)
+    s = np.sort(score[members])[::-1]
+    top = s[: max(1, (s.size + 1) // 2)]
+    return Cluster(int(label), members, p.mean(axis=0), p.min(axis=0), p.max(axis=0),
+                   float(top.mean()) * support_factor(members.size, support_points))
+
+
+def split_by_score(
+    xyz: np.ndarray,  # (N, 3) float32 world metres
+    score: np.ndarray,  # (N,) float32
+    clusters: Sequence[Cluster],  # of these points (cluster_points)
+    radius_m: float,
+    min_points: int,
+    quantile: float,
+    depth: int,
+    *,
+    support_points: float = 0.0,
+    max_points: int = 0,
+) -> list[Cluster]:
+    """Clusters whose best-scoring points form separate groups, split into those groups.
+
+    For a cluster of at least ``2 * min_points`` points (and at most ``max_points`` when > 0:
+    larger ones are room-scale surfaces, whose split would cost a pass over half their points and
+    name no object), its core is the points scoring at least
+    its ``quantile`` score quantile (0.5: the top half); when the core's own components (points
+    at most ``radius_m`` apart) include two or more of at least ``min_points`` points, the cluster
+    is replaced by those components (core points only: the weaker points between them, a table
+    between chairs, belong to neither), each split again up to ``depth`` times in all. A cluster
+    whose core stays in one piece, or splits into one big part and crumbs, is kept whole. Scores
+    as :func:`cluster_points`; sorted best first.
+
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> seats = [rng.normal(c, 0.02, (40, 3)) for c in ((0, 0, 0), (0.6, 0, 0))]   # two chairs
+    >>> between = np.stack([np.linspace(0, 0.6, 40), np.zeros(40), np.zeros(40)], 1)  # a table
+    >>> xyz = np.concatenate(seats + [between]).astype(np.float32)
+    >>> score = np.r_[np.full(80, 0.9), np.full(40, 0.5)].astype(np.float32)
+    >>> whole = cluster_points(xyz, score, np.zeros(120, np.int64), 0.12, 15)
+    >>> len(whole), [len(c.indices) for c in split_by_score(xyz, score, whole, 0.12, 15, 0.5, 3)]
+    (1, [40, 40])
+    """
+    if not 0.0 < quantile < 1.0:
+        raise ValueError(f"quantile {quantile} must be in (0, 1)")
+    out: list[Cluster] = []
+    todo = [(c, depth) for c in clusters]
+    while todo:
+        cluster, left = todo.pop()
+        members = cluster.indices
+        if left <= 0 or members.size < 2 * min_points or 0 < max_points < members.size:
+            out.append(cluster)
+            continue
+        s = score[members]
+        core = members[s >= np.quantile(s, quantile)]
+        n_comp, comp = radius_components(xyz[core].astype(np.float64), radius_m)
+        sizes = np.bincount(comp, minlength=n_comp)
+        parts = np.flatnonzero(sizes >= min_points)
+        if parts.size < 2:
+            out.append(cluster)
+            continue
+        for part in parts:
+            sub = _scored_cluster(cluster.label, core[comp == part], xyz, score, support_points)
+            todo.append((sub, left - 1))
     out.sort(key=lambda c: (-c.score, -c.indices.size))
     return out
 
@@ -590,7 +669,8 @@ def query_points(
     if objects and sel.size:
         clusters = cluster_points(
             snapshot.xyz[sel], score[sel], label[sel], config.cluster_radius_m, config.min_object_points,
-            support_points=config.object_support_points,
+            support_points=config.object_support_points, split_quantile=config.object_split_quantile,
+            split_depth=config.object_split_depth, split_max_points=config.object_split_max_points,
         )
         for c in clusters[: config.max_objects]:
             candidates.append(

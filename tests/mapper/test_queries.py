@@ -232,3 +232,81 @@ def test_object_scores_are_discounted_by_support() -> None:
     assert support_factor(15, 0.0) == 1.0 and support_factor(0, 25.0) == 0.0
     assert support_factor(25, 25.0) == pytest.approx(1 - np.exp(-1))
     assert 0.999 < support_factor(10_000, 25.0) <= 1.0
+
+
+def _chairs_around_a_table(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Four 'chairs' (dense blobs scoring 0.8-0.9) at the corners of a 'table' (a plate of points
+    between them scoring 0.5), all linked at 0.12 m: (xyz (N, 3), score (N,), chair centres (4, 3))."""
+    rng = np.random.default_rng(seed)
+    centres = np.array([[0.0, 0.0, 0.5], [1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [1.0, 1.0, 0.5]])
+    chairs = [rng.normal(c, 0.04, (60, 3)) for c in centres]
+    g = np.linspace(0.0, 1.0, 11)  # 0.1 m apart: linked; fewer points than the chairs
+    table = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    table = np.concatenate([table, np.full((table.shape[0], 1), 0.5)], 1)
+    xyz = np.concatenate(chairs + [table]).astype(np.float32)
+    score = np.concatenate([rng.uniform(0.8, 0.9, 240), np.full(table.shape[0], 0.5)]).astype(np.float32)
+    return xyz, score, centres
+
+
+def test_objects_split_where_the_best_points_form_separate_groups() -> None:
+    """Chairs around a table, all labelled 'chair': one component, centred on the table; split by
+    score, four objects, one at each chair, made of chair points only."""
+    from mapper.node.queries import split_by_score
+
+    xyz, score, centres = _chairs_around_a_table()
+    label = np.zeros(len(xyz), np.int64)
+    whole = cluster_points(xyz, score, label, radius_m=0.12, min_points=15, support_points=25.0)
+    assert len(whole) == 1 and np.linalg.norm(whole[0].centroid - [0.5, 0.5, 0.5]) < 0.05
+    for reference in (False, True):
+        parts = cluster_points(xyz, score, label, radius_m=0.12, min_points=15, support_points=25.0,
+                               split_quantile=0.5, split_depth=3, reference=reference)  # fmt: skip
+        assert len(parts) == 4
+        found = sorted(int(np.argmin(np.linalg.norm(centres - c.centroid, axis=1))) for c in parts)
+        assert found == [0, 1, 2, 3]
+        for c in parts:
+            assert np.linalg.norm(centres - c.centroid, axis=1).min() < 0.05
+            assert np.all(c.indices < 240)  # no table point
+            again = cluster_points(xyz[c.indices], score[c.indices], label[c.indices], 0.12, 15,
+                                   support_points=25.0)  # fmt: skip
+            assert len(again) == 1 and again[0].score == pytest.approx(c.score, rel=1e-6)
+        assert [c.score for c in parts] == sorted((c.score for c in parts), reverse=True)
+    # the same with the split switched off, no splits left, or the candidate above the size limit
+    assert len(split_by_score(xyz, score, whole, 0.12, 15, 0.5, 0)) == 1
+    assert len(split_by_score(xyz, score, whole, 0.12, 15, 0.5, 3, max_points=len(xyz) - 1)) == 1
+    assert len(split_by_score(xyz, score, whole, 0.12, 15, 0.5, 3, max_points=len(xyz))) == 4
+    assert len(cluster_points(xyz, score, label, 0.12, 15, split_quantile=0.5, split_depth=3,
+                              split_max_points=100)) == 1  # fmt: skip
+    assert len(cluster_points(xyz, score, label, 0.12, 15, split_quantile=0.0, split_depth=3)) == 1
+    with pytest.raises(ValueError, match="quantile"):
+        split_by_score(xyz, score, whole, 0.12, 15, 1.0, 3)
+
+
+def test_objects_stay_whole_when_their_core_does_not_fall_apart() -> None:
+    """A uniformly scored blob, and a blob whose core splits into one big part and crumbs smaller
+    than min_points, are kept as they are (same indices, same score)."""
+    from mapper.node.queries import split_by_score
+
+    rng = np.random.default_rng(2)
+    blob = rng.uniform(0, 0.4, (300, 3)).astype(np.float32)
+    flat = np.full(300, 0.7, np.float32)
+    varied = rng.uniform(0.5, 0.9, 300).astype(np.float32)
+    crumbs = np.concatenate([blob, rng.normal([0.9, 0.0, 0.0], 0.01, (8, 3)).astype(np.float32),
+                             np.linspace([0.4, 0, 0], [0.9, 0, 0], 6).astype(np.float32)])  # fmt: skip
+    crumb_score = np.concatenate([varied, np.full(8, 0.95, np.float32), np.full(6, 0.4, np.float32)])
+    for xyz, score in ((blob, flat), (blob, varied), (crumbs, crumb_score)):
+        whole = cluster_points(xyz, score, np.zeros(len(xyz), np.int64), 0.12, 15)
+        kept = split_by_score(xyz, score, whole, 0.12, 15, 0.5, 3)
+        assert [c.indices.tolist() for c in kept] == [c.indices.tolist() for c in whole]
+        assert [c.score for c in kept] == [c.score for c in whole]
+
+
+def test_object_split_config_is_checked() -> None:
+    from mapper.errors import ConfigError
+    from mapper.node.config import config_from_dict
+
+    assert config_from_dict({}).queries.object_split_quantile == 0.5
+    bad = (("object_split_quantile", 1.0), ("object_split_quantile", -0.1), ("object_split_depth", -1),
+           ("object_split_max_points", -5))
+    for key, value in bad:
+        with pytest.raises(ConfigError, match=f"queries.{key}"):
+            config_from_dict({"queries": {key: value}})
