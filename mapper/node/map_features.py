@@ -61,6 +61,8 @@ class PreEvictionFeatures:
         self._queued: set[int] = set()
         """``id()`` of the keyframes queued and still in the window (each is queued once)."""
         self._busy = threading.Lock()
+        self._in_batch = 0
+        """Keyframes the worker took from the queue and has not finished (``pending`` counts them)."""
         self._limited = LimitedLog(log)
         self.keyframes_done = 0
         self.keyframes_late = 0
@@ -114,8 +116,17 @@ class PreEvictionFeatures:
         with self._busy:
             items = self.queue.drain()
             if items:
-                self._process(items)
+                self._in_batch = len(items)
+                try:
+                    self._process(items)
+                finally:
+                    self._in_batch = 0
         return len(items)
+
+    @property
+    def pending(self) -> int:
+        """Keyframes waiting, including those of the batch the worker took and has not finished."""
+        return len(self.queue) + self._in_batch
 
     def idle(self) -> bool:
         """Nothing queued and nothing being processed."""
@@ -156,7 +167,7 @@ class PreEvictionFeatures:
     def stats(self) -> dict[str, Any]:
         """``status`` key ``map_features`` (called under the state lock: takes no node lock)."""
         return {
-            "pending": len(self.queue),
+            "pending": self.pending,
             "queued": self.queue.queued,
             "dropped": self.queue.dropped,
             "done": self.keyframes_done,

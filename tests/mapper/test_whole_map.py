@@ -295,9 +295,11 @@ def test_nearest_with_feature_skips_points_without_features(tmp_path: Path) -> N
 def test_learned_features_reach_the_map_before_the_keyframe_leaves(tmp_path: Path) -> None:
     node = _node(tmp_path)
     calls: list[int] = []
+    pending_during: list[int] = []
 
     def learned(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         calls.append(len(xyz))
+        pending_during.append(worker.stats()["pending"])  # the batch in progress still counts
         feats = np.zeros((len(xyz), D), np.float32)
         feats[:, 3] = 2.0  # the "model" says c3 (any norm), against the fused c0:
         feats[:, 0] = -1.0  # mixed with the fused direction it still points to c3
@@ -311,6 +313,7 @@ def test_learned_features_reach_the_map_before_the_keyframe_leaves(tmp_path: Pat
     assert worker.stats()["pending"] == 1 and not worker.idle()
     weight_before = node.state.global_map.snapshot().feat_weight.copy()
     assert worker.process_pending() == 1 and worker.idle()
+    assert pending_during == [1] and worker.stats()["pending"] == 0  # a settled node reads 0 only when done
     stats = worker.stats()
     assert stats["done"] == 1 and stats["late"] == 0 and stats["voxels_set"] == calls[0] - 1
     snap = node.state.global_map.snapshot()
