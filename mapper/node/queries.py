@@ -273,13 +273,13 @@ def split_by_score(
 
     For a cluster of at least ``2 * min_points`` points (and at most ``max_points`` when > 0:
     larger ones are room-scale surfaces, whose split would cost a pass over half their points and
-    name no object), its core is the points scoring at least
-    its ``quantile`` score quantile (0.5: the top half); when the core's own components (points
-    at most ``radius_m`` apart) include two or more of at least ``min_points`` points, the cluster
-    is replaced by those components (core points only: the weaker points between them, a table
-    between chairs, belong to neither), each split again up to ``depth`` times in all. A cluster
-    whose core stays in one piece, or splits into one big part and crumbs, is kept whole. Scores
-    as :func:`cluster_points`; sorted best first.
+    name no object), its core is the points scoring at least its ``quantile`` score quantile
+    (0.5: the top half); when the core's own components (points at most ``radius_m`` apart)
+    include two or more of at least ``min_points`` points, the cluster is replaced by those
+    components (core points only: the weaker points between them, a table between chairs, belong
+    to neither), each split again up to ``depth`` times in all. A cluster whose core stays in one
+    piece, or splits into one big part and crumbs, is kept whole. Scores as
+    :func:`cluster_points`; sorted best first.
 
     >>> import numpy as np
     >>> rng = np.random.default_rng(0)
