@@ -298,3 +298,45 @@ def test_rgb_only_render_takes_the_plane_of_the_geometry_across_a_gap(
         assert reply.timing_ms["surface_pixels"] == on.sum() + reply.timing_ms["plane_pixels"]
     else:
         assert "planes" not in reply.timing_ms and reply.timing_ms["surface_pixels"] == on.sum()
+
+
+@pytest.mark.parametrize("fill", [True, False])
+def test_rgb_only_render_fills_from_the_map_where_the_geometry_has_no_surface(
+    node: MapperNode, model: GovNeSF, fill: bool
+) -> None:
+    """``model.surface_map_fill``: pixels the RGB-only geometry leaves take the global map's
+    splatted surface (and only those: the geometry's own pixels keep the geometry's depth)."""
+    from dataclasses import replace
+
+    from mapper.node.queries import surface_depth
+
+    config = replace(ModelRuntimeConfig(device="cpu"), surface_planes=False, surface_map_fill=fill)
+    runtime = ModelRuntime(config, model=model, text_encoder=lambda space: FakeEncoder())
+    install_learned_handlers(node, runtime)
+    for seq in range(3):  # with depth: the global map gets surface points
+        node.handle_ingest(encode(frame(seq)))
+    node.drain_integrations()
+    for seq in range(3, 8):  # then mostly RGB-only: renders take the measured geometry
+        rgb_only = frame(seq)
+        rgb_only.depth_m = None
+        node.handle_ingest(encode(rgb_only))
+    node.drain_integrations()
+    snap = node.state.global_map.snapshot()
+    points = snap.xyz[snap.xyz[:, 1] > 0.0]  # the geometry covers part of what the map covers
+    node.surface_points.append(lambda: points)
+    K, pose = np.array([10.0, 10.0, 6.0, 4.5]), look_at((2.2, 0.4, 1.1), (0.0, 0.0, 0.5))
+    footprint = config.surface_geometry_footprint * snap.voxel_size_m
+    geometry = surface_depth(points, footprint, K, pose, 12, 9, config)
+    whole = surface_depth(snap.xyz, snap.voxel_size_m, K, pose, 12, 9, config)
+    only_map = (geometry == 0) & (whole > 0)
+    assert (geometry > 0).sum() > 5 and only_map.sum() > 5
+    reply = query(node, Render(width=12, height=9, K=K, world_from_cam=pose, outputs=["depth"]))
+    assert isinstance(reply, RenderResult) and reply.depth_m is not None
+    on = geometry > 0
+    np.testing.assert_allclose(reply.depth_m[on], geometry[on], rtol=1e-5)
+    if fill:
+        np.testing.assert_allclose(reply.depth_m[only_map], whole[only_map], rtol=1e-5)
+        assert reply.timing_ms["surface_pixels"] == on.sum() + only_map.sum()
+    else:
+        assert reply.timing_ms["surface_pixels"] == on.sum()
+        assert not np.allclose(reply.depth_m[only_map], whole[only_map], rtol=1e-3)  # marched there

@@ -164,6 +164,11 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
                 planes = plane_cache[0].planes(xyz, runtime.config)
                 surface, plane_pixels = with_planes(surface, planes, np.asarray(msg.K, np.float64),
                                                     np.asarray(msg.world_from_cam, np.float64))
+            if surface_source == "geometry" and runtime.config.surface_map_fill and node is not None:
+                snap = node.state.global_map.snapshot()
+                fill = surface_depth(snap.xyz, snap.voxel_size_m, np.asarray(msg.K, np.float64),
+                                     msg.world_from_cam, msg.width, msg.height, runtime.config)  # fmt: skip
+                surface = np.where(surface > 0, surface, fill).astype(np.float32)
         surface_ms = (time.perf_counter() - t_surface) * 1e3
         try:
             frame = runtime.render(
