@@ -259,8 +259,9 @@ class QueryConfig:
 
     object_split_max_points: int = 20_000
     """Candidates with more points than this are never split (room-scale surfaces, not groups of
-    furniture: a table with four chairs is 1-3k points in the simulated rooms); the split's cost
-    is a pass over half a candidate's points. 0 = no limit. 0..100000000."""
+    furniture: the largest merged table-and-chairs candidate measured had 1 652 points,
+    docs/QUERIES.md); the split's cost is a pass over half a candidate's points. 0 = no limit.
+    0..100000000."""
 
     max_objects: int = 32
     """Most object candidates per reply (best first). >= 1."""

@@ -153,7 +153,7 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
         points = _surface_points(node, runtime.config) if node is not None else None
         if points is not None:
             # pixels with a measured surface are rendered at it (docs/RENDERING.md)
-            from mapper.node.queries import PlaneCache, surface_depth, with_planes
+            from mapper.node.queries import PlaneCache, map_surface_depth, surface_depth, with_planes
 
             xyz, footprint_m, surface_source = points
             surface = surface_depth(xyz, footprint_m, np.asarray(msg.K, np.float64), msg.world_from_cam,
@@ -166,9 +166,9 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
                                                     np.asarray(msg.world_from_cam, np.float64))
             if surface_source == "geometry" and runtime.config.surface_map_fill and node is not None:
                 snap = node.state.global_map.snapshot()
-                fill = surface_depth(snap.xyz, snap.voxel_size_m, np.asarray(msg.K, np.float64),
-                                     msg.world_from_cam, msg.width, msg.height, runtime.config)  # fmt: skip
-                surface = np.where(surface > 0, surface, fill).astype(np.float32)
+                fill = map_surface_depth(snap, np.asarray(msg.K, np.float64), msg.world_from_cam,
+                                         msg.width, msg.height, runtime.config)  # fmt: skip
+                surface = np.where(surface > 0, surface, fill)
         surface_ms = (time.perf_counter() - t_surface) * 1e3
         try:
             frame = runtime.render(
