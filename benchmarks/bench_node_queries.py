@@ -27,12 +27,16 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=60, help="ingested frames (every one a keyframe)")
     parser.add_argument("--points", type=int, default=100_000, help="segment_points points and map size")
     parser.add_argument("--methods", default="average,average_depth")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="node config override, repeatable (e.g. queries.evicted_views=false)")
     args = parser.parse_args()
     bench.SEGMENT_METHODS = tuple(args.methods.split(","))
     out: dict[str, object] = {"machine": bench.describe_machine()}
     with tempfile.TemporaryDirectory(prefix="govnesf-h11-") as tmp:
         root = Path(tmp)
         node_args = ["--set", "global_map.max_points=2000000", "--set", "poll_interval_s=0.02"]
+        for override in args.set:
+            node_args += ["--set", override]
         node = NodeProcess(root / "maps", log_path=root / "node.log", extra_args=node_args)
         with node:
             node.wait_ready(timeout_s=120.0)
@@ -40,6 +44,7 @@ def main() -> None:
             out["ingest"] = bench.bench_ingest(node, bench.make_frames(args.frames), query_during=False)
             out["ingest_s"] = round(time.perf_counter() - t, 2)
             with node.client(timeout_s=600.0, retries=0) as client:
+                out["settle_s"] = bench.wait_until_settled(client)
                 out["segment_points"] = bench.bench_segment(client, args.points, 2)
                 out["query_points"] = bench.bench_query_points(client, root / "maps", [args.points], 5, 30)
     print(json.dumps(out, indent=1))

@@ -8,7 +8,9 @@ method (``average``, ``average_depth``, ``govnesf``). Runs:
 
 * ``unbounded``: a window that holds every keyframe;
 * ``bounded``: a window of ceil(keyframes / 3) keyframes (the stream has 3x more keyframes than
-  the window), answered from the window and the global map (the node's default);
+  the window), answered from the window and the global map (the node's default), the averaging
+  methods with the views of the keyframes that left (``queries.evicted_views``);
+* ``bounded, no evicted views``: the same with ``queries.evicted_views = false``;
 * ``bounded, window only``: the same with ``queries.map_radius_voxels = 0`` (no map answers);
 * ``bounded`` / ``unbounded, more confident (before the blend)``: ``queries.map_blend = 0``, the
   rule before it: where both answer, the map's text only where its cosine is higher
@@ -74,7 +76,8 @@ def _count_keyframes(frames: list[bytes]) -> int:
 
 
 def _node(
-    tmp: Path, max_keyframes: int, *, radius_voxels: float, learned: bool, more_confident: bool, blend: float
+    tmp: Path, max_keyframes: int, *, radius_voxels: float, learned: bool, more_confident: bool, blend: float,
+    evicted: bool = True,
 ) -> tuple[Any, Any, Any]:
     """(node, its map-features worker or None, the model runtime) for one run."""
     from mapper.node.config import config_from_dict
@@ -89,7 +92,7 @@ def _node(
             "window": {"max_keyframes": max_keyframes},
             "global_map": {"rendered_depth": False, "learned_features": learned},
             "queries": {"map_radius_voxels": radius_voxels, "map_when_more_confident": more_confident,
-                        "map_blend": blend},
+                        "map_blend": blend, "evicted_views": evicted},
         }
     )
     node = MapperNode(config)
@@ -112,6 +115,8 @@ def _run(frames: list[bytes], node: Any, blender: Any) -> float:
             raise SystemExit(f"ingest error: {reply}")
         if blender is not None:
             blender.process_pending()
+        if node.evicted_views is not None:
+            node.evicted_views.process_pending()
     return time.perf_counter() - started
 
 
@@ -169,7 +174,9 @@ def _render_miou(node: Any, scene: Path, texts: list[str], n_views: int) -> tupl
     return round(100 * miou, 2), round(100 * share, 1)
 
 
-def bench_scene(scene: Path, tmp: Path, render_views: int = 0) -> dict[str, Any]:
+def bench_scene(
+    scene: Path, tmp: Path, render_views: int = 0, only: list[str] | None = None
+) -> dict[str, Any]:
     from clients.harness import mean_iou
     from mapper.node.config import QueryConfig
 
@@ -181,14 +188,21 @@ def bench_scene(scene: Path, tmp: Path, render_views: int = 0) -> dict[str, Any]
     bounded = max(1, math.ceil(n_kf / 3))
     shipped = QueryConfig()
     radius, confident, blend = shipped.map_radius_voxels, shipped.map_when_more_confident, shipped.map_blend
-    runs = {  # max keyframes, map radius (voxels), learned map features, map when more confident, blend
-        "unbounded": (10_000, radius, True, confident, blend),
-        "bounded": (bounded, radius, True, confident, blend),
-        "bounded, window only": (bounded, 0.0, True, False, 0.0),
-        "bounded, more confident (before the blend)": (bounded, radius, True, True, 0.0),
-        "unbounded, more confident (before the blend)": (10_000, radius, True, True, 0.0),
-        "bounded, no learned map features": (bounded, radius, False, confident, blend),
+    runs = {  # max keyframes, map radius (voxels), learned map features, map when more confident, blend,
+        # the evicted keyframes' views (queries.evicted_views)
+        "unbounded": (10_000, radius, True, confident, blend, True),
+        "bounded": (bounded, radius, True, confident, blend, True),
+        "bounded, no evicted views": (bounded, radius, True, confident, blend, False),
+        "bounded, window only": (bounded, 0.0, True, False, 0.0, False),
+        "bounded, more confident (before the blend)": (bounded, radius, True, True, 0.0, True),
+        "unbounded, more confident (before the blend)": (10_000, radius, True, True, 0.0, True),
+        "bounded, no learned map features": (bounded, radius, False, confident, blend, True),
     }
+    if only:
+        unknown = sorted(set(only) - set(runs))
+        if unknown:
+            raise SystemExit(f"--runs: unknown {unknown}; known: {sorted(runs)}")
+        runs = {k: v for k, v in runs.items() if k in only}
     out: dict[str, Any] = {
         "scene": scene.name,
         "frames": len(frames),
@@ -197,10 +211,10 @@ def bench_scene(scene: Path, tmp: Path, render_views: int = 0) -> dict[str, Any]
         "gt_points": int(xyz.shape[0]),
         "runs": {},
     }
-    for name, (max_kf, radius_voxels, learned, more_confident, map_blend) in runs.items():
+    for name, (max_kf, radius_voxels, learned, more_confident, map_blend, evicted) in runs.items():
         node, blender, _ = _node(
             tmp, max_kf, radius_voxels=radius_voxels, learned=learned, more_confident=more_confident,
-            blend=map_blend,
+            blend=map_blend, evicted=evicted,
         )
         ingest_s = _run(frames, node, blender)
         row: dict[str, Any] = {"max_keyframes": max_kf, "ingest_s": round(ingest_s, 2)}
@@ -260,7 +274,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--render-views", type=int, default=0,
                         help="also render this many of the scene's novel views (gt/novel_views.npz) per run "
                              "and report the 2D mIoU of the render labels (0 = none)")
+    parser.add_argument("--runs", default="",
+                        help="';'-separated run names to do (default: every run), e.g. 'unbounded;bounded'")
     args = parser.parse_args(argv)
+    only = [r.strip() for r in args.runs.split(";") if r.strip()] or None
     import tempfile
 
     results = []
@@ -269,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
             if not (scene / "frames.govrec").is_file():
                 print(f"{scene}: no frames.govrec (make it with scripts/make_eval_data.sh)", file=sys.stderr)
                 return 2
-            results.append(bench_scene(scene, Path(tmp), render_views=args.render_views))
+            results.append(bench_scene(scene, Path(tmp), render_views=args.render_views, only=only))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".json").write_text(json.dumps(results, indent=1))
     args.out.with_suffix(".md").write_text(to_markdown(results))

@@ -263,7 +263,7 @@ def _busy_items(extra: dict[str, Any]) -> int:
     """Work the node still has queued after a stream, from its ``status``: the integrator's backlog,
     the model's unapplied window changes and the background workers' pending keyframes."""
     busy = int((extra.get("integration") or {}).get("backlog", 0) or 0)
-    for key in ("model", "map_features", "rendered_depth", "triangulation", "ov_backend"):
+    for key in ("model", "map_features", "evicted_views", "rendered_depth", "triangulation", "ov_backend"):
         stats = extra.get(key)
         if isinstance(stats, dict):
             busy += int(stats.get("pending", 0) or 0)

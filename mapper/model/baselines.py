@@ -190,13 +190,21 @@ def _kernel_average(
     vw: Tensor | None,  # (V, N) float32
     dim: int,
     texts: Tensor | None,  # (T, D) float32
+    prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,  # (P, D), (N,) int64, (N,) float32
+    raw: bool = False,
+    cache_table: bool = True,
 ) -> tuple[Tensor, Tensor]:
-    """The CPU path of :func:`average_features` (``texts`` None: (N, D) unit features) and
-    :func:`average_similarities` ((N, T) cosines): one compiled kernel, and the views counted (N,)."""
+    """The CPU path of :func:`average_features` (``texts`` None: (N, D) unit features, or with
+    ``raw`` the means themselves) and :func:`average_similarities` ((N, T) cosines): one compiled
+    kernel, and the views counted (N,). ``prior``: see :func:`average_similarities`.
+    ``cache_table`` False builds the views' OV table without replacing the cached one (the
+    window's, which the next query reuses)."""
     cpu = torch.device("cpu")
     va = _view_arrays(parsed, use_depth=use_depth, device=cpu)
     ov_off = np.concatenate([[0], np.cumsum(va.ov_w * va.ov_h)])[:-1]  # (V,)
-    table = _ov_table(parsed, dim)  # (R, D)
+    table = _ov_table(parsed, dim) if cache_table else np.concatenate(
+        [np.asarray(v.ov.cpu().numpy() if isinstance(v.ov, Tensor) else v.ov, np.float32).reshape(-1, dim)
+         for v in parsed])  # (R, D)
     right = (va.img_w - border_px).astype(np.float64)  # (V,) as ``width - border_px`` per view
     bottom = (va.img_h - border_px).astype(np.float64)
     depth_flat = np.zeros(1, np.float32) if va.depth_flat is None else va.depth_flat
@@ -206,8 +214,34 @@ def _kernel_average(
         use_depth=use_depth and va.depth_flat is not None, has_depth=va.has_depth, depth_flat=depth_flat,
         d_off=va.d_off, d_w=va.d_w, d_h=va.d_h, d_scale=va.d_scale, depth_tol=depth_rel_tol,
         distance_power=distance_power, view_weights=None if vw is None else vw.cpu().numpy(),
-        texts=None if texts is None else texts.cpu().numpy(), threads=torch.get_num_threads())
+        texts=None if texts is None else texts.cpu().numpy(), threads=torch.get_num_threads(), prior=prior,
+        raw=raw)
     return torch.from_numpy(out), torch.from_numpy(count)
+
+
+def view_samples(
+    points: np.ndarray,  # (N, 3) float32 world metres
+    view: OVView | tuple,
+    *,
+    use_depth: bool,
+    border_px: float = 10.0,
+    depth_rel_tol: float = 0.25,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One view's contribution to :func:`average_features` at each point, with the same selection
+    (in front, inside the image less ``border_px``, the depth test with ``use_depth``): (features
+    (N, D) float32, the bilinear OV sample where the view counts and 0 elsewhere; counted (N,) bool).
+    A view without depth counts nowhere with ``use_depth``. The compiled kernel (CPU); the cached
+    OV table of the window's queries is left alone."""
+    pts, parsed, _, dim = _parse_inputs(points, [view], use_depth=use_depth, border_px=border_px,
+                                        depth_rel_tol=depth_rel_tol, chunk=1, view_weights=None,
+                                        device=torch.device("cpu"))
+    if not parsed or pts.shape[0] == 0:
+        d = int(OVView(*view).ov.shape[-1])
+        return np.zeros((pts.shape[0], d), np.float32), np.zeros(pts.shape[0], bool)
+    feats, count = _kernel_average(pts, parsed, use_depth=use_depth, border_px=border_px,
+                                   depth_rel_tol=depth_rel_tol, distance_power=0.0, vw=None, dim=dim,
+                                   texts=None, raw=True, cache_table=False)
+    return feats.numpy(), count.numpy() > 0
 
 
 def average_features_reference(
@@ -387,6 +421,7 @@ def average_similarities(
     device: str | torch.device = "cpu",
     max_table_bytes: int = 256 << 20,
     impl: str = "auto",
+    prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Cosines between :func:`average_features` and texts, without keeping the (N, D) features.
 
@@ -394,6 +429,11 @@ def average_similarities(
         points, views, use_depth, border_px, depth_rel_tol, chunk, device, max_table_bytes, impl: as
             in :func:`average_features`.
         text_emb: (T, D) float32 text embeddings (unit rows for cosines).
+        prior: optional ``(means (P, D) float32, row (N,) int64 (-1: none), weight (N,) float32)``:
+            point n's average also takes ``means[row[n]]`` as the mean of ``weight[n]`` more views
+            (views no longer given, e.g. keyframes that left the node's window; with uniform view
+            weights the result is the average over both sets). The compiled CPU path only
+            (``ValueError`` elsewhere). ``n_views`` still counts the given views only.
 
     Returns:
         similarities: (N, T) float32, ``average_features(...)[0] @ text_emb.T`` (zero rows where no
@@ -409,11 +449,17 @@ def average_similarities(
                                             device=torch.device("cpu"))
         if dim and texts.shape[1] != dim:
             raise ValueError(f"text_emb has dimension {texts.shape[1]}, the views' features {dim}")
+        if not parsed and prior is not None and pts.shape[0] > 0:
+            # no view here: the prior alone (a placeholder view that counts nowhere)
+            return _prior_only_similarities(pts, prior, texts)
         if not parsed or pts.shape[0] == 0:
             return (torch.zeros(pts.shape[0], texts.shape[0], dtype=torch.float32),
                     torch.zeros(pts.shape[0], dtype=torch.int64))
         return _kernel_average(pts, parsed, use_depth=use_depth, border_px=border_px,
-                               depth_rel_tol=depth_rel_tol, distance_power=0.0, vw=None, dim=dim, texts=texts)
+                               depth_rel_tol=depth_rel_tol, distance_power=0.0, vw=None, dim=dim, texts=texts,
+                               prior=prior)
+    if prior is not None:
+        raise ValueError("prior is supported by the compiled CPU path only (impl 'auto' on a CPU device)")
     n_pts, dim, chunks = _average_chunks(
         points, views, use_depth=use_depth, border_px=border_px, depth_rel_tol=depth_rel_tol, chunk=chunk,
         distance_power=0.0, view_weights=None, device=device, max_table_bytes=max_table_bytes)
@@ -428,6 +474,29 @@ def average_similarities(
             sims[start:stop] = (acc @ texts.T) / norm
         n_views[start:stop] = count
     return sims, n_views
+
+
+def _prior_only_similarities(
+    pts: Tensor,  # (N, 3)
+    prior: tuple[np.ndarray, np.ndarray, np.ndarray],
+    texts: Tensor,  # (T, D)
+) -> tuple[Tensor, Tensor]:
+    """:func:`average_similarities` with a prior and no view: the prior rows' cosines."""
+    table, row, weight = (np.asarray(prior[0], np.float32), np.asarray(prior[1], np.int64),
+                          np.asarray(prior[2], np.float32))
+    n = pts.shape[0]
+    if table.ndim != 2 or table.shape[1] != texts.shape[1] or row.shape != (n,) or weight.shape != (n,):
+        raise ValueError(f"prior must be ((P, {texts.shape[1]}), ({n},), ({n},)), got {table.shape}, "
+                         f"{row.shape}, {weight.shape}")
+    if row.size and (row.max() >= table.shape[0] or row.min() < -1):
+        raise ValueError(f"prior rows must be in [-1, {table.shape[0]})")
+    sims = np.zeros((n, texts.shape[0]), np.float32)
+    use = (row >= 0) & (weight > 0)
+    if use.any():
+        feats = table[row[use]]
+        feats /= np.maximum(np.linalg.norm(feats, axis=1, keepdims=True), 1e-12)
+        sims[use] = feats @ texts.numpy().T
+    return torch.from_numpy(sims), torch.zeros(n, dtype=torch.int64)
 
 
 def _use_kernel(impl: str, device: str | torch.device, max_table_bytes: int) -> bool:

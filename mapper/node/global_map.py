@@ -71,6 +71,7 @@ from scipy.spatial import cKDTree
 
 from mapper.model.ops.checks import check_shape
 from mapper.node.config import GlobalMapConfig
+from mapper.node.evicted_views import EvictedViewStore
 
 log = logging.getLogger("mapper.node.global_map")
 
@@ -291,6 +292,7 @@ class GlobalMapSnapshot:
     feat_reset: int = 0
     """Rows moved or were replaced at this version (prune, restore, clear): ``feat_stamp`` says
     nothing about blocks computed before it."""
+    keys: np.ndarray | None = None  # (N,) int64 each row's voxel key
     generation: int = 0
     """The map's :attr:`GlobalSemanticMap.generation` (unique in the process; a new map,
     ``restore`` and ``clear`` change it, growing and fusing do not): answers of another generation
@@ -517,6 +519,9 @@ class GlobalSemanticMap:
         self._unit_source = _UnitSource()
         self._version = 0
         self._generation = next(_GENERATIONS)
+        self.evicted = EvictedViewStore()
+        """What keyframes that left the window saw, per voxel (:mod:`mapper.node.evicted_views`;
+        saved and loaded with the map, cleared with it)."""
         self._reset(dim=None)
 
     # -- state -------------------------------------------------------------------------------
@@ -1012,6 +1017,7 @@ class GlobalSemanticMap:
                 last_seen_ns=frozen(self._last_seen_ns),
                 feat_stamp=frozen(self._feat_stamp),
                 feat_reset=self._feat_reset,
+                keys=frozen(self._keys),
                 generation=self._generation,
                 _unit_source=self._unit_source,
             )
@@ -1037,7 +1043,10 @@ class GlobalSemanticMap:
             }
             if self._feat is not None:
                 arrays[f"{prefix}.feat"] = self._feat[:n].copy()
+            ev_arrays, ev_manifest = self.evicted.to_arrays(f"{prefix}.evicted")
+            arrays.update(ev_arrays)
             manifest: dict[str, Any] = {
+                "evicted_views": ev_manifest,
                 "format": _FORMAT,
                 "points": n,
                 "dim": self._dim,
@@ -1090,6 +1099,12 @@ class GlobalSemanticMap:
             keys, ok = voxel_keys(got["xyz"], self.config.voxel_size_m)
             if not ok.all():
                 raise ValueError("global map section: points outside the voxel key range")
+        evicted = EvictedViewStore()
+        ev_manifest = manifest.get("evicted_views")
+        if ev_manifest is not None and manifest.get("voxel_size_m") == self.config.voxel_size_m:
+            evicted.restore(arrays, ev_manifest, f"{prefix}.evicted")  # raises before anything changed
+            if evicted.dim is not None and dim is not None and evicted.dim != dim:
+                raise ValueError(f"evicted views section: dimension {evicted.dim}, the map's {dim}")
         # one row per key (re-keying can merge voxels): the most confident wins
         order = np.lexsort((-got["weight"], keys))
         first = np.ones(n, bool)
@@ -1118,6 +1133,7 @@ class GlobalSemanticMap:
             self._map_version = map_version
             self._version += 1
             self._generation = next(_GENERATIONS)
+            self.evicted = evicted
             self._prune_if_needed()
 
     def retag(self, map_version: int) -> None:
@@ -1130,6 +1146,7 @@ class GlobalSemanticMap:
         """Drop every point (the feature dimension is forgotten too)."""
         with self._lock:
             self._reset(None)
+            self.evicted = EvictedViewStore()
             if map_version is not None:
                 self._map_version = map_version
             self._version += 1

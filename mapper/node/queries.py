@@ -730,12 +730,16 @@ def segment_average_cosines(
     text_emb: np.ndarray,  # (T, D) float32 unit rows
     *,
     use_depth: bool,
+    prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,  # (P, D) f32, (N,) i64, (N,) f32
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`segment_average` before the choice of a text: (cosines (N, T) float32 of the averaged
-    feature with each text, zero rows where no view counts; n_views (N,) int64)."""
+    feature with each text, zero rows where nothing counts; n_views (N,) int64, the given views that
+    counted). ``prior``: views no longer given, as running means per point
+    (:func:`mapper.model.baselines.average_similarities`; the node's evicted keyframes,
+    :mod:`mapper.node.evicted_views`)."""
     from mapper.model.baselines import average_similarities  # torch-heavy; imported when first used
 
-    sims_t, n_views = average_similarities(xyz, list(views), text_emb, use_depth=use_depth)
+    sims_t, n_views = average_similarities(xyz, list(views), text_emb, use_depth=use_depth, prior=prior)
     return sims_t.numpy(), n_views.numpy()
 
 
@@ -813,6 +817,7 @@ def fill_from_map(
     more_confident: bool = False,
     window_cos: np.ndarray | None = None,  # (N, T) float32 the window's cosines (rows where seen)
     blend: float = 0.0,
+    nearest: np.ndarray | None = None,  # (N,) int64 snapshot.nearest_with_feature(xyz, radius_m), if known
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Answer the points the window did not from the map: (label (N,) int32, score (N,) float32,
     source (N,) uint8). A point the window saw keeps the window's answer (``SOURCE_WINDOW``); an
@@ -824,7 +829,8 @@ def fill_from_map(
     answer where the map names another text with a higher cosine than the window's score (views
     that left the window saw it better than the ones in it; where both name the same text the
     window's answer stays); else the window's. A map whose feature dimension is not the texts'
-    answers nothing."""
+    answers nothing. ``nearest``: every point's nearest map row, when the caller looked it up
+    already."""
     label = np.array(label, np.int32, copy=True)
     score = np.array(score, np.float32, copy=True)
     seen = np.asarray(window_seen, bool)
@@ -840,7 +846,10 @@ def fill_from_map(
     todo = np.arange(seen.shape[0]) if (more_confident or blending) else np.flatnonzero(~seen)
     if todo.size == 0 or not _map_compatible(snapshot, text_emb):
         return label, score, source
-    rows = snapshot.nearest_with_feature(np.asarray(xyz)[todo], radius_m)
+    if nearest is not None:
+        rows = np.asarray(nearest, np.int64)[todo]
+    else:
+        rows = snapshot.nearest_with_feature(np.asarray(xyz)[todo], radius_m)
     hit = rows >= 0
     if hit.any():
         sims = _map_similarities(snapshot, rows[hit], text_emb)  # (n, T)

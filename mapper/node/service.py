@@ -71,6 +71,7 @@ import numpy as np
 import zmq
 
 from mapper.node.config import NodeConfig, to_dict
+from mapper.node.evicted_views import EvictedViews, EvictedViewStore
 from mapper.node.global_map import GlobalMapSnapshot, GlobalSemanticMap
 from mapper.node.keyframe_queue import KeyframeQueue
 from mapper.node.security import CurveServer, exposure_problem, security_mode
@@ -336,6 +337,12 @@ class MapperNode:
         self.workers: list[tuple[str, Callable[[threading.Event], None]]] = []
         """Background threads ``(name, target)`` started by :meth:`start` after the sockets are
         bound; ``target(stop_event)`` runs until the event is set and must not raise."""
+        self.evicted_views: EvictedViews | None = None
+        """The worker that keeps evicted keyframes' views for the averaging methods
+        (``queries.evicted_views``; :mod:`mapper.node.evicted_views`)."""
+        if config.queries.evicted_views:
+            self.evicted_views = EvictedViews(self)
+            self.evicted_views.install()
         self.kernel_modules: list[str] = ["mapper.node.query_kernels"]
         """Modules whose compiled kernels :meth:`start` warms in the background (each module's
         ``warm_up``: compiled, or loaded from numba's cache), so that no first query pays for it;
@@ -927,6 +934,9 @@ class MapperNode:
                     state.ov_dim = int(frame.ov.shape[2])
                 state.map_version += 1
                 state.keyframes_evicted += len(update.evicted)
+                if self.evicted_views is not None:
+                    for old in update.evicted:
+                        self.evicted_views.put(old, state.global_map)
                 status = "keyframe"
                 self._publish(state.map_version, len(state.window))
             else:
@@ -1165,6 +1175,8 @@ class MapperNode:
             target = self._integrate_submitted
             global_map = self.state.global_map
         self._wait_integrated(target)
+        if self.evicted_views is not None:
+            self.evicted_views.process_pending()  # the views of keyframes that left, in the saved map
         # the map as of now: every keyframe of ``snap`` and perhaps a few acked since (its own lock)
         global_arrays, global_manifest = global_map.to_arrays()
         arrays, entries = keyframes_to_arrays(snap.keyframes)
@@ -1405,7 +1417,7 @@ class MapperNode:
     def _segment_average(self, msg: SegmentPoints, use_depth: bool) -> Segmentation:
         """``average`` / ``average_depth``: OpenScene-2D averaging over the window's keyframes where
         they see a point, the global map's fused features elsewhere (:meth:`answer_from_map`)."""
-        from mapper.node.queries import best_text, segment_average_cosines
+        from mapper.node.queries import SOURCE_MAP, SOURCE_WINDOW, best_text, segment_average_cosines
 
         started = time.perf_counter()
         method = "average_depth" if use_depth else "average"
@@ -1417,7 +1429,9 @@ class MapperNode:
             for k in with_ov
             if k.ov is not None and (not use_depth or k.depth_m is not None)
         ]
-        map_snap = self.state.global_map.snapshot()  # one snapshot for the check and the fill
+        gmap = self.state.global_map  # its snapshot and evicted views together (a load swaps the map)
+        map_store = gmap.evicted
+        map_snap = gmap.snapshot()  # one snapshot for the check and the fill
         map_has_features = map_snap.n_with_features > 0
         if not with_ov and not map_has_features:
             raise ProtocolError(
@@ -1445,15 +1459,22 @@ class MapperNode:
         text_emb = encoder.encode(list(msg.texts))
         t_text = time.perf_counter()
         xyz = np.asarray(msg.xyz, np.float32)
-        if views:
-            cos, n_views = segment_average_cosines(xyz, views, text_emb, use_depth=use_depth)
+        nearest = map_snap.nearest_with_feature(xyz, self.map_radius_m) if map_has_features else None
+        t_near = time.perf_counter()
+        prior = self._evicted_prior(map_store, map_snap, nearest, "depth" if use_depth else "all", text_emb)
+        t_prior = time.perf_counter()
+        if views or prior is not None:
+            cos, n_views = segment_average_cosines(xyz, views, text_emb, use_depth=use_depth, prior=prior)
         else:
             cos = np.zeros((xyz.shape[0], text_emb.shape[0]), np.float32)
             n_views = np.zeros(xyz.shape[0], np.int64)
-        label, score = best_text(cos, n_views > 0)
+        evicted_only = (n_views == 0) & (prior[1] >= 0) if prior is not None else np.zeros(xyz.shape[0], bool)
+        seen = (n_views > 0) | evicted_only
+        label, score = best_text(cos, seen)
         t_avg = time.perf_counter()
-        label, score, source = self.answer_from_map(xyz, text_emb, label, score, n_views > 0, map_snap,
-                                                    window_cos=cos, depth_tested=use_depth)
+        label, score, source = self.answer_from_map(xyz, text_emb, label, score, seen, map_snap,
+                                                    window_cos=cos, depth_tested=use_depth, nearest=nearest)
+        source[evicted_only & (source == SOURCE_WINDOW)] = SOURCE_MAP  # only keyframes that left saw it
         t_done = time.perf_counter()
         return Segmentation(
             label=label,
@@ -1462,10 +1483,13 @@ class MapperNode:
             timing_ms={
                 "views": 1e3 * (t_views - started),
                 "encode_text": 1e3 * (t_text - t_views),
-                "average": 1e3 * (t_avg - t_text),
+                "nearest": 1e3 * (t_near - t_text),
+                "evicted": 1e3 * (t_prior - t_near),
+                "average": 1e3 * (t_avg - t_prior),
                 "map": 1e3 * (t_done - t_avg),
                 "total": 1e3 * (t_done - started),
                 "n_views": float(len(views)),
+                "from_evicted": float(np.count_nonzero(prior[2] > 0)) if prior is not None else 0.0,
                 "from_map": float(np.count_nonzero(source == 2)),
             },
         )
@@ -1480,6 +1504,7 @@ class MapperNode:
         snap: GlobalMapSnapshot | None = None,  # the snapshot to use (default: the current one)
         window_cos: np.ndarray | None = None,  # (N, T) the window's cosines (for queries.map_blend)
         depth_tested: bool = False,  # the window's answer already passed a depth test
+        nearest: np.ndarray | None = None,  # (N,) int64 the snapshot's nearest rows, if looked up already
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Fill the points the window did not answer from the global map's snapshot (nearest point
         with a feature within ``queries.map_radius_voxels`` voxels) and, with ``window_cos``, blend
@@ -1491,7 +1516,34 @@ class MapperNode:
             snap = self.state.global_map.snapshot()
         return fill_from_map(snap, xyz, text_emb, label, score, window_seen, self.map_radius_m,
                              more_confident=self.config.queries.map_when_more_confident,
-                             window_cos=window_cos, blend=self.map_blend(depth_tested=depth_tested))
+                             window_cos=window_cos, blend=self.map_blend(depth_tested=depth_tested),
+                             nearest=nearest)
+
+    def _evicted_prior(
+        self,
+        store: EvictedViewStore,
+        snap: GlobalMapSnapshot,
+        nearest: np.ndarray | None,  # (N,) int64 nearest map rows with a feature (-1: none)
+        channel: str,
+        text_emb: np.ndarray,  # (T, D)
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The views of keyframes that left the window at each point's nearest map voxel, as the
+        averaging's ``prior`` (means (P, D) float32, row (N,) int64 (-1: none), views (N,) float32),
+        or None when there are none (``queries.evicted_views`` off, nothing evicted yet, no map
+        voxel near, another feature dimension)."""
+        if self.evicted_views is None or nearest is None or snap.keys is None or len(store) == 0:
+            return None
+        if store.dim != text_emb.shape[1]:
+            return None
+        keys = np.full(nearest.shape[0], -1, np.int64)
+        hit = nearest >= 0
+        keys[hit] = snap.keys[nearest[hit]]
+        table, row, weight = store.prior(keys, channel)
+        row[~hit] = -1
+        weight[~hit] = 0.0
+        if not (row >= 0).any():
+            return None
+        return table, row, weight
 
     def map_blend(self, *, depth_tested: bool = False) -> float:
         """The weight of the global map's cosines where the window answers a ``segment_points`` point

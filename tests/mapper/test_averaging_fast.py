@@ -216,3 +216,44 @@ def test_kernel_table_reused_for_the_same_views_only() -> None:
     assert baselines._TABLE_CACHE[0][1] is not table
     ref, _ = average_features_reference(pts, changed, use_depth=False)
     torch.testing.assert_close(other, ref, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("use_depth", [False, True])
+@pytest.mark.parametrize("seed", [0, 3])
+def test_prior_of_left_views_equals_averaging_all_views(seed: int, use_depth: bool) -> None:
+    """Views that left (their running mean of ``view_samples`` and count as the prior) plus the views
+    still given average exactly as all the views together (float rounding); a point only the left
+    views saw is answered from the prior alone with 0 views counted."""
+    from mapper.model.baselines import view_samples
+
+    pts, views = random_scene(seed)
+    texts = torch.nn.functional.normalize(torch.randn(5, 24, generator=torch.Generator().manual_seed(seed)),
+                                          dim=1).numpy()
+    left, kept = views[:4], views[4:]
+    total = np.zeros((pts.shape[0], 24), np.float64)
+    count = np.zeros(pts.shape[0], np.float64)
+    for view in left:
+        feat, counted = view_samples(pts, view, use_depth=use_depth)
+        assert not feat[~counted].any()
+        total += feat
+        count += counted
+    has = count > 0
+    mean = (total[has] / count[has, None]).astype(np.float32)
+    row = np.full(pts.shape[0], -1, np.int64)
+    row[has] = np.arange(int(has.sum()))
+    prior = (mean, row, count.astype(np.float32))
+    want, n_all = average_similarities(pts, views, texts, use_depth=use_depth)
+    got, n_kept = average_similarities(pts, kept, texts, use_depth=use_depth, prior=prior)
+    _, n_left = average_similarities(pts, left, texts, use_depth=use_depth)
+    assert torch.equal(n_kept + n_left, n_all)
+    assert int(((n_kept == 0) & has).sum()) > 10  # some points only the left views saw
+    assert torch.allclose(got, want, atol=2e-5, rtol=0)
+    # no view given: the prior alone
+    alone, n0 = average_similarities(pts, [], texts, use_depth=use_depth, prior=prior)
+    want_left, _ = average_similarities(pts, left, texts, use_depth=use_depth)
+    assert int(n0.sum()) == 0
+    assert torch.allclose(alone, want_left, atol=2e-5, rtol=0)
+    with pytest.raises(ValueError, match="prior rows"):
+        average_similarities(pts, kept, texts, use_depth=use_depth, prior=(mean, row + 10**6, prior[2]))
+    with pytest.raises(ValueError, match="compiled CPU path"):
+        average_similarities(pts, kept, texts, use_depth=use_depth, prior=prior, impl="torch")

@@ -149,11 +149,12 @@ def test_config_defaults_parse_and_errors(tmp_path: Path, clip_files: dict[str, 
 def test_install_refuses_a_node_pinned_to_another_space(tmp_path: Path, clip_files: dict[str, Path]) -> None:
     config = apply_overrides(_config(tmp_path, clip_files), {"ov_space": SPACE})
     node = MapperNode(config)
+    workers = list(node.workers)  # the node's own (evicted views)
     try:
         other = OvBackendConfig(**{**config.ov_backend.__dict__, "model_name": "other"})
         with pytest.raises(ConfigError, match="'openclip:tiny-test' is pinned.*'openclip:other'"):
             install_ov_backend(node, other)
-        assert not node.keyframe_listeners and not node.workers and "ov_backend" not in node.status_providers
+        assert not node.keyframe_listeners and node.workers == workers and "ov_backend" not in node.status_providers
     finally:
         node.stop()
         unregister_text_encoder(SPACE)

@@ -82,6 +82,10 @@ def _kernel(
     depth_tol,  # float32: relative tolerance of the depth test
     distance_power,  # float32: weight z ** -distance_power (0: none)
     view_weights,  # (V, N) float32, or (V, 0) for none
+    prior,  # (P, D) float32: earlier views' mean features (e.g. of keyframes that left the window)
+    prior_row,  # (N,) int64: each point's row of ``prior`` (-1: none), or (0,) for no prior at all
+    prior_w,  # (N,) float32: the weight (views) behind each point's prior row
+    raw,  # bool: with T = 0, write the weighted mean itself instead of its unit vector
     texts,  # (T, D) float32; T = 0: write features instead of cosines
     out,  # (N, T) cosines or (N, D) features, float32, zeroed by the caller
     count,  # (N,) int64 views that counted, zeroed by the caller
@@ -92,6 +96,7 @@ def _kernel(
     dim = table.shape[1]
     n_texts = texts.shape[0]
     weighted = view_weights.shape[1] > 0
+    has_prior = prior_row.shape[0] > 0
     n_blocks = (n_pts + block - 1) // block
     for blk in numba.prange(n_blocks):
         acc = np.empty(dim, np.float32)
@@ -131,10 +136,18 @@ def _kernel(
                 wsum += w
                 m += 1
             count[i] = m
-            if m == 0:
+            pw = _F0
+            if has_prior and prior_row[i] >= 0:
+                pw = prior_w[i]
+            if m == 0 and not pw > 0:
                 continue
-            inv = _F1 / wsum
+            inv = _F1 / (wsum + pw)
             acc[:] = _F0
+            if pw > 0:
+                pri = prior[prior_row[i]]
+                ps = pw * inv
+                for k in range(dim):
+                    acc[k] = pri[k] * ps
             for k in range(m):
                 v = p_view[k]
                 wf, hf = np.float32(ov_w[v]), np.float32(ov_h[v])
@@ -151,6 +164,8 @@ def _kernel(
                 _add_taps(acc, table, r0 + x0, r0 + x1, r1 + x0, r1 + x1,
                           (_F1 - tx) * (_F1 - ty) * s, tx * (_F1 - ty) * s, (_F1 - tx) * ty * s, tx * ty * s)
             norm = max(np.sqrt(_dot(acc, acc)), np.float32(1e-12))
+            if raw:
+                norm = _F1
             if n_texts == 0:
                 for k in range(dim):
                     out[i, k] = acc[k] / norm
@@ -336,10 +351,14 @@ def average_kernel(
     texts: np.ndarray | None,  # (T, D) float32
     threads: int,
     block: int = 64,
+    prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,  # (P, D), (N,) int64, (N,) float32
+    raw: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Run the kernel; returns (cosines (N, T) with ``texts``, else unit features (N, D); zero rows
-    where no view counts) and the views that counted (N,) int64. Arguments as the kernel's (checked
-    by the caller, :mod:`mapper.model.baselines`)."""
+    """Run the kernel; returns (cosines (N, T) with ``texts``, else unit features (N, D), or with
+    ``raw`` the weighted means themselves; zero rows where nothing counts) and the views that counted
+    (N,) int64. ``prior`` = (mean features (P, D), each point's row (-1: none), the weight of its
+    row): a point's mean then takes its prior row as ``weight`` more views (counts stay the views
+    here). Arguments as the kernel's (checked by the caller, :mod:`mapper.model.baselines`)."""
     n_pts, dim = pts.shape[0], table.shape[1]
     n_views = cam_from_world.shape[0]
     txt = np.zeros((0, dim), np.float32) if texts is None else np.ascontiguousarray(texts, np.float32)
@@ -347,6 +366,17 @@ def average_kernel(
     count = np.zeros(n_pts, np.int64)
     vw = np.zeros((n_views, 0), np.float32) if view_weights is None else np.ascontiguousarray(view_weights,
                                                                                                np.float32)
+    if prior is None:
+        p_tab, p_row, p_w = np.zeros((1, dim), np.float32), np.zeros(0, np.int64), np.zeros(0, np.float32)
+    else:
+        p_tab = np.ascontiguousarray(prior[0], np.float32)
+        p_row = np.ascontiguousarray(prior[1], np.int64)
+        p_w = np.ascontiguousarray(prior[2], np.float32)
+        if p_tab.ndim != 2 or p_tab.shape[1] != dim or p_row.shape != (n_pts,) or p_w.shape != (n_pts,):
+            raise ValueError(f"prior must be ((P, {dim}), ({n_pts},), ({n_pts},)), got {p_tab.shape}, "
+                             f"{p_row.shape}, {p_w.shape}")
+        if p_row.size and (p_row.max() >= p_tab.shape[0] or p_row.min() < -1):
+            raise ValueError(f"prior rows must be in [-1, {p_tab.shape[0]})")
     with launch(threads):
         _kernel(np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(cam_from_world, np.float32),
                 np.ascontiguousarray(K, np.float32), np.ascontiguousarray(right, np.float64),
@@ -356,7 +386,7 @@ def average_kernel(
                 bool(use_depth), has_depth.astype(np.bool_), np.ascontiguousarray(depth_flat, np.float32),
                 d_off.astype(np.int64), d_w.astype(np.int64), d_h.astype(np.int64),
                 np.ascontiguousarray(d_scale, np.float32), np.float32(depth_tol),
-                np.float32(distance_power), vw, txt, out, count, int(block))
+                np.float32(distance_power), vw, p_tab, p_row, p_w, bool(raw), txt, out, count, int(block))
     return out, count
 
 

@@ -1,0 +1,461 @@
+"""What keyframes that left the window saw, kept per global-map voxel for the averaging methods.
+
+``segment_points`` with ``average`` (OpenScene-2D averaging) answers a point by the mean of the OV
+samples of every window keyframe whose image it falls in; ``average_depth`` only of those whose
+depth confirms it. When a keyframe leaves the window (the window is bounded), its views stop
+counting, and a stream three times longer than the window answered 1-3 points lower than the same
+node with an unbounded window (docs/QUERIES.md). This module keeps those views' contribution:
+
+* :class:`EvictedViewStore` (pure numpy, thread-safe): per voxel key, the running mean of the OV
+  samples of the keyframes that left and counted for it, and how many did, in two channels,
+  ``all`` (in the image, less the border: ``average``) and ``depth`` (also passing the depth test:
+  ``average_depth``). Float16 means, float32 counts; saved with the global map.
+* :class:`EvictedViews`: the node's worker (``mapper-evicted-views``). For each keyframe the window
+  evicts (``MapperNode._ingest_frame`` queues it; the ack never waits), it samples the keyframe's
+  OV map at every global-map voxel with the averaging's own selection
+  (:func:`mapper.model.baselines.view_samples`) and adds the samples to the store.
+* at query time (``MapperNode._segment_average``) a point's nearest map voxel with a feature
+  within ``queries.map_radius_voxels`` gives its prior: the voxel's mean counts as that many more
+  views in the point's average (:func:`mapper.model.baselines.average_similarities`' ``prior``).
+  With uniform view weights this is exactly the average over the window's views and the evicted
+  ones (sampled at the voxel's fused position instead of the point).
+
+The learned model's answers do not use it (they get the model's blend written into the map before
+eviction instead: :mod:`mapper.node.map_features`).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker
+
+if TYPE_CHECKING:
+    from mapper.node.window import Keyframe
+
+# The worker takes the node (``mapper.node.service.MapperNode``) and its global maps
+# (``mapper.node.global_map.GlobalSemanticMap``) as ``Any``: the global map holds the store, so
+# naming those types here would make an import cycle (tests/test_architecture.py).
+
+__all__ = ["CHANNELS", "EvictedViewStore", "EvictedViews"]
+
+log = logging.getLogger("mapper.node.evicted_views")
+
+CHANNELS = ("all", "depth")
+"""``all``: views whose image a voxel falls in (``average``); ``depth``: those whose depth also
+confirms it (``average_depth``)."""
+
+
+@dataclass
+class _Channel:
+    mean: np.ndarray  # (cap, D) float16 running mean of the samples
+    count: np.ndarray  # (cap,) float32 views behind it
+
+
+class EvictedViewStore:
+    """Per voxel key, the running mean OV sample of the evicted views, per channel (module docstring).
+
+    Rows are appended (never reordered except by :meth:`compact`); a sorted index maps keys to rows.
+    Every method takes the store's lock."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._reset(None)
+
+    def _reset(self, dim: int | None) -> None:
+        cap = 0 if dim is None else 1024
+        self._dim = dim
+        self._n = 0
+        self._keys = np.zeros(cap, np.int64)
+        self._sorted_keys = np.zeros(0, np.int64)
+        self._sorted_rows = np.zeros(0, np.int64)
+        self._channels = {name: _Channel(np.zeros((cap, dim or 0), np.float16), np.zeros(cap, np.float32))
+                          for name in CHANNELS}
+        self.keyframes = 0
+        """Keyframes absorbed since the store was made (or cleared, or restored)."""
+        self._version = getattr(self, "_version", 0) + 1
+        self._tables: dict[str, tuple[int, np.ndarray, np.ndarray]] = {}
+        """Per channel: (version, float32 means (n, D), counts (n,)) for queries, made on demand."""
+
+    @property
+    def dim(self) -> int | None:
+        return self._dim
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the used rows (means, counts, keys), the index and the queries' float32 tables."""
+        with self._lock:
+            per_row = 8 + sum(c.mean[:1].nbytes + 4 for c in self._channels.values())
+            tables = sum(t[1].nbytes + t[2].nbytes for t in self._tables.values())
+            return int(self._n * per_row + self._sorted_keys.nbytes + self._sorted_rows.nbytes + tables)
+
+    def _rows_for(self, keys: np.ndarray, *, create: bool) -> np.ndarray:
+        """Rows of ``keys`` (U,) unique int64; -1 where absent unless ``create`` (lock held)."""
+        pos = np.searchsorted(self._sorted_keys, keys)
+        inside = pos < self._sorted_keys.shape[0]
+        found = np.zeros(keys.shape[0], bool)
+        found[inside] = self._sorted_keys[pos[inside]] == keys[inside]
+        rows = np.full(keys.shape[0], -1, np.int64)
+        rows[found] = self._sorted_rows[pos[found]]
+        if create and not found.all():
+            new_keys = keys[~found]
+            start, n_new = self._n, int(new_keys.shape[0])
+            self._grow(start + n_new)
+            new_rows = np.arange(start, start + n_new, dtype=np.int64)
+            self._keys[new_rows] = new_keys
+            rows[~found] = new_rows
+            self._n = start + n_new
+            order = np.argsort(new_keys, kind="stable")
+            at = np.searchsorted(self._sorted_keys, new_keys[order])
+            self._sorted_keys = np.insert(self._sorted_keys, at, new_keys[order])
+            self._sorted_rows = np.insert(self._sorted_rows, at, new_rows[order])
+        return rows
+
+    def _grow(self, need: int) -> None:
+        cap = self._keys.shape[0]
+        if need <= cap:
+            return
+        new_cap = max(need, int(cap * 1.5) + 1024)
+
+        def grown(a: np.ndarray) -> np.ndarray:
+            out = np.zeros((new_cap, *a.shape[1:]), a.dtype)
+            out[: self._n] = a[: self._n]
+            return out
+
+        self._keys = grown(self._keys)
+        for ch in self._channels.values():
+            ch.mean, ch.count = grown(ch.mean), grown(ch.count)
+
+    def absorb(
+        self,
+        keys: np.ndarray,  # (M,) int64 voxel keys (unique)
+        samples: dict[str, tuple[np.ndarray, np.ndarray]],  # channel -> ((M, D) float32, counted (M,) bool)
+        *,
+        new_keyframe: bool = True,
+    ) -> int:
+        """Add one evicted view's samples: for each channel, each voxel it counted for takes the
+        sample into its running mean (count + 1). Returns the voxels touched. ``ValueError`` on a
+        shape or dimension mismatch or an unknown channel (nothing changed). ``new_keyframe`` False:
+        more samples of the keyframe counted by the previous call (its voxels in chunks)."""
+        keys = np.asarray(keys, np.int64).reshape(-1)
+        m = keys.shape[0]
+        dim = None
+        for name, (feat, counted) in samples.items():
+            if name not in CHANNELS:
+                raise ValueError(f"unknown channel {name!r}; one of {CHANNELS}")
+            if feat.ndim != 2 or feat.shape[0] != m or np.shape(counted) != (m,):
+                raise ValueError(f"channel {name!r}: samples must be ((M={m}, D), (M,)), got {feat.shape}, "
+                                 f"{np.shape(counted)}")
+            if dim is not None and feat.shape[1] != dim:
+                raise ValueError("channels have different feature dimensions")
+            dim = int(feat.shape[1])
+        touched = np.zeros(m, bool)
+        for _, counted in samples.values():
+            touched |= np.asarray(counted, bool)
+        with self._lock:
+            if dim is None or not touched.any():
+                self.keyframes += int(new_keyframe)
+                return 0
+            if self._dim is None:
+                self._reset(dim)
+            elif dim != self._dim:
+                raise ValueError(f"samples have dimension {dim}, the store's {self._dim}")
+            rows = np.full(m, -1, np.int64)
+            rows[touched] = self._rows_for(keys[touched], create=True)
+            import torch  # vectorised float16 <-> float32 (numpy's casts are scalar); torch is loaded by now
+
+            for name, (feat, counted) in samples.items():
+                counted = np.asarray(counted, bool)
+                if not counted.any():
+                    continue
+                ch = self._channels[name]
+                r = torch.from_numpy(rows[counted])
+                n_old = torch.from_numpy(ch.count).index_select(0, r)  # (m,)
+                mean = torch.from_numpy(ch.mean)  # (cap, D) float16, shares the store's memory
+                new = mean.index_select(0, r).float().mul_(n_old[:, None])
+                at = torch.from_numpy(np.flatnonzero(counted))
+                new.add_(torch.from_numpy(np.ascontiguousarray(feat, np.float32)).index_select(0, at))
+                new.div_((n_old + 1.0)[:, None])
+                mean.index_copy_(0, r, new.half())
+                ch.count[rows[counted]] = n_old.numpy() + 1.0
+            self.keyframes += int(new_keyframe)
+            self._version += 1
+            return int(touched.sum())
+
+    def lookup(
+        self,
+        keys: np.ndarray,  # (U,) int64 voxel keys
+        channel: str,
+    ) -> tuple[np.ndarray, np.ndarray]:  # (U, D) float32 means (zero rows where none), (U,) float32 counts
+        """The channel's mean and count per key (0 where the store has none)."""
+        if channel not in CHANNELS:
+            raise ValueError(f"unknown channel {channel!r}; one of {CHANNELS}")
+        keys = np.asarray(keys, np.int64).reshape(-1)
+        with self._lock:
+            dim = self._dim or 0
+            means = np.zeros((keys.shape[0], dim), np.float32)
+            counts = np.zeros(keys.shape[0], np.float32)
+            if self._n == 0:
+                return means, counts
+            rows = self._rows_for(keys, create=False)
+            hit = rows >= 0
+            ch = self._channels[channel]
+            means[hit] = ch.mean[rows[hit]]
+            counts[hit] = ch.count[rows[hit]]
+            return means, counts
+
+    def prior(
+        self,
+        keys: np.ndarray,  # (N,) int64 voxel keys, one per query point (-1 or absent: none)
+        channel: str,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The averaging's ``prior`` for points whose nearest voxels have ``keys``: (means (n, D)
+        float32, the channel's whole table, shared by queries until the next change; row (N,) int64,
+        -1 where the voxel has no view of this channel; weight (N,) float32, the views behind it)."""
+        if channel not in CHANNELS:
+            raise ValueError(f"unknown channel {channel!r}; one of {CHANNELS}")
+        keys = np.asarray(keys, np.int64).reshape(-1)
+        with self._lock:
+            entry = self._tables.get(channel)
+            if entry is None or entry[0] != self._version:
+                ch = self._channels[channel]
+                table = ch.mean[: self._n].astype(np.float32)
+                table.setflags(write=False)
+                entry = (self._version, table, ch.count[: self._n].copy())
+                self._tables[channel] = entry
+            rows = self._rows_for(keys, create=False) if self._n else np.full(keys.shape[0], -1, np.int64)
+        _, table, counts = entry
+        weight = np.zeros(keys.shape[0], np.float32)
+        hit = rows >= 0
+        weight[hit] = counts[rows[hit]]
+        rows[hit & ~(weight > 0)] = -1
+        return table, rows, weight
+
+    def compact(self, keep_keys: np.ndarray) -> int:
+        """Drop the rows whose key is not in ``keep_keys`` (e.g. voxels the map pruned). Returns the
+        rows dropped."""
+        keep_keys = np.unique(np.asarray(keep_keys, np.int64))
+        with self._lock:
+            n = self._n
+            pos = np.searchsorted(keep_keys, self._keys[:n])
+            inside = pos < keep_keys.shape[0]
+            keep = np.zeros(n, bool)
+            keep[inside] = keep_keys[pos[inside]] == self._keys[:n][inside]
+            if keep.all():
+                return 0
+            rows = np.flatnonzero(keep)
+            m = rows.shape[0]
+            self._keys[:m] = self._keys[rows]
+            for ch in self._channels.values():
+                ch.mean[:m], ch.count[:m] = ch.mean[rows], ch.count[rows]
+                ch.mean[m:n] = 0
+                ch.count[m:n] = 0
+            self._n = m
+            order = np.argsort(self._keys[:m], kind="stable")
+            self._sorted_keys = self._keys[:m][order].copy()
+            self._sorted_rows = order.astype(np.int64)
+            self._version += 1
+            return n - m
+
+    def clear(self) -> None:
+        with self._lock:
+            self._reset(None)
+
+    def stats(self) -> dict[str, Any]:
+        with self._lock:
+            n = self._n
+            return {
+                "voxels": n,
+                "keyframes": self.keyframes,
+                "views_all": float(self._channels["all"].count[:n].sum()),
+                "views_depth": float(self._channels["depth"].count[:n].sum()),
+            }
+
+    # -- persistence (with the global map: mapper.node.global_map) ------------------------------
+
+    def to_arrays(self, prefix: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """``({"<prefix>.<field>": array}, manifest)``: a consistent copy."""
+        with self._lock:
+            n = self._n
+            arrays = {f"{prefix}.keys": self._keys[:n].copy()}
+            for name, ch in self._channels.items():
+                arrays[f"{prefix}.{name}_mean"] = ch.mean[:n].copy()
+                arrays[f"{prefix}.{name}_count"] = ch.count[:n].copy()
+            return arrays, {"points": n, "dim": self._dim, "keyframes": self.keyframes}
+
+    def restore(self, arrays: dict[str, np.ndarray], manifest: object, prefix: str) -> None:
+        """Replace the content with a saved one (inverse of :meth:`to_arrays`); ``ValueError``
+        naming the field on a bad array (nothing changed)."""
+        if not isinstance(manifest, dict):
+            raise ValueError("evicted views section: the manifest must be a table")
+        n, dim = manifest.get("points"), manifest.get("dim")
+        if not isinstance(n, int) or n < 0 or not (dim is None or (isinstance(dim, int) and dim > 0)):
+            raise ValueError("evicted views section: 'points' must be an int >= 0, 'dim' an int > 0 or null")
+        spec: dict[str, tuple[str, tuple[int, ...]]] = {"keys": ("int64", (n,))}
+        for name in CHANNELS:
+            spec[f"{name}_mean"] = ("float16", (n, dim or 0))
+            spec[f"{name}_count"] = ("float32", (n,))
+        got: dict[str, np.ndarray] = {}
+        for field, (dtype, shape) in spec.items():
+            arr = arrays.get(f"{prefix}.{field}")
+            if arr is None or arr.dtype != np.dtype(dtype) or arr.shape != shape:
+                desc = "missing" if arr is None else f"{arr.dtype} {arr.shape}"
+                raise ValueError(f"evicted views section: {field} must be {dtype} {shape}, got {desc}")
+            got[field] = arr
+        if np.unique(got["keys"]).size != n:
+            raise ValueError("evicted views section: keys are not unique")
+        for name in CHANNELS:
+            if not (np.isfinite(got[f"{name}_count"]).all() and (got[f"{name}_count"] >= 0).all()):
+                raise ValueError(f"evicted views section: {name}_count must be finite and >= 0")
+        keyframes = manifest.get("keyframes")
+        with self._lock:
+            self._reset(dim)
+            if dim is None:
+                return
+            self._grow(n)
+            self._n = n
+            self._keys[:n] = got["keys"]
+            for name, ch in self._channels.items():
+                ch.mean[:n] = got[f"{name}_mean"]
+                ch.count[:n] = got[f"{name}_count"]
+            order = np.argsort(self._keys[:n], kind="stable")
+            self._sorted_keys = self._keys[:n][order].copy()
+            self._sorted_rows = order.astype(np.int64)
+            self.keyframes = keyframes if isinstance(keyframes, int) else 0
+
+
+def in_image(
+    xyz: np.ndarray,  # (M, 3) float32 world points
+    K: np.ndarray,  # (4,) fx, fy, cx, cy
+    world_from_cam: np.ndarray,  # (4, 4)
+    image_wh: tuple[int, int],
+    border_px: float,
+) -> np.ndarray:  # (m,) int64 rows
+    """Rows of the points in front of the camera whose projection lies inside the image less a
+    slightly smaller border than the averaging's (a superset of the points it counts: the kernel
+    then applies its exact float32 test)."""
+    if xyz.shape[0] == 0:
+        return np.zeros(0, np.int64)
+    pose = np.asarray(world_from_cam, np.float64)
+    rot, t = pose[:3, :3], pose[:3, 3]
+    cam = (np.asarray(xyz, np.float64) - t) @ rot  # (M, 3) = R^T (p - t)
+    z = cam[:, 2]
+    front = z > 1e-6
+    zs = np.where(front, z, 1.0)
+    u = cam[:, 0] / zs * float(K[0]) + float(K[2])
+    v = cam[:, 1] / zs * float(K[1]) + float(K[3])
+    margin = border_px - 1.0
+    width, height = image_wh
+    ok = front & (u >= margin) & (u <= width - margin) & (v >= margin) & (v <= height - margin)
+    return np.flatnonzero(ok)
+
+
+class EvictedViews:
+    """The node's worker that adds evicted keyframes' views to their global map's store (module
+    docstring). ``install()`` hooks it into the node (before ``node.start()``)."""
+
+    def __init__(self, node: Any) -> None:  # MapperNode
+        self.node = node
+        cfg = node.config
+        self.queue: KeyframeQueue[tuple[Keyframe, Any]] = KeyframeQueue(  # (keyframe, its GlobalSemanticMap)
+            cfg.queries.evicted_views_max_pending
+        )
+        self.border_px = 10.0
+        """The averaging's border (``segment_average``'s default; the node's methods use it)."""
+        self.chunk = 32_768
+        """Voxels sampled at a time (the samples are (chunk, D) float32 per channel)."""
+        self._busy = threading.Lock()
+        self._in_batch = 0
+        self._limited = LimitedLog(log)
+        self.done = 0
+        self.stale = 0
+        self.seconds_total = 0.0
+
+    def install(self) -> None:
+        self.node.workers.append(("evicted-views", self.run))
+        self.node.status_providers["evicted_views"] = self.stats
+
+    def put(self, keyframe: Keyframe, gmap: Any) -> None:  # gmap: GlobalSemanticMap
+        """Queue a keyframe the window evicted (cheap; any thread)."""
+        if keyframe.ov is not None:
+            self.queue.put((keyframe, gmap))
+
+    def run(self, stop: threading.Event) -> None:
+        """Worker thread body (``node.workers``)."""
+        def on_error(exc: BaseException) -> None:
+            self._limited.warning("error", "evicted views failed: %r", exc)
+
+        run_worker(stop, self.queue.wake, self.process_pending, on_error)
+
+    def process_pending(self) -> int:
+        """Absorb every queued keyframe now (also callable directly). Returns how many."""
+        with self._busy:
+            items = self.queue.drain()
+            self._in_batch = len(items)
+            try:
+                for keyframe, gmap in items:
+                    self._absorb(keyframe, gmap)
+                    self._in_batch -= 1
+            finally:
+                self._in_batch = 0
+        return len(items)
+
+    @property
+    def pending(self) -> int:
+        return len(self.queue) + self._in_batch
+
+    def _absorb(self, keyframe: Keyframe, gmap: Any) -> None:  # gmap: GlobalSemanticMap
+        from mapper.model.baselines import OVView, view_samples  # torch-heavy; imported when first used
+
+        started = time.perf_counter()
+        with self.node.state.lock:
+            current = self.node.state.global_map
+        if gmap is not current:  # a map loaded since: the keyframe belongs to the old one
+            self.stale += 1
+            return
+        snap = gmap.snapshot()
+        if len(snap) == 0 or keyframe.ov is None or snap.keys is None:
+            self.done += 1
+            return
+        view = OVView(keyframe.ov, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
+                      keyframe.depth_m)
+        rows = in_image(snap.xyz, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
+                        self.border_px)
+        store = gmap.evicted
+        first = True
+        for lo in range(0, rows.shape[0], self.chunk):  # bounded memory: (chunk, D) samples at a time
+            part = rows[lo: lo + self.chunk]
+            xyz = snap.xyz[part]
+            samples = {"all": view_samples(xyz, view, use_depth=False, border_px=self.border_px)}
+            if keyframe.depth_m is not None:
+                samples["depth"] = view_samples(xyz, view, use_depth=True, border_px=self.border_px)
+            store.absorb(snap.keys[part], samples, new_keyframe=first)
+            first = False
+        if first:
+            store.absorb(np.zeros(0, np.int64), {})  # counts the keyframe (no voxel in its image)
+        if len(store) > max(2 * len(snap), 4096):  # voxels the map pruned since
+            store.compact(snap.keys)
+        self.done += 1
+        self.seconds_total += time.perf_counter() - started
+
+    def stats(self) -> dict[str, Any]:
+        """``status`` key ``evicted_views`` (called under the state lock: takes no node lock)."""
+        store = self.node.state.global_map.evicted
+        return {
+            "pending": self.pending,
+            "dropped": self.queue.dropped,
+            "done": self.done,
+            "stale": self.stale,
+            "ms_per_keyframe": round(1e3 * self.seconds_total / max(self.done, 1), 3),
+            "bytes": store.nbytes,
+            **store.stats(),
+        }

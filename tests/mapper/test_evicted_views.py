@@ -1,0 +1,229 @@
+"""The views of keyframes that left the window, kept per global-map voxel for ``average`` and
+``average_depth`` (:mod:`mapper.node.evicted_views`): the store's running means, its persistence
+and bad input; and a node with a window of 2 keyframes answering as the same node with an unbounded
+window (the point of the feature), with and without the depth test, before and after save / load.
+
+Frames: a fake 4-d embedding space (texts "c0".."c3" are one-hot), each frame's OV map one constant
+random direction, cameras looking at the wall z = 2 from x in [-0.6, 0.6]."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from mapper.node.config import config_from_dict
+from mapper.node.evicted_views import EvictedViewStore
+from mapper.node.queries import SOURCE_MAP, SOURCE_WINDOW
+from mapper.node.service import MapperNode
+from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
+from protocol.messages import Frame, Load, Ok, Save, Segmentation, SegmentPoints, decode, encode
+
+SPACE = "test-evicted-4"
+D = 4
+W, H = 96, 72  # the averaging leaves out a 10 px border
+K = np.array([90.0, 90.0, 48.0, 36.0])
+TEXTS = ["c0", "c1", "c2", "c3"]
+
+
+class OneHotEncoder:
+    space = SPACE
+    dim = D
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        out = np.zeros((len(texts), D), np.float32)
+        for i, t in enumerate(texts):
+            last = t.strip()[-1:]
+            out[i, int(last) % D if last.isdigit() else 0] = 1.0
+        return out
+
+
+@pytest.fixture(autouse=True)
+def onehot_space() -> Iterator[None]:
+    register_text_encoder(SPACE, OneHotEncoder)
+    yield
+    unregister_text_encoder(SPACE)
+
+
+def _frames(n: int = 6, seed: int = 0, depth: bool = True) -> list[Frame]:
+    rng = np.random.default_rng(seed)
+    frames = []
+    for i, x in enumerate(np.linspace(-0.6, 0.6, n)):
+        pose = np.eye(4)
+        pose[0, 3] = x
+        ov = np.broadcast_to(np.abs(rng.standard_normal(D)) + 0.05, (6, 8, D)).astype(np.float16)
+        depth_m = np.full((H, W), 2.0, np.float32)
+        if i % 2:  # half the frames see an object 0.5 m in front of the wall in their left half
+            depth_m[:, : W // 2] = 1.5
+        frames.append(Frame(seq=i, stamp_ns=i, width=W, height=H, K=K, world_from_cam=pose,
+                            rgb=np.zeros((H, W, 3), np.uint8), depth_m=depth_m if depth else None,
+                            ov=ov.copy(), ov_space=SPACE))  # fmt: skip
+    return frames
+
+
+def _node(tmp_path: Path, max_keyframes: int, **queries: Any) -> MapperNode:
+    config = config_from_dict(
+        {"map_dir": str(tmp_path), "events_endpoint": "", "serve_model": False,
+         "window": {"max_keyframes": max_keyframes, "min_translation_m": 0.01},
+         "global_map": {"pixel_stride": 1}, "queries": queries}
+    )  # fmt: skip
+    return MapperNode(config)
+
+
+def _stream(node: MapperNode, frames: Sequence[Frame]) -> None:
+    for f in frames:
+        reply = decode(node.handle_ingest(encode(f)), direction="reply")
+        assert getattr(reply, "status", None) == "keyframe", reply
+    if node.evicted_views is not None:
+        node.evicted_views.process_pending()  # the worker's job (its thread runs only in node.start())
+
+
+def _segment(node: MapperNode, method: str, xyz: np.ndarray) -> Segmentation:
+    msg = SegmentPoints(xyz=xyz.astype(np.float32), texts=TEXTS, method=method)  # type: ignore[arg-type]
+    reply = decode(node.handle_query(encode(msg)), direction="reply")
+    assert isinstance(reply, Segmentation), reply
+    return reply
+
+
+@pytest.mark.parametrize("isolate", [False, True])
+@pytest.mark.parametrize("method", ["average", "average_depth"])
+def test_bounded_window_with_evicted_views_answers_as_an_unbounded_one(
+    tmp_path: Path, method: str, isolate: bool
+) -> None:
+    """With the shipped rules (the map's cosines blended in) and with the averaging alone (isolate:
+    no blend, the map only where nothing else answers)."""
+    frames = _frames()
+    rules: dict[str, Any] = {"map_blend": 0.0, "map_when_more_confident": False} if isolate else {}
+    unbounded, bounded = _node(tmp_path, 100, **rules), _node(tmp_path, 2, **rules)
+    plain = _node(tmp_path, 2, evicted_views=False, **rules)
+    for node in (unbounded, bounded, plain):
+        _stream(node, frames)
+    assert len(bounded.state.window) == 2 and len(unbounded.state.window) == 6
+    assert plain.evicted_views is None
+    stats = bounded.status_providers["evicted_views"]()
+    assert stats["done"] == 4 and stats["pending"] == 0 and stats["voxels"] > 0 and stats["bytes"] > 0
+    xyz = bounded.state.global_map.snapshot().xyz  # the map's voxels (the two maps are the same)
+    want = _segment(unbounded, method, xyz)
+    got = _segment(bounded, method, xyz)
+    without = _segment(plain, method, xyz)
+    same = np.abs(got.score - want.score) < 1e-3
+    assert same.mean() > 0.99, same.mean()
+    assert (got.label == want.label).mean() > 0.99
+    # the feature matters: without it the bounded window answers differently at many voxels
+    assert (np.abs(without.score - want.score) > 1e-3).mean() > (0.5 if isolate else 0.05)
+    assert got.timing_ms["from_evicted"] > 0
+    # points only keyframes that left saw: answered, from the map
+    only_left = (want.source != 0) & np.isin(got.source, [SOURCE_MAP, SOURCE_WINDOW])
+    assert only_left.mean() > 0.99
+
+
+def test_evicted_views_survive_save_and_load(tmp_path: Path) -> None:
+    node = _node(tmp_path, 2)
+    _stream(node, _frames())
+    xyz = node.state.global_map.snapshot().xyz
+    before = _segment(node, "average", xyz)
+    assert isinstance(decode(node.handle_query(encode(Save(name="ev"))), direction="reply"), Ok)
+    fresh = _node(tmp_path, 2)
+    assert isinstance(decode(fresh.handle_query(encode(Load(name="ev"))), direction="reply"), Ok)
+    assert len(fresh.state.global_map.evicted) == len(node.state.global_map.evicted) > 0
+    after = _segment(fresh, "average", xyz)
+    np.testing.assert_allclose(after.score, before.score, atol=1e-6)
+    assert np.array_equal(after.label, before.label)
+
+
+def test_rgb_only_keyframes_count_for_average_only() -> None:
+    store = EvictedViewStore()
+    keys = np.array([5, 9, 2], np.int64)
+    feats = np.eye(3, 4, dtype=np.float32)
+    store.absorb(keys, {"all": (feats, np.array([True, True, False]))})
+    means, counts = store.lookup(np.array([9, 2, 5, 77], np.int64), "all")
+    assert counts.tolist() == [1.0, 0.0, 1.0, 0.0]
+    np.testing.assert_array_equal(means[0], feats[1])
+    assert store.lookup(keys, "depth")[1].tolist() == [0.0, 0.0, 0.0]
+
+
+def test_store_running_mean_against_float64() -> None:
+    rng = np.random.default_rng(3)
+    store = EvictedViewStore()
+    keys = rng.permutation(1000)[:200].astype(np.int64)
+    total = np.zeros((200, 8))
+    count = np.zeros(200)
+    for _ in range(7):
+        feat = rng.standard_normal((200, 8)).astype(np.float32)
+        counted = rng.random(200) < 0.6
+        store.absorb(keys, {"all": (feat, counted), "depth": (feat, counted & (rng.random(200) < 0.5))})
+        total[counted] += feat[counted]
+        count += counted
+    means, counts = store.lookup(keys, "all")
+    assert np.array_equal(counts, count.astype(np.float32))
+    has = count > 0
+    np.testing.assert_allclose(means[has], total[has] / count[has, None], atol=5e-3)  # float16 means
+    assert store.stats()["keyframes"] == 7
+    # compact keeps exactly the given keys' rows and their values
+    kept = keys[::3]
+    dropped = store.compact(kept)
+    assert len(store) == int(has[::3].sum()) and dropped == int(has.sum() - has[::3].sum())
+    m2, c2 = store.lookup(kept, "all")
+    np.testing.assert_array_equal(m2, means[::3])
+    np.testing.assert_array_equal(c2, counts[::3])
+
+
+def test_store_round_trip_and_bad_input_changes_nothing() -> None:
+    store = EvictedViewStore()
+    keys = np.arange(10, dtype=np.int64)
+    store.absorb(keys, {"all": (np.ones((10, 3), np.float32), np.ones(10, bool))})
+    arrays, manifest = store.to_arrays("g.ev")
+    copy = EvictedViewStore()
+    copy.restore(arrays, manifest, "g.ev")
+    assert np.array_equal(copy.lookup(keys, "all")[1], store.lookup(keys, "all")[1])
+    for bad in ({"keys": np.zeros(10, np.int64)}, {"all_count": np.full(10, -1.0, np.float32)},
+                {"all_mean": np.zeros((10, 3), np.float32)}):  # fmt: skip
+        broken = {**arrays, **{f"g.ev.{k}": v for k, v in bad.items()}}
+        with pytest.raises(ValueError, match="evicted views section"):
+            copy.restore(broken, manifest, "g.ev")
+        assert len(copy) == 10  # unchanged
+    with pytest.raises(ValueError, match="unknown channel"):
+        store.absorb(keys, {"nope": (np.ones((10, 3), np.float32), np.ones(10, bool))})
+    with pytest.raises(ValueError, match="samples must be"):
+        store.absorb(keys, {"all": (np.ones((9, 3), np.float32), np.ones(9, bool))})
+    with pytest.raises(ValueError, match="dimension 5"):
+        store.absorb(keys, {"all": (np.ones((10, 5), np.float32), np.ones(10, bool))})
+    assert store.lookup(keys, "all")[1].tolist() == [1.0] * 10
+
+
+def test_prior_table_is_shared_until_the_store_changes() -> None:
+    store = EvictedViewStore()
+    keys = np.array([3, 1, 2], np.int64)
+    store.absorb(keys, {"all": (np.eye(3, dtype=np.float32), np.array([True, True, False]))})
+    table, row, weight = store.prior(np.array([1, 2, 3, 99], np.int64), "all")
+    assert weight.tolist() == [1.0, 0.0, 1.0, 0.0] and row[1] == -1 and row[3] == -1
+    np.testing.assert_array_equal(table[row[0]], [0, 1, 0])
+    np.testing.assert_array_equal(table[row[2]], [1, 0, 0])
+    again, _, _ = store.prior(keys, "all")
+    assert again is table and not table.flags.writeable  # reused, read-only
+    store.absorb(keys, {"all": (np.eye(3, dtype=np.float32), np.ones(3, bool))})
+    after, row2, weight2 = store.prior(np.array([3], np.int64), "all")
+    assert after is not table and weight2.tolist() == [2.0]
+    np.testing.assert_allclose(after[row2[0]], [1, 0, 0])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_in_image_keeps_every_point_the_averaging_counts(seed: int) -> None:
+    from mapper.model.baselines import OVView, view_samples
+    from mapper.node.evicted_views import in_image
+
+    rng = np.random.default_rng(seed)
+    xyz = (rng.random((20000, 3)) * [8, 6, 8] - [4, 3, 2]).astype(np.float32)  # some behind the camera
+    pose = np.eye(4)
+    angle = rng.uniform(-0.5, 0.5)
+    pose[:3, :3] = [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]]
+    pose[:3, 3] = rng.normal(0, 0.5, 3)
+    view = OVView(np.ones((6, 8, D), np.float32), K, pose, (W, H), None)
+    _, counted = view_samples(xyz, view, use_depth=False)
+    rows = in_image(xyz, K, pose, (W, H), 10.0)
+    assert counted.sum() > 500
+    assert set(np.flatnonzero(counted)) <= set(rows.tolist())
+    assert rows.shape[0] < 1.1 * counted.sum()  # and not many more
