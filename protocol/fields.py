@@ -319,7 +319,11 @@ class Texts(Kind):
             raise bad(f"{name}: expected a list of strings, got {type_name(value)} {short(value)}")
         if not self.min_count <= len(value) <= self.max_count:
             raise bad(f"{name}: {len(value)} strings, allowed {self.min_count}..{self.max_count}")
-        return [check_str(f"{name}[{i}]", t, max_chars=self.max_chars) for i, t in enumerate(value)]
+        out = [check_str(f"{name}[{i}]", t, max_chars=self.max_chars) for i, t in enumerate(value)]
+        for i, t in enumerate(out):
+            if not t.strip():
+                raise bad(f"{name}[{i}]: only whitespace; a prompt needs at least one word")
+        return out
 
     def encode(self, value: Any, msg: Any) -> Any:
         return list(value)

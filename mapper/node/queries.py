@@ -6,7 +6,9 @@
 1. each text is normalised (:func:`normalise_query`: "find the chair" -> "chair", "where is a
    place to sit?" -> "place to sit") and embedded with the map's ``ov_space`` text encoder;
    negatives (default :data:`DEFAULT_NEGATIVES`) are embedded the same way, minus any negative
-   that is (nearly) one of the texts, so that asking for "wall" still works;
+   that is (nearly) one of the texts, so that asking for "wall" still works (when that leaves
+   none of the negatives a request gave, e.g. negatives == texts, the default set minus the
+   texts is used: with no background at all a single text would win everywhere);
 2. score = cosine of each point's fused feature to its best text; a point is labelled with that
    text only if the score beats every negative's cosine and ``min_score``; the snapshot caches
    the normalised fp32 features in blocks (a new map version renormalises only the blocks whose
@@ -51,7 +53,15 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from mapper.geometry.planes import Plane, fit_planes, plane_depth, point_normals
-from mapper.geometry.splat import fill_holes, remove_speckles, see_through, splat_points
+from mapper.geometry.splat import (
+    fill_holes,
+    remove_speckles,
+    scaled_camera,
+    see_through,
+    splat_points,
+    splat_scale,
+    upsample_nearest,
+)
 from mapper.node.config import QueryConfig
 from mapper.node.global_map import GlobalMapSnapshot
 from mapper.ov.encoders import TextEncoder
@@ -649,6 +659,11 @@ def query_points(
     if neg_emb.shape[0]:
         keep_neg = (neg_emb @ text_emb.T).max(axis=1) < NEGATIVE_DROP_SIMILARITY
         neg_emb = neg_emb[keep_neg]
+        if neg_emb.shape[0] == 0 and negatives is not None:
+            # every negative given names a text (e.g. negatives == texts): with no background left,
+            # a single text would win at every map point; fall back to the default set
+            defaults = encoder.encode([normalise_query(n) for n in DEFAULT_NEGATIVES])
+            neg_emb = defaults[(defaults @ text_emb.T).max(axis=1) < NEGATIVE_DROP_SIMILARITY]
     t1 = time.perf_counter()
 
     snapshot.unit_feature_blocks()  # cached per map version; unchanged blocks shared with the last
@@ -902,11 +917,15 @@ def _splat_rows(
 ) -> np.ndarray:
     """(H, W) int64 map row of the nearest map point with a feature that projects into each pixel
     (z-buffer, :func:`mapper.geometry.splat.splat_points`; each point covers about its voxel's
-    footprint, at most 5x5 pixels), -1 = none."""
+    footprint, at most 5x5 pixels of the image shrunk by :func:`mapper.geometry.splat.splat_scale`),
+    -1 = none."""
     rows = np.flatnonzero(snapshot.feat_weight > 0)
     if rows.size == 0:
         return np.full((height, width), -1, np.int64)
-    index, _ = splat_points(snapshot.xyz[rows], K, world_from_cam, width, height, snapshot.voxel_size_m)
+    scale = splat_scale(K, snapshot.voxel_size_m)  # as surface_depth: the footprint unclipped
+    K_s, width_s, height_s = scaled_camera(K, width, height, scale)
+    index, _ = splat_points(snapshot.xyz[rows], K_s, world_from_cam, width_s, height_s, snapshot.voxel_size_m)
+    index = np.ascontiguousarray(upsample_nearest(index, scale, height, width))
     return np.where(index >= 0, rows[np.maximum(index, 0)], -1)
 
 
@@ -927,13 +946,18 @@ def surface_depth(
     pixels on each side filled where the surface around them agrees within
     ``config.surface_fill_rel`` (:func:`mapper.geometry.splat.fill_holes`). ``render``
     evaluates the model's appearance at these surface points (docs/RENDERING.md, "Surfaces from
-    the map")."""
+    the map"). A high-resolution camera (:func:`mapper.geometry.splat.splat_scale` > 1) is splatted
+    and filled at 1 / scale of its size and the depth upsampled (nearest), so that the footprints
+    and the hole filling see the points as a 160 x 120 camera does."""
     if len(xyz) == 0:
         return np.zeros((height, width), np.float32)
-    _, z = splat_points(xyz, K, world_from_cam, width, height, footprint_m)
+    scale = splat_scale(K, footprint_m)  # a high-resolution camera: splat at a lower one, then upsample
+    K_s, width_s, height_s = scaled_camera(K, width, height, scale)
+    _, z = splat_points(xyz, K_s, world_from_cam, width_s, height_s, footprint_m)
     hole = see_through(z, config.surface_see_through_px, config.surface_see_through_rel)
     z = remove_speckles(np.where(hole, np.float32(0), z), config.surface_speckle_px, config.surface_fill_rel)
-    return fill_holes(z, config.surface_fill_px, config.surface_fill_rel)
+    z = fill_holes(z, config.surface_fill_px, config.surface_fill_rel)
+    return np.ascontiguousarray(upsample_nearest(z, scale, height, width))
 
 
 def geometry_planes(

@@ -159,6 +159,9 @@ def test_negatives_veto_background_but_not_asked_for_structure(room: GlobalMapSn
     wall = ask(room, ["walls"])
     assert wall.objects and wall.objects[0].centroid[1] > 5.9
     assert "wall" in DEFAULT_NEGATIVES
+    # negatives that all name the texts leave no background: the default set stands in for them
+    same = ask(room, ["chair"], negatives=["chair", "a chair"])
+    assert same.xyz.shape[0] == default.xyz.shape[0] < room.xyz.shape[0]
 
 
 def test_min_score_and_max_points(room: GlobalMapSnapshot) -> None:

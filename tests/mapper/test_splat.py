@@ -170,3 +170,30 @@ def test_remove_speckles_drops_small_islands_off_the_surface_only() -> None:
     assert not remove_speckles(np.zeros((4, 4), np.float32), 5, 0.05).any()
     with pytest.raises(ValueError):
         remove_speckles(z, -1, 0.05)
+
+
+@pytest.mark.parametrize("width,height,fx",
+                         [(160, 120, 144.0), (320, 240, 288.0), (640, 480, 525.0), (1280, 960, 1150.0)])
+def test_surface_depth_covers_a_voxel_grid_wall_at_every_resolution(
+    width: int, height: int, fx: float
+) -> None:
+    """A wall of 5 cm voxel centres 2.4 m ahead: the surface covers the image and has its depth at
+    every camera resolution (the splat's scale follows the focal length: a 640 x 480 camera is not
+    left with dots and gaps); the scale is 1 where the footprint is not clipped anyway."""
+    from mapper.geometry.splat import scaled_camera, splat_scale, upsample_nearest
+    from mapper.node.queries import surface_depth
+    from mapper.runtime.config import ModelRuntimeConfig
+
+    g = np.arange(-3.0, 3.0, 0.05) + 0.025
+    gx, gy = np.meshgrid(g, g)
+    xyz = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, 2.4)], axis=1)
+    K = np.array([fx, fx, width / 2, height / 2])
+    z = surface_depth(xyz, 0.05, K, np.eye(4), width, height, ModelRuntimeConfig())
+    assert z.shape == (height, width) and z.dtype == np.float32
+    assert (z > 0).mean() > 0.98
+    np.testing.assert_allclose(z[z > 0], 2.4, rtol=1e-5)
+    assert splat_scale(K, 0.05) == max(1, int(0.5 * fx * 0.05 / (MAX_REACH_PX * 2.0) + 0.5))
+    K_s, w_s, h_s = scaled_camera(K, width, height, 3)
+    assert (w_s, h_s) == (-(-width // 3), -(-height // 3)) and np.allclose(K_s * 3, K)
+    up = upsample_nearest(np.arange(w_s * h_s).reshape(h_s, w_s), 3, height, width)
+    assert up.shape == (height, width) and up[4, 7] == 1 * w_s + 2

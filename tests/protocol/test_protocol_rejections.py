@@ -407,8 +407,8 @@ def test_good_map_names() -> None:
     [([], "0 strings, allowed 1..64"), (["t"] * 65, "65 strings, allowed 1..64"),
      ([1], "texts[0]: expected a string"), ([""], "texts[0]: must be a non-empty"),
      ("chair", "expected a list"), (["a", None], "texts[1]"),
-     (["x" * 1025], "at most 1024")],
-    ids=["empty", "65", "non-str", "empty-str", "str", "none", "long"],
+     (["x" * 1025], "at most 1024"), (["chair", " \t\n"], "texts[1]: only whitespace")],
+    ids=["empty", "65", "non-str", "empty-str", "str", "none", "long", "whitespace"],
 )
 def test_bad_texts(texts: Any, match: str) -> None:
     wires = [
