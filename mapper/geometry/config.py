@@ -37,6 +37,12 @@ class TriangulationConfig:
     """Detect on the image upscaled by this integer factor (more and finer keypoints on small
     images); keypoints are mapped back to the image as sent. 1..4."""
 
+    detect_max_side: int = 1280
+    """The image detected on is at most this many pixels on its longer side: ``detect_upscale``
+    applies while the upscaled image fits, larger images are downscaled (area) to fit (a
+    4096 x 4096 RGB-only frame took 80 s of SIFT at 2x; a 640 x 480 camera keeps its 2x).
+    64..16384."""
+
     ratio: float = 0.8
     """Lowe's ratio test: a match is kept when its descriptor distance is below ``ratio`` times the
     second best (and the match is mutual). 0.1..1."""
@@ -155,6 +161,7 @@ class TriangulationConfig:
             )
         check("max_features", self.max_features, 16, 100_000)
         check("detect_upscale", self.detect_upscale, 1, 4)
+        check("detect_max_side", self.detect_max_side, 64, 16384)
         check("sift_contrast_threshold", self.sift_contrast_threshold, 0.001, 1.0)
         check("ratio", self.ratio, 0.1, 1.0)
         check("max_partners", self.max_partners, 1, 64)

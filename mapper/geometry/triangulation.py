@@ -53,6 +53,7 @@ from mapper.geometry.config import TriangulationConfig
 
 __all__ = [
     "FeatureExtractor",
+    "detection_size",
     "Features",
     "PairPoints",
     "PosedView",
@@ -220,6 +221,24 @@ def _epipolar_distance(F: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray) -> np.
 # -- features ------------------------------------------------------------------------------------
 
 
+def detection_size(width: int, height: int, upscale: int, max_side: int) -> tuple[int, int]:
+    """(w, h) of the image features are detected on: ``upscale`` times the image while that fits in
+    ``max_side`` pixels (longer side), else the largest integer factor that fits, else the image
+    downscaled to ``max_side``.
+
+    >>> detection_size(160, 120, 2, 1280), detection_size(640, 480, 2, 1280)
+    ((320, 240), (1280, 960))
+    >>> detection_size(1000, 750, 2, 1280), detection_size(4096, 2048, 2, 1280)
+    ((1000, 750), (1280, 640))
+    """
+    longest = max(width, height)
+    for factor in range(max(1, upscale), 0, -1):
+        if longest * factor <= max_side:
+            return width * factor, height * factor
+    shrink = max_side / longest
+    return max(1, round(width * shrink)), max(1, round(height * shrink))
+
+
 class FeatureExtractor:
     """SIFT or ORB keypoints (``config.detector``) in the pixel-centre convention."""
 
@@ -246,14 +265,16 @@ class FeatureExtractor:
             raise ValueError(f"rgb must be (H, W, 3) or (H, W) uint8, got {image.shape} {image.dtype}")
         gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
         original = gray.astype(np.float32)
-        scale = self.config.detect_upscale
-        if scale > 1:
-            gray = cv2.resize(gray, (gray.shape[1] * scale, gray.shape[0] * scale),
-                              interpolation=cv2.INTER_CUBIC)
+        height, width = gray.shape
+        size = detection_size(width, height, self.config.detect_upscale, self.config.detect_max_side)
+        if size != (width, height):
+            grow = size[0] > width
+            gray = cv2.resize(gray, size, interpolation=cv2.INTER_CUBIC if grow else cv2.INTER_AREA)
         keypoints, descriptors = self._detector.detectAndCompute(np.ascontiguousarray(gray), None)
         if descriptors is None or not keypoints:
             dim, dtype = (128, np.float32) if self.config.detector == "sift" else (32, np.uint8)
             return Features(np.zeros((0, 2)), np.zeros((0, dim), dtype), original)
+        scale = np.array([size[0] / width, size[1] / height])  # per axis (a downscale rounds)
         uv = (np.array([kp.pt for kp in keypoints], np.float64) + 0.5) / scale
         return Features(uv, descriptors, original)
 

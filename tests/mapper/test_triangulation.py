@@ -520,3 +520,26 @@ def test_serve_plugins_follow_the_config(tmp_path: Path) -> None:
         assert install_serve_plugins(off).triangulation is None
     finally:
         off.stop()
+
+
+def test_large_images_are_detected_at_most_detect_max_side_and_keypoints_map_back(
+    texture: np.ndarray,
+) -> None:
+    """A 4x larger copy of an image is detected on a downscaled image (``detect_max_side``), not at
+    2x its size, and its keypoints land where the small image's are (in its own pixels)."""
+    from mapper.geometry.triangulation import detection_size
+
+    small = render_plane(PLANE_POSES[0], texture)  # (H, W, 3) uint8
+    h, w = small.shape[:2]
+    big = cv2.resize(small, (4 * w, 4 * h), interpolation=cv2.INTER_NEAREST)
+    cfg = TriangulationConfig(detect_max_side=2 * max(w, h))
+    assert detection_size(4 * w, 4 * h, cfg.detect_upscale, cfg.detect_max_side) == (2 * w, 2 * h)
+    ex = FeatureExtractor(cfg)
+    f_small, f_big = ex.detect(small), ex.detect(big)
+    assert len(f_small) > 50 and len(f_big) > 50
+    assert f_big.gray is not None and f_big.gray.shape == (4 * h, 4 * w)  # the image as sent
+    # every big keypoint / 4 has a small keypoint within 1.5 px (the same detection image)
+    d = np.linalg.norm(f_big.uv[:, None, :] / 4.0 - f_small.uv[None, :, :], axis=2).min(axis=1)
+    assert np.median(d) < 0.5 and np.mean(d < 1.5) > 0.9
+    with pytest.raises(ConfigError, match="detect_max_side"):
+        config_from_dict({"triangulation": {"detect_max_side": 10}})
