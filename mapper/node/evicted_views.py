@@ -378,6 +378,8 @@ class EvictedViews:
         self._limited = LimitedLog(log)
         self.done = 0
         self.stale = 0
+        self.deferred = 0
+        """Times the worker left queued keyframes for later because the integrator had work."""
         self.seconds_total = 0.0
 
     def install(self) -> None:
@@ -390,24 +392,43 @@ class EvictedViews:
             self.queue.put((keyframe, gmap))
 
     def run(self, stop: threading.Event) -> None:
-        """Worker thread body (``node.workers``)."""
+        """Worker thread body (``node.workers``): absorbs queued keyframes one at a time while the
+        integrator has nothing waiting or this queue is half full (a keyframe's integration comes
+        first: the cores go to the stream; what waits here is picked up when the next keyframe
+        leaves or within a poll)."""
         def on_error(exc: BaseException) -> None:
             self._limited.warning("error", "evicted views failed: %r", exc)
 
-        run_worker(stop, self.queue.wake, self.process_pending, on_error)
+        def work() -> None:
+            while len(self.queue) and not stop.is_set():
+                # the integrator first, unless this queue is half full (then nothing is dropped)
+                if self.node.integration_backlog() > 0 and 2 * len(self.queue) < self.queue.max_len:
+                    self.deferred += 1
+                    return
+                self._process_one()
+
+        run_worker(stop, self.queue.wake, work, on_error)
 
     def process_pending(self) -> int:
-        """Absorb every queued keyframe now (also callable directly). Returns how many."""
+        """Absorb every queued keyframe now (also callable directly: ``save``, benchmarks).
+        Returns how many."""
+        n = 0
+        while self._process_one():
+            n += 1
+        return n
+
+    def _process_one(self) -> bool:
         with self._busy:
-            items = self.queue.drain()
-            self._in_batch = len(items)
+            self._in_batch = 1  # before the pop: ``pending`` never reads 0 while one is in hand
+            item = self.queue.pop()
+            if item is None:
+                self._in_batch = 0
+                return False
             try:
-                for keyframe, gmap in items:
-                    self._absorb(keyframe, gmap)
-                    self._in_batch -= 1
+                self._absorb(*item)
             finally:
                 self._in_batch = 0
-        return len(items)
+            return True
 
     @property
     def pending(self) -> int:
@@ -455,6 +476,7 @@ class EvictedViews:
             "dropped": self.queue.dropped,
             "done": self.done,
             "stale": self.stale,
+            "deferred": self.deferred,
             "ms_per_keyframe": round(1e3 * self.seconds_total / max(self.done, 1), 3),
             "bytes": store.nbytes,
             **store.stats(),

@@ -962,6 +962,13 @@ class MapperNode:
         )
         return Ack(seq=frame.seq, status=status, map_version=version, id=frame.id)
 
+    def integration_backlog(self) -> int:
+        """Keyframes acked and not yet integrated into the global map (no lock needed: a read of
+        two counters, exact or one keyframe off)."""
+        with self._integrate_cond:
+            done = self._integrate_done
+        return max(self._integrate_submitted - done, 0)
+
     def _integrator_alive(self) -> bool:
         return self._integrator is not None and self._integrator.is_alive()
 

@@ -227,3 +227,24 @@ def test_in_image_keeps_every_point_the_averaging_counts(seed: int) -> None:
     assert counted.sum() > 500
     assert set(np.flatnonzero(counted)) <= set(rows.tolist())
     assert rows.shape[0] < 1.1 * counted.sum()  # and not many more
+
+
+def test_worker_thread_absorbs_what_the_window_evicts(tmp_path: Path) -> None:
+    import threading
+    import time
+
+    node = _node(tmp_path, 2)
+    for f in _frames():
+        decode(node.handle_ingest(encode(f)), direction="reply")
+    worker = node.evicted_views
+    assert worker is not None and worker.pending == 4 and len(node.state.global_map.evicted) == 0
+    stop = threading.Event()
+    thread = threading.Thread(target=worker.run, args=(stop,), daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 60.0
+    while worker.pending and time.monotonic() < deadline:
+        time.sleep(0.01)
+    stop.set()
+    worker.queue.wake.set()
+    thread.join(timeout=10.0)
+    assert worker.pending == 0 and worker.done == 4 and len(node.state.global_map.evicted) > 0

@@ -154,7 +154,8 @@ def test_install_refuses_a_node_pinned_to_another_space(tmp_path: Path, clip_fil
         other = OvBackendConfig(**{**config.ov_backend.__dict__, "model_name": "other"})
         with pytest.raises(ConfigError, match="'openclip:tiny-test' is pinned.*'openclip:other'"):
             install_ov_backend(node, other)
-        assert not node.keyframe_listeners and node.workers == workers and "ov_backend" not in node.status_providers
+        assert not node.keyframe_listeners and node.workers == workers
+        assert "ov_backend" not in node.status_providers
     finally:
         node.stop()
         unregister_text_encoder(SPACE)
