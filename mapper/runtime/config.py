@@ -54,6 +54,12 @@ class ModelRuntimeConfig:
     bounds_margin_m: float = 0.3
     """Margin added around the observed extent when the bounds are chosen (metres). 0..10."""
 
+    bounds_outlier_m: float = 50.0
+    """A keyframe whose observed extent (its median point) lies farther than this from the median
+    of the window's keyframes is left out of the volume's bounds (logged): one frame with a wild
+    pose (a translation of 1e6 m is a valid pose) would otherwise stretch the volume over it and
+    its voxels to kilometres. The keyframe stays in the window. 1..1e6 (metres)."""
+
     max_range_m: float = 4.0
     """Frames without depth contribute their camera frustum up to this range to the observed
     extent; depth beyond it is ignored for the extent (metres). 0.1..100."""
@@ -268,6 +274,7 @@ class ModelRuntimeConfig:
         if 0 < self.max_voxels < 64:
             raise ConfigError(f"{where}: model.max_voxels = {self.max_voxels} out of range: 0 or >= 64")
         check("bounds_margin_m", self.bounds_margin_m, 0.0, 10.0)
+        check("bounds_outlier_m", self.bounds_outlier_m, 1.0, 1e6)
         check("max_range_m", self.max_range_m, 0.1, 100.0)
         check("rebuild_outside_fraction", self.rebuild_outside_fraction, 0.0, 1.0)
         check("source_views", self.source_views, 0, 256)

@@ -285,6 +285,9 @@ class ModelRuntime:
         """+1 whenever an applied change altered the views or the volume."""
         self.rebuilds = 0
         """How often the volume was rebuilt on new bounds (the one non-incremental step)."""
+        self.bounds_outliers = 0
+        """Keyframes left out of the volume's bounds (``bounds_outlier_m``), each counted once."""
+        self._bounds_outliers_logged: set[tuple[str, int, int]] = set()
         self.views_added = 0
         self.views_removed = 0
         self._attached: list[Any] = []
@@ -677,7 +680,7 @@ class ModelRuntime:
 
     def _target_bounds(self) -> VolumeBounds:
         model = self._require_model()
-        points = torch.cat([e.extent for e in self._entries.values()])
+        points = torch.cat([e.extent for e in self._bounds_entries()])
         vcfg = model.cfg.volume
         return bounds_from_points(
             points.cpu(),
@@ -685,6 +688,26 @@ class ModelRuntime:
             min_voxel_size_m=self.config.voxel_size_m or vcfg.min_voxel_size_m,
             margin_m=self.config.bounds_margin_m,
         )
+
+    def _bounds_entries(self) -> list[_ViewEntry]:
+        """The window's keyframes whose extent is within ``config.bounds_outlier_m`` of the others'
+        (the median of their median points); all of them when that would leave none."""
+        entries = [e for e in self._entries.values() if e.extent.shape[0]]
+        if len(entries) < 3:
+            return entries or list(self._entries.values())
+        centres = torch.stack([e.extent.median(dim=0).values for e in entries]).to(torch.float64)  # (E, 3)
+        centre = centres.median(dim=0).values
+        far = torch.linalg.vector_norm(centres - centre, dim=1) > self.config.bounds_outlier_m
+        if not bool(far.any()) or bool(far.all()):
+            return entries
+        for e, out in zip(entries, far.tolist(), strict=True):
+            if out and e.key not in self._bounds_outliers_logged:
+                self._bounds_outliers_logged.add(e.key)
+                self.bounds_outliers += 1
+                log.warning("keyframe %s (seq %d): what it observed lies more than %.0f m from the window's "
+                            "other keyframes; left out of the model's volume bounds (a wrong pose?)",
+                            e.key[0] or "-", e.seq, self.config.bounds_outlier_m)
+        return [e for e, out in zip(entries, far.tolist(), strict=True) if not out]
 
     def _update_bounds(self, new_entries: Sequence[_ViewEntry], evicted: bool) -> None:
         """Create the volume, or move it (recentre / grow / shrink) + rebuild when the window's
@@ -764,6 +787,7 @@ class ModelRuntime:
             "pending": self.pending,
             "version": self.version,
             "rebuilds": self.rebuilds,
+            "bounds_outliers": self.bounds_outliers,
             "views_added": self.views_added,
             "views_removed": self.views_removed,
             "bounds": None

@@ -187,3 +187,25 @@ def test_keyframes_with_input_depth_never_carve(model: GovNeSF) -> None:
         window.consider(kf)
         runtime.set_view_depth_prior(keyframe_key(kf), np.full((30, 40), 2.0, np.float32))  # ignored
     assert not _carved(runtime).any()
+
+
+def test_a_keyframe_with_a_wild_pose_is_left_out_of_the_bounds(model: GovNeSF) -> None:
+    """One keyframe 1e6 m away (a valid pose: finite, a rotation) does not stretch the volume over
+    it: the bounds and voxel size stay those of the other keyframes; it is counted once."""
+    runtime = make_runtime(model, max_range_m=3.0, bounds_margin_m=0.0)
+    window = KeyframeWindow(WindowConfig(max_keyframes=8, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    for i in range(4):
+        window.consider(keyframe(i, orbit(i, radius=1.0), depth_m=None))
+    runtime.sync()
+    assert runtime.bounds is not None
+    base, voxel = _extent(runtime), runtime.bounds.voxel_size_m
+    x, y, z = orbit(4, radius=1.0)
+    window.consider(keyframe(4, (x + 1e6, y, z), target=(1e6, 0.0, 0.5), depth_m=None))
+    runtime.sync()
+    assert runtime.bounds is not None and runtime.bounds.voxel_size_m == voxel
+    np.testing.assert_allclose(_extent(runtime), base)
+    assert runtime.bounds_outliers == 1 and runtime.stats()["bounds_outliers"] == 1
+    window.consider(keyframe(5, orbit(5, radius=1.0), depth_m=None))
+    runtime.sync()
+    assert runtime.bounds_outliers == 1  # counted once
