@@ -8,9 +8,10 @@ method (``average``, ``average_depth``, ``govnesf``). Runs:
 
 * ``unbounded``: a window that holds every keyframe;
 * ``bounded``: a window of ceil(keyframes / 3) keyframes (the stream has 3x more keyframes than
-  the window), answered from the window and the global map (the node's default), the averaging
-  methods with the views of the keyframes that left (``queries.evicted_views``);
-* ``bounded, no evicted views``: the same with ``queries.evicted_views = false``;
+  the window), answered from the window and the global map (the node's default; ``average_depth``
+  with the views of the keyframes that left, ``queries.evicted_views = "depth"``);
+* ``bounded, evicted views for both methods``: ``queries.evicted_views = "both"`` (``average`` too);
+* ``bounded, no evicted views``: ``queries.evicted_views = "off"``;
 * ``bounded, window only``: the same with ``queries.map_radius_voxels = 0`` (no map answers);
 * ``bounded`` / ``unbounded, more confident (before the blend)``: ``queries.map_blend = 0``, the
   rule before it: where both answer, the map's text only where its cosine is higher
@@ -77,7 +78,7 @@ def _count_keyframes(frames: list[bytes]) -> int:
 
 def _node(
     tmp: Path, max_keyframes: int, *, radius_voxels: float, learned: bool, more_confident: bool, blend: float,
-    evicted: bool = True,
+    evicted: str = "depth",
 ) -> tuple[Any, Any, Any]:
     """(node, its map-features worker or None, the model runtime) for one run."""
     from mapper.node.config import config_from_dict
@@ -190,13 +191,14 @@ def bench_scene(
     radius, confident, blend = shipped.map_radius_voxels, shipped.map_when_more_confident, shipped.map_blend
     runs = {  # max keyframes, map radius (voxels), learned map features, map when more confident, blend,
         # the evicted keyframes' views (queries.evicted_views)
-        "unbounded": (10_000, radius, True, confident, blend, True),
-        "bounded": (bounded, radius, True, confident, blend, True),
-        "bounded, no evicted views": (bounded, radius, True, confident, blend, False),
-        "bounded, window only": (bounded, 0.0, True, False, 0.0, False),
-        "bounded, more confident (before the blend)": (bounded, radius, True, True, 0.0, True),
-        "unbounded, more confident (before the blend)": (10_000, radius, True, True, 0.0, True),
-        "bounded, no learned map features": (bounded, radius, False, confident, blend, True),
+        "unbounded": (10_000, radius, True, confident, blend, "depth"),
+        "bounded": (bounded, radius, True, confident, blend, "depth"),
+        "bounded, evicted views for both methods": (bounded, radius, True, confident, blend, "both"),
+        "bounded, no evicted views": (bounded, radius, True, confident, blend, "off"),
+        "bounded, window only": (bounded, 0.0, True, False, 0.0, "off"),
+        "bounded, more confident (before the blend)": (bounded, radius, True, True, 0.0, "depth"),
+        "unbounded, more confident (before the blend)": (10_000, radius, True, True, 0.0, "depth"),
+        "bounded, no learned map features": (bounded, radius, False, confident, blend, "depth"),
     }
     if only:
         unknown = sorted(set(only) - set(runs))

@@ -331,20 +331,25 @@ class QueryConfig:
     depth, and their features were sampled at those estimated surfaces). 0 (default) = the
     ``map_when_more_confident`` rule: measured in docs/QUERIES.md, 0.75 there cost 3-4 points. 0..1."""
 
-    evicted_views: bool = True
+    evicted_views: str = "depth"
     """Keep what keyframes that left the window saw, for the averaging methods
     (:mod:`mapper.node.evicted_views`): when a keyframe leaves, a worker adds its OV sample at every
-    global-map voxel it counts for (``average``: in its image; ``average_depth``: also passing its
-    depth test) to a running mean per voxel; ``average`` / ``average_depth`` then average a point's
-    window views together with its nearest map voxel's (within ``map_radius_voxels``) as that many
-    more views, i.e. as a window that never evicted. Costs 2 x D x 2 bytes a voxel (status
-    ``evicted_views.bytes``). False = the window's views only (then the map's fused features)."""
+    global-map voxel it counts for to a running mean per voxel, and the averaging then counts a
+    point's nearest map voxel's mean (within ``map_radius_voxels``) as that many more views, i.e.
+    as a window that never evicted. ``"depth"`` (default): for ``average_depth`` only (the views
+    whose depth confirms the voxel; keyframes with input depth); ``"both"``: also for ``average``
+    (every view the voxel falls in: twice the worker's time and memory, and each ``average``
+    query reads the prior too, for a smaller gain: measured in docs/QUERIES.md); ``"off"``: the
+    window's views only. Costs D x 2 bytes a voxel per channel (status ``evicted_views.bytes``)."""
 
     evicted_views_max_pending: int = 64
     """Keyframes that left the window and wait for the ``evicted_views`` worker; beyond this the
     oldest waiting is dropped (counted in status ``evicted_views.dropped``). 1..100000."""
 
     def validate(self, where: str) -> None:
+        if self.evicted_views not in ("off", "depth", "both"):
+            raise ConfigError(f"{where}: queries.evicted_views = {self.evicted_views!r}: must be one of "
+                              "'off', 'depth', 'both'")
         _check_range(where, "queries.evicted_views_max_pending", self.evicted_views_max_pending, 1, 100_000)
         _check_range(where, "queries.workers", self.workers, 0, 64)
         _check_range(where, "queries.queue_length", self.queue_length, 1, 10_000)

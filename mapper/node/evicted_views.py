@@ -75,8 +75,8 @@ class EvictedViewStore:
         self._keys = np.zeros(cap, np.int64)
         self._sorted_keys = np.zeros(0, np.int64)
         self._sorted_rows = np.zeros(0, np.int64)
-        self._channels = {name: _Channel(np.zeros((cap, dim or 0), np.float16), np.zeros(cap, np.float32))
-                          for name in CHANNELS}
+        self._channels = {name: _Channel(np.zeros((cap, 0), np.float16), np.zeros(cap, np.float32))
+                          for name in CHANNELS}  # means allocated when a channel is first written
         self.keyframes = 0
         """Keyframes absorbed since the store was made (or cleared, or restored)."""
         self._version = getattr(self, "_version", 0) + 1
@@ -133,7 +133,9 @@ class EvictedViewStore:
 
         self._keys = grown(self._keys)
         for ch in self._channels.values():
-            ch.mean, ch.count = grown(ch.mean), grown(ch.count)
+            ch.count = grown(ch.count)
+            if ch.mean.shape[1]:  # a channel never written keeps no means (allocated on first use)
+                ch.mean = grown(ch.mean)
 
     def absorb(
         self,
@@ -178,6 +180,8 @@ class EvictedViewStore:
                 if not counted.any():
                     continue
                 ch = self._channels[name]
+                if ch.mean.shape[1] == 0:
+                    ch.mean = np.zeros((self._keys.shape[0], dim), np.float16)
                 r = torch.from_numpy(rows[counted])
                 n_old = torch.from_numpy(ch.count).index_select(0, r)  # (m,)
                 mean = torch.from_numpy(ch.mean)  # (cap, D) float16, shares the store's memory
@@ -206,9 +210,11 @@ class EvictedViewStore:
             counts = np.zeros(keys.shape[0], np.float32)
             if self._n == 0:
                 return means, counts
+            ch = self._channels[channel]
+            if ch.mean.shape[1] == 0:
+                return means, counts
             rows = self._rows_for(keys, create=False)
             hit = rows >= 0
-            ch = self._channels[channel]
             means[hit] = ch.mean[rows[hit]]
             counts[hit] = ch.count[rows[hit]]
             return means, counts
@@ -229,6 +235,8 @@ class EvictedViewStore:
             if entry is None or entry[0] != self._version:
                 ch = self._channels[channel]
                 table = ch.mean[: self._n].astype(np.float32)
+                if table.shape[1] == 0:  # never written: no views (count 0 everywhere)
+                    table = np.zeros((self._n, self._dim or 0), np.float32)
                 table.setflags(write=False)
                 entry = (self._version, table, ch.count[: self._n].copy())
                 self._tables[channel] = entry
@@ -256,9 +264,11 @@ class EvictedViewStore:
             m = rows.shape[0]
             self._keys[:m] = self._keys[rows]
             for ch in self._channels.values():
-                ch.mean[:m], ch.count[:m] = ch.mean[rows], ch.count[rows]
-                ch.mean[m:n] = 0
+                ch.count[:m] = ch.count[rows]
                 ch.count[m:n] = 0
+                if ch.mean.shape[1]:
+                    ch.mean[:m] = ch.mean[rows]
+                    ch.mean[m:n] = 0
             self._n = m
             order = np.argsort(self._keys[:m], kind="stable")
             self._sorted_keys = self._keys[:m][order].copy()
@@ -288,7 +298,8 @@ class EvictedViewStore:
             n = self._n
             arrays = {f"{prefix}.keys": self._keys[:n].copy()}
             for name, ch in self._channels.items():
-                arrays[f"{prefix}.{name}_mean"] = ch.mean[:n].copy()
+                active = ch.mean.shape[1] > 0
+                arrays[f"{prefix}.{name}_mean"] = ch.mean[:n].copy() if active else np.zeros((n, 0), np.float16)
                 arrays[f"{prefix}.{name}_count"] = ch.count[:n].copy()
             return arrays, {"points": n, "dim": self._dim, "keyframes": self.keyframes}
 
@@ -307,6 +318,8 @@ class EvictedViewStore:
         got: dict[str, np.ndarray] = {}
         for field, (dtype, shape) in spec.items():
             arr = arrays.get(f"{prefix}.{field}")
+            if field.endswith("_mean") and arr is not None and arr.shape == (n, 0):
+                shape = (n, 0)  # a channel never written
             if arr is None or arr.dtype != np.dtype(dtype) or arr.shape != shape:
                 desc = "missing" if arr is None else f"{arr.dtype} {arr.shape}"
                 raise ValueError(f"evicted views section: {field} must be {dtype} {shape}, got {desc}")
@@ -325,8 +338,10 @@ class EvictedViewStore:
             self._n = n
             self._keys[:n] = got["keys"]
             for name, ch in self._channels.items():
-                ch.mean[:n] = got[f"{name}_mean"]
                 ch.count[:n] = got[f"{name}_count"]
+                if got[f"{name}_mean"].shape[1]:
+                    ch.mean = np.zeros((self._keys.shape[0], dim), np.float16)
+                    ch.mean[:n] = got[f"{name}_mean"]
             order = np.argsort(self._keys[:n], kind="stable")
             self._sorted_keys = self._keys[:n][order].copy()
             self._sorted_rows = order.astype(np.int64)
@@ -369,6 +384,8 @@ class EvictedViews:
         self.queue: KeyframeQueue[tuple[Keyframe, Any]] = KeyframeQueue(  # (keyframe, its GlobalSemanticMap)
             cfg.queries.evicted_views_max_pending
         )
+        self.both = cfg.queries.evicted_views == "both"
+        """Also the ``all`` channel (``average``); else ``depth`` only (``average_depth``)."""
         self.border_px = 10.0
         """The averaging's border (``segment_average``'s default; the node's methods use it)."""
         self.chunk = 32_768
@@ -388,7 +405,7 @@ class EvictedViews:
 
     def put(self, keyframe: Keyframe, gmap: Any) -> None:  # gmap: GlobalSemanticMap
         """Queue a keyframe the window evicted (cheap; any thread)."""
-        if keyframe.ov is not None:
+        if keyframe.ov is not None and (self.both or keyframe.depth_m is not None):
             self.queue.put((keyframe, gmap))
 
     def run(self, stop: threading.Event) -> None:
@@ -456,7 +473,9 @@ class EvictedViews:
         for lo in range(0, rows.shape[0], self.chunk):  # bounded memory: (chunk, D) samples at a time
             part = rows[lo: lo + self.chunk]
             xyz = snap.xyz[part]
-            samples = {"all": view_samples(xyz, view, use_depth=False, border_px=self.border_px)}
+            samples = {}
+            if self.both:
+                samples["all"] = view_samples(xyz, view, use_depth=False, border_px=self.border_px)
             if keyframe.depth_m is not None:
                 samples["depth"] = view_samples(xyz, view, use_depth=True, border_px=self.border_px)
             store.absorb(snap.keys[part], samples, new_keyframe=first)

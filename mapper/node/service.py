@@ -340,7 +340,7 @@ class MapperNode:
         self.evicted_views: EvictedViews | None = None
         """The worker that keeps evicted keyframes' views for the averaging methods
         (``queries.evicted_views``; :mod:`mapper.node.evicted_views`)."""
-        if config.queries.evicted_views:
+        if config.queries.evicted_views != "off":
             self.evicted_views = EvictedViews(self)
             self.evicted_views.install()
         self.kernel_modules: list[str] = ["mapper.node.query_kernels"]
@@ -1423,7 +1423,9 @@ class MapperNode:
 
     def _segment_average(self, msg: SegmentPoints, use_depth: bool) -> Segmentation:
         """``average`` / ``average_depth``: OpenScene-2D averaging over the window's keyframes where
-        they see a point, the global map's fused features elsewhere (:meth:`answer_from_map`)."""
+        they see a point, together with the views of keyframes that left the window at its nearest
+        map voxel (``queries.evicted_views``, :meth:`_evicted_prior`), and the global map's fused
+        features elsewhere (:meth:`answer_from_map`)."""
         from mapper.node.queries import SOURCE_MAP, SOURCE_WINDOW, best_text, segment_average_cosines
 
         started = time.perf_counter()
@@ -1539,6 +1541,8 @@ class MapperNode:
         or None when there are none (``queries.evicted_views`` off, nothing evicted yet, no map
         voxel near, another feature dimension)."""
         if self.evicted_views is None or nearest is None or snap.keys is None or len(store) == 0:
+            return None
+        if channel == "all" and not self.evicted_views.both:
             return None
         if store.dim != text_emb.shape[1]:
             return None

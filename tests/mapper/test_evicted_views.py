@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from mapper.node.config import config_from_dict
+from mapper.node.config import ConfigError, config_from_dict
 from mapper.node.evicted_views import EvictedViewStore
 from mapper.node.queries import SOURCE_MAP, SOURCE_WINDOW
 from mapper.node.service import MapperNode
@@ -97,8 +97,8 @@ def test_bounded_window_with_evicted_views_answers_as_an_unbounded_one(
     no blend, the map only where nothing else answers)."""
     frames = _frames()
     rules: dict[str, Any] = {"map_blend": 0.0, "map_when_more_confident": False} if isolate else {}
-    unbounded, bounded = _node(tmp_path, 100, **rules), _node(tmp_path, 2, **rules)
-    plain = _node(tmp_path, 2, evicted_views=False, **rules)
+    unbounded, bounded = _node(tmp_path, 100, **rules), _node(tmp_path, 2, evicted_views="both", **rules)
+    plain = _node(tmp_path, 2, evicted_views="off", **rules)
     for node in (unbounded, bounded, plain):
         _stream(node, frames)
     assert len(bounded.state.window) == 2 and len(unbounded.state.window) == 6
@@ -120,18 +120,37 @@ def test_bounded_window_with_evicted_views_answers_as_an_unbounded_one(
     assert only_left.mean() > 0.99
 
 
-def test_evicted_views_survive_save_and_load(tmp_path: Path) -> None:
-    node = _node(tmp_path, 2)
+@pytest.mark.parametrize("mode", ["depth", "both"])
+def test_evicted_views_survive_save_and_load(tmp_path: Path, mode: str) -> None:
+    node = _node(tmp_path, 2, evicted_views=mode)
     _stream(node, _frames())
     xyz = node.state.global_map.snapshot().xyz
-    before = _segment(node, "average", xyz)
+    before = [_segment(node, m, xyz) for m in ("average", "average_depth")]
     assert isinstance(decode(node.handle_query(encode(Save(name="ev"))), direction="reply"), Ok)
-    fresh = _node(tmp_path, 2)
+    fresh = _node(tmp_path, 2, evicted_views=mode)
     assert isinstance(decode(fresh.handle_query(encode(Load(name="ev"))), direction="reply"), Ok)
     assert len(fresh.state.global_map.evicted) == len(node.state.global_map.evicted) > 0
-    after = _segment(fresh, "average", xyz)
-    np.testing.assert_allclose(after.score, before.score, atol=1e-6)
-    assert np.array_equal(after.label, before.label)
+    for method, want in zip(("average", "average_depth"), before, strict=True):
+        got = _segment(fresh, method, xyz)
+        np.testing.assert_allclose(got.score, want.score, atol=1e-6)
+        assert np.array_equal(got.label, want.label)
+        assert (got.timing_ms["from_evicted"] > 0) == (method == "average_depth" or mode == "both")
+
+
+def test_depth_mode_keeps_one_channel_and_rgb_only_keyframes_are_not_queued(tmp_path: Path) -> None:
+    node = _node(tmp_path, 2)  # the default: "depth"
+    assert node.config.queries.evicted_views == "depth"
+    _stream(node, _frames())
+    store = node.state.global_map.evicted
+    assert store.stats()["views_depth"] > 0 and store.stats()["views_all"] == 0
+    both = _node(tmp_path, 2, evicted_views="both")
+    _stream(both, _frames())
+    assert 0 < store.nbytes < both.state.global_map.evicted.nbytes  # one channel of means, not two
+    rgb_only = _node(tmp_path, 2)
+    _stream(rgb_only, _frames(depth=False))
+    assert rgb_only.evicted_views is not None and rgb_only.evicted_views.done == 0  # nothing to keep
+    with pytest.raises(ConfigError, match="evicted_views"):
+        _node(tmp_path, 2, evicted_views="yes")
 
 
 def test_rgb_only_keyframes_count_for_average_only() -> None:
