@@ -8,10 +8,10 @@ method (``average``, ``average_depth``, ``govnesf``). Runs:
 
 * ``unbounded``: a window that holds every keyframe;
 * ``bounded``: a window of ceil(keyframes / 3) keyframes (the stream has 3x more keyframes than
-  the window), answered from the window and the global map (the node's default; ``average_depth``
-  with the views of the keyframes that left, ``queries.evicted_views = "depth"``);
+  the window), answered from the window and the global map, ``average_depth`` with the views of the
+  keyframes that left (``queries.evicted_views = "depth"``; the node's default is ``"off"``);
 * ``bounded, evicted views for both methods``: ``queries.evicted_views = "both"`` (``average`` too);
-* ``bounded, no evicted views``: ``queries.evicted_views = "off"``;
+* ``bounded, no evicted views``: ``queries.evicted_views = "off"`` (the node's default);
 * ``bounded, window only``: the same with ``queries.map_radius_voxels = 0`` (no map answers);
 * ``bounded`` / ``unbounded, more confident (before the blend)``: ``queries.map_blend = 0``, the
   rule before it: where both answer, the map's text only where its cosine is higher

@@ -331,16 +331,18 @@ class QueryConfig:
     depth, and their features were sampled at those estimated surfaces). 0 (default) = the
     ``map_when_more_confident`` rule: measured in docs/QUERIES.md, 0.75 there cost 3-4 points. 0..1."""
 
-    evicted_views: str = "depth"
+    evicted_views: str = "off"
     """Keep what keyframes that left the window saw, for the averaging methods
     (:mod:`mapper.node.evicted_views`): when a keyframe leaves, a worker adds its OV sample at every
     global-map voxel it counts for to a running mean per voxel, and the averaging then counts a
     point's nearest map voxel's mean (within ``map_radius_voxels``) as that many more views, i.e.
-    as a window that never evicted. ``"depth"`` (default): for ``average_depth`` only (the views
-    whose depth confirms the voxel; keyframes with input depth); ``"both"``: also for ``average``
-    (every view the voxel falls in: twice the worker's time and memory, and each ``average``
-    query reads the prior too, for a smaller gain: measured in docs/QUERIES.md); ``"off"``: the
-    window's views only. Costs D x 2 bytes a voxel per channel (status ``evicted_views.bytes``)."""
+    as a window that never evicted. ``"depth"``: for ``average_depth`` only (the views whose depth
+    confirms the voxel; keyframes with input depth); ``"both"``: also for ``average`` (every view
+    the voxel falls in: twice the worker's time and memory); ``"off"`` (default): the window's
+    views only. Off by default: in ``govnesf bench`` ``"depth"`` cost ingest 40 -> 32 acks/s,
+    ``average_depth`` 0.106 -> 0.144 s per 100k points and +0.7 GB RSS, for +1.0 to +2.0 mIoU of
+    ``average_depth`` on streams 3x longer than the window (docs/QUERIES.md). Costs D x 2 bytes a
+    voxel per channel (status ``evicted_views.bytes``)."""
 
     evicted_views_max_pending: int = 64
     """Keyframes that left the window and wait for the ``evicted_views`` worker; beyond this the

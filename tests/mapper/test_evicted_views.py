@@ -65,6 +65,7 @@ def _frames(n: int = 6, seed: int = 0, depth: bool = True) -> list[Frame]:
 
 
 def _node(tmp_path: Path, max_keyframes: int, **queries: Any) -> MapperNode:
+    queries.setdefault("evicted_views", "depth")
     config = config_from_dict(
         {"map_dir": str(tmp_path), "events_endpoint": "", "serve_model": False,
          "window": {"max_keyframes": max_keyframes, "min_translation_m": 0.01},
@@ -138,8 +139,9 @@ def test_evicted_views_survive_save_and_load(tmp_path: Path, mode: str) -> None:
 
 
 def test_depth_mode_keeps_one_channel_and_rgb_only_keyframes_are_not_queued(tmp_path: Path) -> None:
-    node = _node(tmp_path, 2)  # the default: "depth"
+    node = _node(tmp_path, 2)  # "depth"
     assert node.config.queries.evicted_views == "depth"
+    assert config_from_dict({}).queries.evicted_views == "off"  # the default: opt-in
     _stream(node, _frames())
     store = node.state.global_map.evicted
     assert store.stats()["views_depth"] > 0 and store.stats()["views_all"] == 0
