@@ -298,8 +298,8 @@ class EvictedViewStore:
             n = self._n
             arrays = {f"{prefix}.keys": self._keys[:n].copy()}
             for name, ch in self._channels.items():
-                active = ch.mean.shape[1] > 0
-                arrays[f"{prefix}.{name}_mean"] = ch.mean[:n].copy() if active else np.zeros((n, 0), np.float16)
+                mean = ch.mean[:n].copy() if ch.mean.shape[1] else np.zeros((n, 0), np.float16)
+                arrays[f"{prefix}.{name}_mean"] = mean  # (n, 0): a channel never written
                 arrays[f"{prefix}.{name}_count"] = ch.count[:n].copy()
             return arrays, {"points": n, "dim": self._dim, "keyframes": self.keyframes}
 
