@@ -21,29 +21,18 @@ from mapper.node.queries import SOURCE_MAP, SOURCE_WINDOW
 from mapper.node.service import MapperNode
 from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
 from protocol.messages import Frame, Load, Ok, Save, Segmentation, SegmentPoints, decode, encode
+from tests.mapper.test_whole_map import SPACE as WHOLE_MAP_SPACE
+from tests.mapper.test_whole_map import D, OneHotEncoder
 
-SPACE = "test-evicted-4"
-D = 4
+SPACE = WHOLE_MAP_SPACE
 W, H = 96, 72  # the averaging leaves out a 10 px border
 K = np.array([90.0, 90.0, 48.0, 36.0])
 TEXTS = ["c0", "c1", "c2", "c3"]
 
 
-class OneHotEncoder:
-    space = SPACE
-    dim = D
-
-    def encode(self, texts: Sequence[str]) -> np.ndarray:
-        out = np.zeros((len(texts), D), np.float32)
-        for i, t in enumerate(texts):
-            last = t.strip()[-1:]
-            out[i, int(last) % D if last.isdigit() else 0] = 1.0
-        return out
-
-
 @pytest.fixture(autouse=True)
 def onehot_space() -> Iterator[None]:
-    register_text_encoder(SPACE, OneHotEncoder)
+    register_text_encoder(SPACE, OneHotEncoder)  # test_whole_map's: "c0".."c3" one-hot
     yield
     unregister_text_encoder(SPACE)
 
