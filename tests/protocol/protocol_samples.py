@@ -142,7 +142,9 @@ def direction_of(msg: Message) -> Direction:
 ids = st.one_of(st.none(), st.integers(-(2**63), 2**64 - 1), st.text(max_size=20))
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 small = st.floats(-1e3, 1e3, allow_nan=False)
-texts = st.lists(st.text(min_size=1, max_size=12), min_size=1, max_size=6)
+# A prompt carries at least one non-whitespace character (protocol: whitespace-only prompts are refused).
+prompts = st.text(min_size=1, max_size=12).filter(lambda t: bool(t.strip()))
+texts = st.lists(prompts, min_size=1, max_size=6)
 side = st.integers(1, 7)
 
 
@@ -287,7 +289,7 @@ STRATEGIES: list[st.SearchStrategy[Any]] = [
         message=st.text(max_size=30), id=ids,
     ),
     st.builds(
-        QueryPoints, texts=texts, negatives=st.none() | st.lists(st.text(min_size=1, max_size=5), max_size=4),
+        QueryPoints, texts=texts, negatives=st.none() | st.lists(prompts, max_size=4),
         min_score=st.none() | finite, max_points=st.none() | st.integers(1, 2**40), objects=st.booleans(),
         id=ids,
     ),
