@@ -6,10 +6,12 @@ depth confirms it. When a keyframe leaves the window (the window is bounded), it
 counting, and a stream three times longer than the window answered 1-3 points lower than the same
 node with an unbounded window (docs/QUERIES.md). This module keeps those views' contribution:
 
-* :class:`EvictedViewStore` (pure numpy, thread-safe): per voxel key, the running mean of the OV
-  samples of the keyframes that left and counted for it, and how many did, in two channels,
-  ``all`` (in the image, less the border: ``average``) and ``depth`` (also passing the depth test:
-  ``average_depth``). Float16 means, float32 counts; saved with the global map.
+* :class:`EvictedViewStore` (numpy, thread-safe; the running means updated in place by one
+  compiled kernel, :func:`absorb_rows`): per voxel key, the running mean of the OV samples of the
+  keyframes that left and counted for it, and how many did, in two channels, ``all`` (in the
+  image, less the border: ``average``) and ``depth`` (also passing the depth test:
+  ``average_depth``). Float32 means and counts (queries read the means in place, no copy); saved
+  with the global map as they are (maps saved with float16 means load too).
 * :class:`EvictedViews`: the node's worker (``mapper-evicted-views``). For each keyframe the window
   evicts (``MapperNode._ingest_frame`` queues it; the ack never waits), it samples the keyframe's
   OV map at every global-map voxel with the averaging's own selection
@@ -32,6 +34,7 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import numba
 import numpy as np
 
 from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker
@@ -43,7 +46,7 @@ if TYPE_CHECKING:
 # (``mapper.node.global_map.GlobalSemanticMap``) as ``Any``: the global map holds the store, so
 # naming those types here would make an import cycle (tests/test_architecture.py).
 
-__all__ = ["CHANNELS", "EvictedViewStore", "EvictedViews"]
+__all__ = ["CHANNELS", "EvictedViewStore", "EvictedViews", "absorb_rows", "warm_up"]
 
 log = logging.getLogger("mapper.node.evicted_views")
 
@@ -54,8 +57,50 @@ confirms it (``average_depth``)."""
 
 @dataclass
 class _Channel:
-    mean: np.ndarray  # (cap, D) float16 running mean of the samples
+    mean: np.ndarray  # (cap, D) float32 running mean of the samples
     count: np.ndarray  # (cap,) float32 views behind it
+
+
+@numba.njit(boundscheck=False, cache=True, nogil=True)
+def _absorb_rows(mean, count, rows, feat, at):  # pragma: no cover - compiled
+    for i in range(rows.shape[0]):
+        r = rows[i]
+        src = at[i]
+        n = count[r]
+        inv = np.float32(1.0) / (n + np.float32(1.0))
+        for d in range(mean.shape[1]):
+            mean[r, d] += (feat[src, d] - mean[r, d]) * inv
+        count[r] = n + np.float32(1.0)
+
+
+def absorb_rows(
+    mean: np.ndarray,  # (cap, D) float32 running means, updated in place
+    count: np.ndarray,  # (cap,) float32 samples behind each, updated in place
+    rows: np.ndarray,  # (m,) int64 distinct rows to update
+    feat: np.ndarray,  # (M, D) float32 samples
+    at: np.ndarray,  # (m,) int64 the sample of each row: feat[at[i]] goes into row rows[i]
+) -> None:
+    """One more sample per row: ``mean[r] += (feat[at] - mean[r]) / (count[r] + 1)``, ``count[r] += 1``
+    (the running mean, in float32, in place; one pass, no temporaries, the GIL released). A row
+    listed twice takes both samples, one after the other."""
+    if mean.dtype != np.float32 or count.dtype != np.float32 or feat.dtype != np.float32:
+        raise TypeError("absorb_rows: mean, count and feat must be float32")
+    if mean.ndim != 2 or feat.ndim != 2 or feat.shape[1] != mean.shape[1]:
+        raise ValueError(f"absorb_rows: mean {mean.shape} and feat {feat.shape} must be (., D) of one D")
+    rows = np.asarray(rows, np.int64)
+    at = np.asarray(at, np.int64)
+    if rows.shape != at.shape or rows.ndim != 1:
+        raise ValueError(f"absorb_rows: rows {rows.shape} and at {at.shape} must be (m,)")
+    if rows.size and (rows.min() < 0 or rows.max() >= mean.shape[0]
+                      or at.min() < 0 or at.max() >= feat.shape[0]):
+        raise ValueError("absorb_rows: a row or sample index is out of range")
+    _absorb_rows(mean, count, rows, np.ascontiguousarray(feat), at)
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) :func:`absorb_rows` on a one-row problem."""
+    absorb_rows(np.zeros((1, 2), np.float32), np.zeros(1, np.float32), np.zeros(1, np.int64),
+                np.ones((1, 2), np.float32), np.zeros(1, np.int64))
 
 
 class EvictedViewStore:
@@ -75,13 +120,11 @@ class EvictedViewStore:
         self._keys = np.zeros(cap, np.int64)
         self._sorted_keys = np.zeros(0, np.int64)
         self._sorted_rows = np.zeros(0, np.int64)
-        self._channels = {name: _Channel(np.zeros((cap, 0), np.float16), np.zeros(cap, np.float32))
+        self._channels = {name: _Channel(np.zeros((cap, 0), np.float32), np.zeros(cap, np.float32))
                           for name in CHANNELS}  # means allocated when a channel is first written
         self.keyframes = 0
         """Keyframes absorbed since the store was made (or cleared, or restored)."""
         self._version = getattr(self, "_version", 0) + 1
-        self._tables: dict[str, tuple[int, np.ndarray, np.ndarray]] = {}
-        """Per channel: (version, float32 means (n, D), counts (n,)) for queries, made on demand."""
 
     @property
     def dim(self) -> int | None:
@@ -92,11 +135,10 @@ class EvictedViewStore:
 
     @property
     def nbytes(self) -> int:
-        """Bytes of the used rows (means, counts, keys), the index and the queries' float32 tables."""
+        """Bytes of the used rows (means, counts, keys) and the index."""
         with self._lock:
             per_row = 8 + sum(c.mean[:1].nbytes + 4 for c in self._channels.values())
-            tables = sum(t[1].nbytes + t[2].nbytes for t in self._tables.values())
-            return int(self._n * per_row + self._sorted_keys.nbytes + self._sorted_rows.nbytes + tables)
+            return int(self._n * per_row + self._sorted_keys.nbytes + self._sorted_rows.nbytes)
 
     def _rows_for(self, keys: np.ndarray, *, create: bool) -> np.ndarray:
         """Rows of ``keys`` (U,) unique int64; -1 where absent unless ``create`` (lock held)."""
@@ -173,24 +215,15 @@ class EvictedViewStore:
                 raise ValueError(f"samples have dimension {dim}, the store's {self._dim}")
             rows = np.full(m, -1, np.int64)
             rows[touched] = self._rows_for(keys[touched], create=True)
-            import torch  # vectorised float16 <-> float32 (numpy's casts are scalar); torch is loaded by now
-
             for name, (feat, counted) in samples.items():
                 counted = np.asarray(counted, bool)
                 if not counted.any():
                     continue
                 ch = self._channels[name]
                 if ch.mean.shape[1] == 0:
-                    ch.mean = np.zeros((self._keys.shape[0], dim), np.float16)
-                r = torch.from_numpy(rows[counted])
-                n_old = torch.from_numpy(ch.count).index_select(0, r)  # (m,)
-                mean = torch.from_numpy(ch.mean)  # (cap, D) float16, shares the store's memory
-                new = mean.index_select(0, r).float().mul_(n_old[:, None])
-                at = torch.from_numpy(np.flatnonzero(counted))
-                new.add_(torch.from_numpy(np.ascontiguousarray(feat, np.float32)).index_select(0, at))
-                new.div_((n_old + 1.0)[:, None])
-                mean.index_copy_(0, r, new.half())
-                ch.count[rows[counted]] = n_old.numpy() + 1.0
+                    ch.mean = np.zeros((self._keys.shape[0], dim), np.float32)
+                absorb_rows(ch.mean, ch.count, rows[counted], np.asarray(feat, np.float32),
+                            np.flatnonzero(counted))
             self.keyframes += int(new_keyframe)
             self._version += 1
             return int(touched.sum())
@@ -224,27 +257,26 @@ class EvictedViewStore:
         keys: np.ndarray,  # (N,) int64 voxel keys, one per query point (-1 or absent: none)
         channel: str,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The averaging's ``prior`` for points whose nearest voxels have ``keys``: (means (n, D)
-        float32, the channel's whole table, shared by queries until the next change; row (N,) int64,
-        -1 where the voxel has no view of this channel; weight (N,) float32, the views behind it)."""
+        """The averaging's ``prior`` for points whose nearest voxels have ``keys``: (means (cap, D)
+        float32, the channel's table itself, no copy; row (N,) int64, -1 where the voxel has no
+        view of this channel; weight (N,) float32, the views behind it when this was called).
+
+        The table is read in place: rows are never moved in it (:meth:`compact` and growth make new
+        arrays), but the worker may add a view to a row while a query reads it, so a row read then
+        is its mean before or after that view, element by element (both are means of the views; the
+        weight is the count at this call)."""
         if channel not in CHANNELS:
             raise ValueError(f"unknown channel {channel!r}; one of {CHANNELS}")
         keys = np.asarray(keys, np.int64).reshape(-1)
         with self._lock:
-            entry = self._tables.get(channel)
-            if entry is None or entry[0] != self._version:
-                ch = self._channels[channel]
-                table = ch.mean[: self._n].astype(np.float32)
-                if table.shape[1] == 0:  # never written: no views (count 0 everywhere)
-                    table = np.zeros((self._n, self._dim or 0), np.float32)
-                table.setflags(write=False)
-                entry = (self._version, table, ch.count[: self._n].copy())
-                self._tables[channel] = entry
+            ch = self._channels[channel]
+            table = ch.mean
+            if table.shape[1] == 0:  # never written: no views (count 0 everywhere)
+                table = np.zeros((self._n, self._dim or 0), np.float32)
             rows = self._rows_for(keys, create=False) if self._n else np.full(keys.shape[0], -1, np.int64)
-        _, table, counts = entry
-        weight = np.zeros(keys.shape[0], np.float32)
-        hit = rows >= 0
-        weight[hit] = counts[rows[hit]]
+            weight = np.zeros(keys.shape[0], np.float32)
+            hit = rows >= 0
+            weight[hit] = ch.count[rows[hit]]
         rows[hit & ~(weight > 0)] = -1
         return table, rows, weight
 
@@ -262,13 +294,18 @@ class EvictedViewStore:
                 return 0
             rows = np.flatnonzero(keep)
             m = rows.shape[0]
-            self._keys[:m] = self._keys[rows]
+            cap = self._keys.shape[0]
+
+            def kept(a: np.ndarray) -> np.ndarray:  # new arrays: a query may be reading the old ones
+                out = np.zeros((cap, *a.shape[1:]), a.dtype)
+                out[:m] = a[rows]
+                return out
+
+            self._keys = kept(self._keys)
             for ch in self._channels.values():
-                ch.count[:m] = ch.count[rows]
-                ch.count[m:n] = 0
+                ch.count = kept(ch.count)
                 if ch.mean.shape[1]:
-                    ch.mean[:m] = ch.mean[rows]
-                    ch.mean[m:n] = 0
+                    ch.mean = kept(ch.mean)
             self._n = m
             order = np.argsort(self._keys[:m], kind="stable")
             self._sorted_keys = self._keys[:m][order].copy()
@@ -298,7 +335,7 @@ class EvictedViewStore:
             n = self._n
             arrays = {f"{prefix}.keys": self._keys[:n].copy()}
             for name, ch in self._channels.items():
-                mean = ch.mean[:n].copy() if ch.mean.shape[1] else np.zeros((n, 0), np.float16)
+                mean = ch.mean[:n].copy() if ch.mean.shape[1] else np.zeros((n, 0), np.float32)
                 arrays[f"{prefix}.{name}_mean"] = mean  # (n, 0): a channel never written
                 arrays[f"{prefix}.{name}_count"] = ch.count[:n].copy()
             return arrays, {"points": n, "dim": self._dim, "keyframes": self.keyframes}
@@ -313,14 +350,16 @@ class EvictedViewStore:
             raise ValueError("evicted views section: 'points' must be an int >= 0, 'dim' an int > 0 or null")
         spec: dict[str, tuple[str, tuple[int, ...]]] = {"keys": ("int64", (n,))}
         for name in CHANNELS:
-            spec[f"{name}_mean"] = ("float16", (n, dim or 0))
+            spec[f"{name}_mean"] = ("float32", (n, dim or 0))  # float16: saved before 2026-12-04
             spec[f"{name}_count"] = ("float32", (n,))
         got: dict[str, np.ndarray] = {}
         for field, (dtype, shape) in spec.items():
             arr = arrays.get(f"{prefix}.{field}")
             if field.endswith("_mean") and arr is not None and arr.shape == (n, 0):
                 shape = (n, 0)  # a channel never written
-            if arr is None or arr.dtype != np.dtype(dtype) or arr.shape != shape:
+            ok_dtype = arr is not None and (arr.dtype == np.dtype(dtype) or (
+                field.endswith("_mean") and arr.dtype == np.float16))
+            if arr is None or not ok_dtype or arr.shape != shape:
                 desc = "missing" if arr is None else f"{arr.dtype} {arr.shape}"
                 raise ValueError(f"evicted views section: {field} must be {dtype} {shape}, got {desc}")
             got[field] = arr
@@ -329,6 +368,8 @@ class EvictedViewStore:
         for name in CHANNELS:
             if not (np.isfinite(got[f"{name}_count"]).all() and (got[f"{name}_count"] >= 0).all()):
                 raise ValueError(f"evicted views section: {name}_count must be finite and >= 0")
+            if not np.isfinite(got[f"{name}_mean"]).all():
+                raise ValueError(f"evicted views section: {name}_mean must be finite")
         keyframes = manifest.get("keyframes")
         with self._lock:
             self._reset(dim)
@@ -340,7 +381,7 @@ class EvictedViewStore:
             for name, ch in self._channels.items():
                 ch.count[:n] = got[f"{name}_count"]
                 if got[f"{name}_mean"].shape[1]:
-                    ch.mean = np.zeros((self._keys.shape[0], dim), np.float16)
+                    ch.mean = np.zeros((self._keys.shape[0], dim), np.float32)
                     ch.mean[:n] = got[f"{name}_mean"]
             order = np.argsort(self._keys[:n], kind="stable")
             self._sorted_keys = self._keys[:n][order].copy()
@@ -460,30 +501,30 @@ class EvictedViews:
         if gmap is not current:  # a map loaded since: the keyframe belongs to the old one
             self.stale += 1
             return
-        snap = gmap.snapshot()
-        if len(snap) == 0 or keyframe.ov is None or snap.keys is None:
+        map_xyz, map_keys = gmap.geometry()  # points and keys only: no copy of the map's features
+        if map_xyz.shape[0] == 0 or keyframe.ov is None:
             self.done += 1
             return
         view = OVView(keyframe.ov, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
                       keyframe.depth_m)
-        rows = in_image(snap.xyz, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
+        rows = in_image(map_xyz, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
                         self.border_px)
         store = gmap.evicted
         first = True
         for lo in range(0, rows.shape[0], self.chunk):  # bounded memory: (chunk, D) samples at a time
             part = rows[lo: lo + self.chunk]
-            xyz = snap.xyz[part]
+            xyz = map_xyz[part]
             samples = {}
             if self.both:
                 samples["all"] = view_samples(xyz, view, use_depth=False, border_px=self.border_px)
             if keyframe.depth_m is not None:
                 samples["depth"] = view_samples(xyz, view, use_depth=True, border_px=self.border_px)
-            store.absorb(snap.keys[part], samples, new_keyframe=first)
+            store.absorb(map_keys[part], samples, new_keyframe=first)
             first = False
         if first:
             store.absorb(np.zeros(0, np.int64), {})  # counts the keyframe (no voxel in its image)
-        if len(store) > max(2 * len(snap), 4096):  # voxels the map pruned since
-            store.compact(snap.keys)
+        if len(store) > max(2 * map_xyz.shape[0], 4096):  # voxels the map pruned since
+            store.compact(map_keys)
         self.done += 1
         self.seconds_total += time.perf_counter() - started
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from mapper.node.config import ConfigError, config_from_dict
-from mapper.node.evicted_views import EvictedViewStore
+from mapper.node.evicted_views import EvictedViewStore, absorb_rows
 from mapper.node.queries import SOURCE_MAP, SOURCE_WINDOW
 from mapper.node.service import MapperNode
 from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
@@ -170,7 +170,7 @@ def test_store_running_mean_against_float64() -> None:
     means, counts = store.lookup(keys, "all")
     assert np.array_equal(counts, count.astype(np.float32))
     has = count > 0
-    np.testing.assert_allclose(means[has], total[has] / count[has, None], atol=5e-3)  # float16 means
+    np.testing.assert_allclose(means[has], total[has] / count[has, None], atol=1e-5)  # float32 running means
     assert store.stats()["keyframes"] == 7
     # compact keeps exactly the given keys' rows and their values
     kept = keys[::3]
@@ -189,8 +189,12 @@ def test_store_round_trip_and_bad_input_changes_nothing() -> None:
     copy = EvictedViewStore()
     copy.restore(arrays, manifest, "g.ev")
     assert np.array_equal(copy.lookup(keys, "all")[1], store.lookup(keys, "all")[1])
+    assert arrays["g.ev.all_mean"].dtype == np.float32  # saved as kept: a load answers as before the save
+    older = {**arrays, "g.ev.all_mean": arrays["g.ev.all_mean"].astype(np.float16)}  # maps saved before
+    EvictedViewStore().restore(older, manifest, "g.ev")
     for bad in ({"keys": np.zeros(10, np.int64)}, {"all_count": np.full(10, -1.0, np.float32)},
-                {"all_mean": np.zeros((10, 3), np.float32)}):  # fmt: skip
+                {"all_mean": np.zeros((10, 3), np.float64)},
+                {"all_mean": np.full((10, 3), np.nan, np.float32)}):  # fmt: skip
         broken = {**arrays, **{f"g.ev.{k}": v for k, v in bad.items()}}
         with pytest.raises(ValueError, match="evicted views section"):
             copy.restore(broken, manifest, "g.ev")
@@ -204,7 +208,7 @@ def test_store_round_trip_and_bad_input_changes_nothing() -> None:
     assert store.lookup(keys, "all")[1].tolist() == [1.0] * 10
 
 
-def test_prior_table_is_shared_until_the_store_changes() -> None:
+def test_prior_reads_the_table_in_place_and_compact_never_moves_rows_under_a_reader() -> None:
     store = EvictedViewStore()
     keys = np.array([3, 1, 2], np.int64)
     store.absorb(keys, {"all": (np.eye(3, dtype=np.float32), np.array([True, True, False]))})
@@ -213,11 +217,43 @@ def test_prior_table_is_shared_until_the_store_changes() -> None:
     np.testing.assert_array_equal(table[row[0]], [0, 1, 0])
     np.testing.assert_array_equal(table[row[2]], [1, 0, 0])
     again, _, _ = store.prior(keys, "all")
-    assert again is table and not table.flags.writeable  # reused, read-only
-    store.absorb(keys, {"all": (np.eye(3, dtype=np.float32), np.ones(3, bool))})
+    assert again is table  # no copy per query
+    store.absorb(keys, {"all": (np.eye(3, dtype=np.float32)[::-1].copy(), np.ones(3, bool))})
     after, row2, weight2 = store.prior(np.array([3], np.int64), "all")
-    assert after is not table and weight2.tolist() == [2.0]
-    np.testing.assert_allclose(after[row2[0]], [1, 0, 0])
+    assert weight2.tolist() == [2.0]
+    np.testing.assert_allclose(after[row2[0]], [0.5, 0, 0.5])  # mean of e0 and the new sample e2
+    held = table.copy()
+    assert store.compact(np.array([2, 3], np.int64)) == 1  # key 1 leaves; rows of 3 and 2 move ...
+    np.testing.assert_array_equal(table, held)  # ... in new arrays: what a query holds is unchanged
+    moved, row3, _ = store.prior(np.array([3], np.int64), "all")
+    assert moved is not table
+    np.testing.assert_allclose(moved[row3[0]], [0.5, 0, 0.5])
+
+
+def test_absorb_rows_kernel_against_float64_and_bad_input() -> None:
+    rng = np.random.default_rng(5)
+    mean = np.zeros((50, 16), np.float32)
+    count = np.zeros(50, np.float32)
+    total = np.zeros((50, 16))
+    n = np.zeros(50)
+    for _ in range(20):
+        rows = rng.permutation(50)[:30].astype(np.int64)
+        feat = (100.0 * rng.standard_normal((40, 16))).astype(np.float32)  # large values: no drift
+        at = rng.permutation(40)[:30].astype(np.int64)
+        absorb_rows(mean, count, rows, feat, at)
+        total[rows] += feat[at]
+        n[rows] += 1
+    has = n > 0
+    np.testing.assert_allclose(mean[has], total[has] / n[has, None], rtol=1e-4, atol=1e-3)
+    assert np.array_equal(count, n.astype(np.float32)) and not mean[~has].any()
+    before = mean.copy()
+    with pytest.raises(TypeError, match="float32"):
+        absorb_rows(mean.astype(np.float64), count, rows, feat, at)
+    with pytest.raises(ValueError, match="out of range"):
+        absorb_rows(mean, count, np.array([50], np.int64), feat, np.array([0], np.int64))
+    with pytest.raises(ValueError, match="of one D"):
+        absorb_rows(mean, count, rows, feat[:, :8].copy(), at)
+    assert np.array_equal(mean, before)
 
 
 @pytest.mark.parametrize("seed", [0, 1])

@@ -214,6 +214,28 @@ def test_snapshot_is_immutable_and_cached_per_version() -> None:
     assert gmap.snapshot() is not snap and len(gmap.snapshot()) > len(snap)
 
 
+def test_geometry_is_the_snapshots_points_and_keys_read_only() -> None:
+    gmap = GlobalSemanticMap(GlobalMapConfig(pixel_stride=2))
+    xyz, keys = gmap.geometry()
+    assert xyz.shape == (0, 3) and keys.shape == (0,)
+    gmap.integrate(make_kf(plane_depth(2.0), ov=np.ones((3, 4, 4), np.float16)))
+    xyz, keys = gmap.geometry()  # no snapshot taken yet: copies of the points and keys
+    snap = gmap.snapshot()
+    assert snap.keys is not None
+    np.testing.assert_array_equal(xyz, snap.xyz)
+    np.testing.assert_array_equal(keys, snap.keys)
+    with pytest.raises(ValueError):
+        xyz[0, 0] = 1.0
+    with pytest.raises(ValueError):
+        keys[0] = 1
+    again = gmap.geometry()  # the same version, snapshot cached: shares its arrays
+    assert again[0] is snap.xyz and again[1] is snap.keys
+    gmap.integrate(make_kf(plane_depth(3.0), ov=np.ones((3, 4, 4), np.float16)))
+    later_xyz, later_keys = gmap.geometry()
+    assert later_xyz.shape[0] == later_keys.shape[0] > snap.xyz.shape[0]
+    np.testing.assert_array_equal(xyz, snap.xyz)  # earlier copies do not change
+
+
 def test_save_restore_roundtrip_and_rekey() -> None:
     cfg = GlobalMapConfig(pixel_stride=2)
     gmap = GlobalSemanticMap(cfg)
