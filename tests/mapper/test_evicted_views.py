@@ -294,3 +294,20 @@ def test_worker_thread_absorbs_what_the_window_evicts(tmp_path: Path) -> None:
     worker.queue.wake.set()
     thread.join(timeout=10.0)
     assert worker.pending == 0 and worker.done == 4 and len(node.state.global_map.evicted) > 0
+
+
+def test_worker_projects_the_maps_points_without_copying_its_features(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    node = _node(tmp_path, 2)
+    assert node.evicted_views is not None
+    for f in _frames():
+        node.handle_ingest(encode(f))
+    assert node.evicted_views.pending > 0
+    gmap = node.state.global_map
+    calls = []
+    monkeypatch.setattr(gmap, "snapshot", lambda: calls.append(1) or pytest.fail("snapshot() copied the map"))
+    version = gmap.version
+    assert node.evicted_views.process_pending() > 0
+    assert calls == [] and gmap.version == version  # read only the points and keys; the map unchanged
+    assert gmap.evicted.stats()["views_depth"] > 0
