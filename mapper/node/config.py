@@ -339,10 +339,10 @@ class QueryConfig:
     as a window that never evicted. ``"depth"``: for ``average_depth`` only (the views whose depth
     confirms the voxel; keyframes with input depth); ``"both"``: also for ``average`` (every view
     the voxel falls in: twice the worker's time and memory); ``"off"`` (default): the window's
-    views only. Off by default: in ``govnesf bench`` ``"depth"`` cost ingest 40 -> 32 acks/s,
-    ``average_depth`` 0.106 -> 0.144 s per 100k points and +0.7 GB RSS, for +1.0 to +2.0 mIoU of
-    ``average_depth`` on streams 3x longer than the window (docs/QUERIES.md). Costs D x 2 bytes a
-    voxel per channel (status ``evicted_views.bytes``)."""
+    views only. Off by default: in ``govnesf bench`` ``"depth"`` costs ``average_depth`` +0.03 to
+    +0.04 s per 100k points (0.09-0.10 -> 0.12-0.14 s; ingest and RSS within the runs' noise), for
+    +1.0 to +2.0 mIoU of ``average_depth`` on streams 3x longer than the window (docs/QUERIES.md).
+    Costs D x 4 bytes a voxel per channel (status ``evicted_views.bytes``)."""
 
     evicted_views_max_pending: int = 64
     """Keyframes that left the window and wait for the ``evicted_views`` worker; beyond this the
