@@ -255,7 +255,14 @@ class QueryConfig:
     0 = never split. 0..0.99."""
 
     object_split_depth: int = 3
-    """How many times a candidate's parts may be split again (``object_split_quantile``). 0..16."""
+    """How many cuts a candidate may take in all: its core, then (if that stays in one piece) the
+    core's own core at the same quantile, and its parts' splits (``object_split_quantile``). 0..16."""
+
+    object_split_clean_share: float = 0.9
+    """A stricter core (beyond a candidate's first) counts as fallen apart only when its groups of
+    ``min_object_points`` hold at least this share of its points: a chair against a desk breaks
+    cleanly (99% of the core in two groups), the top eighth of one large object with noisy scores
+    into dust (48-75% in groups). 0..1."""
 
     object_split_max_points: int = 20_000
     """Candidates with more points than this are never split (room-scale surfaces, not groups of
@@ -369,6 +376,7 @@ class QueryConfig:
         _check_range(where, "queries.object_split_quantile", self.object_split_quantile, 0.0, 0.99)
         _check_range(where, "queries.object_split_depth", self.object_split_depth, 0, 16)
         _check_range(where, "queries.object_split_max_points", self.object_split_max_points, 0, 100_000_000)
+        _check_range(where, "queries.object_split_clean_share", self.object_split_clean_share, 0.0, 1.0)
         _check_range(where, "queries.max_objects", self.max_objects, 1, 10_000)
 
 

@@ -217,6 +217,7 @@ def cluster_points(
     split_quantile: float = 0.0,
     split_depth: int = 0,
     split_max_points: int = 0,
+    split_clean_share: float = 0.9,
     reference: bool = False,
 ) -> list[Cluster]:
     """Connected components per label (points at most ``radius_m`` apart are linked), keeping the
@@ -231,7 +232,8 @@ def cluster_points(
         whole = cluster_points(xyz, score, label, radius_m, min_points, support_points=support_points,
                                reference=reference)
         return split_by_score(xyz, score, whole, radius_m, min_points, split_quantile, split_depth,
-                              support_points=support_points, max_points=split_max_points)
+                              support_points=support_points, max_points=split_max_points,
+                              clean_share=split_clean_share)
     out: list[Cluster] = []
     if reference:
         return _cluster_points_reference(xyz, score, label, radius_m, min_points, support_points)
@@ -278,6 +280,7 @@ def split_by_score(
     *,
     support_points: float = 0.0,
     max_points: int = 0,
+    clean_share: float = 0.9,
 ) -> list[Cluster]:
     """Clusters whose best-scoring points form separate groups, split into those groups.
 
@@ -287,8 +290,13 @@ def split_by_score(
     (0.5: the top half); when the core's own components (points at most ``radius_m`` apart)
     include two or more of at least ``min_points`` points, the cluster is replaced by those
     components (core points only: the weaker points between them, a table between chairs, belong
-    to neither), each split again up to ``depth`` times in all. A cluster whose core stays in one
-    piece, or splits into one big part and crumbs, is kept whole. Scores as
+    to neither). A core that stays in one piece (or splits into one big part and crumbs) is cut
+    again at its own quantile (the top quarter, eighth, ...: a chair pushed against a desk that
+    also scores for "chair" stays joined to it in the top half, and parts in a stricter core),
+    where a split counts only if its parts hold at least ``clean_share`` of that core's points (a
+    clean break into a few pieces; the top eighth of one large object with noisy scores falls into
+    dust, 50-75% of it in parts of ``min_points``); cores and the parts' own splits take at most
+    ``depth`` cuts in all. A cluster none of whose cores falls apart is kept whole. Scores as
     :func:`cluster_points`; sorted best first.
 
     >>> import numpy as np
@@ -311,17 +319,23 @@ def split_by_score(
         if left <= 0 or members.size < 2 * min_points or 0 < max_points < members.size:
             out.append(cluster)
             continue
-        s = score[members]
-        core = members[s >= np.quantile(s, quantile)]
-        n_comp, comp = radius_components(xyz[core].astype(np.float64), radius_m)
-        sizes = np.bincount(comp, minlength=n_comp)
-        parts = np.flatnonzero(sizes >= min_points)
-        if parts.size < 2:
-            out.append(cluster)
-            continue
-        for part in parts:
-            sub = _scored_cluster(cluster.label, core[comp == part], xyz, score, support_points)
-            todo.append((sub, left - 1))
+        core, split, stricter = members, False, False
+        while left > 0 and not split:  # ever stricter cores (the quantile of the last one)
+            left -= 1
+            s = score[core]
+            core = core[s >= np.quantile(s, quantile)]
+            if core.size < 2 * min_points:
+                break
+            n_comp, comp = radius_components(xyz[core].astype(np.float64), radius_m)
+            sizes = np.bincount(comp, minlength=n_comp)
+            parts = np.flatnonzero(sizes >= min_points)
+            split = parts.size >= 2 and (not stricter or sizes[parts].sum() >= clean_share * core.size)
+            stricter = True
+            for part in parts if split else ():
+                sub = _scored_cluster(cluster.label, core[comp == part], xyz, score, support_points)
+                todo.append((sub, left))
+        if not split:
+            out.append(cluster)  # no core fell apart (or only into one part and crumbs): as it was
     out.sort(key=lambda c: (-c.score, -c.indices.size))
     return out
 
@@ -686,6 +700,7 @@ def query_points(
             snapshot.xyz[sel], score[sel], label[sel], config.cluster_radius_m, config.min_object_points,
             support_points=config.object_support_points, split_quantile=config.object_split_quantile,
             split_depth=config.object_split_depth, split_max_points=config.object_split_max_points,
+            split_clean_share=config.object_split_clean_share,
         )
         for c in clusters[: config.max_objects]:
             candidates.append(

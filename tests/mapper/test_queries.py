@@ -4,6 +4,8 @@ all-MiniLM-L6-v2 text encoder on a synthetic map whose features are class-name e
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -309,7 +311,50 @@ def test_object_split_config_is_checked() -> None:
 
     assert config_from_dict({}).queries.object_split_quantile == 0.5
     bad = (("object_split_quantile", 1.0), ("object_split_quantile", -0.1), ("object_split_depth", -1),
-           ("object_split_max_points", -5))
+           ("object_split_max_points", -5), ("object_split_clean_share", 1.5),
+           ("object_split_clean_share", -0.1))
     for key, value in bad:
         with pytest.raises(ConfigError, match=f"queries.{key}"):
             config_from_dict({"queries": {key: value}})
+
+
+def _grid_box(lo: tuple[float, ...], hi: tuple[float, ...], step: float = 0.05) -> np.ndarray:
+    axes = [np.arange(a, b + 1e-9, step) for a, b in zip(lo, hi, strict=True)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def test_a_stricter_core_splits_a_chair_from_the_desk_it_touches() -> None:
+    """A chair (best scores) against a desk whose far end also scores high for "chair" and whose
+    middle, between them, scores above the candidate's median: the top half stays in one piece; the
+    top quarter is the chair and the desk's end, two clean parts."""
+    from mapper.node.queries import split_by_score
+
+    chair = _grid_box((0.0, 0.0, 0.0), (0.25, 0.25, 0.2))
+    bridge = _grid_box((0.3, 0.0, 0.0), (0.55, 0.25, 0.2))
+    desk_end = _grid_box((0.6, 0.0, 0.0), (0.85, 0.25, 0.2))
+    rest = _grid_box((0.3, 0.3, 0.0), (0.85, 1.3, 0.05))  # the rest of the desk, beside the bridge
+    xyz = np.concatenate([chair, bridge, desk_end, rest]).astype(np.float32)
+    n_c, n_b, n_e = len(chair), len(bridge), len(desk_end)
+    assert n_c == n_b == n_e == 180 and len(rest) == 504
+    score = np.concatenate([np.full(n_c, 0.9), np.full(n_b, 0.8), np.full(n_e, 0.88),
+                            np.full(len(rest), 0.5)]).astype(np.float32)  # fmt: skip
+    assert np.quantile(score, 0.5) == pytest.approx(0.8)  # the top half: chair, bridge and the desk's end
+    whole = cluster_points(xyz, score, np.zeros(len(xyz), np.int64), 0.12, 15)
+    assert len(whole) == 1
+    parts = split_by_score(xyz, score, whole, 0.12, 15, 0.5, 3)
+    assert sorted(len(p.indices) for p in parts) == sorted([n_c, n_e])
+    assert np.linalg.norm(parts[0].centroid - chair.mean(0)) < 1e-5  # the chair, best first
+    assert len(split_by_score(xyz, score, whole, 0.12, 15, 0.5, 1)) == 1  # one cut only: as it was
+
+
+def test_strict_cores_that_fall_into_dust_keep_the_object_whole(room: GlobalMapSnapshot) -> None:
+    """The room's bed and table (noisy features): their strict cores break into crumbs and a few
+    groups of 15 points that hold 48-75% of the core; below the clean share they stay whole (the top
+    object on the bed's centre), while counting any split would report a fragment."""
+    for text, name in (("where is the bed", "bed"), ("show me the table", "table")):
+        top = ask(room, [text]).objects[0]
+        assert _nearest_object(top.centroid)[0] == name and _nearest_object(top.centroid)[1] < 0.2
+        dusty = replace(CONFIG, object_split_clean_share=0.0)
+        frag = query_points(room, get_text_encoder(), [text], config=dusty, negatives=None, min_score=None,
+                            max_points=None, objects=True).objects[0]  # fmt: skip
+        assert frag.n_points < top.n_points and _nearest_object(frag.centroid)[1] > 0.3
