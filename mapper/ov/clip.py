@@ -35,7 +35,6 @@ Nothing here downloads anything.
 from __future__ import annotations
 
 import math
-import threading
 import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -49,6 +48,7 @@ from torch import Tensor, nn
 from mapper.model.ops.checks import check_shape
 from mapper.ov.clip_tokenizer import ClipTokenizer
 from mapper.ov.config import ACTIVATIONS, ClipBackendConfig
+from mapper.ov.encoders import PromptCache
 
 #: CLIP's image normalisation (OpenAI; open_clip uses the same for its CLIP ViTs).
 
@@ -533,32 +533,27 @@ class ClipDenseBackend:
         self.input_size = cfg.input_size if cfg.input_size is not None else self.arch.image_size
         self._mean = torch.tensor(cfg.image_mean, dtype=torch.float32).view(1, 3, 1, 1)
         self._std = torch.tensor(cfg.image_std, dtype=torch.float32).view(1, 3, 1, 1)
-        self._text_cache: dict[str, np.ndarray] = {}
-        self._lock = threading.Lock()
+        self._text_cache = PromptCache(self._embed_texts, self.dim)
 
     # ---- text ----
+    def _embed_texts(self, texts: list[str]) -> np.ndarray:  # (M,) distinct -> (M, D) unit rows
+        out = []
+        for start in range(0, len(texts), _TEXT_BATCH):
+            chunk = texts[start : start + _TEXT_BATCH]
+            tokens = torch.from_numpy(self.tokenizer.tokenize(chunk)).to(self.device)  # (M, L)
+            with torch.inference_mode():
+                emb = F.normalize(self.model.encode_text(tokens).float(), dim=-1)  # (M, D)
+            out.append(emb.cpu().numpy())
+        return np.concatenate(out) if out else np.zeros((0, self.dim), np.float32)
+
     def encode_text(self, texts: Sequence[str]) -> np.ndarray:
-        """(N,) strings -> (N, D) float32, L2-normalised rows; each distinct string is embedded once."""
-        if isinstance(texts, str):
-            raise TypeError("texts must be a sequence of strings, got a str; pass [text]")
-        texts = list(texts)
-        for t in texts:
-            if not isinstance(t, str):
-                raise TypeError(f"texts must be strings, got {type(t).__name__}: {t!r}")
-        with self._lock:
-            missing = list(dict.fromkeys(t for t in texts if t not in self._text_cache))
-            for start in range(0, len(missing), _TEXT_BATCH):
-                chunk = missing[start : start + _TEXT_BATCH]
-                tokens = torch.from_numpy(self.tokenizer.tokenize(chunk)).to(self.device)  # (M, L)
-                with torch.inference_mode():
-                    emb = F.normalize(self.model.encode_text(tokens).float(), dim=-1)  # (M, D)
-                rows = emb.cpu().numpy()
-                for t, e in zip(chunk, rows, strict=True):
-                    e.setflags(write=False)
-                    self._text_cache[t] = e
-            if not texts:
-                return np.zeros((0, self.dim), np.float32)
-            return np.stack([self._text_cache[t] for t in texts]).astype(np.float32, copy=False)
+        """(N,) strings -> (N, D) float32, L2-normalised rows; each distinct string is embedded once
+        (kept in a bounded :class:`mapper.ov.encoders.PromptCache`)."""
+        return self._text_cache.get(texts)
+
+    def uncached_chars(self, texts: Sequence[str]) -> int:
+        """Characters of the distinct ``texts`` that :meth:`encode_text` would have to embed."""
+        return self._text_cache.uncached_chars(texts)
 
     def encode(self, texts: Sequence[str]) -> np.ndarray:
         """``TextEncoder`` protocol: same as :meth:`encode_text`."""

