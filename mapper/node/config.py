@@ -282,6 +282,14 @@ class QueryConfig:
     """Heavy requests that may wait for a worker; one more (beyond ``workers`` running and this
     many waiting) is answered ``busy`` at once. 1..10000."""
 
+    light_text_chars: int = 256
+    """A ``query_points`` whose prompts (texts and negatives, as embedded) hold more characters
+    that the text encoder has not embedded yet is answered by the heavy-request pool (it may wait
+    there or get ``busy``): embedding 64 prompts of 1 024 characters took 7.3 s, which on the query
+    thread delayed every client's ``status``. Everyday prompts ("find the chair") stay light, and
+    so does any question once its prompts are embedded. 0 = every ``query_points`` with a new
+    prompt goes to the pool. 0..1000000."""
+
     label_cache_blocks: int = 256
     """``query_points`` keeps its scoring step (best text, cosine, beats the negatives) per block of
     16 384 map rows and text set, across map versions (:class:`mapper.node.queries.BlockLabelCache`),
@@ -377,6 +385,7 @@ class QueryConfig:
         _check_range(where, "queries.object_split_depth", self.object_split_depth, 0, 16)
         _check_range(where, "queries.object_split_max_points", self.object_split_max_points, 0, 100_000_000)
         _check_range(where, "queries.object_split_clean_share", self.object_split_clean_share, 0.0, 1.0)
+        _check_range(where, "queries.light_text_chars", self.light_text_chars, 0, 1_000_000)
         _check_range(where, "queries.max_objects", self.max_objects, 1, 10_000)
 
 

@@ -16,7 +16,9 @@ Threads and sockets (a ZeroMQ socket is only ever used by the thread that create
   **query workers** (``queries.workers`` threads, a queue of ``queries.queue_length``; ``busy``
   beyond it), which hand their replies back through inproc PUSH -> PULL sockets to the query
   thread, the only user of the ROUTER; so ``status`` / ``query_points`` / ``save`` / ``load``
-  never wait behind a render.
+  never wait behind a render. A ``query_points`` whose prompts hold more than
+  ``queries.light_text_chars`` characters not embedded yet goes to the pool too (embedding many
+  long prompts takes seconds).
 - **events thread** (optional): PUB bound on ``events_endpoint``; publishes ``map_updated``
   notices handed to it through a queue by whichever thread changed the map.
 - **main thread**: :meth:`MapperNode.run` waits for SIGINT/SIGTERM, does periodic autosaves and,
@@ -695,7 +697,7 @@ class MapperNode:
         decoded = self._decode_query(data)
         if isinstance(decoded, bytes):
             return decoded
-        if type(decoded) not in self.heavy_request_types:
+        if type(decoded) not in self.heavy_request_types and not self._new_prompts_are_heavy(decoded):
             return self._answer_query(decoded, data)
         try:
             self._heavy_jobs.put_nowait((envelope, decoded, data))
@@ -712,6 +714,24 @@ class MapperNode:
             )
             return encode(self._error(exc, data, "query"))
         return None
+
+    def _new_prompts_are_heavy(self, msg: Message) -> bool:
+        """A ``query_points`` whose prompts hold more than ``queries.light_text_chars`` characters
+        the text encoder has not embedded yet (embedding them is the slow part: seconds for many
+        long prompts), so that it does not hold up the light requests behind it."""
+        if not isinstance(msg, QueryPoints):
+            return False
+        from mapper.node.queries import DEFAULT_NEGATIVES, normalise_query
+
+        try:
+            encoder = self._text_encoder("query_points")
+        except ProtocolError:
+            return False  # answered at once (not_ready)
+        negatives = DEFAULT_NEGATIVES if msg.negatives is None else msg.negatives
+        prompts = [normalise_query(t) for t in (*msg.texts, *negatives)]
+        measure = getattr(encoder, "uncached_chars", None)
+        new_chars = measure(prompts) if callable(measure) else sum(len(t) for t in prompts)
+        return bool(new_chars > self.config.queries.light_text_chars)
 
     def _heavy_worker(self) -> None:
         """One thread of the heavy-request pool: answer queued requests until stopped; every reply

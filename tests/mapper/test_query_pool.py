@@ -173,3 +173,78 @@ def test_pool_settings_are_validated(tmp_path: Path) -> None:
         _node(tmp_path, queue_length=0)
     with pytest.raises(ConfigError, match="queries.workers"):
         _node(tmp_path, workers=-1)
+
+
+class _Prompts:
+    """A text encoder that knows the prompts it embedded (``uncached_chars``, as the real ones)."""
+
+    space = "test-prompt-routing"
+    dim = 4
+
+    def __init__(self) -> None:
+        self.known: set[str] = set()
+
+    def encode(self, texts: list[str]) -> np.ndarray:
+        self.known.update(texts)
+        return np.full((len(texts), 4), 0.5, np.float32)
+
+    def uncached_chars(self, texts: list[str]) -> int:
+        return sum(len(t) for t in dict.fromkeys(texts) if t not in self.known)
+
+
+def test_query_points_with_many_new_prompt_characters_is_answered_by_the_pool(
+    tmp_path: Path, dealer: zmq.Socket[bytes]
+) -> None:
+    from mapper.node.queries import DEFAULT_NEGATIVES, normalise_query
+    from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
+    from protocol.messages import QueryPoints
+
+    encoder = _Prompts()
+    register_text_encoder(encoder.space, lambda: encoder)
+    node = _node(tmp_path, workers=1, queue_length=2, light_text_chars=100)
+    node.state.ov_space = encoder.space
+    threads: list[str] = []
+    gate = threading.Event()
+
+    def handler(msg: Message) -> Message:
+        threads.append(threading.current_thread().name)
+        if getattr(msg, "id", None) == "long":
+            assert gate.wait(timeout=30)
+        prompts = [*msg.texts, *DEFAULT_NEGATIVES]  # type: ignore[attr-defined]
+        encoder.encode([normalise_query(t) for t in prompts])  # as query_points embeds them
+        return Ok(message="answered")
+
+    node.register_query_handler(QueryPoints, handler)
+    node.start()
+    long_prompt = "a chair with a tall back and four legs " * 20  # 780 characters, not embedded yet
+    try:
+        dealer.connect(node.config.query_endpoint)
+        dealer.send(encode(QueryPoints(texts=["find the chair"], id="short")))
+        assert isinstance(_recv(dealer), Ok)  # 5 + 37 new characters of prompts: light
+        dealer.send(encode(QueryPoints(texts=[long_prompt], id="long")))
+        waited = threading.Event()
+        for _ in range(1000):  # until the long one is in its handler (10 s at most)
+            if len(threads) >= 2 or waited.wait(0.01):
+                break
+        assert len(threads) == 2
+        dealer.send(encode(StatusRequest(id="s")))
+        status = _recv(dealer)  # answered while the long one waits in its handler on a worker
+        assert isinstance(status, Status) and status.extra["query_pool"]["running"] == 1
+        gate.set()
+        assert isinstance(_recv(dealer), Ok)
+        dealer.send(encode(QueryPoints(texts=[long_prompt], id="again")))  # embedded now: light
+        assert isinstance(_recv(dealer), Ok)
+        assert threads[0] == threads[2] != threads[1] and threads[1].startswith("mapper-query-worker")
+    finally:
+        gate.set()
+        node.stop()
+        unregister_text_encoder(encoder.space)
+
+
+def test_light_text_chars_is_checked() -> None:
+    from mapper.errors import ConfigError
+    from mapper.node.config import config_from_dict
+
+    assert config_from_dict({}).queries.light_text_chars == 256
+    with pytest.raises(ConfigError, match="queries.light_text_chars"):
+        config_from_dict({"queries": {"light_text_chars": -1}})
