@@ -723,14 +723,14 @@ class MapperNode:
             return False
         from mapper.node.queries import DEFAULT_NEGATIVES, normalise_query
 
+        negatives = DEFAULT_NEGATIVES if msg.negatives is None else msg.negatives
         try:
             encoder = self._text_encoder("query_points")
-        except ProtocolError:
-            return False  # answered at once (not_ready)
-        negatives = DEFAULT_NEGATIVES if msg.negatives is None else msg.negatives
-        prompts = [normalise_query(t) for t in (*msg.texts, *negatives)]
-        measure = getattr(encoder, "uncached_chars", None)
-        new_chars = measure(prompts) if callable(measure) else sum(len(t) for t in prompts)
+            prompts = [normalise_query(t) for t in (*msg.texts, *negatives)]
+            measure = getattr(encoder, "uncached_chars", None)
+            new_chars = measure(prompts) if callable(measure) else sum(len(t) for t in prompts)
+        except Exception:  # not_ready or an encoder's fault: the handler answers it, at once
+            return False
         return bool(new_chars > self.config.queries.light_text_chars)
 
     def _heavy_worker(self) -> None:
