@@ -16,7 +16,8 @@ method (``average``, ``average_depth``, ``govnesf``). Runs:
 * ``bounded`` / ``unbounded, more confident (before the blend)``: ``queries.map_blend = 0``, the
   rule before it: where both answer, the map's text only where its cosine is higher
   (``map_when_more_confident = true``);
-* ``bounded, no learned map features``: ``global_map.learned_features = false``.
+* ``bounded, no learned map features``: ``global_map.learned_features = false``; with ``, evicted
+  views for both`` / ``, no evicted views`` also ``queries.evicted_views = "both"`` / ``"off"``.
 
 Every other run uses the shipped ``[queries]`` (``map_radius_voxels = 2.5``, ``map_blend = 0.75``);
 the unbounded run too, so the comparison is like for like. (The "window first" rows of
@@ -199,6 +200,10 @@ def bench_scene(
         "bounded, more confident (before the blend)": (bounded, radius, True, True, 0.0, "depth"),
         "unbounded, more confident (before the blend)": (10_000, radius, True, True, 0.0, "depth"),
         "bounded, no learned map features": (bounded, radius, False, confident, blend, "depth"),
+        "bounded, no learned map features, evicted views for both": (
+            bounded, radius, False, confident, blend, "both"),
+        "bounded, no learned map features, no evicted views": (
+            bounded, radius, False, confident, blend, "off"),
     }
     if only:
         unknown = sorted(set(only) - set(runs))
