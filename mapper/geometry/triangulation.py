@@ -101,7 +101,9 @@ class Features:
 
     uv: np.ndarray  # (N, 2) float64 pixel coordinates, centres at +0.5
     descriptors: np.ndarray  # (N, D) float32 (SIFT) or uint8 (ORB)
-    gray: np.ndarray | None = None  # (H, W) float32 the image as sent, grayscale (photometric checks)
+    gray: np.ndarray | None = None  # (h, w) uint8 the image grayscale for photometric checks, at most
+    # detect_max_side on its longer side (a 4096 x 4096 frame kept whole was 64 MB per candidate)
+    gray_scale: tuple[float, float] = (1.0, 1.0)  # gray's pixels per image pixel, (x, y)
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
@@ -264,8 +266,13 @@ class FeatureExtractor:
         if image.dtype != np.uint8 or image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] != 3):
             raise ValueError(f"rgb must be (H, W, 3) or (H, W) uint8, got {image.shape} {image.dtype}")
         gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-        original = gray.astype(np.float32)
         height, width = gray.shape
+        kept, kept_scale = np.ascontiguousarray(gray), (1.0, 1.0)
+        if max(width, height) > self.config.detect_max_side:  # photometric checks need no more
+            shrink = self.config.detect_max_side / max(width, height)
+            kw, kh = max(1, round(width * shrink)), max(1, round(height * shrink))
+            kept = cv2.resize(gray, (kw, kh), interpolation=cv2.INTER_AREA)
+            kept_scale = (kw / width, kh / height)
         size = detection_size(width, height, self.config.detect_upscale, self.config.detect_max_side)
         if size != (width, height):
             grow = size[0] > width
@@ -273,10 +280,10 @@ class FeatureExtractor:
         keypoints, descriptors = self._detector.detectAndCompute(np.ascontiguousarray(gray), None)
         if descriptors is None or not keypoints:
             dim, dtype = (128, np.float32) if self.config.detector == "sift" else (32, np.uint8)
-            return Features(np.zeros((0, 2)), np.zeros((0, dim), dtype), original)
+            return Features(np.zeros((0, 2)), np.zeros((0, dim), dtype), kept, kept_scale)
         scale = np.array([size[0] / width, size[1] / height])  # per axis (a downscale rounds)
         uv = (np.array([kp.pt for kp in keypoints], np.float64) + 0.5) / scale
-        return Features(uv, descriptors, original)
+        return Features(uv, descriptors, kept, kept_scale)
 
     def match(self, a: Features, b: Features) -> np.ndarray:
         """(M, 2) int64 index pairs ``(i_a, i_b)``: mutual best matches passing the ratio test."""
@@ -468,7 +475,8 @@ def triangulate_keyframe(
     seen = np.array([int(m) for m in res[:, 7]], dtype=np.int64)  # bit p: partner p agrees
     for p, (view, feats) in enumerate(partners):
         if config.min_ncc < 1.0 and new_features.gray is not None and feats.gray is not None:
-            ok = photo_consistent(new, new_features.gray, view, feats.gray, uv, depth, config)
+            ok = photo_consistent(new, new_features.gray, view, feats.gray, uv, depth, config,
+                                  scale_a=new_features.gray_scale, scale_b=feats.gray_scale)
             seen |= ok.astype(np.int64) << p
     n_views = 1 + np.array([bin(int(m)).count("1") for m in seen], np.int32)
     keep = n_views >= config.min_views
@@ -493,17 +501,22 @@ def _sample(gray: np.ndarray, uv: np.ndarray) -> np.ndarray:
 def photo_consistent(
     a: PosedView, gray_a: np.ndarray, b: PosedView, gray_b: np.ndarray,
     uv_a: np.ndarray, depth_a: np.ndarray, config: TriangulationConfig,
+    *, scale_a: tuple[float, float] = (1.0, 1.0), scale_b: tuple[float, float] = (1.0, 1.0),
 ) -> np.ndarray:
     """(N,) bool: the ``ncc_patch_px`` square patch around ``uv_a`` (N, 2) in ``a``, taken as a
     fronto-parallel plane at ``depth_a`` (N,), has a normalised cross-correlation of at least
-    ``min_ncc`` with its image in ``b`` (and lies inside ``b``, in front of it)."""
+    ``min_ncc`` with its image in ``b`` (and lies inside ``b``, in front of it). ``gray_a`` /
+    ``gray_b`` may be the images resized by ``scale_a`` / ``scale_b`` (their pixels per image pixel,
+    x and y; :class:`Features` keeps at most ``detect_max_side``): the patch is ``ncc_patch_px``
+    of ``gray_a``'s pixels."""
     n = len(uv_a)
     if n == 0:
         return np.zeros(0, bool)
     half = config.ncc_patch_px // 2
     offs = np.arange(-half, half + 1, dtype=np.float64)
     du, dv = np.meshgrid(offs, offs)
-    grid = uv_a[:, None, :] + np.stack([du.ravel(), dv.ravel()], axis=-1)[None]  # (N, P, 2)
+    sa, sb = np.asarray(scale_a, np.float64), np.asarray(scale_b, np.float64)
+    grid = uv_a[:, None, :] + np.stack([du.ravel(), dv.ravel()], axis=-1)[None] / sa  # (N, P, 2) a's px
     fx, fy, cx, cy = (float(v) for v in np.asarray(a.K, np.float64).reshape(4))
     z = depth_a[:, None]
     cam = np.stack([(grid[..., 0] - cx) / fx * z, (grid[..., 1] - cy) / fy * z,
@@ -514,8 +527,8 @@ def photo_consistent(
     uv_b, z_b = uv_b.reshape(n, -1, 2), z_b.reshape(n, -1)
     inside = ((z_b > config.min_depth_m) & (uv_b[..., 0] >= 0) & (uv_b[..., 0] <= b.width)
               & (uv_b[..., 1] >= 0) & (uv_b[..., 1] <= b.height)).all(axis=1)
-    pa = _sample(gray_a, grid)
-    pb = _sample(gray_b, np.where(np.isfinite(uv_b), uv_b, 0.0))
+    pa = _sample(gray_a, grid * sa)
+    pb = _sample(gray_b, np.where(np.isfinite(uv_b), uv_b, 0.0) * sb)
     pa = pa - pa.mean(axis=1, keepdims=True)
     pb = pb - pb.mean(axis=1, keepdims=True)
     denom = np.sqrt((pa**2).sum(axis=1) * (pb**2).sum(axis=1))

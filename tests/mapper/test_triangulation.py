@@ -226,6 +226,22 @@ def test_photometric_check_accepts_the_true_depth_and_rejects_a_wrong_one(textur
     assert not photo_consistent(a, ga, b, gb, uv, np.full(3, 1.7), cfg).any()
 
 
+def test_photometric_check_on_images_kept_smaller_than_sent(texture: np.ndarray) -> None:
+    """The same check on 4x larger views whose photometric images were kept at half their size
+    (``Features.gray_scale``): the same verdicts as on the small images."""
+    cfg = TriangulationConfig(detect_max_side=2 * max(W, H))
+    ex = FeatureExtractor(cfg)
+    big = [cv2.resize(render_plane(p, texture), (4 * W, 4 * H), interpolation=cv2.INTER_CUBIC)
+           for p in PLANE_POSES[:2]]  # fmt: skip
+    fa, fb = ex.detect(big[0]), ex.detect(big[1])
+    assert fa.gray is not None and fb.gray is not None and fa.gray_scale == (0.5, 0.5)
+    a, b = (PosedView(K * 4.0, PLANE_POSES[i], 4 * W, 4 * H) for i in (0, 1))
+    uv = np.array([[60.5, 50.5], [100.5, 70.5], [80.5, 30.5]]) * 4.0
+    kw = {"scale_a": fa.gray_scale, "scale_b": fb.gray_scale}
+    assert photo_consistent(a, fa.gray, b, fb.gray, uv, np.full(3, PLANE_Z), cfg, **kw).all()
+    assert not photo_consistent(a, fa.gray, b, fb.gray, uv, np.full(3, 1.7), cfg, **kw).any()
+
+
 def test_config_is_validated() -> None:
     with pytest.raises(ConfigError, match="triangulation.detector"):
         config_from_dict({"triangulation": {"detector": "surf"}})
@@ -537,7 +553,10 @@ def test_large_images_are_detected_at_most_detect_max_side_and_keypoints_map_bac
     ex = FeatureExtractor(cfg)
     f_small, f_big = ex.detect(small), ex.detect(big)
     assert len(f_small) > 50 and len(f_big) > 50
-    assert f_big.gray is not None and f_big.gray.shape == (4 * h, 4 * w)  # the image as sent
+    # the photometric image is kept at most detect_max_side too (uint8): 2x the small one, not 4x
+    assert f_big.gray is not None and f_big.gray.shape == (2 * h, 2 * w) and f_big.gray.dtype == np.uint8
+    assert f_big.gray_scale == (0.5, 0.5) and f_small.gray_scale == (1.0, 1.0)
+    assert f_small.gray is not None and f_small.gray.shape == (h, w)
     # every big keypoint / 4 has a small keypoint within 1.5 px (the same detection image)
     d = np.linalg.norm(f_big.uv[:, None, :] / 4.0 - f_small.uv[None, :, :], axis=2).min(axis=1)
     assert np.median(d) < 0.5 and np.mean(d < 1.5) > 0.9
