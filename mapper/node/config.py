@@ -60,8 +60,17 @@ class WindowConfig:
     """... or when its viewing direction turned by at least this angle (degrees, the angle of the
     relative rotation) from that keyframe. 0..180."""
 
+    max_image_side: int = 1280
+    """A keyframe whose image is larger is kept shrunk to this many pixels on its longer side
+    (colour by area, depth by nearest sample, K scaled with it; ``ov`` as sent): a window of 30
+    keyframes of 4096 x 4096 frames with depth would hold 3.5 GB, and the global map integrates
+    every second depth pixel. Frames up to this size are kept as sent. 0 = always as sent. 0..4096."""
+
     def validate(self, where: str) -> None:
         _check_range(where, "window.max_keyframes", self.max_keyframes, 1, 10_000)
+        _check_range(where, "window.max_image_side", self.max_image_side, 0, 4096)
+        if 0 < self.max_image_side < 16:
+            raise ConfigError(f"{where}: window.max_image_side = {self.max_image_side} must be 0 or >= 16")
         _check_range(where, "window.min_translation_m", self.min_translation_m, 0.0, 1e6)
         _check_range(where, "window.min_rotation_deg", self.min_rotation_deg, 0.0, 180.0)
 

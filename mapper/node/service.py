@@ -78,7 +78,7 @@ from mapper.node.global_map import GlobalMapSnapshot, GlobalSemanticMap
 from mapper.node.keyframe_queue import KeyframeQueue
 from mapper.node.security import CurveServer, exposure_problem, security_mode
 from mapper.node.store import MapStore, StoreError, StoreWriteError
-from mapper.node.window import Keyframe, KeyframeWindow, keyframes_from_arrays, keyframes_to_arrays
+from mapper.node.window import Keyframe, KeyframeWindow, fit_image, keyframes_from_arrays, keyframes_to_arrays
 from protocol.errors import ProtocolError
 from protocol.messages import (
     Ack,
@@ -271,6 +271,8 @@ class MapperNode:
         self.frames_duplicate = 0
         """Frames received again (same seq, stamp, camera, pose and K) while already a keyframe in the
         window: acked ``accepted`` with a ``duplicate`` reason, not added twice (state lock)."""
+        self.frames_downscaled = 0
+        """Frames larger than ``window.max_image_side`` whose keyframe was kept shrunk (ingest thread)."""
         self.replies_dropped: Counter[str] = Counter()
         """Replies not sent, by ``"<endpoint>:<why>"``: ``full`` (the peer's queue is at ``sndhwm``:
         it does not read its replies) or ``gone`` (the peer disconnected)."""
@@ -921,12 +923,16 @@ class MapperNode:
             ov=frame.ov,
             ov_space=frame.ov_space,
         )
+        fitted = fit_image(keyframe, self.config.window.max_image_side)  # outside the lock
+        if fitted is not keyframe:
+            keyframe = fitted
+            self.frames_downscaled += 1
         state = self.state
         with state.lock:
             for kept in state.window.keyframes:
                 same_id = (kept.seq, kept.stamp_ns, kept.camera) == (frame.seq, frame.stamp_ns, frame.camera)
                 if same_id and np.array_equal(kept.world_from_cam, frame.world_from_cam) and np.array_equal(
-                    kept.K, frame.K
+                    kept.K, keyframe.K
                 ):
                     # a resent frame (the client's retry after a timeout or a node restart) that is
                     # already a keyframe (same seq, stamp, camera and pose): acked again, not added twice
@@ -1166,6 +1172,7 @@ class MapperNode:
                 },
                 "events_dropped": self._events.dropped,
                 "frames_duplicate": self.frames_duplicate,
+                "frames_downscaled": self.frames_downscaled,
                 "replies_dropped": dict(self.replies_dropped),
                 "integration": self.integration_stats(),
                 **state.global_map.stats(),

@@ -28,6 +28,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -111,6 +112,35 @@ class WindowUpdate:
 
 
 KeyframeCallback = Callable[[Keyframe], None]
+
+
+def fit_image(keyframe: Keyframe, max_side: int) -> Keyframe:
+    """``keyframe`` with its images shrunk to at most ``max_side`` pixels on the longer side
+    (``window.max_image_side``): colour by area, depth by nearest sample (no depth mixed across an
+    edge), K scaled with the image (pixel edges kept: ``u -> u * W' / W``); ``ov`` and the pose as
+    they are. The keyframe itself when it fits, ``max_side`` is 0, or OpenCV (an extra) is missing.
+
+    >>> kf = Keyframe(seq=0, stamp_ns=0, camera="cam0", K=np.array([2000.0, 2000.0, 2048.0, 1536.0]),
+    ...               world_from_cam=np.eye(4), rgb=np.zeros((3072, 4096, 3), np.uint8))
+    >>> small = fit_image(kf, 1280)
+    >>> small.width, small.height, small.K.tolist()
+    (1280, 960, [625.0, 625.0, 640.0, 480.0])
+    """
+    h, w = keyframe.height, keyframe.width
+    if max_side <= 0 or max(w, h) <= max_side:
+        return keyframe
+    try:
+        import cv2  # an extra (the node core imports without it); only frames larger than max_side
+    except ImportError:  # a core-only install keeps large frames as sent
+        return keyframe
+    shrink = max_side / max(w, h)
+    nw, nh = max(1, round(w * shrink)), max(1, round(h * shrink))
+    rgb = cv2.resize(np.asarray(keyframe.rgb), (nw, nh), interpolation=cv2.INTER_AREA)
+    depth = keyframe.depth_m
+    if depth is not None:
+        depth = cv2.resize(np.asarray(depth), (nw, nh), interpolation=cv2.INTER_NEAREST)
+    K = np.asarray(keyframe.K, np.float64) * np.array([nw / w, nh / h, nw / w, nh / h])
+    return dataclasses.replace(keyframe, K=K, rgb=rgb, depth_m=depth)
 
 
 @dataclass

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -168,3 +169,41 @@ def test_swap_keeps_position_and_latest_keyframe_and_fires_callbacks() -> None:
     assert events == [("evict", 2, False), ("add", 2, True)]
     assert not window.consider(_kf(3, x_m=2.0 + 0.01)).added  # selection still relative to seq 2
     assert not window.swap(old, new) and events == [("evict", 2, False), ("add", 2, True)]
+
+
+def test_frames_larger_than_max_image_side_are_kept_shrunk_and_map_the_same_surface(tmp_path: Path) -> None:
+    """A 2560 x 1920 frame with depth of a wall 2 m away: its keyframe is 1280 x 960 with K scaled,
+    its depth by nearest sample; the global map puts the wall where the full frame says; the same
+    frame sent again is recognised as a duplicate; ``status`` counts it."""
+    from mapper.errors import ConfigError
+    from mapper.node.config import config_from_dict
+    from mapper.node.service import MapperNode
+    from protocol.messages import Ack, Frame, StatusRequest, decode, encode
+
+    w, h = 2560, 1920
+    rng = np.random.default_rng(0)
+    frame = Frame(seq=1, stamp_ns=5, width=w, height=h, K=np.array([2000.0, 2000.0, 1280.0, 960.0]),
+                  world_from_cam=np.eye(4), rgb=rng.integers(0, 255, (h, w, 3), dtype=np.uint8),
+                  depth_m=np.full((h, w), 2.0, np.float32))  # fmt: skip
+    node = MapperNode(config_from_dict({"map_dir": str(tmp_path), "events_endpoint": "", "serve_model": False,
+                                        "global_map": {"integrate_queue": 0}}))  # fmt: skip
+    ack = decode(node.handle_ingest(encode(frame)), direction="reply")
+    assert isinstance(ack, Ack) and ack.status == "keyframe"
+    kf = node.state.window.keyframes[-1]
+    assert (kf.width, kf.height) == (1280, 960) and kf.depth_m is not None and kf.depth_m.shape == (960, 1280)
+    np.testing.assert_allclose(kf.K, [1000.0, 1000.0, 640.0, 480.0])
+    xyz = node.state.global_map.snapshot().xyz
+    assert len(xyz) > 1000 and np.allclose(xyz[:, 2], 2.0, atol=0.05)  # the wall, at 2 m
+    half_x, half_y = 2.0 * (w / 2) / 2000.0, 2.0 * (h / 2) / 2000.0  # its extent in the full frame
+    assert np.abs(xyz[:, 0]).max() <= half_x + 0.05 and np.abs(xyz[:, 0]).max() > half_x - 0.1
+    assert np.abs(xyz[:, 1]).max() <= half_y + 0.05
+    again = decode(node.handle_ingest(encode(frame)), direction="reply")
+    assert isinstance(again, Ack) and again.status == "accepted" and "duplicate" in (again.reason or "")
+    status = decode(node.handle_query(encode(StatusRequest())), direction="reply")
+    assert status.extra["frames_downscaled"] == 2 and status.extra["frames_duplicate"] == 1
+    kept = MapperNode(config_from_dict({"map_dir": str(tmp_path), "events_endpoint": "", "serve_model": False,
+                                        "window": {"max_image_side": 0}}))  # fmt: skip
+    kept.handle_ingest(encode(frame))
+    assert kept.state.window.keyframes[-1].width == w  # 0: as sent
+    with pytest.raises(ConfigError, match="window.max_image_side"):
+        config_from_dict({"window": {"max_image_side": 8}})
