@@ -78,7 +78,14 @@ from mapper.node.global_map import GlobalMapSnapshot, GlobalSemanticMap
 from mapper.node.keyframe_queue import KeyframeQueue
 from mapper.node.security import CurveServer, exposure_problem, security_mode
 from mapper.node.store import MapStore, StoreError, StoreWriteError
-from mapper.node.window import Keyframe, KeyframeWindow, fit_image, keyframes_from_arrays, keyframes_to_arrays
+from mapper.node.window import (
+    Keyframe,
+    KeyframeWindow,
+    fit_image,
+    fit_intrinsics,
+    keyframes_from_arrays,
+    keyframes_to_arrays,
+)
 from protocol.errors import ProtocolError
 from protocol.messages import (
     Ack,
@@ -272,7 +279,7 @@ class MapperNode:
         """Frames received again (same seq, stamp, camera, pose and K) while already a keyframe in the
         window: acked ``accepted`` with a ``duplicate`` reason, not added twice (state lock)."""
         self.frames_downscaled = 0
-        """Frames larger than ``window.max_image_side`` whose keyframe was kept shrunk (ingest thread)."""
+        """Keyframes kept shrunk to ``window.max_image_side`` (ingest thread)."""
         self.replies_dropped: Counter[str] = Counter()
         """Replies not sent, by ``"<endpoint>:<why>"``: ``full`` (the peer's queue is at ``sndhwm``:
         it does not read its replies) or ``gone`` (the peer disconnected)."""
@@ -923,16 +930,22 @@ class MapperNode:
             ov=frame.ov,
             ov_space=frame.ov_space,
         )
-        fitted = fit_image(keyframe, self.config.window.max_image_side)  # outside the lock
-        if fitted is not keyframe:
-            keyframe = fitted
-            self.frames_downscaled += 1
         state = self.state
+        max_side = self.config.window.max_image_side
+        kept_K = fit_intrinsics(frame.K, frame.width, frame.height, max_side)  # K as a keyframe keeps it
+        if 0 < max_side < max(frame.width, frame.height):
+            with state.lock:  # shrink only what will be a keyframe (the ingest thread alone adds)
+                will_keep = state.window.is_keyframe(frame.camera, frame.world_from_cam)[0]
+            if will_keep:
+                fitted = fit_image(keyframe, max_side)  # outside the lock (tens of ms at 4096 px)
+                if fitted is not keyframe:
+                    keyframe = fitted
+                    self.frames_downscaled += 1
         with state.lock:
             for kept in state.window.keyframes:
                 same_id = (kept.seq, kept.stamp_ns, kept.camera) == (frame.seq, frame.stamp_ns, frame.camera)
                 if same_id and np.array_equal(kept.world_from_cam, frame.world_from_cam) and np.array_equal(
-                    kept.K, keyframe.K
+                    kept.K, kept_K
                 ):
                     # a resent frame (the client's retry after a timeout or a node restart) that is
                     # already a keyframe (same seq, stamp, camera and pose): acked again, not added twice

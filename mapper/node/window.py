@@ -114,6 +114,21 @@ class WindowUpdate:
 KeyframeCallback = Callable[[Keyframe], None]
 
 
+def fit_size(width: int, height: int, max_side: int) -> tuple[int, int]:
+    """(w, h) of a ``width x height`` image kept at most ``max_side`` on its longer side (itself
+    when it fits or ``max_side`` is 0)."""
+    if max_side <= 0 or max(width, height) <= max_side:
+        return width, height
+    shrink = max_side / max(width, height)
+    return max(1, round(width * shrink)), max(1, round(height * shrink))
+
+
+def fit_intrinsics(K: np.ndarray, width: int, height: int, max_side: int) -> np.ndarray:
+    """(4,) float64 ``K`` of that image kept at :func:`fit_size` (pixel edges kept)."""
+    nw, nh = fit_size(width, height, max_side)
+    return np.asarray(K, np.float64) * np.array([nw / width, nh / height, nw / width, nh / height])
+
+
 def fit_image(keyframe: Keyframe, max_side: int) -> Keyframe:
     """``keyframe`` with its images shrunk to at most ``max_side`` pixels on the longer side
     (``window.max_image_side``): colour by area, depth by nearest sample (no depth mixed across an
@@ -127,19 +142,18 @@ def fit_image(keyframe: Keyframe, max_side: int) -> Keyframe:
     (1280, 960, [625.0, 625.0, 640.0, 480.0])
     """
     h, w = keyframe.height, keyframe.width
-    if max_side <= 0 or max(w, h) <= max_side:
+    nw, nh = fit_size(w, h, max_side)
+    if (nw, nh) == (w, h):
         return keyframe
     try:
         import cv2  # an extra (the node core imports without it); only frames larger than max_side
     except ImportError:  # a core-only install keeps large frames as sent
         return keyframe
-    shrink = max_side / max(w, h)
-    nw, nh = max(1, round(w * shrink)), max(1, round(h * shrink))
     rgb = cv2.resize(np.asarray(keyframe.rgb), (nw, nh), interpolation=cv2.INTER_AREA)
     depth = keyframe.depth_m
     if depth is not None:
         depth = cv2.resize(np.asarray(depth), (nw, nh), interpolation=cv2.INTER_NEAREST)
-    K = np.asarray(keyframe.K, np.float64) * np.array([nw / w, nh / h, nw / w, nh / h])
+    K = fit_intrinsics(keyframe.K, w, h, max_side)
     return dataclasses.replace(keyframe, K=K, rgb=rgb, depth_m=depth)
 
 
