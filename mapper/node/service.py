@@ -355,11 +355,11 @@ class MapperNode:
             self.evicted_views = EvictedViews(self)
             self.evicted_views.install()
         self.kernel_modules: list[str] = ["mapper.node.query_kernels"]
-        if self.evicted_views is not None:
-            self.kernel_modules.append("mapper.node.evicted_views")
         """Modules whose compiled kernels :meth:`start` warms in the background (each module's
         ``warm_up``: compiled, or loaded from numba's cache), so that no first query pays for it;
         plugins add theirs (the learned model: its point kernels)."""
+        if self.evicted_views is not None:
+            self.kernel_modules.append("mapper.node.evicted_views")  # its running-mean kernel
 
     # -- extension points ---------------------------------------------------------------------
 
