@@ -268,9 +268,8 @@ class FeatureExtractor:
         gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
         height, width = gray.shape
         kept, kept_scale = np.ascontiguousarray(gray), (1.0, 1.0)
-        if max(width, height) > self.config.detect_max_side:  # photometric checks need no more
-            shrink = self.config.detect_max_side / max(width, height)
-            kw, kh = max(1, round(width * shrink)), max(1, round(height * shrink))
+        kw, kh = detection_size(width, height, 1, self.config.detect_max_side)  # photometric: no more
+        if (kw, kh) != (width, height):
             kept = cv2.resize(gray, (kw, kh), interpolation=cv2.INTER_AREA)
             kept_scale = (kw / width, kh / height)
         size = detection_size(width, height, self.config.detect_upscale, self.config.detect_max_side)

@@ -161,10 +161,14 @@ keeps alive); guarded by ``_TABLE_LOCK``."""
 _TABLE_LOCK = threading.Lock()
 
 
-def _ov_table(parsed: list[OVView], dim: int) -> np.ndarray:
+def _ov_table(parsed: list[OVView], dim: int, *, cache: bool = True) -> np.ndarray:
     """(R, D) float32: the views' OV maps, row-major, one after another (the kernel's ``table``).
     The same views' ``ov`` objects as the last call (a window asked again) reuse that table: no
-    new 10-20 MB array per query, and the kernel reads memory it read before."""
+    new 10-20 MB array per query, and the kernel reads memory it read before. ``cache`` False:
+    built for this call only, the cached one (the window's) left in place."""
+    if not cache:
+        return np.concatenate([np.asarray(v.ov.cpu().numpy() if isinstance(v.ov, Tensor) else v.ov,
+                                          np.float32).reshape(-1, dim) for v in parsed])
     key = tuple(v.ov for v in parsed)
     with _TABLE_LOCK:
         if _TABLE_CACHE and len(_TABLE_CACHE[0][0]) == len(key) and all(
@@ -202,9 +206,7 @@ def _kernel_average(
     cpu = torch.device("cpu")
     va = _view_arrays(parsed, use_depth=use_depth, device=cpu)
     ov_off = np.concatenate([[0], np.cumsum(va.ov_w * va.ov_h)])[:-1]  # (V,)
-    table = _ov_table(parsed, dim) if cache_table else np.concatenate(
-        [np.asarray(v.ov.cpu().numpy() if isinstance(v.ov, Tensor) else v.ov, np.float32).reshape(-1, dim)
-         for v in parsed])  # (R, D)
+    table = _ov_table(parsed, dim, cache=cache_table)  # (R, D)
     right = (va.img_w - border_px).astype(np.float64)  # (V,) as ``width - border_px`` per view
     bottom = (va.img_h - border_px).astype(np.float64)
     depth_flat = np.zeros(1, np.float32) if va.depth_flat is None else va.depth_flat
@@ -482,14 +484,8 @@ def _prior_only_similarities(
     texts: Tensor,  # (T, D)
 ) -> tuple[Tensor, Tensor]:
     """:func:`average_similarities` with a prior and no view: the prior rows' cosines."""
-    table, row, weight = (np.asarray(prior[0], np.float32), np.asarray(prior[1], np.int64),
-                          np.asarray(prior[2], np.float32))
     n = pts.shape[0]
-    if table.ndim != 2 or table.shape[1] != texts.shape[1] or row.shape != (n,) or weight.shape != (n,):
-        raise ValueError(f"prior must be ((P, {texts.shape[1]}), ({n},), ({n},)), got {table.shape}, "
-                         f"{row.shape}, {weight.shape}")
-    if row.size and (row.max() >= table.shape[0] or row.min() < -1):
-        raise ValueError(f"prior rows must be in [-1, {table.shape[0]})")
+    table, row, weight = _kernel.check_prior(prior, int(texts.shape[1]), n)
     sims = np.zeros((n, texts.shape[0]), np.float32)
     use = (row >= 0) & (weight > 0)
     if use.any():

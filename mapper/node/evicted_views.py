@@ -124,7 +124,6 @@ class EvictedViewStore:
                           for name in CHANNELS}  # means allocated when a channel is first written
         self.keyframes = 0
         """Keyframes absorbed since the store was made (or cleared, or restored)."""
-        self._version = getattr(self, "_version", 0) + 1
 
     @property
     def dim(self) -> int | None:
@@ -161,6 +160,12 @@ class EvictedViewStore:
             self._sorted_keys = np.insert(self._sorted_keys, at, new_keys[order])
             self._sorted_rows = np.insert(self._sorted_rows, at, new_rows[order])
         return rows
+
+    def _reindex(self) -> None:
+        """The sorted key index of the used rows, built anew (lock held)."""
+        order = np.argsort(self._keys[: self._n], kind="stable")
+        self._sorted_keys = self._keys[: self._n][order].copy()
+        self._sorted_rows = order.astype(np.int64)
 
     def _grow(self, need: int) -> None:
         cap = self._keys.shape[0]
@@ -225,7 +230,6 @@ class EvictedViewStore:
                 absorb_rows(ch.mean, ch.count, rows[counted], np.asarray(feat, np.float32),
                             np.flatnonzero(counted))
             self.keyframes += int(new_keyframe)
-            self._version += 1
             return int(touched.sum())
 
     def lookup(
@@ -307,10 +311,7 @@ class EvictedViewStore:
                 if ch.mean.shape[1]:
                     ch.mean = kept(ch.mean)
             self._n = m
-            order = np.argsort(self._keys[:m], kind="stable")
-            self._sorted_keys = self._keys[:m][order].copy()
-            self._sorted_rows = order.astype(np.int64)
-            self._version += 1
+            self._reindex()
             return n - m
 
     def clear(self) -> None:
@@ -383,9 +384,7 @@ class EvictedViewStore:
                 if got[f"{name}_mean"].shape[1]:
                     ch.mean = np.zeros((self._keys.shape[0], dim), np.float32)
                     ch.mean[:n] = got[f"{name}_mean"]
-            order = np.argsort(self._keys[:n], kind="stable")
-            self._sorted_keys = self._keys[:n][order].copy()
-            self._sorted_rows = order.astype(np.int64)
+            self._reindex()
             self.keyframes = keyframes if isinstance(keyframes, int) else 0
 
 

@@ -65,7 +65,7 @@ class PromptCache:
 
     ``embed`` ((M,) distinct strings -> (M, dim) float32 unit rows) runs for the prompts not
     cached, one call at a time and outside the cache's own lock, so a request whose prompts are
-    cached never waits for another request's embedding (``lookup`` during a long ``get``)."""
+    cached never waits for another request's embedding (a ``get`` of cached prompts during a long one)."""
 
     def __init__(self, embed: Callable[[list[str]], np.ndarray], dim: int,
                  max_entries: int = PROMPT_CACHE_ENTRIES) -> None:  # fmt: skip

@@ -700,14 +700,15 @@ class ModelRuntime:
         far = torch.linalg.vector_norm(centres - centre, dim=1) > self.config.bounds_outlier_m
         if not bool(far.any()) or bool(far.all()):
             return entries
-        for e, out in zip(entries, far.tolist(), strict=True):
+        outliers = far.tolist()
+        for e, out in zip(entries, outliers, strict=True):
             if out and e.key not in self._bounds_outliers_logged:
                 self._bounds_outliers_logged.add(e.key)
                 self.bounds_outliers += 1
                 log.warning("keyframe %s (seq %d): what it observed lies more than %.0f m from the window's "
                             "other keyframes; left out of the model's volume bounds (a wrong pose?)",
                             e.key[0] or "-", e.seq, self.config.bounds_outlier_m)
-        return [e for e, out in zip(entries, far.tolist(), strict=True) if not out]
+        return [e for e, out in zip(entries, outliers, strict=True) if not out]
 
     def _update_bounds(self, new_entries: Sequence[_ViewEntry], evicted: bool) -> None:
         """Create the volume, or move it (recentre / grow / shrink) + rebuild when the window's

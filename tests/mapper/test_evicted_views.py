@@ -23,6 +23,7 @@ from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
 from protocol.messages import Frame, Load, Ok, Save, Segmentation, SegmentPoints, decode, encode
 from tests.mapper.test_whole_map import SPACE as WHOLE_MAP_SPACE
 from tests.mapper.test_whole_map import D, OneHotEncoder
+from tests.mapper.test_whole_map import _stream as stream_keyframes
 
 SPACE = WHOLE_MAP_SPACE
 W, H = 96, 72  # the averaging leaves out a 10 px border
@@ -64,9 +65,7 @@ def _node(tmp_path: Path, max_keyframes: int, **queries: Any) -> MapperNode:
 
 
 def _stream(node: MapperNode, frames: Sequence[Frame]) -> None:
-    for f in frames:
-        reply = decode(node.handle_ingest(encode(f)), direction="reply")
-        assert getattr(reply, "status", None) == "keyframe", reply
+    stream_keyframes(node, frames)  # test_whole_map's: every frame acked as a keyframe
     if node.evicted_views is not None:
         node.evicted_views.process_pending()  # the worker's job (its thread runs only in node.start())
 

@@ -30,7 +30,8 @@ import numba
 import numpy as np
 
 __all__ = [
-    "LAUNCH_LOCK", "average_kernel", "blend_kernel", "in_view_matrix", "kernel_threads", "launch", "warm_up",
+    "LAUNCH_LOCK", "average_kernel", "blend_kernel", "check_prior", "in_view_matrix", "kernel_threads",
+    "launch", "warm_up",
 ]
 
 _F0 = np.float32(0.0)
@@ -369,14 +370,7 @@ def average_kernel(
     if prior is None:
         p_tab, p_row, p_w = np.zeros((1, dim), np.float32), np.zeros(0, np.int64), np.zeros(0, np.float32)
     else:
-        p_tab = np.ascontiguousarray(prior[0], np.float32)
-        p_row = np.ascontiguousarray(prior[1], np.int64)
-        p_w = np.ascontiguousarray(prior[2], np.float32)
-        if p_tab.ndim != 2 or p_tab.shape[1] != dim or p_row.shape != (n_pts,) or p_w.shape != (n_pts,):
-            raise ValueError(f"prior must be ((P, {dim}), ({n_pts},), ({n_pts},)), got {p_tab.shape}, "
-                             f"{p_row.shape}, {p_w.shape}")
-        if p_row.size and (p_row.max() >= p_tab.shape[0] or p_row.min() < -1):
-            raise ValueError(f"prior rows must be in [-1, {p_tab.shape[0]})")
+        p_tab, p_row, p_w = check_prior(prior, dim, n_pts)
     with launch(threads):
         _kernel(np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(cam_from_world, np.float32),
                 np.ascontiguousarray(K, np.float32), np.ascontiguousarray(right, np.float64),
@@ -388,6 +382,22 @@ def average_kernel(
                 np.ascontiguousarray(d_scale, np.float32), np.float32(depth_tol),
                 np.float32(distance_power), vw, p_tab, p_row, p_w, bool(raw), txt, out, count, int(block))
     return out, count
+
+
+def check_prior(
+    prior: tuple[np.ndarray, np.ndarray, np.ndarray], dim: int, n_pts: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # (P, D) float32, (N,) int64, (N,) float32
+    """The averaging's ``prior`` (means, each point's row, its weight) as contiguous arrays of the
+    kernel's dtypes; ``ValueError`` on a shape or a row out of ``[-1, P)``."""
+    p_tab = np.ascontiguousarray(prior[0], np.float32)
+    p_row = np.ascontiguousarray(prior[1], np.int64)
+    p_w = np.ascontiguousarray(prior[2], np.float32)
+    if p_tab.ndim != 2 or p_tab.shape[1] != dim or p_row.shape != (n_pts,) or p_w.shape != (n_pts,):
+        raise ValueError(f"prior must be ((P, {dim}), ({n_pts},), ({n_pts},)), got {p_tab.shape}, "
+                         f"{p_row.shape}, {p_w.shape}")
+    if p_row.size and (p_row.max() >= p_tab.shape[0] or p_row.min() < -1):
+        raise ValueError(f"prior rows must be in [-1, {p_tab.shape[0]})")
+    return p_tab, p_row, p_w
 
 
 def warm_up() -> None:
