@@ -106,7 +106,8 @@ BLOCK = "import sys\nfor _m in {mods!r}:\n    sys.modules[_m] = None\n"
 @pytest.mark.parametrize(
     ("blocked", "code", "extra"),
     [
-        ("open3d", "import clients.sim.raycast", "sim"),
+        # the simulator falls back to its torch ray casting without open3d; asking for open3d names it
+        ("open3d", "from clients.sim.raycast import raycast_backend; raycast_backend('open3d')", "sim"),
         ("trimesh", "from clients.sim.export import write_ply; write_ply(None, None)", "sim"),
         ("regex", "import mapper.ov.clip_tokenizer", "clip"),
     ],
@@ -135,12 +136,15 @@ def test_missing_rerun_names_the_extra(tmp_path: Path) -> None:
 
 
 def test_cli_reports_a_missing_extra(tmp_path: Path) -> None:
-    """`govnesf sim record` without the [sim] extra: exit code 2 and one line naming it, no traceback."""
+    """`govnesf sim record` with Open3D ray casting asked for (GOVNESF_SIM_RAYCAST=open3d) and not
+    installed: exit code 2 and one line naming the extra, no traceback, nothing written."""
     out = tmp_path / "rec"
     proc = _run(
         BLOCK.format(mods=["open3d"])
+        + "import os\nos.environ['GOVNESF_SIM_RAYCAST'] = 'open3d'\n"
         + "from clients.cli import main\n"
-        + f"raise SystemExit(main(['sim', 'record', '--frames', '2', '--out', {str(out)!r}]))\n"
+        + "raise SystemExit(main(['sim', 'record', '--seed', '0', '--frames', '2', '--no-ov', "
+        + f"'--out', {str(out)!r}]))\n"
     )
     assert proc.returncode == 2, proc.stdout + proc.stderr
     assert "govnesf sim: 'open3d' is not installed" in proc.stderr

@@ -1,4 +1,9 @@
-"""CPU ray-cast renderer for procedural scenes (Open3D `RaycastingScene`).
+"""Ray-cast renderer for procedural scenes (Open3D `RaycastingScene`, or a pure-torch fallback).
+
+Two ray-casting backends give the same hits up to float32 ties (`SceneRenderer`, docs/SIM.md):
+Open3D's `RaycastingScene` (CPU, the default where it is installed) and `TorchRaycaster`
+(Moller-Trumbore in float32 on CUDA when available, else on the CPU), which lets the simulator
+run where open3d has no wheel. `GOVNESF_SIM_RAYCAST` = `open3d` | `torch` picks one (unset: auto).
 
 Rays go through pixel centres `(i + 0.5, j + 0.5)` in the OpenCV optical convention (+x right,
 +y down, +z forward); we build them ourselves rather than relying on Open3D's pinhole helper.
@@ -17,14 +22,55 @@ is flipped towards the camera). Window panes (`Texture.SKY`) are emissive.
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from clients.sim.scenes import Scene, Texture
-from govnesf._extras import require
+from govnesf._extras import MissingExtraError, require
 
-o3d = require("open3d", "sim", "the simulator's ray casting (Open3D)")
+if TYPE_CHECKING:
+    import torch
+
+RAYCAST_ENV = "GOVNESF_SIM_RAYCAST"
+"""Environment variable choosing the ray-casting backend: `open3d`, `torch`, or unset / `auto`
+(open3d when it can be imported, else torch). `SceneRenderer(backend=...)` overrides it."""
+RAYCAST_DEVICE_ENV = "GOVNESF_SIM_RAYCAST_DEVICE"
+"""Environment variable choosing the torch backend's device (`cpu`, `cuda`, `cuda:1`, ...; unset /
+`auto`: CUDA when `torch.cuda.is_available()`, else the CPU). `SceneRenderer(device=...)` overrides it."""
+RAYCAST_BACKENDS = ("open3d", "torch")
+
+
+def _open3d() -> ModuleType:
+    """The open3d module (imported on first use: only the open3d backend needs it)."""
+    return require("open3d", "sim", f"the simulator's Open3D ray casting (or set {RAYCAST_ENV}=torch)")
+
+
+def raycast_backend(backend: str | None = None) -> str:
+    """The ray-casting backend to use: `backend` if given, else $GOVNESF_SIM_RAYCAST; unset, empty
+    or `auto` -> "open3d" when open3d can be imported, else "torch". Raises ValueError for any
+    other name, MissingExtraError when "open3d" is asked for and not installed."""
+    source = "backend" if backend is not None else RAYCAST_ENV
+    raw = backend if backend is not None else os.environ.get(RAYCAST_ENV, "")
+    choice = raw.strip().lower()
+    if choice in ("", "auto"):
+        try:
+            _open3d()
+        except MissingExtraError:
+            return "torch"
+        return "open3d"
+    if choice not in RAYCAST_BACKENDS:
+        raise ValueError(f"{source}={raw!r} is not a ray-casting backend; choose one of "
+                         f"{', '.join(RAYCAST_BACKENDS)} (or leave {RAYCAST_ENV} unset / 'auto' for "
+                         "open3d when installed, else torch)")
+    if choice == "open3d":
+        _open3d()  # a missing open3d names the [sim] extra here, not at the first cast
+    return choice
 
 
 @dataclass
@@ -228,22 +274,310 @@ def tone_map(x: np.ndarray, knee: float = 0.75) -> np.ndarray:
     return np.where(x <= knee, x, knee + head * (1.0 - np.exp(-(x - knee) / head)))
 
 
-class SceneRenderer:
-    """Ray casts a `Scene` into colour, depth, label, instance and normal images."""
+def torch_device(device: str | None = None) -> torch.device:
+    """The torch backend's device: `device` if given, else $GOVNESF_SIM_RAYCAST_DEVICE; unset, empty
+    or `auto` -> CUDA when available, else the CPU. ValueError for a name torch does not know or a
+    device this machine does not have."""
+    import torch
 
-    def __init__(self, scene: Scene) -> None:
+    source = "device" if device is not None else RAYCAST_DEVICE_ENV
+    raw = device if device is not None else os.environ.get(RAYCAST_DEVICE_ENV, "")
+    name = raw.strip().lower()
+    if name in ("", "auto"):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name)
+        torch.zeros(1, device=dev)
+    except (RuntimeError, AssertionError, ValueError) as exc:  # unknown name, no CUDA build, no such GPU
+        raise ValueError(f"{source}={raw!r}: not a usable torch device on this machine "
+                         f"(cpu, cuda, cuda:N, or auto): {exc}") from None
+    return dev
+
+
+@contextmanager
+def _torch_settings(cpu_threads: int | None) -> Iterator[None]:
+    """While casting: float32 matmuls in full float32 (no TF32 / bfloat16 shortcut set elsewhere
+    in the process) and, when `cpu_threads` is given, at most that many intra-op CPU threads;
+    both are put back afterwards."""
+    import torch
+
+    precision, threads = torch.get_float32_matmul_precision(), torch.get_num_threads()
+    if precision != "highest":
+        torch.set_float32_matmul_precision("highest")
+    if cpu_threads is not None and threads > cpu_threads:
+        torch.set_num_threads(cpu_threads)
+    try:
+        yield
+    finally:
+        if torch.get_float32_matmul_precision() != precision:
+            torch.set_float32_matmul_precision(precision)
+        if torch.get_num_threads() != threads:
+            torch.set_num_threads(threads)
+
+
+def _spread_table(stride: int) -> np.ndarray:
+    """(1024,) int64: bit k of the index moved to bit stride * k."""
+    x = np.arange(1024, dtype=np.int64)
+    out = np.zeros_like(x)
+    for k in range(10):
+        out |= ((x >> k) & 1) << (stride * k)
+    return out
+
+
+_SPREAD = {2: _spread_table(2), 3: _spread_table(3)}
+
+
+def _spread_bits(x: np.ndarray, stride: int) -> np.ndarray:
+    """Bit k of x (int64 in 0..1023) moved to bit stride * k (Morton interleaving)."""
+    return _SPREAD[stride][x]
+
+
+def coherent_ray_order(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """A permutation of N rays that puts rays with nearby origins and directions next to each other
+    (Morton order of the quantised origin, then cube-map face and Morton order of the direction on
+    it), so that a run of consecutive rays is a compact bundle (a tile of a camera image, a patch
+    of a grid of parallel rays). origins, dirs: (N, 3) -> (N,) int64, stable for equal keys."""
+    o = np.asarray(origins, np.float64)
+    d = np.asarray(dirs, np.float64)
+    ax = np.argmax(np.abs(d), axis=1)
+    rows = np.arange(len(d))
+    major = d[rows, ax]
+    face = 2 * ax + (major < 0)
+    other = np.stack([d[rows, (ax + 1) % 3], d[rows, (ax + 2) % 3]], 1)
+    other /= np.maximum(np.abs(major), 1e-12)[:, None]                        # on the cube face, [-1, 1]
+    qd = np.zeros((len(d), 2), np.int64)
+    for f in np.unique(face):  # the rays' own extent on each face, so that an image splits into tiles
+        on = face == f
+        lo_d = other[on].min(0)
+        span = max(float((other[on].max(0) - lo_d).max()), 1e-9)
+        qd[on] = np.floor((other[on] - lo_d) / span * 1023.999).astype(np.int64).clip(0, 1023)  # 10 bits
+    key = face << 20 | _spread_bits(qd[:, 0], 2) | _spread_bits(qd[:, 1], 2) << 1
+    lo = o.min(0)
+    extent = float((o.max(0) - lo).max())
+    if extent > 0.0:   # rays from more than one origin: their places come first (7 bits a coordinate)
+        qo = np.floor((o - lo) / extent * 127.999).astype(np.int64).clip(0, 127)
+        morton = _spread_bits(qo[:, 0], 3) | _spread_bits(qo[:, 1], 3) << 1 | _spread_bits(qo[:, 2], 3) << 2
+        key |= morton << 23
+    return np.argsort(key, kind="stable")
+
+
+class TorchRaycaster:
+    """Nearest ray/triangle hits in torch (Moller-Trumbore), double-sided, deterministic.
+
+    The test: Moller-Trumbore's scalars for a ray x triangle pair (det, and u, v, 1 - u - v and t
+    times det) are bilinear in the ray's features (d, o x d, o, 1) and the triangle's (built once
+    here from v0 and the edges e1 = v1 - v0, e2 = v2 - v0), so two matmuls give them for a block
+    of pairs; the rest is elementwise, without branches (a pair that fails a test gets its t
+    pushed beyond `_MISS`; every value stays finite, never NaN). Float32 on the device, like
+    Open3D, in coordinates centred on the mesh's bounding box (smaller numbers, smaller rounding).
+    A hit needs u, v >= -tol, u + v <= 1 + tol (`bary_tol`: a ray through an edge shared by two
+    triangles never slips between them), t > `t_min`, and the ray not within `det_min` (cosine)
+    of parallel to the plane; either side of a triangle counts, as in Open3D. The nearest hit
+    wins; hits within `tie_tol_m` (+ 1e-6 t) of it are ties, which go to the lowest face id.
+
+    Which pairs are tested: with `cull` False (the default on a GPU) every ray against every
+    triangle, a chunk of rays at a time (at most `max_pairs` pairs in flight, so memory stays
+    bounded). With `cull` True (the default on the CPU) the rays are sorted into bundles of
+    `bundle_rays` (`coherent_ray_order`: a camera image falls into tiles) and each bundle is
+    tested only against the triangles whose bounding sphere its cone of rays can reach (a
+    conservative test, its margins far above float32 rounding): in a room about 10% of them,
+    with the same answers as testing all.
+    """
+
+    max_pairs = 8_000_000   # ray x triangle pairs per block (about 12 float32 tensors of that size)
+    bundle_rays = 256       # rays per bundle when culling (fastest on a 160x120 image on the CPU)
+    cpu_threads = 1         # torch threads while casting on the CPU: the blocks are small, more threads
+    #                         spin (16 threads: the same wall time for 12x the CPU time of one)
+    t_min = 1e-6            # metres: hits at t <= t_min (at or behind the origin) do not count
+    det_min = 1e-7          # |cos| of the angle between a ray and a plane below which they are parallel
+    bary_tol = 1e-6         # barycentric slack at edges (float32 rounding between neighbours)
+    tie_tol_m = 4e-6        # metres: hits this close to the nearest are ties (lowest face id)
+    _MISS = 1e29            # a missing pair's t (|t| < 1e16 before) plus 1e30 is above this
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, device: str | None = None,
+                 cull: bool | None = None) -> None:
+        import torch
+
+        self.device = torch_device(device)
+        self.cull = self.device.type == "cpu" if cull is None else bool(cull)
+        v = np.asarray(vertices, np.float64).reshape(-1, 3)
+        tri = np.asarray(triangles, np.int64).reshape(-1, 3)
+        self.n_faces = len(tri)
+        self._centre = 0.5 * (v.min(0) + v.max(0)) if len(v) else np.zeros(3)
+        v0, v1, v2 = (v[tri[:, k]] - self._centre for k in range(3))
+        e1, e2 = v1 - v0, v2 - v0
+        n = np.cross(e1, e2)                                   # |n| = twice the area
+        norm = np.linalg.norm(n, axis=1)
+        good = norm > 1e-20                                    # degenerate triangles never hit
+        scale = np.where(good, 1.0 / np.where(good, norm, 1.0), 0.0)[:, None]
+        n_hat = n * scale
+        # per triangle, the coefficients of a ray's features [d (3), m = o x d (3), o (3), 1] in
+        w = np.zeros((5, self.n_faces, 10))
+        w[0, :, 0:3] = -n_hat                                  # det = e1 . (d x e2) = -d . n
+        w[1, :, 0:3] = np.cross(v0, e2) * scale                # u det = (o - v0) . (d x e2)
+        w[1, :, 3:6] = e2 * scale
+        w[2, :, 0:3] = np.cross(e1, v0) * scale                # v det = d . ((o - v0) x e1)
+        w[2, :, 3:6] = -e1 * scale
+        w[4, :, 6:9] = n_hat                                   # t det = e2 . ((o - v0) x e1) = (o - v0) . n
+        w[4, :, 9] = -np.sum(v0 * n_hat, axis=1)
+        tol = self.bary_tol
+        w[3] = (1.0 + tol) * w[0] - w[1] - w[2]               # (1 + tol - u - v) det
+        w[1] += tol * w[0]                                     # (u + tol) det
+        w[2] += tol * w[0]                                     # (v + tol) det
+        w[4] -= self.t_min * w[0]                              # (t - t_min) det
+        self._w_uvr = torch.from_numpy(w[1:4, :, 0:6].astype(np.float32)).to(self.device)  # (3, T, 6)
+        self._w_dt = torch.from_numpy(w[[0, 4]][:, :, [0, 1, 2, 6, 7, 8, 9]].astype(np.float32)).to(
+            self.device)                                                                  # (2, T, 7)
+        # bounding spheres for the culling, float64 on the host
+        self._sphere_c = (v0 + v1 + v2) / 3.0
+        self._sphere_r = np.sqrt(np.max([np.sum((p - self._sphere_c) ** 2, axis=1) for p in (v0, v1, v2)],
+                                        axis=0, initial=0.0))
+
+    def cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """origins, dirs: (N, 3) world rays (dirs unit) -> t_hit (N,) float64 metres (inf: miss),
+        face id (N,) int64 (-1: miss)."""
+        import torch
+
+        o = np.asarray(origins, np.float64).reshape(-1, 3) - self._centre
+        d = np.asarray(dirs, np.float64).reshape(-1, 3)
+        n_rays = len(o)
+        t_out = np.full(n_rays, np.inf)
+        f_out = np.full(n_rays, -1, np.int64)
+        if n_rays == 0 or self.n_faces == 0:
+            return t_out, f_out
+        order = coherent_ray_order(o, d) if self.cull else np.arange(n_rays)
+        o, d = o[order], d[order]
+        m = np.cross(o, d)
+        ones = np.ones((n_rays, 1))
+        f_dm = torch.from_numpy(np.concatenate([d, m], 1).astype(np.float32)).to(self.device)
+        f_do1 = torch.from_numpy(np.concatenate([d, o, ones], 1).astype(np.float32)).to(self.device)
+        t_dev = torch.empty(n_rays, dtype=torch.float32, device=self.device)
+        f_dev = torch.empty(n_rays, dtype=torch.int64, device=self.device)
+        cpu_threads = self.cpu_threads if self.device.type == "cpu" else None
+        with torch.no_grad(), _torch_settings(cpu_threads):
+            for a, b, faces in self._blocks(o, d):
+                if faces is not None and len(faces) == 0:   # no triangle within reach: all miss
+                    t_dev[a:b] = torch.inf
+                    f_dev[a:b] = -1
+                    continue
+                if faces is None:
+                    w_uvr, w_dt = self._w_uvr, self._w_dt
+                else:
+                    ids = torch.from_numpy(faces).to(self.device)
+                    w_uvr, w_dt = self._w_uvr[:, ids], self._w_dt[:, ids]
+                t, local = self._nearest(f_dm[a:b], f_do1[a:b], w_uvr, w_dt)
+                t_dev[a:b] = t
+                f_dev[a:b] = local if faces is None else torch.where(local >= 0, ids[local.clamp(min=0)], -1)
+        t_out[order] = t_dev.cpu().numpy()
+        f_out[order] = f_dev.cpu().numpy()
+        return t_out, f_out
+
+    def _blocks(self, o: np.ndarray, d: np.ndarray) -> Iterator[tuple[int, int, np.ndarray | None]]:
+        """(first ray, end ray, ascending ids of the triangles to test them against; None: all) for
+        rays o, d (N, 3) (in `coherent_ray_order` when culling), at most `max_pairs` pairs a block."""
+        n_rays, n_faces = len(o), self.n_faces
+        if not self.cull:
+            step = max(1, self.max_pairs // n_faces)
+            for a in range(0, n_rays, step):
+                yield a, min(a + step, n_rays), None
+            return
+        size = self.bundle_rays
+        per_block = max(1, self.max_pairs // (8 * n_faces))   # bundles culled at once (~100 MB at most)
+        for first in range(0, n_rays, size * per_block):
+            end = min(first + size * per_block, n_rays)
+            keep = self._reachable(o[first:end], d[first:end])
+            for g, row in enumerate(keep):
+                faces = np.flatnonzero(row)
+                a, b = first + g * size, min(first + (g + 1) * size, end)
+                step = max(1, self.max_pairs // max(len(faces), 1))
+                for c in range(a, b, step):
+                    yield c, min(c + step, b), faces
+
+    def _reachable(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """(G, T) bool: which triangles each bundle of `bundle_rays` consecutive rays of o, d (n, 3)
+        can hit (the last bundle may be short): those whose bounding sphere meets the bundle's cone
+        (its mean direction, its widest angle to it) from the sphere around its origins."""
+        size = self.bundle_rays
+        n_bundles = -(-len(o) // size)
+        pad = n_bundles * size - len(o)
+        o_b = np.concatenate([o, np.repeat(o[-1:], pad, 0)]).reshape(n_bundles, size, 3)
+        d_b = np.concatenate([d, np.repeat(d[-1:], pad, 0)]).reshape(n_bundles, size, 3)
+        oc = o_b.mean(1)                                                       # (G, 3)
+        r_o = np.sqrt(((o_b - oc[:, None]) ** 2).sum(2).max(1))                # (G,)
+        axis = d_b.mean(1)
+        length = np.maximum(np.linalg.norm(axis, axis=1), 1e-12)
+        axis /= length[:, None]
+        cos_spread = np.einsum("gnk,gk->gn", d_b, axis).min(1)
+        theta = np.arccos(np.clip(cos_spread, -1.0, 1.0)) + 1e-6               # (G,) half-angle of the cone
+        c = self._sphere_c                                                     # (T, 3)
+        dist2 = (c**2).sum(1)[None] - 2.0 * (oc @ c.T) + (oc**2).sum(1)[:, None]  # (G, T) |c - oc|^2
+        dist = np.sqrt(np.maximum(dist2, 0.0))
+        along = axis @ c.T - (axis * oc).sum(1)[:, None]                       # (c - oc) . axis
+        reach = self._sphere_r[None] * (1.0 + 1e-5) + r_o[:, None] + 1e-4      # margins >> float32 rounding
+        sin_a = np.minimum(reach / np.maximum(dist, 1e-12), 1.0)
+        cos_bound = np.cos(theta)[:, None] * np.sqrt(1.0 - sin_a**2) - np.sin(theta)[:, None] * sin_a
+        keep = (dist <= reach) | (along >= cos_bound * dist)
+        keep[cos_spread < 0.05] = True    # a cone wider than ~87 degrees: theta + alpha could pass pi
+        return keep
+
+    def _nearest(self, f_dm: torch.Tensor, f_do1: torch.Tensor, w_uvr: torch.Tensor,
+                 w_dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rays as features f_dm (n, 6) = [d, o x d], f_do1 (n, 7) = [d, o, 1]; triangles as
+        coefficients w_uvr (3, k, 6) of (u + tol, v + tol, 1 + tol - u - v) det, w_dt (2, k, 7)
+        of det and (t - t_min) det -> t (n,) float32 (inf: miss), the nearest triangle's index
+        in the k (n,) int64 (-1: miss)."""
+        import torch
+
+        k = w_uvr.shape[1]
+        det, t = torch.matmul(w_dt.reshape(2 * k, 7), f_do1.T).view(2, k, -1)       # (k, n) each
+        u, v, rest = torch.matmul(w_uvr.reshape(3 * k, 6), f_dm.T).view(3, k, -1)
+        slack = det.abs().sub_(self.det_min)                    # > 0 unless the ray is parallel
+        inv = det / det.square().add_(1e-30)                   # 1 / det, finite even where det = 0
+        for x in (u, v, rest, t):
+            x.mul_(inv)
+        worst = torch.minimum(torch.minimum(u, v), torch.minimum(rest, t))
+        miss = torch.minimum(worst, slack).sub_(1e-20).clamp_(max=0.0).sign_()   # -1: a miss, 0: a hit
+        t_key = t.sub_(miss, alpha=1e30)                        # t - t_min, and misses beyond _MISS
+        t_best = t_key.amin(dim=0)
+        hit = t_best < self._MISS
+        # the lowest index among the ties (t_key < limit), as an exact float: index + k for the others
+        limit = t_best * (1.0 + 1e-6) + self.tie_tol_m
+        index = torch.arange(k, dtype=torch.float32, device=t_key.device).unsqueeze(1)
+        key = torch.sub(t_key, limit).clamp_(max=0.0).sign_().add_(1.0).mul_(float(k)).add_(index)
+        first = key.amin(dim=0).nan_to_num_(0.0).long().clamp_(0, k - 1)
+        t_first = torch.gather(t_key, 0, first.unsqueeze(0)).squeeze(0) + self.t_min
+        return torch.where(hit, t_first, torch.inf), torch.where(hit, first, -1)
+
+
+class SceneRenderer:
+    """Ray casts a `Scene` into colour, depth, label, instance and normal images.
+
+    backend: "open3d" or "torch" (None: $GOVNESF_SIM_RAYCAST, else auto: open3d when installed,
+    else torch); device: the torch backend's device (None: $GOVNESF_SIM_RAYCAST_DEVICE, else
+    CUDA when available, else the CPU). See `raycast_backend`, `torch_device`.
+    """
+
+    def __init__(self, scene: Scene, backend: str | None = None, device: str | None = None) -> None:
+        self.backend = raycast_backend(backend)
         self.scene = scene
-        self._rc = o3d.t.geometry.RaycastingScene()
-        self._rc.add_triangles(
-            o3d.core.Tensor(scene.vertices.astype(np.float32)),
-            o3d.core.Tensor(scene.triangles.astype(np.uint32)))
+        self._rc: Any
+        if self.backend == "open3d":
+            self._o3d = o3d = _open3d()
+            self._rc = o3d.t.geometry.RaycastingScene()
+            self._rc.add_triangles(
+                o3d.core.Tensor(scene.vertices.astype(np.float32)),
+                o3d.core.Tensor(scene.triangles.astype(np.uint32)))
+        else:
+            self._rc = TorchRaycaster(scene.vertices, scene.triangles, device)
         self._emissive = scene.face_texture == int(Texture.SKY)
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Cast world rays. origins, dirs: (N, 3) (dirs unit) -> t_hit (N,) metres (inf: miss),
         face id (N,) int64 (-1: miss)."""
+        if isinstance(self._rc, TorchRaycaster):
+            return self._rc.cast(origins, dirs)
         rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
-        ans = self._rc.cast_rays(o3d.core.Tensor(rays))
+        ans = self._rc.cast_rays(self._o3d.core.Tensor(rays))
         t = ans["t_hit"].numpy().astype(np.float64)
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         hit = np.isfinite(t)

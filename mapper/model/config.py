@@ -3,6 +3,9 @@
 Presets:
 
 * ``cpu-small`` -- tiny; meant to train on 2 CPU cores within about an hour on 160x120 images.
+* ``gpu-medium`` -- ``cpu-small``'s inputs (8 views, 160x120) with twice its widths, two blocks per
+  encoder stage, 48 samples a ray and a 3.4 times finer voxel budget; meant for a GPU
+  (docs/TRAINING.md "Training on a GPU"); it still runs on a CPU, a few times slower.
 * ``paper`` -- the paper's / official code's sizes (ResNet-34-style encoder, 30 source views,
   320x240, 64 samples a ray between 0.2 and 8 m, 512-d OV features).
 
@@ -153,6 +156,17 @@ PRESETS: dict[str, ModelConfig] = {
         ),
         fusion=FusionConfig(hidden_dim=32, attention_dim=16, num_heads=4, ov_dim=384),
         render=RenderConfig(n_samples=32, near_m=0.2, far_m=8.0),
+        num_source_views=8,
+        image_wh=(160, 120),
+    ),
+    "gpu-medium": ModelConfig(
+        name="gpu-medium",
+        encoder=EncoderConfig(base_channels=32, blocks=(2, 2, 2), feature_dim=32, norm="instance"),
+        volume=VolumeConfig(
+            unet_channels=(16, 32, 64), group_norm_groups=4, volume_feature_dim=16, max_voxels=48 * 48 * 24
+        ),
+        fusion=FusionConfig(hidden_dim=64, attention_dim=32, num_heads=8, ov_dim=384),
+        render=RenderConfig(n_samples=48, near_m=0.2, far_m=8.0),
         num_source_views=8,
         image_wh=(160, 120),
     ),

@@ -3,6 +3,7 @@
 Examples:
     govnesf train --config launch/train_cpu_small.toml
     govnesf train --config launch/train_cpu_small.toml --resume out/train/cpu-small/last.json
+    govnesf train --config launch/train_gpu_small.toml --wall-budget-s 300   # as many steps as fit
     torchrun --nproc_per_node 2 -m mapper.training.cli_train --config launch/train_cpu_small.toml
 """
 
@@ -29,6 +30,14 @@ def _parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         help="stop after this many completed steps (resume later with --resume)",
+    )
+    p.add_argument(
+        "--wall-budget-s",
+        type=float,
+        default=None,
+        metavar="S",
+        help="seconds for the training steps: time the first steps, then run as many as fit "
+        "(at most max_steps; the schedule follows; not with --resume / --until-step)",
     )
     p.add_argument("--out", default=None, help="override out_dir (training checkpoints and log.jsonl)")
     p.add_argument(
@@ -100,9 +109,20 @@ def main(argv: list[str] | None = None) -> int:
     if args.evaluate:
         return _evaluate(cfg, args.evaluate, args.val_views, args.val_stride or cfg.val_stride_px)
     command = "govnesf train " + shlex.join(sys.argv[1:] if argv is None else argv)
-    result = train(
-        cfg, resume=args.resume, until_step=args.until_step, command=command, progress=not args.no_progress
-    )
+    try:
+        result = train(
+            cfg,
+            resume=args.resume,
+            until_step=args.until_step,
+            command=command,
+            progress=not args.no_progress,
+            wall_budget_s=args.wall_budget_s,
+        )
+    except ValueError as exc:
+        if "wall_budget_s" not in str(exc):
+            raise
+        print(f"govnesf train: {exc}", file=sys.stderr)
+        return 2
     val = result["validation"]
     if val:
         print(

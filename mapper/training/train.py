@@ -361,7 +361,7 @@ def _loss_for_sample(
     dgm = uses_depth_guided_masking(cfg, s.seed)
     views = model.make_source_views(src.rgb, src.ov, src.K, src.world_from_cam, src.depth_m)
     volume = model.build_volume(views, src.bounds)
-    gen = torch.Generator(device=device)
+    gen = torch.Generator(device="cpu")  # the jitter is drawn on the CPU (the same samples on any device)
     gen.manual_seed(s.seed)
     out = render_rays(
         model,
@@ -565,6 +565,21 @@ def validate(
 
 
 # ---- the run -------------------------------------------------------------------------------------
+def budget_probe_steps(cfg: TrainConfig) -> int:
+    """Steps timed before a wall budget fixes max_steps: 20, or the warm-up if shorter (at least 2)."""
+    return max(2, min(20, cfg.warmup_steps))
+
+
+def steps_for_budget(budget_s: float, elapsed_s: float, done: int, per_step_s: float, max_steps: int) -> int:
+    """The max_steps that a wall budget allows: the ``done`` steps taken in ``elapsed_s`` plus as many
+    more of ``per_step_s`` as fit in what is left (5% kept for checkpoints and the export), within
+    ``done .. max_steps``."""
+    if per_step_s <= 0 or not math.isfinite(per_step_s):
+        raise ValueError(f"per_step_s {per_step_s} out of range: must be > 0")
+    more = int(max(0.0, 0.95 * budget_s - elapsed_s) // per_step_s)
+    return int(min(max_steps, max(done, done + more)))
+
+
 def _load_scenes(root: str, *, limit: int = 0, with_novel_views: bool = False) -> list[Scene]:
     paths = find_scenes(root)
     if limit:
@@ -609,6 +624,7 @@ def train(
     model_cfg: ModelConfig | None = None,
     command: str | None = None,
     progress: bool = True,
+    wall_budget_s: float | None = None,
 ) -> dict[str, Any]:
     """Run (or continue) training; returns the last step's stats and validation metrics.
 
@@ -618,7 +634,16 @@ def train(
         model_cfg: a model config to use instead of the preset (tests use a tiny one).
         command: the command line recorded in the checkpoints.
         progress: show a tqdm bar on rank 0.
+        wall_budget_s: seconds for the training steps (data loading not counted): the first
+            ``budget_probe_steps(cfg)`` steps are timed, then max_steps becomes the most steps that
+            fit (``steps_for_budget``, never more than the config's max_steps) and the schedule
+            follows it. The probe lies inside the warm-up, whose learning rates do not depend on
+            max_steps, so the run is the one its final max_steps would have given.
     """
+    if wall_budget_s is not None and not (math.isfinite(wall_budget_s) and wall_budget_s > 0):
+        raise ValueError(f"wall_budget_s {wall_budget_s} out of range: must be > 0 seconds")
+    if wall_budget_s is not None and (resume is not None or until_step is not None):
+        raise ValueError("wall_budget_s does not combine with resume or until_step")
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     if cfg.init_weights and resume is None:
@@ -633,6 +658,7 @@ def train(
             model_cfg=model_cfg,
             command=command,
             progress=progress,
+            wall_budget_s=wall_budget_s,
         )
     finally:
         if dd.initialised_here:
@@ -845,6 +871,16 @@ class _Run:
         if cfg.export:
             save_checkpoint(cfg.export, self.built.model, metadata=self.meta_for(step), half=cfg.export_half)
 
+    def set_budget(self, cfg: TrainConfig, stop: int, record: dict[str, Any]) -> None:
+        """A wall budget fixed max_steps (``record``): the run, its checkpoints and its bar follow."""
+        self.cfg, self.stop = cfg, stop
+        self.base_meta["train_config"] = dataclasses.asdict(cfg)
+        self.base_meta["wall_budget"] = record
+        _log(self.log_path, {"event": "budget", **record})
+        if self.bar is not None:
+            self.bar.total = stop
+            self.bar.refresh()
+
     def begin(self, *, progress: bool) -> None:
         """The ``start`` log record and the progress bar."""
         cfg, start = self.cfg, self.built.start
@@ -894,9 +930,14 @@ class _Run:
             self.save_training(done)
 
     def end(self, done: int, *, validate_last: bool) -> None:
-        """Final validation (when the run is complete), checkpoint and ``end`` record."""
+        """Final validation (when the run is complete), checkpoint and ``end`` record; a complete
+        run without validation scenes (``val_dir = ""``) still writes its export."""
         if validate_last:
             self.run_validation(done)
+            if not self.data.val_views and self.cfg.export:
+                save_checkpoint(
+                    self.cfg.export, self.built.model, metadata=self.meta_for(done), half=self.cfg.export_half
+                )
         self.save_training(done)
         if self.bar is not None:
             self.bar.close()
@@ -912,6 +953,7 @@ def _train(
     model_cfg: ModelConfig | None,
     command: str | None,
     progress: bool,
+    wall_budget_s: float | None = None,
 ) -> dict[str, Any]:
     is_main = dd.rank == 0
     data = _load_data(cfg, dd, model_cfg)
@@ -925,16 +967,34 @@ def _train(
     run = _Run(cfg, dd, data, built, stop=stop, command=command, preset=preset)
     if is_main:
         run.begin(progress=progress)
-    for step in range(start, stop):
+    probe = budget_probe_steps(cfg) if wall_budget_s is not None else 0
+    t_first = t_begin = time.perf_counter()
+    step = start
+    while step < stop:
         stats = train_step(model, built.optimizer, data.sampler, cfg, step, dd.rank, dd.world, dd.device)
         if not all(math.isfinite(v) for v in stats.values()):
             raise FloatingPointError(f"step {step}: non-finite training statistics {stats}")
         run.last_stats = stats
         done = step + 1
+        if done == 1:
+            t_first = time.perf_counter()  # the first step carries one-off costs (CUDA start-up)
+        over = wall_budget_s is not None and time.perf_counter() - t_begin >= 0.95 * wall_budget_s
+        early = over and done < probe and dd.world == 1  # ranks would not agree on when
+        if wall_budget_s is not None and (done == min(probe, stop) or early):
+            now = time.perf_counter()  # the probe's end, or a budget spent before it (stop here)
+            per_step = (now - t_first) / max(1, done - 1) if done > 1 else now - t_begin
+            fitted = steps_for_budget(wall_budget_s, now - t_begin, done, per_step, cfg.max_steps)
+            probe = done  # fixed once
+            fitted = _agreed(fitted, dd)
+            cfg = dataclasses.replace(cfg, max_steps=fitted)
+            stop = fitted
+            run.set_budget(cfg, stop, {"wall_budget_s": wall_budget_s, "probe_steps": done,
+                                       "probe_s_per_step": round(per_step, 4), "max_steps": fitted})
         if is_main:
             run.after_step(done, stats)
         if dd.world > 1 and done % cfg.val_every == 0:
             dist.barrier()
+        step = done
     done = max(start, stop)
     if is_main:
         run.end(done, validate_last=done >= cfg.max_steps or until_step is None)
@@ -945,8 +1005,18 @@ def _train(
         "train": run.last_stats,
         "validation": run.last_val,
         "train_wall_s": run.wall(),
+        "max_steps": cfg.max_steps,
         "model": model,
     }
+
+
+def _agreed(value: int, dd: _Dist) -> int:
+    """Rank 0's value on every rank."""
+    if dd.world == 1:
+        return value
+    t = torch.tensor([value], dtype=torch.int64, device=dd.device)
+    dist.broadcast(t, src=0)
+    return int(t.item())
 
 
 def _log(path: Path, record: dict[str, Any]) -> None:

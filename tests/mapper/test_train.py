@@ -19,7 +19,15 @@ from test_data import tiny_model_config, write_text_embeddings, write_tiny_scene
 from mapper.model.checkpoint import load_model
 from mapper.model.field import GovNeSF
 from mapper.training.data import RaySampler, load_scene
-from mapper.training.train import TrainConfig, learning_rate, load_train_config, train, train_step
+from mapper.training.train import (
+    TrainConfig,
+    budget_probe_steps,
+    learning_rate,
+    load_train_config,
+    steps_for_budget,
+    train,
+    train_step,
+)
 
 
 @pytest.fixture(scope="module")
@@ -126,6 +134,40 @@ def test_few_steps_lower_the_loss_on_a_fixed_batch(data_root: Path) -> None:
     assert np.mean(losses[-3:]) < 0.8 * np.mean(losses[:3]), losses
 
 
+def test_steps_for_budget() -> None:
+    # 10 s spent on 5 steps of 2 s: 95 s of a 100 s budget leave 85 s, 42 more steps
+    assert steps_for_budget(100.0, 10.0, 5, 2.0, 10_000) == 47
+    assert steps_for_budget(100.0, 10.0, 5, 2.0, 20) == 20  # never past the config's max_steps
+    assert steps_for_budget(5.0, 10.0, 5, 2.0, 10_000) == 5  # over budget already: stop where it is
+    with pytest.raises(ValueError, match="per_step_s"):
+        steps_for_budget(100.0, 1.0, 2, 0.0, 10)
+    assert budget_probe_steps(TrainConfig(warmup_steps=500)) == 20
+    assert budget_probe_steps(TrainConfig(warmup_steps=5)) == 5
+    assert budget_probe_steps(TrainConfig(warmup_steps=0)) == 2
+
+
+def test_wall_budget_fixes_max_steps_after_the_probe(data_root: Path, tmp_path: Path) -> None:
+    cfg = _cfg(data_root, tmp_path / "budget", max_steps=6, warmup_steps=3, val_dir="",
+               export=str(tmp_path / "export"))
+    # a budget far beyond the run: max_steps stays the config's, the probe is logged
+    result = train(cfg, model_cfg=tiny_model_config(), progress=False, wall_budget_s=1e6)
+    assert result["step"] == result["max_steps"] == 6
+    log = (tmp_path / "budget" / "log.jsonl").read_text()
+    assert '"event": "budget"' in log and '"probe_steps": 3' in log
+    # no validation scenes: the complete run still writes its export, with the budget recorded
+    model, meta = load_model(tmp_path / "export")
+    assert meta["step"] == 6 and meta["wall_budget"]["max_steps"] == 6
+    assert meta["train_config"]["max_steps"] == 6
+    # a budget spent before the probe ends: the run stops there, and its schedule ends there
+    short = train(replace(cfg, out_dir=str(tmp_path / "short")), model_cfg=tiny_model_config(),
+                  progress=False, wall_budget_s=1e-9)
+    assert short["step"] == short["max_steps"] == 1
+    with pytest.raises(ValueError, match="wall_budget_s"):
+        train(cfg, model_cfg=tiny_model_config(), progress=False, wall_budget_s=-1.0)
+    with pytest.raises(ValueError, match="resume or until_step"):
+        train(cfg, model_cfg=tiny_model_config(), progress=False, wall_budget_s=10.0, until_step=2)
+
+
 def test_learning_rate_schedule() -> None:
     cfg = TrainConfig(max_steps=110, warmup_steps=10, lr=1e-3, min_lr_ratio=0.1)
     assert learning_rate(cfg, 0) == pytest.approx(1e-4)
@@ -188,6 +230,16 @@ def test_launch_configs_load() -> None:
     assert stage2.init_weights == stage1.export and stage3.init_weights == stage2.export
     assert stage3.export == "checkpoints/cpu-small" and stage3.surface_weight > 0
     assert len({stage1.out_dir, stage2.out_dir, stage3.out_dir}) == 3
+    # the GPU runs (scripts/gpu/train_gpu.sh): G1 is stage 1's recipe at a GPU's budget, G2 adds the
+    # geometry losses, G3 is G2 on the gpu-medium network; each writes its own folder
+    g1, g2, g3 = (load_train_config(root / f"train_{n}.toml")
+                  for n in ("gpu_small", "gpu_small_geo", "gpu_medium"))
+    assert (g1.point_ov_weight, g1.visibility_weight) == (stage1.point_ov_weight, stage1.visibility_weight)
+    assert g1.depth_weight == g1.surface_weight == 0 and g2.depth_weight > 0 and g2.surface_weight > 0
+    assert g1.preset == g2.preset == "cpu-small" and g3.preset == "gpu-medium"
+    assert (g3.depth_weight, g3.surface_weight) == (g2.depth_weight, g2.surface_weight)
+    assert len({g1.out_dir, g2.out_dir, g3.out_dir}) == 3
+    assert all(c.train_dir == "data_gpu/train" for c in (g1, g2, g3))
 
 
 def test_geometry_and_visibility_supervision_terms(data_root: Path) -> None:
