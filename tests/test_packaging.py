@@ -355,10 +355,11 @@ def test_govnesf_package_is_a_leaf() -> None:
 
 
 def test_demo_reports_a_missing_extra(tmp_path: Path) -> None:
-    """`make demo` without [sim]: exit code 2 naming the extra, before anything is written."""
+    """`make demo` without [sim] (trimesh; open3d is optional since the simulator can ray cast with
+    torch): exit code 2 naming the extra, before anything is written."""
     out = tmp_path / "demo"
     proc = _run(
-        BLOCK.format(mods=["open3d"])
+        BLOCK.format(mods=["open3d", "trimesh"])
         + "from clients.demo import main\n"
         + f"raise SystemExit(main(['--out', {str(out)!r}]))\n"
     )

@@ -114,7 +114,10 @@ def test_wheel_contents(installed: dict[str, Path]) -> None:
     assert f"govnesf-{__version__}.dist-info/licenses/LICENSE" in names
     assert f"Version: {__version__}\n" in meta and "License-Expression: Apache-2.0\n" in meta
     assert "Requires-Python: >=3.10\n" in meta
-    assert 'Provides-Extra: sim\n' in meta and 'open3d-cpu==0.20.0; extra == "sim"' in meta
+    assert 'Provides-Extra: sim\n' in meta
+    # open3d only where it has a wheel (x86-64 Linux); elsewhere the simulator ray casts with torch
+    (open3d,) = [line for line in meta.splitlines() if line.startswith("Requires-Dist: open3d-cpu==0.20.0")]
+    assert 'extra == "sim"' in open3d and 'platform_machine == "x86_64"' in open3d
 
 
 def test_installed_packages_come_from_the_wheel(installed: dict[str, Path]) -> None:
