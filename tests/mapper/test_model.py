@@ -68,9 +68,13 @@ def test_presets_match_the_brief() -> None:
     small = get_preset("cpu-small")
     assert small.image_wh == (160, 120) and small.num_source_views <= 8 and 32 <= small.render.n_samples <= 48
     assert get_preset("cpu-small", ov_dim=12).fusion.ov_dim == 12
-    assert set(PRESETS) == {"cpu-small", "paper"}
+    assert set(PRESETS) == {"cpu-small", "gpu-medium", "paper"}
+    medium = get_preset("gpu-medium")  # cpu-small's inputs (so its data and the node's frames fit)
+    assert (medium.image_wh, medium.num_source_views) == (small.image_wh, small.num_source_views)
+    assert medium.volume.max_voxels > small.volume.max_voxels and medium.render.n_samples == 48
     sizes = {name: sum(p.numel() for p in GovNeSF(cfg).parameters()) for name, cfg in PRESETS.items()}
     assert sizes["cpu-small"] < 500_000 < 5_000_000 < sizes["paper"]  # tiny vs ResNet-34-sized encoder
+    assert sizes["cpu-small"] < sizes["gpu-medium"] < sizes["paper"]
     with pytest.raises(ValueError, match="unknown model preset 'huge'"):
         get_preset("huge")
     with pytest.raises(ValueError, match="num_heads 3 must divide attention_dim 32"):
