@@ -4,7 +4,6 @@ mesh, label image matches face labels, normals face the camera."""
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 import pytest
 
 from clients.sim.raycast import SceneRenderer, camera_rays, tone_map
@@ -93,6 +92,7 @@ Room = tuple[Scene, SceneRenderer, np.ndarray]
 
 
 def test_scene_depth_back_projects_onto_mesh_and_labels_match(room: Room) -> None:
+    o3d = pytest.importorskip("open3d", reason="closest points on the mesh come from Open3D")
     scene, renderer, poses = room
     K = default_intrinsics(W, H)
     mesh = o3d.t.geometry.RaycastingScene()
