@@ -988,8 +988,9 @@ def _train(
             fitted = _agreed(fitted, dd)
             cfg = dataclasses.replace(cfg, max_steps=fitted)
             stop = fitted
-            run.set_budget(cfg, stop, {"wall_budget_s": wall_budget_s, "probe_steps": done,
-                                       "probe_s_per_step": round(per_step, 4), "max_steps": fitted})
+            if is_main:  # the log and the checkpoints' metadata are rank 0's
+                run.set_budget(cfg, stop, {"wall_budget_s": wall_budget_s, "probe_steps": done,
+                                           "probe_s_per_step": round(per_step, 4), "max_steps": fitted})
         if is_main:
             run.after_step(done, stats)
         if dd.world > 1 and done % cfg.val_every == 0:

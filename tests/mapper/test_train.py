@@ -84,6 +84,22 @@ def _rank_main(rank: int, world: int, port: int, cfg: TrainConfig) -> None:
     train(cfg, model_cfg=tiny_model_config(), progress=False)
 
 
+def _rank_main_budget(rank: int, world: int, port: int, cfg: TrainConfig) -> None:
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
+                      LOCAL_RANK=str(rank))
+    result = train(cfg, model_cfg=tiny_model_config(), progress=False, wall_budget_s=1e6)
+    assert result["step"] == result["max_steps"] == cfg.max_steps
+
+
+def test_wall_budget_with_two_processes(data_root: Path, tmp_path: Path) -> None:
+    """Both ranks take rank 0's max_steps; rank 0 alone writes the budget record."""
+    cfg = _cfg(data_root, tmp_path / "multi", max_steps=3, warmup_steps=2, val_dir="")
+    mp.start_processes(_rank_main_budget, args=(2, _free_port(), cfg), nprocs=2, join=True,
+                       start_method="spawn")
+    log = (tmp_path / "multi" / "log.jsonl").read_text()
+    assert log.count('"event": "budget"') == 1 and '"max_steps": 3' in log
+
+
 def test_two_process_gloo_matches_one_process(data_root: Path, tmp_path: Path) -> None:
     single = _cfg(data_root, tmp_path / "single", max_steps=3)
     result = train(single, model_cfg=tiny_model_config(), progress=False)
