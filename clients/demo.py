@@ -447,15 +447,16 @@ def _finish(args: argparse.Namespace, out: Path, started: float, failures: list[
 def main(argv: list[str] | None = None) -> int:
     args = _parse_args(argv)
     try:  # before anything is written: the simulated room needs the [sim] extra
-        from clients.sim.raycast import raycast_backend
+        from clients.sim.raycast import raycast_backend, torch_device
 
         require("trimesh", "sim", "the demo's room mesh (scene.ply)")
         backend = raycast_backend()  # open3d where installed, else torch (GOVNESF_SIM_RAYCAST)
+        if backend == "torch":
+            print(f"demo: the simulator ray casts with torch on {torch_device()} (GOVNESF_SIM_RAYCAST; "
+                  "Open3D, where installed, is the default)")
     except (MissingExtraError, ValueError) as exc:
         print(f"demo: {exc}", file=sys.stderr)
         return 2
-    if backend != "open3d":
-        print(f"demo: the simulator ray casts with {backend} (Open3D is not installed here)")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()

@@ -20,6 +20,19 @@ if TYPE_CHECKING:
 __all__ = ["main"]
 
 
+def _seconds(text: str) -> float:
+    """A positive, finite number of seconds (argparse type)."""
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} out of range: a finite number of seconds > 0")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="govnesf train", description="Train the GOV-NeSF model.")
     p.add_argument("--config", required=True, help="TOML file with a [train] table (launch/train_*.toml)")
@@ -33,7 +46,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--wall-budget-s",
-        type=float,
+        type=_seconds,
         default=None,
         metavar="S",
         help="seconds for the training steps: time the first steps, then run as many as fit "
@@ -106,23 +119,24 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError) as exc:
         print(f"govnesf train: {exc}", file=sys.stderr)
         return 2
+    if args.evaluate and args.wall_budget_s is not None:
+        print("govnesf train: --wall-budget-s trains; it does not combine with --evaluate", file=sys.stderr)
+        return 2
+    if args.wall_budget_s is not None and (args.resume or args.until_step is not None):
+        print("govnesf train: --wall-budget-s does not combine with --resume or --until-step (a resumed "
+              "budget run keeps the max_steps its budget chose)", file=sys.stderr)
+        return 2
     if args.evaluate:
         return _evaluate(cfg, args.evaluate, args.val_views, args.val_stride or cfg.val_stride_px)
     command = "govnesf train " + shlex.join(sys.argv[1:] if argv is None else argv)
-    try:
-        result = train(
-            cfg,
-            resume=args.resume,
-            until_step=args.until_step,
-            command=command,
-            progress=not args.no_progress,
-            wall_budget_s=args.wall_budget_s,
-        )
-    except ValueError as exc:
-        if "wall_budget_s" not in str(exc):
-            raise
-        print(f"govnesf train: {exc}", file=sys.stderr)
-        return 2
+    result = train(
+        cfg,
+        resume=args.resume,
+        until_step=args.until_step,
+        command=command,
+        progress=not args.no_progress,
+        wall_budget_s=args.wall_budget_s,
+    )
     val = result["validation"]
     if val:
         print(

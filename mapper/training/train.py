@@ -731,6 +731,8 @@ class _Model:
     start: int = 0
     wall_before: float = 0.0
     history: list[dict[str, Any]] = field(default_factory=list)
+    wall_budget: dict[str, Any] | None = None
+    """The resumed run's wall-budget choice (``max_steps``), when it had one."""
 
 
 def _build_model(cfg: TrainConfig, mcfg: ModelConfig, dd: _Dist, resume: str | Path | None) -> _Model:
@@ -746,6 +748,7 @@ def _build_model(cfg: TrainConfig, mcfg: ModelConfig, dd: _Dist, resume: str | P
         built.start = int(meta["step"])
         built.wall_before = float(meta.get("train_wall_s", 0.0))
         built.history = list(meta.get("validation_history", []))
+        built.wall_budget = meta.get("wall_budget")
         if "rng.torch" in extra:
             torch.set_rng_state(extra["rng.torch"])
     if dd.world > 1:  # every rank starts from rank 0's weights
@@ -959,6 +962,8 @@ def _train(
     data = _load_data(cfg, dd, model_cfg)
     built = _build_model(cfg, data.mcfg, dd, resume)
     model, start = built.model, built.start
+    if built.wall_budget:  # a resumed budget run keeps the length (and schedule) its budget chose
+        cfg = dataclasses.replace(cfg, max_steps=int(built.wall_budget["max_steps"]))
     if is_main:
         Path(cfg.out_dir).mkdir(parents=True, exist_ok=True)
     stop = cfg.max_steps if until_step is None else min(cfg.max_steps, until_step)
@@ -978,8 +983,16 @@ def _train(
         done = step + 1
         if done == 1:
             t_first = time.perf_counter()  # the first step carries one-off costs (CUDA start-up)
-        over = wall_budget_s is not None and time.perf_counter() - t_begin >= 0.95 * wall_budget_s
+        elapsed = time.perf_counter() - t_begin
+        over = wall_budget_s is not None and elapsed >= 0.95 * wall_budget_s
         early = over and done < probe and dd.world == 1  # ranks would not agree on when
+        if (wall_budget_s is not None and done > probe and elapsed > 1.1 * wall_budget_s and dd.world == 1
+                and done < stop):  # the steps got slower than the probe said: stop and export now
+            cfg = dataclasses.replace(cfg, max_steps=done)
+            stop = done
+            if is_main:
+                run.set_budget(cfg, stop, {"wall_budget_s": wall_budget_s, "probe_steps": probe,
+                                           "overrun_at_s": round(elapsed, 1), "max_steps": done})
         if wall_budget_s is not None and (done == min(probe, stop) or early):
             now = time.perf_counter()  # the probe's end, or a budget spent before it (stop here)
             per_step = (now - t_first) / max(1, done - 1) if done > 1 else now - t_begin

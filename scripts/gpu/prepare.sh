@@ -4,7 +4,7 @@
 #   .gpu/sim_text_table.npz            the simulated 2D model's class-name embeddings
 #   .gpu/val_text_embeddings.npz       the validation's class-name embeddings (data/val's cache)
 #   .whl/                              wheels of the packages that such an image lacks (x86-64, py3.12)
-# Both folders are ignored by git (add them to .git/info/exclude) and travel with the command.
+# Both folders are ignored by git (.gitignore) and must travel with the command (carried).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 PY=${PY:-.venv/bin/python}

@@ -13,7 +13,7 @@
 #    (govnesf train --wall-budget-s), so that everything ends within TOTAL_S seconds (default 540);
 # 4. writes OUT_DIR/runs.tgz (each run's export and log.jsonl) and OUT_DIR/driver.log.
 # Env: PYTHON (default python3), RUNS (default "gpu_small gpu_small_geo gpu_medium": launch/train_RUN.toml),
-# FRAMES (80), JOBS (parallel recordings, default the core count).
+# FRAMES (80), JOBS (parallel recordings, default the core count), ALLOW_CPU=1 (a dry run without a GPU).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 OUT=${1:?usage: train_gpu.sh OUT_DIR [TOTAL_S] [N_TRAIN]}
@@ -28,7 +28,9 @@ mkdir -p "$OUT"
 log() { echo "[$(($(date +%s) - T0)) s] $*" | tee -a "$OUT/driver.log"; }
 
 if ! "$PY" -c "import zmq, trimesh, threadpoolctl" 2>/dev/null && compgen -G ".whl/*.whl" >/dev/null; then
-  "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/govnesf-site .whl/*.whl
+  # the wheels are for CPython 3.12 on x86-64 (prepare.sh); another Python needs its own
+  "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/govnesf-site \
+    .whl/*.whl || { echo "installing .whl/ failed: rerun scripts/gpu/prepare.sh for this Python" >&2; exit 2; }
   export PYTHONPATH=/tmp/govnesf-site
 fi
 export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
@@ -41,6 +43,10 @@ done
 
 log "1. checks"
 "$PY" -c "import torch, numpy; print('torch', torch.__version__, 'numpy', numpy.__version__, 'cuda', torch.cuda.is_available(), torch.cuda.get_device_name(0) if torch.cuda.is_available() else '')" | tee -a "$OUT/driver.log"
+if [[ ${ALLOW_CPU:-0} != 1 ]] && ! "$PY" -c "import sys, torch; sys.exit(not torch.cuda.is_available())"; then
+  log "no CUDA device: these runs are sized for a GPU (ALLOW_CPU=1 for a dry run on the CPU)"
+  exit 2
+fi
 "$PY" -m pytest -q -p no:warnings -p no:cacheprovider tests/mapper/test_cuda.py 2>&1 | tail -40 | tee -a "$OUT/driver.log" || log "CUDA checks failed (above); training goes on"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader >>"$OUT/driver.log" 2>&1 || true
 
@@ -60,8 +66,11 @@ mkdir -p data_gpu/train data_gpu/val
 { for s in 1000 1001 1002; do echo "val $s"; done; for ((s = 0; s < N_TRAIN; s++)); do echo "train $s"; done; } |
   xargs -P "$JOBS" -L 1 bash -c 'record "$0" "$1"' || log "some recordings failed (their logs: data_gpu/*/*.log)"
 n_rec=$(find data_gpu/train -name novel_views.npz | wc -l)
-((n_rec >= 8)) && [[ $(find data_gpu/val -name novel_views.npz | wc -l) -eq 3 ]] ||
-  { log "too few rooms recorded ($n_rec training)"; exit 3; }
+n_val=$(find data_gpu/val -name novel_views.npz | wc -l)
+if ((2 * n_rec < N_TRAIN || n_rec < 1 || n_val < 3)); then
+  log "too few rooms recorded ($n_rec of $N_TRAIN training, $n_val of 3 validation)"
+  exit 3
+fi
 cp .gpu/val_text_embeddings.npz data_gpu/val/text_embeddings_minilm-l6-v2.npz
 log "recorded: $n_rec training rooms, $(du -sh data_gpu | cut -f1)"
 
@@ -84,10 +93,16 @@ for run in $RUNS; do tail -2 "$OUT/$run.log" | tee -a "$OUT/driver.log"; done
 
 log "4. pack"
 files=()
-for run in $RUNS; do
-  d=$(PY_RUN=$run "$PY" -c "import os; from mapper.training.train import load_train_config as l; c = l('launch/train_' + os.environ['PY_RUN'] + '.toml'); print(c.out_dir)")
-  for f in "$d/log.jsonl" "$d/export.json" "$d/export.safetensors"; do [[ -f $f ]] && files+=("$f"); done
+for run in "${runs[@]}"; do
+  d=$(PY_RUN=$run "$PY" -c "import os; from mapper.training.train import load_train_config as l; c = l('launch/train_' + os.environ['PY_RUN'] + '.toml'); print(c.out_dir)") ||
+    { log "run $run: no config to find its output"; status=1; continue; }
+  for f in "$d/log.jsonl" "$d/export.json" "$d/export.safetensors"; do if [[ -f $f ]]; then files+=("$f"); fi; done
 done
-tar czf "$OUT/runs.tgz" "${files[@]}"
-log "done: $(du -h "$OUT/runs.tgz" | cut -f1) packed, status $status"
+if ((${#files[@]})); then
+  tar czf "$OUT/runs.tgz" "${files[@]}"
+  log "done: $(du -h "$OUT/runs.tgz" | cut -f1) packed, status $status"
+else
+  log "nothing to pack (every run failed; their logs are in $OUT), status 1"
+  status=1
+fi
 exit $status

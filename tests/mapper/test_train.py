@@ -84,6 +84,61 @@ def _rank_main(rank: int, world: int, port: int, cfg: TrainConfig) -> None:
     train(cfg, model_cfg=tiny_model_config(), progress=False)
 
 
+class _StepClock:
+    """A clock that advances ``per_step`` seconds per training step (and never otherwise)."""
+
+    def __init__(self, per_step: float) -> None:
+        self.now, self.per_step = 0.0, per_step
+
+    def perf_counter(self) -> float:
+        return self.now
+
+    def __getattr__(self, name: str) -> object:  # strftime, gmtime, ... from the real module
+        import time
+
+        return getattr(time, name)
+
+
+def test_wall_budget_fits_the_steps_the_probe_measured(
+    data_root: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import mapper.training.train as train_mod
+
+    clock = _StepClock(per_step=1.0)
+    real_step = train_mod.train_step
+
+    def timed_step(*args: object, **kw: object) -> dict[str, float]:
+        clock.now += clock.per_step
+        return real_step(*args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(train_mod, "time", clock)
+    monkeypatch.setattr(train_mod, "train_step", timed_step)
+    cfg = _cfg(data_root, tmp_path / "fit", max_steps=50, warmup_steps=3, val_dir="")
+    # probe: 3 steps of 1 s; 95% of 10 s = 9.5 s, 3 spent: 6 more steps
+    result = train(cfg, model_cfg=tiny_model_config(), progress=False, wall_budget_s=10.0)
+    assert result["step"] == result["max_steps"] == 9
+    # resumed from its checkpoint, the run keeps the 9 steps its budget chose (not the TOML's 50)
+    again = train(cfg, model_cfg=tiny_model_config(), progress=False, resume=tmp_path / "fit" / "last.json")
+    assert again["step"] == again["max_steps"] == 9
+    # steps that get slower than the probe said: past 1.1 x the budget the run stops and exports
+    clock.now, clock.per_step = 0.0, 1.0
+    slow = _cfg(data_root, tmp_path / "slow", max_steps=50, warmup_steps=3, val_dir="",
+                export=str(tmp_path / "slow_export"))
+    calls = {"n": 0}
+
+    def slower_step(*args: object, **kw: object) -> dict[str, float]:
+        calls["n"] += 1
+        clock.now += 1.0 if calls["n"] <= 3 else 5.0  # 1 s in the probe, then 5 s a step
+        return real_step(*args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(train_mod, "train_step", slower_step)
+    over = train(slow, model_cfg=tiny_model_config(), progress=False, wall_budget_s=10.0)
+    # 9 steps planned; step 4 ends at 8 s, step 5 at 13 s > 1.1 x 10 s: it stops there, exports
+    assert over["step"] == over["max_steps"] == 5
+    assert (tmp_path / "slow_export.safetensors").is_file()
+    assert '"overrun_at_s": 13.0' in (tmp_path / "slow" / "log.jsonl").read_text()
+
+
 def _rank_main_budget(rank: int, world: int, port: int, cfg: TrainConfig) -> None:
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
                       LOCAL_RANK=str(rank))
@@ -92,7 +147,8 @@ def _rank_main_budget(rank: int, world: int, port: int, cfg: TrainConfig) -> Non
 
 
 def test_wall_budget_with_two_processes(data_root: Path, tmp_path: Path) -> None:
-    """Both ranks take rank 0's max_steps; rank 0 alone writes the budget record."""
+    """Both ranks end the budget run together (neither waits on the other's choice) and rank 0
+    alone writes the budget record."""
     cfg = _cfg(data_root, tmp_path / "multi", max_steps=3, warmup_steps=2, val_dir="")
     mp.start_processes(_rank_main_budget, args=(2, _free_port(), cfg), nprocs=2, join=True,
                        start_method="spawn")
