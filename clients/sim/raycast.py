@@ -23,6 +23,7 @@ is flipped towards the camera). Window panes (`Texture.SKY`) are emissive.
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -53,8 +54,9 @@ def _open3d() -> ModuleType:
 
 def raycast_backend(backend: str | None = None) -> str:
     """The ray-casting backend to use: `backend` if given, else $GOVNESF_SIM_RAYCAST; unset, empty
-    or `auto` -> "open3d" when open3d can be imported, else "torch". Raises ValueError for any
-    other name, MissingExtraError when "open3d" is asked for and not installed."""
+    or `auto` -> "open3d" when open3d can be imported, else "torch" (with a RuntimeWarning when
+    open3d is installed but fails to import). Raises ValueError for any other name,
+    MissingExtraError when "open3d" is asked for and not installed."""
     source = "backend" if backend is not None else RAYCAST_ENV
     raw = backend if backend is not None else os.environ.get(RAYCAST_ENV, "")
     choice = raw.strip().lower()
@@ -62,6 +64,11 @@ def raycast_backend(backend: str | None = None) -> str:
         try:
             _open3d()
         except MissingExtraError:
+            return "torch"
+        except (ImportError, OSError) as exc:  # installed but broken (e.g. libusb-1.0 missing)
+            warnings.warn(f"open3d is installed but does not import ({exc}); the simulator ray casts "
+                          f"with torch (set {RAYCAST_ENV}=open3d to see the error)", RuntimeWarning,
+                          stacklevel=2)
             return "torch"
         return "open3d"
     if choice not in RAYCAST_BACKENDS:

@@ -289,6 +289,22 @@ def test_without_open3d_auto_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch
         SceneRenderer(tiny_scene)
 
 
+def test_a_broken_open3d_falls_back_to_torch_in_auto(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Installed but failing to import (as without libusb-1.0): auto warns and takes torch; asking
+    for open3d shows the error."""
+    import clients.sim.raycast as raycast
+
+    def broken() -> None:
+        raise ImportError("libusb-1.0.so.0: cannot open shared object file")
+
+    monkeypatch.setattr(raycast, "_open3d", broken)
+    monkeypatch.delenv(RAYCAST_ENV, raising=False)
+    with pytest.warns(RuntimeWarning, match="libusb-1.0.so.0"):
+        assert raycast.raycast_backend() == "torch"
+    with pytest.raises(ImportError, match="libusb"):
+        raycast.raycast_backend("open3d")
+
+
 def test_device_choice(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(RAYCAST_DEVICE_ENV, raising=False)
     auto = torch_device()
