@@ -144,6 +144,16 @@ def _rank_main_budget(rank: int, world: int, port: int, cfg: TrainConfig) -> Non
                       LOCAL_RANK=str(rank))
     result = train(cfg, model_cfg=tiny_model_config(), progress=False, wall_budget_s=1e6)
     assert result["step"] == result["max_steps"] == cfg.max_steps
+    # the choice is rank 0's on every rank, whatever each rank measured
+    import torch.distributed as dist
+
+    from mapper.training.train import _agreed, _Dist
+
+    dist.init_process_group("gloo", rank=rank, world_size=world)
+    try:
+        assert _agreed(100 + rank, _Dist(rank, world, torch.device("cpu"), True)) == 100
+    finally:
+        dist.destroy_process_group()
 
 
 def test_wall_budget_with_two_processes(data_root: Path, tmp_path: Path) -> None:
