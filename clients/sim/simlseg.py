@@ -178,6 +178,12 @@ class SimLSeg:
         config: corruption model (``SimLSegConfig``).
     """
 
+    @staticmethod
+    def prompt_texts(class_names: Sequence[str], config: SimLSegConfig | None = None) -> list[str]:
+        """Every text SimLSeg embeds: each class's prompt, then the void text (C + 1)."""
+        cfg = config or SimLSegConfig()
+        return [cfg.prompt_template.format(n) for n in class_names] + [cfg.void_text]
+
     def __init__(self, class_names: Sequence[str], text_encoder: TextEncoderLike, *, seed: int = 0,
                  config: SimLSegConfig | None = None) -> None:
         names = list(class_names)
@@ -187,7 +193,7 @@ class SimLSeg:
         self.config = config or SimLSegConfig()
         self.seed = int(seed)
         cfg = self.config
-        texts = [cfg.prompt_template.format(n) for n in names] + [cfg.void_text]
+        texts = self.prompt_texts(names, cfg)
         emb = np.asarray(text_encoder.encode(texts), dtype=np.float32)  # (C + 1, D)
         if emb.ndim != 2 or emb.shape[0] != len(texts):
             raise ValueError(f"text_encoder returned shape {emb.shape}, expected ({len(texts)}, D)")

@@ -972,8 +972,7 @@ def _train(
     run = _Run(cfg, dd, data, built, stop=stop, command=command, preset=preset)
     if is_main:
         run.begin(progress=progress)
-    probe = budget_probe_steps(cfg) if wall_budget_s is not None else 0
-    t_first = t_begin = time.perf_counter()
+    budget = _WallBudget(wall_budget_s, cfg, dd) if wall_budget_s is not None else None
     step = start
     while step < stop:
         stats = train_step(model, built.optimizer, data.sampler, cfg, step, dd.rank, dd.world, dd.device)
@@ -981,29 +980,13 @@ def _train(
             raise FloatingPointError(f"step {step}: non-finite training statistics {stats}")
         run.last_stats = stats
         done = step + 1
-        if done == 1:
-            t_first = time.perf_counter()  # the first step carries one-off costs (CUDA start-up)
-        elapsed = time.perf_counter() - t_begin
-        over = wall_budget_s is not None and elapsed >= 0.95 * wall_budget_s
-        early = over and done < probe and dd.world == 1  # ranks would not agree on when
-        if (wall_budget_s is not None and done > probe and elapsed > 1.1 * wall_budget_s and dd.world == 1
-                and done < stop):  # the steps got slower than the probe said: stop and export now
-            cfg = dataclasses.replace(cfg, max_steps=done)
-            stop = done
-            if is_main:
-                run.set_budget(cfg, stop, {"wall_budget_s": wall_budget_s, "probe_steps": probe,
-                                           "overrun_at_s": round(elapsed, 1), "max_steps": done})
-        if wall_budget_s is not None and (done == min(probe, stop) or early):
-            now = time.perf_counter()  # the probe's end, or a budget spent before it (stop here)
-            per_step = (now - t_first) / max(1, done - 1) if done > 1 else now - t_begin
-            fitted = steps_for_budget(wall_budget_s, now - t_begin, done, per_step, cfg.max_steps)
-            probe = done  # fixed once
-            fitted = _agreed(fitted, dd)
-            cfg = dataclasses.replace(cfg, max_steps=fitted)
-            stop = fitted
+        change = budget.after_step(done, cfg.max_steps) if budget is not None else None
+        if change is not None:  # the budget fixed the run's length (and so its schedule)
+            length, record = change
+            cfg = dataclasses.replace(cfg, max_steps=length)
+            stop = length
             if is_main:  # the log and the checkpoints' metadata are rank 0's
-                run.set_budget(cfg, stop, {"wall_budget_s": wall_budget_s, "probe_steps": done,
-                                           "probe_s_per_step": round(per_step, 4), "max_steps": fitted})
+                run.set_budget(cfg, stop, {"wall_budget_s": wall_budget_s, **record, "max_steps": length})
         if is_main:
             run.after_step(done, stats)
         if dd.world > 1 and done % cfg.val_every == 0:
@@ -1022,6 +1005,38 @@ def _train(
         "max_steps": cfg.max_steps,
         "model": model,
     }
+
+
+class _WallBudget:
+    """``train(wall_budget_s=...)``: times the first ``budget_probe_steps`` steps, then fixes the
+    run's length to what fits (:func:`steps_for_budget`, rank 0's choice on every rank); stops at
+    once when the budget is spent before the probe ends, or when the steps turn out slower than the
+    probe said and 1.1 x the budget has passed (both on one process only: ranks would not agree
+    on when)."""
+
+    def __init__(self, budget_s: float, cfg: TrainConfig, dd: _Dist) -> None:
+        self.budget_s, self.dd = budget_s, dd
+        self.probe = budget_probe_steps(cfg)
+        self.fixed = False
+        self.t_begin = self.t_first = time.perf_counter()
+
+    def after_step(self, done: int, max_steps: int) -> tuple[int, dict[str, Any]] | None:
+        """After ``done`` completed steps: (the new max_steps, what to log) or None (no change)."""
+        now = time.perf_counter()
+        if done == 1:
+            self.t_first = now  # the first step carries one-off costs (CUDA start-up)
+        elapsed = now - self.t_begin
+        alone = self.dd.world == 1
+        if self.fixed:
+            if alone and elapsed > 1.1 * self.budget_s and done < max_steps:  # slower than probed
+                return done, {"probe_steps": self.probe, "overrun_at_s": round(elapsed, 1)}
+            return None
+        if done < min(self.probe, max_steps) and not (alone and elapsed >= 0.95 * self.budget_s):
+            return None
+        per_step = (now - self.t_first) / (done - 1) if done > 1 else elapsed
+        fitted = _agreed(steps_for_budget(self.budget_s, elapsed, done, per_step, max_steps), self.dd)
+        self.fixed, self.probe = True, done
+        return fitted, {"probe_steps": done, "probe_s_per_step": round(per_step, 4)}
 
 
 def _agreed(value: int, dd: _Dist) -> int:

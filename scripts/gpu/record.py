@@ -22,10 +22,9 @@ if str(ROOT) not in sys.path:
 def sim_texts() -> list[str]:
     """Every text the simulated 2D model embeds (its prompt per class and its void text)."""
     from clients.sim.scenes import CLASS_NAMES
-    from clients.sim.simlseg import SimLSegConfig
+    from clients.sim.simlseg import SimLSeg
 
-    cfg = SimLSegConfig()
-    return [cfg.prompt_template.format(n) for n in CLASS_NAMES] + [cfg.void_text]
+    return SimLSeg.prompt_texts(CLASS_NAMES)
 
 
 def write_table(path: Path) -> None:

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 from test_data import tiny_model_config, write_text_embeddings, write_tiny_scene
+from test_train import _cfg as train_cfg
 
 from mapper.model.field import GovNeSF
 from mapper.training.data import RaySampler, load_scene
@@ -21,14 +22,10 @@ pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a C
 
 
 def _cfg(root: Path, out: Path, **kw: object) -> TrainConfig:
-    base: dict[str, object] = dict(
-        preset="tiny", train_dir=str(root / "train"), val_dir=str(root / "val"), out_dir=str(out),
-        max_steps=3, batch_views=2, rays_per_view=32, warmup_steps=1, lr=3e-3, threads=1,
-        checkpoint_every=2, val_every=1000, val_views_per_scene=1, val_stride_px=8, log_every=1,
-        point_ov_weight=1.0, visibility_weight=0.2, depth_weight=0.1, surface_weight=0.1,
-    )
-    base.update(kw)
-    return TrainConfig(**base)  # type: ignore[arg-type]
+    """test_train's tiny run with every supervision term on."""
+    losses: dict[str, object] = dict(max_steps=3, rays_per_view=32, point_ov_weight=1.0,
+                                     visibility_weight=0.2, depth_weight=0.1, surface_weight=0.1)
+    return train_cfg(root, out, **{**losses, **kw})
 
 
 @pytest.fixture(scope="module")
