@@ -63,6 +63,8 @@ def main() -> int:
         return 0
     if args.table is None:
         p.error("--table or --write-table is required")
+    if not args.table.is_file():
+        p.error(f"--table {args.table}: no such file (write it with --write-table where the model is)")
     import clients.sim.text as text
 
     text._DEFAULT = _TableEncoder(args.table)  # type: ignore[assignment]
