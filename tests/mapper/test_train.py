@@ -140,18 +140,18 @@ def test_wall_budget_fits_the_steps_the_probe_measured(
 
 
 def _rank_main_budget(rank: int, world: int, port: int, cfg: TrainConfig) -> None:
-    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
-                      LOCAL_RANK=str(rank))
-    result = train(cfg, model_cfg=tiny_model_config(), progress=False, wall_budget_s=1e6)
-    assert result["step"] == result["max_steps"] == cfg.max_steps
-    # the choice is rank 0's on every rank, whatever each rank measured
     import torch.distributed as dist
 
     from mapper.training.train import _agreed, _Dist
 
-    dist.init_process_group("gloo", rank=rank, world_size=world)
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
+                      LOCAL_RANK=str(rank))
+    dist.init_process_group("gloo", rank=rank, world_size=world)  # one group: train() uses it, leaves it
     try:
-        assert _agreed(100 + rank, _Dist(rank, world, torch.device("cpu"), True)) == 100
+        result = train(cfg, model_cfg=tiny_model_config(), progress=False, wall_budget_s=1e6)
+        assert result["step"] == result["max_steps"] == cfg.max_steps
+        # the choice is rank 0's on every rank, whatever each rank measured
+        assert _agreed(100 + rank, _Dist(rank, world, torch.device("cpu"), False)) == 100
     finally:
         dist.destroy_process_group()
 
