@@ -66,6 +66,7 @@ from mapper.model.ops.cost_volume import (
     CostVolume,
     VolumeBounds,
     bounds_from_points,
+    build_cost_volume,
     cost_volume_features,
     sample_volume,
 )
@@ -153,6 +154,14 @@ class _Prepared:
     prior_only: Tensor | None = None  # (M,) bool: the view's depth_m is a prior (no input depth)
     free_space: Tensor | None = None  # (X, Y, Z) bool carved by the priors (carve_free_space), on first use
     ov_table: Tensor | None = None  # (M * h_ov * w_ov, D) ``ov`` channel-last, on first use
+    extents: list[Tensor] = field(default_factory=list)
+    """M x (E_m, 3): what each view observed (depth points; without depth the points
+    ``set_view_extent`` gave it, without the camera centre), for the bounds of render volumes."""
+    render_volumes: dict[tuple[int, ...], _Prepared] = field(default_factory=dict)
+    """Render preps over keyframe subsets (``render_volume_views``), by view indices; this version's."""
+    window_volume: tuple[VolumeBounds, Tensor] | None = None
+    """A render volume's prep (``render_volume_views``): the window's (bounds, volume), whose
+    features the blend takes at points outside this prep's bounds (the render volume has none there)."""
 
     def ov_maps(self, view_idx: Tensor, image_wh: tuple[int, int]) -> OVMaps:
         """The OV maps of ``view_idx`` (N,) as a gather table (built once per version)."""
@@ -855,16 +864,92 @@ class ModelRuntime:
             world_from_cam=torch.stack([e.world_from_cam for e in entries]),
             ov_space=spaces.pop() if len(spaces) == 1 else None,
             support=support,
+            extents=[e.observed if e.observed is not None and e.observed.shape[0] >= 16 else e.extent
+                     for e in entries],
         )
         return self._prepared
 
+    # Most render volumes kept per version (a client rendering a few poses over and over reuses them).
+    _RENDER_VOLUMES_KEPT = 8
+
+    @torch.no_grad()
+    def _render_prep(self, model: GovNeSF, prep: _Prepared, K: Tensor, world_from_cam: Tensor,
+                     width: int, height: int, n: int) -> _Prepared:
+        """``prep`` with the volume of the ``n`` keyframes that best overlap the view (K (4,) for
+        width x height, world_from_cam (4, 4)) and its bounds, or ``prep`` itself: n = 0, a
+        window of at most n keyframes, or fewer than 2 of them overlapping the view
+        (``ModelRuntimeConfig.render_volume_views``)."""
+        if n <= 0 or len(prep) <= n or len(prep.extents) != len(prep):
+            return prep
+        chosen = self._overlapping_views(prep, K, world_from_cam, width, height, n)
+        if chosen.numel() < 2:
+            return prep
+        key = tuple(chosen.tolist())
+        local = prep.render_volumes.get(key)
+        if local is not None:
+            return local
+        idx = chosen.to(prep.K.device)
+        vcfg = model.cfg.volume
+        bounds = bounds_from_points(
+            torch.cat([prep.extents[i] for i in key]).cpu(),
+            max_voxels=self.config.max_voxels or vcfg.max_voxels,
+            min_voxel_size_m=self.config.voxel_size_m or vcfg.min_voxel_size_m,
+            margin_m=self.config.bounds_margin_m,
+        )
+        mean, var, count = build_cost_volume(
+            bounds, prep.features[idx], prep.K[idx], prep.world_from_cam[idx], self.image_wh
+        )
+        volume = model.volume_features(cost_volume_features(mean, var, count))
+        support = None
+        if self.config.min_view_support > 1:
+            support = (count >= self.config.min_view_support).to(torch.float32)[None]
+        local = _Prepared(
+            version=prep.version, bounds=bounds, volume=volume, rgb=prep.rgb, features=prep.features,
+            ov=prep.ov, has_ov=prep.has_ov, depth_m=prep.depth_m, K=prep.K,
+            world_from_cam=prep.world_from_cam, ov_space=prep.ov_space, support=support,
+            prior_only=prep.prior_only, ov_table=prep.ov_table, extents=prep.extents,
+            window_volume=(prep.bounds, prep.volume),
+        )
+        if len(prep.render_volumes) >= self._RENDER_VOLUMES_KEPT:
+            prep.render_volumes.pop(next(iter(prep.render_volumes)))
+        prep.render_volumes[key] = local
+        return local
+
+    def _overlapping_views(self, prep: _Prepared, K: Tensor, world_from_cam: Tensor, width: int, height: int,
+                           n: int) -> Tensor:
+        """(k,) long, k <= n: the views whose observed points fall most inside the view (share of
+        each view's extent points in front of the camera, at most ``far_m`` away, inside the
+        image; the training's ``overlap_scores``), best first; views with no point inside are
+        left out. Ties are broken by the index (older keyframes first)."""
+        counts = torch.tensor([e.shape[0] for e in prep.extents])
+        points = torch.cat(prep.extents).to(torch.float32)
+        cam_from_world = invert_pose(world_from_cam.to(points))
+        uv, z = project_points(points[None], K.to(points)[None], cam_from_world[None])
+        seen = in_view(uv, z, width, height)[0] & (z[0] <= self.config.far_m)
+        view_of = torch.repeat_interleave(torch.arange(len(counts)), counts).to(seen.device)
+        inside = torch.zeros(len(counts), device=seen.device).index_add_(0, view_of, seen.to(torch.float32))
+        share = (inside.cpu() / counts.clamp_min(1)).to(torch.float64)
+        centre = world_from_cam[:3, 3].to(prep.world_from_cam)
+        distance = (prep.world_from_cam[:, :3, 3] - centre).norm(dim=-1).cpu()
+        by_distance = torch.argsort(distance, stable=True)
+        order = by_distance[torch.argsort(-share[by_distance], stable=True)][:n]
+        return order[share[order] > 0]
+
     def _density(self, model: GovNeSF, prep: _Prepared, points: Tensor) -> tuple[Tensor, Tensor]:
         """sigma (P,) and volume feature (P, Dv) at (P, 3) points; sigma is 0 where fewer than
-        ``min_view_support`` views see the volume (trilinear in the support mask)."""
+        ``min_view_support`` views see the volume (trilinear in the support mask). A render
+        volume's prep (``window_volume``) has no density outside its bounds; v there is the window's."""
         sigma, v = model.density_at(prep.volume, prep.bounds, points)
         if prep.support is not None:
             support, _ = sample_volume(prep.support, prep.bounds, points)
             sigma = sigma * support[..., 0]
+        if prep.window_volume is not None:  # a render volume: the window's features outside it
+            lo, hi = points.new_tensor(prep.bounds.origin_m), points.new_tensor(prep.bounds.max_corner_m)
+            outside = ~((points >= lo) & (points <= hi)).all(dim=-1)
+            if bool(outside.any()):
+                bounds, volume = prep.window_volume
+                v = v.clone()
+                v[outside] = sample_volume(volume, bounds, points[outside].to(volume.dtype))[0].to(v.dtype)
         return sigma, v
 
     @torch.no_grad()
@@ -1270,6 +1355,7 @@ class ModelRuntime:
         *,
         empty_space_skipping: bool | None = None,
         surface_depth_m: np.ndarray | None = None,  # (H, W) float32 z-depth (m), 0 = none
+        volume_views: int | None = None,
     ) -> RenderFrame:
         """Render a novel view.
 
@@ -1282,6 +1368,9 @@ class ModelRuntime:
                 ``mapper.node.queries.surface_depth``): where > 0 the pixel is rendered AT that
                 surface point (one appearance evaluation there; depth = this z, opacity 1) instead
                 of marching its ray; the other pixels march as usual. None = march every pixel.
+            volume_views: the density (and the blend's volume features) from a cost volume over
+                this many keyframes that best overlap the view (``render_volume_views``, whose
+                value None takes; 0 = the window's volume).
 
         Returns:
             :class:`RenderFrame`: rgb (H, W, 3) uint8 (black where nothing is rendered), depth_m
@@ -1328,13 +1417,20 @@ class ModelRuntime:
                 )
             if not (np.isfinite(surface_np).all() and (surface_np >= 0).all()):
                 raise ValueError("surface_depth_m must be finite and >= 0 (0 = no surface)")
+        if volume_views is not None and not (isinstance(volume_views, int) and 0 <= volume_views <= 256):
+            raise ValueError(f"volume_views {volume_views!r} out of range 0..256")
         skip = self.config.empty_space_skipping if empty_space_skipping is None else empty_space_skipping
         model = self._require_model()
         timing: dict[str, float] = {}
         t0 = time.perf_counter()
         with self._lock:
             prep = self._prepare()
+            t_local = time.perf_counter()
+            n_views = self.config.render_volume_views if volume_views is None else volume_views
+            prep = self._render_prep(model, prep, K_t.to(torch.float32), pose.to(torch.float32), int(width),
+                                     int(height), n_views)
             t1 = time.perf_counter()
+            timing["render_volume"] = (t1 - t_local) * 1e3
             timing["prepare"] = (t1 - t0) * 1e3
             emb = self._text_embeddings(prep, texts or []) if semantic else None
             # the occupancy grid only serves marched rays (none when every pixel has a surface)

@@ -205,6 +205,30 @@ def test_render_keyframe_depth_scales_K_with_the_stride(model: GovNeSF) -> None:
     assert float(rendered.confidence.max()) <= 0.5 + 1e-6 and rendered.ov is kf.ov
 
 
+def test_render_keyframe_depth_renders_from_the_overlapping_keyframes_volume(model: GovNeSF) -> None:
+    runtime = _filled_runtime(model, min_opacity=0.0)
+    kf = keyframe(9, orbit(9), depth_m=None)
+    seen: list[object] = []
+    render = runtime.render
+
+    def spy(*args: object, **kwargs: object) -> object:
+        seen.append(kwargs.get("volume_views"))
+        return render(*args, **kwargs)  # type: ignore[arg-type]
+
+    runtime.render = spy  # type: ignore[method-assign]
+    by_volume = {}
+    for views in (3, 0):
+        cfg = GlobalMapConfig(rendered_depth_stride=4, rendered_min_opacity=0.0, rendered_volume_views=views)
+        by_volume[views] = render_keyframe_depth(runtime, kf, cfg).depth_m
+    assert seen == [3, 0]
+    direct = render(np.asarray(kf.K) * np.array([10 / 40, 7 / 30, 10 / 40, 7 / 30]), kf.world_from_cam, 10, 7,
+                    outputs=("depth",), volume_views=3)
+    np.testing.assert_array_equal(by_volume[3], np.where(direct.opacity >= 0.0, direct.depth_m, 0.0))
+    assert not np.array_equal(by_volume[3], by_volume[0])
+    with pytest.raises(ConfigError, match="rendered_volume_views"):
+        GlobalMapConfig(rendered_volume_views=-1).validate("test")
+
+
 def test_features_swapped_in_after_queueing_are_used(node: MapperNode, model: GovNeSF) -> None:
     """A keyframe queued without ov whose window copy later gains features (the in-process OV
     backend swaps in a featured copy) is fused with those features."""

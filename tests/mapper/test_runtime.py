@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from mapper.model.field import GovNeSF
-from mapper.model.ops.cost_volume import build_cost_volume
+from mapper.model.ops.cost_volume import build_cost_volume, cost_volume_features
 from mapper.node.config import ConfigError, WindowConfig
 from mapper.node.window import Keyframe, KeyframeWindow
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig, RuntimeNotReady
@@ -462,3 +462,96 @@ def test_surface_depth_is_checked_before_any_work(slab_runtime: ModelRuntime) ->
         with pytest.raises(ValueError, match=what):
             slab_runtime.render(K, pose, 20, 15, ["rgb"], surface_depth_m=bad)
 
+
+
+# -- render volumes over the keyframes that overlap the view (render_volume_views) ---------------
+
+
+def _orbit_runtime(model: GovNeSF, n_keyframes: int, **overrides: object) -> ModelRuntime:
+    runtime = make_runtime(model, **overrides)
+    window = KeyframeWindow(
+        WindowConfig(max_keyframes=n_keyframes, min_translation_m=0.05, min_rotation_deg=5)
+    )
+    runtime.attach(window)
+    for i in range(n_keyframes):  # a full circle around the origin, every camera looking at it
+        window.consider(keyframe(i, orbit(i, radius=2.0), depth_m=1.5))
+    runtime.sync()
+    return runtime
+
+
+def test_render_volume_is_the_batch_volume_of_the_views_that_overlap_the_render(model: GovNeSF) -> None:
+    runtime = _orbit_runtime(model, 8)
+    with runtime._lock:
+        prep = runtime._prepare()
+        kf = 5
+        K, pose = prep.K[kf], prep.world_from_cam[kf]
+        w, h = runtime.image_wh
+        chosen = runtime._overlapping_views(prep, K, pose, w, h, 3)
+        local = runtime._render_prep(model, prep, K, pose, w, h, 3)
+    # the keyframe at the render pose sees all it observed: first; then the largest shares
+    from mapper.model.ops.geometry import in_view, invert_pose, project_points
+
+    shares = []
+    for e in prep.extents:
+        uv, z = project_points(e[None], K[None], invert_pose(pose)[None])
+        shares.append(float(in_view(uv, z, w, h)[0].float().mean()))
+    assert chosen.tolist()[0] == kf and shares[kf] == 1.0
+    others = [shares[i] for i in range(len(shares)) if i not in chosen.tolist()]
+    assert min(shares[int(i)] for i in chosen) >= max(others)
+    idx = chosen
+    points = torch.cat([prep.extents[int(i)] for i in idx])
+    lo, hi = np.array(local.bounds.origin_m), np.array(local.bounds.max_corner_m)
+    inside = ((points.numpy() >= lo) & (points.numpy() <= hi)).all(axis=1)
+    assert inside.mean() > 0.95  # the bounds cover what those keyframes observed
+    assert local.bounds != prep.bounds and local.volume.shape[1:] == tuple(local.bounds.dims)
+    with torch.no_grad():
+        mean, var, count = build_cost_volume(local.bounds, prep.features[idx], prep.K[idx],
+                                             prep.world_from_cam[idx], runtime.image_wh)
+        direct = model.volume_features(cost_volume_features(mean, var, count))
+    assert torch.allclose(local.volume, direct, atol=1e-5)
+    # the blend still reads every window keyframe
+    assert local.rgb is prep.rgb and local.features is prep.features and local.K is prep.K
+    # outside the render volume: no density, and the window's volume features for the blend
+    with torch.no_grad():
+        outside = torch.tensor([[float(prep.bounds.max_corner_m[0]) - 0.01, *((lo + hi) / 2)[1:]]],
+                               dtype=torch.float32)
+        assert float(outside[0, 0]) > hi[0]  # inside the window's box, outside the render volume's
+        sigma_l, v_l = runtime._density(model, local, outside)
+        _, v_w = runtime._density(model, prep, outside)
+    assert float(sigma_l[0]) == 0.0 and torch.equal(v_l, v_w)
+    # cached for this version and this set of views; another set is another volume
+    with runtime._lock:
+        assert runtime._render_prep(model, runtime._prepare(), K, pose, w, h, 3) is local
+        assert runtime._render_prep(model, runtime._prepare(), K, pose, w, h, 4) is not local
+
+
+def test_render_volume_views_zero_or_a_small_window_render_from_the_window(model: GovNeSF) -> None:
+    pose = look_at((2.0, 0.5, 1.1), (0, 0, 0.5))
+    K = [20.0, 20.0, 10.0, 7.5]
+    runtime = _orbit_runtime(model, 6)
+    off = runtime.render(K, pose, 20, 15, ["rgb", "depth"])  # config default: 0
+    assert runtime.config.render_volume_views == 0
+    for same in (runtime.render(K, pose, 20, 15, ["rgb", "depth"], volume_views=0),
+                 runtime.render(K, pose, 20, 15, ["rgb", "depth"], volume_views=6)):  # the whole window
+        assert np.array_equal(off.rgb, same.rgb) and np.array_equal(off.depth_m, same.depth_m)
+    local = runtime.render(K, pose, 20, 15, ["rgb", "depth"], volume_views=3)
+    configured = _orbit_runtime(model, 6, render_volume_views=3).render(K, pose, 20, 15, ["rgb", "depth"])
+    assert local.depth_m is not None and np.isfinite(local.depth_m).all()
+    assert np.array_equal(local.depth_m, configured.depth_m)
+    assert not np.array_equal(local.depth_m, off.depth_m)
+    assert "render_volume" in local.timing_ms
+    # a view that sees none of what the keyframes observed falls back to the window's volume
+    away = look_at((0.0, 0.0, 1.2), (0.0, 0.0, 5.0))
+    with runtime._lock:
+        prep = runtime._prepare()
+        K_t = torch.tensor(K, dtype=torch.float32)
+        assert runtime._render_prep(model, prep, K_t, torch.from_numpy(away).float(), 20, 15, 3) is prep
+    for bad in (-1, 257, 2.5):
+        with pytest.raises(ValueError, match="volume_views"):
+            runtime.render(K, pose, 20, 15, ["depth"], volume_views=bad)  # type: ignore[arg-type]
+
+
+def test_render_volume_views_is_validated() -> None:
+    for bad in (-1, 257, 2.5e9):
+        with pytest.raises(ConfigError, match="render_volume_views"):
+            ModelRuntimeConfig(render_volume_views=bad).validate()  # type: ignore[arg-type]

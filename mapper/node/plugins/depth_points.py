@@ -96,7 +96,8 @@ class RenderedKeyframe:
 def render_keyframe_depth(
     runtime: ModelRuntime, keyframe: Any, config: GlobalMapConfig
 ) -> RenderedKeyframe:
-    """Render the model's depth at ``keyframe``'s pose at ``1 / rendered_depth_stride`` of its size.
+    """Render the model's depth at ``keyframe``'s pose at ``1 / rendered_depth_stride`` of its size,
+    from a cost volume over the ``rendered_volume_views`` keyframes that best overlap it.
 
     Raises :class:`RuntimeNotReady` (no model, no keyframes) like the runtime's render.
     """
@@ -107,7 +108,7 @@ def render_keyframe_depth(
     fx, fy, cx, cy = (float(v) for v in keyframe.K)
     K = np.array([fx * sx, fy * sy, cx * sx, cy * sy], np.float64)
     pose = np.asarray(keyframe.world_from_cam, np.float64)
-    frame = runtime.render(K, pose, w, h, outputs=("depth",))
+    frame = runtime.render(K, pose, w, h, outputs=("depth",), volume_views=config.rendered_volume_views)
     assert frame.depth_m is not None and frame.opacity is not None
     opacity = np.nan_to_num(frame.opacity.astype(np.float32), nan=0.0)
     depth = np.where(opacity >= config.rendered_min_opacity, frame.depth_m, 0.0).astype(np.float32)
