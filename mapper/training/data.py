@@ -69,6 +69,9 @@ OV_STRIDE_PX = 4
 _MIX_STREAM = 1
 """Extra entropy word of the random stream that decides whether an example comes from the extra
 scenes (``RaySampler.extra_weight``); separate from the example's own stream, see ``sample``."""
+_VOLUME_STREAM = 2
+"""Extra entropy word of the random stream that draws an example's number of volume sources
+(``RaySampler.volume_sources``); separate from the example's own stream."""
 
 
 @dataclass
@@ -491,6 +494,9 @@ class TrainSample:
     has_ov: bool = True
     """False: the target's scene has no ov maps (``target_ov`` and the sources' ov are zeros);
     training gives every OV term of this example weight 0."""
+    blend_sources: int = 0
+    """> 0: only the first ``blend_sources`` of ``sources`` are blended; the cost volume (and its
+    bounds) is built over all of them (``RaySampler.volume_sources``). 0: every source does both."""
 
     def to(self, device: torch.device | str) -> TrainSample:
         return TrainSample(
@@ -504,6 +510,7 @@ class TrainSample:
             self.seed,
             None if self.target_t is None else self.target_t.to(device),
             self.has_ov,
+            self.blend_sources,
         )
 
 
@@ -533,9 +540,12 @@ class RaySampler:
         photometric_strength: float = 0.2,
         extra_scenes: list[Scene] | None = None,
         extra_weight: float = 0.0,
+        volume_sources: int = 0,
     ) -> None:
         if not scenes:
             raise ValueError("RaySampler needs at least one scene")
+        if volume_sources < 0:
+            raise ValueError(f"volume_sources {volume_sources} out of range: must be >= 0")
         if rays_per_view < 1:
             raise ValueError(f"rays_per_view {rays_per_view} out of range: must be >= 1")
         if not 0.0 <= frustum_bounds_prob <= 1.0:
@@ -575,6 +585,11 @@ class RaySampler:
         self.photometric_prob = photometric_prob
         """Fraction of examples whose colours are jittered (:func:`photometric_jitter`)."""
         self.photometric_strength = photometric_strength
+        self.volume_sources = volume_sources
+        """> the number of sources: each example's cost volume is built over N frames, N drawn
+        uniformly from [num_sources, volume_sources]: the blend's sources and the next best
+        overlapping frames (as the node's volume spans its whole window while each point blends a
+        few views); 0 (or <= num_sources): over the blend's sources."""
 
     def rng(self, step: int, item: int) -> np.random.Generator:
         return np.random.default_rng(np.random.SeedSequence([self.seed, step, item]))
@@ -600,6 +615,15 @@ class RaySampler:
         )
         frustum = self.frustum_bounds_prob > 0 and bool(rng.random() < self.frustum_bounds_prob)
         range_m = self.frustum_range_m if frustum else None
+        blend_sources = 0
+        if self.volume_sources > len(src):  # its own stream: examples without it are unchanged
+            vrng = np.random.default_rng(np.random.SeedSequence([self.seed, step, item, _VOLUME_STREAM]))
+            n_volume = int(vrng.integers(len(src), self.volume_sources + 1))
+            best = select_sources(scene, K, pose, n_volume, exclude=target)
+            more = [int(i) for i in best if int(i) not in set(src.tolist())][: n_volume - len(src)]
+            if more:
+                blend_sources = len(src)
+                src = np.concatenate([src, np.asarray(more, dtype=src.dtype)])
         sources = source_batch(scene, src, self.cfg, frustum_range_m=range_m)
         w, h = scene.image_wh
         pix = rng.choice(w * h, size=min(self.rays_per_view, w * h), replace=False)
@@ -629,6 +653,7 @@ class RaySampler:
             seed=int(rng.integers(2**62)),
             target_t=target_t,
             has_ov=scene.has_ov,
+            blend_sources=blend_sources,
         )
         # Drawn after everything else, so that examples without it are unchanged.
         if self.photometric_prob > 0 and bool(rng.random() < self.photometric_prob):

@@ -120,6 +120,12 @@ class TrainConfig:
     """Source views per target (0: the preset's ``num_source_views``)."""
     pool_factor: float = 1.5
     """Sources drawn from the ceil(N * pool_factor) best-overlapping frames (augmentation)."""
+    volume_sources: int = 0
+    """> the number of sources: each example's cost volume (and its bounds) is built over N
+    frames, N drawn uniformly from [sources, volume_sources]: the blended sources plus the next
+    best-overlapping frames, as the node builds one volume over its whole window (30 keyframes)
+    while each point blends a few views. The model's density blurs on volumes over more views
+    than it was trained on (docs/RENDERING.md). 0: the volume is over the blended sources."""
     frustum_bounds_prob: float = 0.0
     """Fraction of examples whose cost-volume bounds come from the source frusta (up to
     ``frustum_range_m``) instead of their depth points, as the node does for frames without depth.
@@ -209,6 +215,7 @@ class TrainConfig:
             (self.rays_per_view >= 1, "rays_per_view", ">= 1"),
             (self.num_sources >= 0, "num_sources", ">= 0"),
             (self.pool_factor >= 1.0, "pool_factor", ">= 1"),
+            (self.volume_sources >= 0, "volume_sources", ">= 0"),
             (0.0 <= self.frustum_bounds_prob <= 1.0, "frustum_bounds_prob", "in [0, 1]"),
             (self.frustum_range_m > 0, "frustum_range_m", "> 0"),
             (self.n_samples >= 0, "n_samples", ">= 0"),
@@ -361,6 +368,8 @@ def _loss_for_sample(
     dgm = uses_depth_guided_masking(cfg, s.seed)
     views = model.make_source_views(src.rgb, src.ov, src.K, src.world_from_cam, src.depth_m)
     volume = model.build_volume(views, src.bounds)
+    if s.blend_sources:  # the volume is over every source, the blend over the first ones
+        views = first_views(views, s.blend_sources)
     gen = torch.Generator(device="cpu")  # the jitter is drawn on the CPU (the same samples on any device)
     gen.manual_seed(s.seed)
     out = render_rays(
@@ -400,6 +409,12 @@ def _loss_for_sample(
     return total, terms
 
 
+def first_views(views: SourceViews, n: int) -> SourceViews:
+    """The first ``n`` of ``views`` (every map and camera sliced alike)."""
+    return SourceViews(views.rgb[:n], views.features[:n], views.ov[:n], views.K[:n], views.world_from_cam[:n],
+                       None if views.depth_m is None else views.depth_m[:n])
+
+
 def uses_depth_guided_masking(cfg: TrainConfig, seed: int) -> bool:
     """Whether the example of this seed uses Depth Guided Masking (``depth_guided_masking`` or a
     draw of probability ``depth_guided_masking_prob``, the same on every rank and every rerun)."""
@@ -425,8 +440,9 @@ def _surface_point_losses(
         out["point_ov"] = ov_cosine_loss(po.ov, s.target_ov[keep], po.valid)
     if cfg.visibility_weight > 0 and po.ov_weights is not None:
         w, h = src.rgb.shape[-1], src.rgb.shape[-2]
+        n = len(views)  # the blended sources (the first ones of src)
         visible, known = visibility_targets(
-            points, src.K, src.world_from_cam, src.depth_m, (w, h), rel_tol=cfg.visibility_rel_tol
+            points, src.K[:n], src.world_from_cam[:n], src.depth_m[:n], (w, h), rel_tol=cfg.visibility_rel_tol
         )
         out["visibility"] = visibility_loss(po.ov_weights, visible, known)
     return out
@@ -709,6 +725,7 @@ def _load_data(cfg: TrainConfig, dd: _Dist, model_cfg: ModelConfig | None) -> _D
         photometric_strength=cfg.photometric_strength,
         extra_scenes=extra_scenes,
         extra_weight=cfg.extra_train_weight,
+        volume_sources=cfg.volume_sources,
     )
     val_views: list[ValidationView] = []
     text_emb = np.zeros((0, ov_dim), np.float32)

@@ -460,3 +460,59 @@ def test_depth_guided_masking_prob_one_trains_as_always_on(data_root: Path, tmp_
     for k in params["on"]:
         assert torch.equal(params["on"][k], params["p1"][k]), k
     assert any(not torch.equal(params["on"][k], params["off"][k]) for k in params["on"])
+
+
+def test_volume_sources_add_frames_to_the_volume_only(data_root: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """volume_sources: the cost volume spans more frames than the blend; the example is otherwise the
+    same (rays, targets, the blended sources first), and the training step blends only those."""
+    torch.set_num_threads(1)
+    scene = load_scene(data_root / "train" / "tiny_s0")  # 6 frames; the tiny preset blends 3
+    plain = RaySampler([scene], tiny_model_config(), rays_per_view=16, seed=3)
+    wide = RaySampler([scene], tiny_model_config(), rays_per_view=16, seed=3, volume_sources=5)
+    counts = set()
+    for step in range(12):
+        a, b = plain.sample(step, 0), wide.sample(step, 0)
+        n = len(a.sources.indices)
+        assert torch.equal(a.origins, b.origins) and torch.equal(a.target_ov, b.target_ov)
+        assert np.array_equal(b.sources.indices[:n], a.sources.indices) and a.blend_sources == 0
+        assert target_excluded(b)
+        extra = len(b.sources.indices) - n
+        assert 0 <= extra <= 2 and b.blend_sources == (n if extra else 0)
+        counts.add(extra)
+    assert counts == {0, 1, 2}  # the volume's size is drawn per example
+    with pytest.raises(ValueError, match="volume_sources"):
+        RaySampler([scene], tiny_model_config(), rays_per_view=16, volume_sources=-1)
+    # the step: the volume over every source, the rays and point losses over the blended ones
+    import mapper.training.train as train_module
+
+    seen: dict[str, list[int]] = {"volume": [], "render": [], "points": []}
+    build, render, query = GovNeSF.build_volume, train_module.render_rays, GovNeSF.query_points
+
+    def spy_build(self: GovNeSF, views, bounds):  # type: ignore[no-untyped-def]
+        seen["volume"].append(len(views))
+        return build(self, views, bounds)
+
+    def spy_render(model, views, *args, **kw):  # type: ignore[no-untyped-def]
+        seen["render"].append(len(views))
+        return render(model, views, *args, **kw)
+
+    def spy_query(self: GovNeSF, views, *args, **kw):  # type: ignore[no-untyped-def]
+        seen["points"].append(len(views))
+        return query(self, views, *args, **kw)
+
+    monkeypatch.setattr(GovNeSF, "build_volume", spy_build)
+    monkeypatch.setattr(train_module, "render_rays", spy_render)
+    monkeypatch.setattr(GovNeSF, "query_points", spy_query)
+    cfg = _cfg(data_root, data_root / "unused", batch_views=1, rays_per_view=16, point_ov_weight=1.0,
+               visibility_weight=0.5, volume_sources=5)
+    model = GovNeSF(tiny_model_config())
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)
+    step = next(s for s in range(12) if wide.sample(s, 0).blend_sources)
+    out = train_step(model, opt, wide, cfg, step, 0, 1, torch.device("cpu"))
+    assert all(np.isfinite(out[k]) for k in ("loss", "point_ov", "visibility"))
+    n_all = len(wide.sample(step, 0).sources.indices)
+    assert seen["volume"] == [n_all] and seen["render"] == [3] and seen["points"] == [3] and n_all > 3
+
+
+def target_excluded(sample) -> bool:  # type: ignore[no-untyped-def]
+    return sample.target not in set(sample.sources.indices.tolist())
