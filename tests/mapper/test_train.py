@@ -462,7 +462,9 @@ def test_depth_guided_masking_prob_one_trains_as_always_on(data_root: Path, tmp_
     assert any(not torch.equal(params["on"][k], params["off"][k]) for k in params["on"])
 
 
-def test_volume_sources_add_frames_to_the_volume_only(data_root: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_volume_sources_add_frames_to_the_volume_only(
+    data_root: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """volume_sources: the cost volume spans more frames than the blend; the example is otherwise the
     same (rays, targets, the blended sources first), and the training step blends only those."""
     torch.set_num_threads(1)
