@@ -48,7 +48,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Hashable, Iterator, Sequence
+from collections.abc import Callable, Hashable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -173,6 +173,13 @@ class _Prepared:
 
     def __len__(self) -> int:
         return int(self.rgb.shape[0])
+
+
+def _render_extents(entries: Iterable[_ViewEntry]) -> list[Tensor]:
+    """What each view observed, for the bounds of render volumes: its extent (depth points), or
+    without depth the points ``set_view_extent`` gave it (at least 16; without the camera centre
+    that its extent adds), else its extent (the frustum)."""
+    return [e.observed if e.observed is not None and e.observed.shape[0] >= 16 else e.extent for e in entries]
 
 
 def _keyframe_key(keyframe: Any) -> tuple[str, int, int]:
@@ -685,6 +692,9 @@ class ModelRuntime:
             if self.rebuilds != rebuilds:
                 self.version += 1
                 self._prepared = None
+            elif self._prepared is not None:  # same views and volume: only the render volumes' bounds move
+                self._prepared.extents = _render_extents(self._entries.values())
+                self._prepared.render_volumes.clear()
             return len(changed)
 
     def _target_bounds(self) -> VolumeBounds:
@@ -864,8 +874,7 @@ class ModelRuntime:
             world_from_cam=torch.stack([e.world_from_cam for e in entries]),
             ov_space=spaces.pop() if len(spaces) == 1 else None,
             support=support,
-            extents=[e.observed if e.observed is not None and e.observed.shape[0] >= 16 else e.extent
-                     for e in entries],
+            extents=_render_extents(entries),
         )
         return self._prepared
 

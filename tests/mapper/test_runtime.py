@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from mapper.model.field import GovNeSF
-from mapper.model.ops.cost_volume import build_cost_volume, cost_volume_features
+from mapper.model.ops.cost_volume import bounds_from_points, build_cost_volume, cost_volume_features
 from mapper.node.config import ConfigError, WindowConfig
 from mapper.node.window import Keyframe, KeyframeWindow
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig, RuntimeNotReady
@@ -555,3 +555,43 @@ def test_render_volume_views_is_validated() -> None:
     for bad in (-1, 257, 2.5e9):
         with pytest.raises(ConfigError, match="render_volume_views"):
             ModelRuntimeConfig(render_volume_views=bad).validate()  # type: ignore[arg-type]
+
+
+def test_render_volumes_follow_new_view_extents_without_depth(model: GovNeSF) -> None:
+    """RGB-only keyframes: points given later by set_view_extent (triangulation) move the bounds of
+    the render volumes even when the window's own volume does not change."""
+    runtime = make_runtime(model)
+    window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    frames = [keyframe(i, orbit(i), depth_m=None) for i in range(6)]
+    for kf in frames:
+        window.consider(kf)
+    runtime.sync()
+    w, h = runtime.image_wh
+    with runtime._lock:
+        prep = runtime._prepare()
+        K, pose = prep.K[2], prep.world_from_cam[2]
+        before = runtime._render_prep(model, prep, K, pose, w, h, 3)
+    assert before is not prep and len(prep.render_volumes) == 1
+    # the keyframes of that render volume observed a small cluster near the origin; the others keep
+    # their frusta, so the window's box (over all of them) stays and its volume is not rebuilt
+    with runtime._lock:
+        chosen_before = runtime._overlapping_views(prep, K, pose, w, h, 3).tolist()
+    rng = np.random.default_rng(0)
+    clusters = {i: rng.normal((0.0, 0.0, 0.5), 0.05, (32, 3)) for i in chosen_before}
+    for i, cluster in clusters.items():
+        kf = frames[i]
+        runtime.set_view_extent((kf.camera, kf.seq, kf.stamp_ns), cluster)
+    version = runtime.version
+    runtime.sync()
+    with runtime._lock:
+        assert runtime.version == version and runtime._prepare() is prep  # the window's volume stayed
+        assert not prep.render_volumes  # its render volumes were dropped
+        assert all(np.allclose(prep.extents[i].numpy(), c, atol=1e-6) for i, c in clusters.items())
+        after = runtime._render_prep(model, prep, K, pose, w, h, 3)
+        chosen = runtime._overlapping_views(prep, K, pose, w, h, 3)
+    expected = bounds_from_points(
+        torch.cat([prep.extents[int(i)] for i in chosen]), max_voxels=model.cfg.volume.max_voxels,
+        min_voxel_size_m=model.cfg.volume.min_voxel_size_m, margin_m=runtime.config.bounds_margin_m,
+    )
+    assert after.bounds == expected and after.bounds != before.bounds
