@@ -85,8 +85,9 @@ class ModelRuntimeConfig:
     """Cell size (metres) of the per-point view selection (points of a cell share a view set). 0.01..100."""
 
     render_volume_views: int = 0
-    """Client renders take their density, and the blend's volume features, from a cost volume
-    built over this many keyframes of the window that best overlap the rendered view (the share
+    """Client renders take their density (none outside its box), and the blend's volume features
+    inside its box, from a cost volume built over this many keyframes of the window that best
+    overlap the rendered view (the share
     of each keyframe's observed points inside its frustum: the training's choice of sources),
     with bounds over what those keyframes observed, instead of the window's volume over every
     keyframe. The network was trained on volumes of its ``num_source_views`` (8) sources; over a
@@ -95,7 +96,7 @@ class ModelRuntimeConfig:
     the window's volume: measured on three RGB-only streams (docs/RENDERING.md, "Render volumes
     from the overlapping keyframes"), 8 made the model's own march far better (depth 0.265 ->
     0.175, 0.565 -> 0.406, 0.328 -> 0.208) but the node's renders, which take most pixels from
-    the measured geometry, lost 0.4-0.7 dB. The rendered-depth map points use their own setting,
+    the measured geometry, lost 0.3-0.8 dB. The rendered-depth map points use their own setting,
     ``global_map.rendered_volume_views`` (8). Volumes are cached per window version and keyframe
     set. The window's volume is used anyway when the window holds no more keyframes than this or
     fewer than 2 overlap the view. 0..256."""
