@@ -8,8 +8,9 @@ segment from the point towards that camera: the volume feature and log(1 + densi
 0.1 ... 3 m from the point (each with a flag: the segment is that long), the point's own volume
 feature, the log distance and the log number of such frames. A small MLP (2 x 32, Adam, 3000
 steps of 4096 pairs) fitted to the true visibility on the ``--train`` scenes is scored on the
-``--test`` scenes: ROC AUC, against the learned blending weight's own AUC (with it as an input
-too, and without the segment: the point alone), and the 3D mIoU and occluded-weight share when
+``--test`` scenes: ROC AUC, against the same MLP fitted on the learned blending weight alone (and
+with the weight as an input too, and without the segment: the point alone; ties in the scores are
+not averaged: the scores are continuous), and the 3D mIoU and occluded-weight share when
 the learned OV weights are multiplied by its p(visible) (the MLP without the learned weight).
 
 ``depth``: each stream frame's depth rendered at 1/4 of its size from a volume over its 8
@@ -25,6 +26,7 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -74,7 +76,7 @@ class Pairs:
     def __init__(self, model: GovNeSF, scene: ev.EvalScene, max_points: int) -> None:
         sp = ev.scene_points(scene, ev.EvalSettings(max_points=max_points))
         views, bounds = ev.scene_sources(model, scene)
-        self.views = ev.dataclasses.replace(views, depth_m=None)
+        self.views = dataclasses.replace(views, depth_m=None)
         with torch.no_grad():
             self.volume = model.build_volume(self.views, bounds)
             self.base = ev.blend_points(model, self.views, self.volume, bounds, sp.xyz)
@@ -180,7 +182,7 @@ def part_depth(model: GovNeSF, test: list[Path], max_points: int, text_fn, n_vie
         scene = ev.load_scene(d)
         sp = ev.scene_points(scene, ev.EvalSettings(max_points=max_points))
         views, bounds = ev.scene_sources(model, scene)
-        blind = ev.dataclasses.replace(views, depth_m=None)
+        blind = dataclasses.replace(views, depth_m=None)
         w, h = scene.image_wh
         rw, rh = w // 4, h // 4
         K = sp.K * sp.K.new_tensor([rw / w, rh / h, rw / w, rh / h])
@@ -190,7 +192,7 @@ def part_depth(model: GovNeSF, test: list[Path], max_points: int, text_fn, n_vie
             for i in range(len(scene)):
                 src = select_sources(scene.data, scene.K[i], scene.world_from_cam[i], n_views)
                 lv, lb = ev.scene_sources(model, scene, src)
-                lvol = model.build_volume(ev.dataclasses.replace(lv, depth_m=None), lb)
+                lvol = model.build_volume(dataclasses.replace(lv, depth_m=None), lb)
                 depth[i : i + 1], _ = render_depth_maps(
                     model, lvol, lb, K[i : i + 1], sp.world_from_cam[i : i + 1], rw, rh, min_opacity=0.0
                 )
@@ -205,7 +207,7 @@ def part_depth(model: GovNeSF, test: list[Path], max_points: int, text_fn, n_vie
         text = text_fn(scene)
         with torch.no_grad():
             none = ev.blend_points(model, blind, volume, bounds, sp.xyz)
-            with_rendered = ev.dataclasses.replace(blind, depth_m=depth)
+            with_rendered = dataclasses.replace(blind, depth_m=depth)
             rendered = ev.blend_points(model, with_rendered, volume, bounds, sp.xyz,
                                        depth_guided_masking=True)
             true = ev.blend_points(model, views, volume, bounds, sp.xyz, depth_guided_masking=True)

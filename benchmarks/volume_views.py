@@ -22,6 +22,7 @@ Usage: python benchmarks/volume_views.py data/val/apartment_s1000 [--views 8,16,
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -56,7 +57,7 @@ def frame_depth_error(model: torch.nn.Module, scene: ev.EvalScene, frame: int, n
     views, bounds = ev.scene_sources(model, scene, sources(n_views), frustum_range_m=frustum)
     if bounds_mode == "fixed":
         _, bounds = ev.scene_sources(model, scene, sources(FIXED_VIEWS))
-    views = ev.dataclasses.replace(views, depth_m=None)
+    views = dataclasses.replace(views, depth_m=None)
     with torch.no_grad():
         volume = model.build_volume(views, bounds)
         depth, _ = render_depth_maps(model, volume, bounds, K * scale, pose, rw, rh, min_opacity=0.0)

@@ -98,8 +98,8 @@ class ModelRuntimeConfig:
     0.175, 0.565 -> 0.406, 0.328 -> 0.208) but the node's renders, which take most pixels from
     the measured geometry, lost 0.3-0.8 dB. The rendered-depth map points use their own setting,
     ``global_map.rendered_volume_views`` (8). Volumes are cached per window version and keyframe
-    set. The window's volume is used anyway when the window holds no more keyframes than this or
-    fewer than 2 overlap the view. 0..256."""
+    set. The window's volume is used anyway when this is 0 or 1, the window holds no more
+    keyframes than this, or fewer than 2 overlap the view. 0..256."""
 
     samples_per_ray: int = 0
     """Samples per ray for renders; 0 = the model's. 0..1024."""
@@ -303,6 +303,10 @@ class ModelRuntimeConfig:
         check("view_cell_m", self.view_cell_m, 0.01, 100.0)
         check("samples_per_ray", self.samples_per_ray, 0, 1024)
         check("render_volume_views", self.render_volume_views, 0, 256)
+        if isinstance(self.render_volume_views, bool) or not isinstance(self.render_volume_views, int):
+            raise ConfigError(
+                f"{where}: model.render_volume_views = {self.render_volume_views!r} must be an integer"
+            )
         check("near_m", self.near_m, 0.0, 1e4)
         check("far_m", self.far_m, 0.0, 1e4)
         if self.far_m <= self.near_m:

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 import threading
 import time
 from collections.abc import Callable, Hashable, Iterable, Iterator, Sequence
@@ -107,7 +108,8 @@ class RenderFrame:
     opacity: np.ndarray | None = None  # (H, W) float32 accumulated opacity (always filled)
     timing_ms: dict[str, float] = field(default_factory=dict)
     stats: dict[str, Any] = field(default_factory=dict)
-    """Sample counts: ``samples`` (total), ``density_evals``, ``appearance_evals``, ``view_groups``."""
+    """Sample counts: ``samples`` (total), ``density_evals``, ``appearance_evals``, ``view_groups``;
+    ``render_volume_views``: the keyframes of the render volume the density came from (0: the window's)."""
 
 
 @dataclass
@@ -162,10 +164,16 @@ class _Prepared:
     window_volume: tuple[VolumeBounds, Tensor] | None = None
     """A render volume's prep (``render_volume_views``): the window's (bounds, volume), whose
     features the blend takes at points outside this prep's bounds (the render volume has none there)."""
+    parent: _Prepared | None = None
+    """A render volume's prep: the window's, whose OV gather table it shares (built once)."""
+    render_views: int = 0
+    """A render volume's prep: the keyframes its volume spans (0: the window's prep)."""
 
     def ov_maps(self, view_idx: Tensor, image_wh: tuple[int, int]) -> OVMaps:
         """The OV maps of ``view_idx`` (N,) as a gather table (built once per version)."""
         assert self.ov is not None
+        if self.parent is not None:
+            return self.parent.ov_maps(view_idx, image_wh)
         if self.ov_table is None:
             self.ov_table = self.ov.permute(0, 2, 3, 1).reshape(-1, self.ov.shape[1]).contiguous()
         h, w = self.ov.shape[-2:]
@@ -176,9 +184,9 @@ class _Prepared:
 
 
 def _render_extents(entries: Iterable[_ViewEntry]) -> list[Tensor]:
-    """What each view observed, for the bounds of render volumes: its extent (depth points), or
-    without depth the points ``set_view_extent`` gave it (at least 16; without the camera centre
-    that its extent adds), else its extent (the frustum)."""
+    """What each view observed, for the bounds of render volumes: its extent (depth points; without
+    depth the frustum, or the points ``set_view_extent`` gave it plus the camera centre), except
+    that a view given at least 16 such points counts them without its camera centre."""
     return [e.observed if e.observed is not None and e.observed.shape[0] >= 16 else e.extent for e in entries]
 
 
@@ -878,7 +886,8 @@ class ModelRuntime:
         )
         return self._prepared
 
-    # Most render volumes kept per version (a client rendering a few poses over and over reuses them).
+    # Most render volumes kept per version, the oldest dropped first (a client rendering a few poses
+    # over and over reuses them).
     _RENDER_VOLUMES_KEPT = 8
 
     @torch.no_grad()
@@ -893,14 +902,21 @@ class ModelRuntime:
         chosen = self._overlapping_views(prep, K, world_from_cam, width, height, n)
         if chosen.numel() < 2:
             return prep
-        key = tuple(chosen.tolist())
+        key = tuple(sorted(chosen.tolist()))  # the volume does not depend on the order
         local = prep.render_volumes.get(key)
         if local is not None:
             return local
-        idx = chosen.to(prep.K.device)
+        idx = torch.tensor(key, device=prep.K.device)
         vcfg = model.cfg.volume
+        observed = torch.cat([prep.extents[i] for i in key]).cpu()
+        lo, hi = torch.tensor(prep.bounds.origin_m), torch.tensor(prep.bounds.max_corner_m)
+        # inside the window's box: a keyframe left out of its bounds (a wild pose) is no reason to
+        # stretch this one
+        observed = observed[((observed >= lo) & (observed <= hi)).all(dim=-1)]
+        if observed.shape[0] < 2:
+            return prep
         bounds = bounds_from_points(
-            torch.cat([prep.extents[i] for i in key]).cpu(),
+            observed,
             max_voxels=self.config.max_voxels or vcfg.max_voxels,
             min_voxel_size_m=self.config.voxel_size_m or vcfg.min_voxel_size_m,
             margin_m=self.config.bounds_margin_m,
@@ -916,8 +932,8 @@ class ModelRuntime:
             version=prep.version, bounds=bounds, volume=volume, rgb=prep.rgb, features=prep.features,
             ov=prep.ov, has_ov=prep.has_ov, depth_m=prep.depth_m, K=prep.K,
             world_from_cam=prep.world_from_cam, ov_space=prep.ov_space, support=support,
-            prior_only=prep.prior_only, ov_table=prep.ov_table, extents=prep.extents,
-            window_volume=(prep.bounds, prep.volume),
+            prior_only=prep.prior_only, extents=prep.extents, window_volume=(prep.bounds, prep.volume),
+            parent=prep, render_views=len(key),
         )
         if len(prep.render_volumes) >= self._RENDER_VOLUMES_KEPT:
             prep.render_volumes.pop(next(iter(prep.render_volumes)))
@@ -929,7 +945,7 @@ class ModelRuntime:
         """(k,) long, k <= n: the views whose observed points fall most inside the view (share of
         each view's extent points in front of the camera, at most ``far_m`` away, inside the
         image; the training's ``overlap_scores``), best first; views with no point inside are
-        left out. Ties are broken by the index (older keyframes first)."""
+        left out. Ties go to the camera nearest the view's, then to the older keyframe."""
         counts = torch.tensor([e.shape[0] for e in prep.extents])
         points = torch.cat(prep.extents).to(torch.float32)
         cam_from_world = invert_pose(world_from_cam.to(points))
@@ -1379,7 +1395,7 @@ class ModelRuntime:
                 of marching its ray; the other pixels march as usual. None = march every pixel.
             volume_views: the density (and the blend's volume features) from a cost volume over
                 this many keyframes that best overlap the view (``render_volume_views``, whose
-                value None takes; 0 = the window's volume).
+                value None takes; 0 or 1 = the window's volume).
 
         Returns:
             :class:`RenderFrame`: rgb (H, W, 3) uint8 (black where nothing is rendered), depth_m
@@ -1426,8 +1442,11 @@ class ModelRuntime:
                 )
             if not (np.isfinite(surface_np).all() and (surface_np >= 0).all()):
                 raise ValueError("surface_depth_m must be finite and >= 0 (0 = no surface)")
-        if volume_views is not None and not (isinstance(volume_views, int) and 0 <= volume_views <= 256):
-            raise ValueError(f"volume_views {volume_views!r} out of range 0..256")
+        if volume_views is not None and not (
+            isinstance(volume_views, numbers.Integral) and not isinstance(volume_views, bool)
+            and 0 <= int(volume_views) <= 256
+        ):
+            raise ValueError(f"volume_views {volume_views!r} must be an integer in 0..256")
         skip = self.config.empty_space_skipping if empty_space_skipping is None else empty_space_skipping
         model = self._require_model()
         timing: dict[str, float] = {}
@@ -1435,12 +1454,12 @@ class ModelRuntime:
         with self._lock:
             prep = self._prepare()
             t_local = time.perf_counter()
-            n_views = self.config.render_volume_views if volume_views is None else volume_views
+            n_views = self.config.render_volume_views if volume_views is None else int(volume_views)
             prep = self._render_prep(model, prep, K_t.to(torch.float32), pose.to(torch.float32), int(width),
                                      int(height), n_views)
             t1 = time.perf_counter()
+            timing["prepare"] = (t_local - t0) * 1e3
             timing["render_volume"] = (t1 - t_local) * 1e3
-            timing["prepare"] = (t1 - t0) * 1e3
             emb = self._text_embeddings(prep, texts or []) if semantic else None
             # the occupancy grid only serves marched rays (none when every pixel has a surface)
             marches = surface_np is None or bool((surface_np <= 0).any())
@@ -1463,7 +1482,8 @@ class ModelRuntime:
                 if semantic and prep.ov is not None
                 else None
             )
-            stats = {"samples": 0, "density_evals": 0, "appearance_evals": 0, "view_groups": 0}
+            stats = {"samples": 0, "density_evals": 0, "appearance_evals": 0, "view_groups": 0,
+                     "render_volume_views": prep.render_views}
             marched = torch.arange(n_rays, device=self.device)
             if surface_np is not None:
                 z_surface = torch.from_numpy(surface_np.reshape(-1)).to(self.device)

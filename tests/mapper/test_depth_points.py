@@ -225,8 +225,9 @@ def test_render_keyframe_depth_renders_from_the_overlapping_keyframes_volume(mod
                     outputs=("depth",), volume_views=3)
     np.testing.assert_array_equal(by_volume[3], np.where(direct.opacity >= 0.0, direct.depth_m, 0.0))
     assert not np.array_equal(by_volume[3], by_volume[0])
-    with pytest.raises(ConfigError, match="rendered_volume_views"):
-        GlobalMapConfig(rendered_volume_views=-1).validate("test")
+    for bad in (-1, 257, 2.5, True):
+        with pytest.raises(ConfigError, match="rendered_volume_views"):
+            GlobalMapConfig(rendered_volume_views=bad).validate("test")  # type: ignore[arg-type]
 
 
 def test_features_swapped_in_after_queueing_are_used(node: MapperNode, model: GovNeSF) -> None:

@@ -539,20 +539,62 @@ def test_render_volume_views_zero_or_a_small_window_render_from_the_window(model
     assert local.depth_m is not None and np.isfinite(local.depth_m).all()
     assert np.array_equal(local.depth_m, configured.depth_m)
     assert not np.array_equal(local.depth_m, off.depth_m)
-    assert "render_volume" in local.timing_ms
+    assert local.stats["render_volume_views"] == 3 and off.stats["render_volume_views"] == 0
+    as_numpy = runtime.render(K, pose, 20, 15, ["depth"], volume_views=np.int64(3))  # type: ignore[arg-type]
+    assert as_numpy.stats["render_volume_views"] == 3
+    assert runtime.render(K, pose, 20, 15, ["depth"], volume_views=1).stats["render_volume_views"] == 0
     # a view that sees none of what the keyframes observed falls back to the window's volume
     away = look_at((0.0, 0.0, 1.2), (0.0, 0.0, 5.0))
     with runtime._lock:
         prep = runtime._prepare()
         K_t = torch.tensor(K, dtype=torch.float32)
         assert runtime._render_prep(model, prep, K_t, torch.from_numpy(away).float(), 20, 15, 3) is prep
-    for bad in (-1, 257, 2.5):
+    for bad in (-1, 257, 2.5, True):
         with pytest.raises(ValueError, match="volume_views"):
             runtime.render(K, pose, 20, 15, ["depth"], volume_views=bad)  # type: ignore[arg-type]
 
 
+def test_render_volumes_are_cached_per_keyframe_set_and_the_oldest_dropped(model: GovNeSF) -> None:
+    runtime = _orbit_runtime(model, 12)
+    w, h = runtime.image_wh
+    with runtime._lock:
+        prep = runtime._prepare()
+        K = prep.K[0]
+        built = [runtime._render_prep(model, prep, K, prep.world_from_cam[i], w, h, 3) for i in range(12)]
+        keys = list(prep.render_volumes)
+        assert len(keys) == runtime._RENDER_VOLUMES_KEPT < len({id(b) for b in built})
+        assert all(list(k) == sorted(k) for k in keys)  # a set of keyframes, whatever the order
+        # the newest are kept: rendering the last pose again is a cache hit, the first is rebuilt
+        assert runtime._render_prep(model, prep, K, prep.world_from_cam[11], w, h, 3) is built[11]
+        assert runtime._render_prep(model, prep, K, prep.world_from_cam[0], w, h, 3) is not built[0]
+        # a render volume shares the window's OV gather table
+        assert prep.ov is not None
+        maps = built[11].ov_maps(torch.tensor([0, 1]), runtime.image_wh)
+        assert maps.table is prep.ov_table and built[11].ov_table is None
+
+
+def test_render_volumes_leave_out_what_lies_outside_the_window_box(
+    model: GovNeSF, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    runtime = _orbit_runtime(model, 6)
+    w, h = runtime.image_wh
+    chosen = torch.tensor([1, 2, 3])
+    monkeypatch.setattr(runtime, "_overlapping_views", lambda *args: chosen)
+    with runtime._lock:
+        prep = runtime._prepare()
+        K, pose = prep.K[1], prep.world_from_cam[1]
+        before = runtime._render_prep(model, prep, K, pose, w, h, 3)
+        prep.render_volumes.clear()
+        # keyframe 2 also "observed" as many points 1 km away (a wild pose; far more than the 1% the
+        # bounds' quantiles trim)
+        wild = torch.tensor([1000.0, 0.0, 0.0]).expand(prep.extents[2].shape[0], 3)
+        prep.extents[2] = torch.cat([prep.extents[2], wild])
+        after = runtime._render_prep(model, prep, K, pose, w, h, 3)
+    assert after is not before and after.bounds == before.bounds  # as if the wild points were not there
+
+
 def test_render_volume_views_is_validated() -> None:
-    for bad in (-1, 257, 2.5e9):
+    for bad in (-1, 257, 2.5e9, 2.5, True):
         with pytest.raises(ConfigError, match="render_volume_views"):
             ModelRuntimeConfig(render_volume_views=bad).validate()  # type: ignore[arg-type]
 

@@ -4,7 +4,9 @@ A robot with a plain RGB camera sends frames without ``depth_m``. The global sem
 (:mod:`mapper.node.global_map`) back-projects input depth, so such keyframes would add no points. With
 the learned model served, :class:`RenderedDepthPoints` fills the gap: for each such keyframe it
 renders the model's depth at the keyframe's own pose (density only, no appearance pass: the cost
-of a depth render is the 3D U-Net once per runtime version plus a density MLP per sample), at
+of a depth render is a cost volume and 3D U-Net pass over the ``rendered_volume_views`` keyframes
+that best overlap it, or once per runtime version with the window's volume, plus a density MLP
+per sample), at
 ``1 / rendered_depth_stride`` of the keyframe's size, keeps the pixels whose accumulated opacity
 reaches ``rendered_min_opacity`` (the ray met a clear surface), and fuses them into the global map
 exactly as input depth (same voxels, same OV sampling of the keyframe's own ``ov`` map, same
@@ -31,7 +33,7 @@ render time, so either plugin may be installed first) or from :attr:`RenderedDep
 Scheduling: the node calls :meth:`RenderedDepthPoints.on_keyframe` on the keyframe-listener thread
 (integrator; the ingest thread when integration is inline) after a keyframe entered the window
 (O(1): a deque append). A background worker (``mapper-depth-points``) renders the pending keyframes
-in batches: one runtime sync and one 3D U-Net pass serve every keyframe pending at that moment.
+in batches: one runtime sync serves every keyframe pending at that moment.
 Until the model's window holds ``rendered_min_views`` keyframes the pending ones wait (a density
 field from one or two views is not a surface). Beyond ``rendered_max_pending`` waiting keyframes the
 oldest is dropped and counted. A map load replaces the global map; keyframes queued for the old map
