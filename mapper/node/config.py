@@ -128,8 +128,8 @@ class GlobalMapConfig:
     training regime of 8 sources, whose density is far sharper than over a whole window), with
     bounds over what they observed. 0 (or 1) = the window's volume (before 2026-12-04). Measured
     on five RGB-only streams (docs/RGB_ONLY.md): the map points' p90 distance to the surface
-    0.226 -> 0.182, 0.337 -> 0.230, 0.412 -> 0.313 m in three, within 0.005 m in two; the
-    held-out RGB-only answers unchanged. 0..256."""
+    0.226 -> 0.182, 0.337 -> 0.234, 0.412 -> 0.313 m in three, 0.213 -> 0.229 and 0.212 -> 0.208
+    in two; the held-out RGB-only answers unchanged. 0..256."""
 
     rendered_min_opacity: float = 0.9
     """Rendered pixels whose accumulated opacity is below this add no point (the ray found no
