@@ -122,14 +122,15 @@ class GlobalMapConfig:
     rendered_depth_stride: int = 4
     """The depth is rendered at the keyframe's size / this (K scaled with it), every pixel used. 1..64."""
 
-    rendered_volume_views: int = 8
-    """The keyframe's depth is rendered from a cost volume over this many window keyframes that
+    rendered_volume_views: int = 0
+    """> 1: the keyframe's depth is rendered from a cost volume over this many window keyframes that
     best overlap it, itself first (``ModelRuntime.render``'s ``volume_views``: the network's
-    training regime of 8 sources, whose density is far sharper than over a whole window), with
-    bounds over what they observed. 0 (or 1) = the window's volume (before 2026-12-04). Measured
-    on five RGB-only streams (docs/RGB_ONLY.md): the map points' p90 distance to the surface
-    0.226 -> 0.182, 0.337 -> 0.234, 0.412 -> 0.313 m in three, 0.213 -> 0.229 and 0.212 -> 0.208
-    in two; the held-out RGB-only answers unchanged. 0..256."""
+    training regime is 8 sources, whose density is far sharper than over a whole window), with
+    bounds over what they observed. 0 (default; or 1) = the window's volume. Measured with 8
+    (docs/RGB_ONLY.md): on five simulated RGB-only streams the map points' p90 distance to the
+    surface 0.226 -> 0.182, 0.337 -> 0.234, 0.412 -> 0.313 m in three, 0.213 -> 0.229 and 0.212 ->
+    0.208 in two; but on the real ICL-NUIM sequence the map got worse (median 0.027 -> 0.045 m,
+    p90 0.108 -> 0.150 m), hence off. 0..256."""
 
     rendered_min_opacity: float = 0.9
     """Rendered pixels whose accumulated opacity is below this add no point (the ray found no

@@ -96,10 +96,10 @@ class ModelRuntimeConfig:
     the window's volume: measured on three RGB-only streams (docs/RENDERING.md, "Render volumes
     from the overlapping keyframes"), 8 made the model's own march far better (depth 0.265 ->
     0.175, 0.565 -> 0.406, 0.328 -> 0.208) but the node's renders, which take most pixels from
-    the measured geometry, lost 0.3-0.8 dB. The rendered-depth map points use their own setting,
-    ``global_map.rendered_volume_views`` (8). Volumes are cached per window version and keyframe
-    set. The window's volume is used anyway when this is 0 or 1, the window holds no more
-    keyframes than this, or fewer than 2 overlap the view. 0..256."""
+    the measured geometry, lost 0.3-0.8 dB. The rendered-depth map points have their own setting,
+    ``global_map.rendered_volume_views`` (also 0 by default). Volumes are cached per window
+    version and keyframe set. The window's volume is used anyway when this is 0 or 1, the window
+    holds no more keyframes than this, or fewer than 2 overlap the view. 0..256."""
 
     samples_per_ray: int = 0
     """Samples per ray for renders; 0 = the model's. 0..1024."""

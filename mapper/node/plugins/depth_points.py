@@ -4,9 +4,9 @@ A robot with a plain RGB camera sends frames without ``depth_m``. The global sem
 (:mod:`mapper.node.global_map`) back-projects input depth, so such keyframes would add no points. With
 the learned model served, :class:`RenderedDepthPoints` fills the gap: for each such keyframe it
 renders the model's depth at the keyframe's own pose (density only, no appearance pass: the cost
-of a depth render is a cost volume and 3D U-Net pass over the ``rendered_volume_views`` keyframes
-that best overlap it, or once per runtime version with the window's volume, plus a density MLP
-per sample), at
+of a depth render is the 3D U-Net once per runtime version with the window's volume, or a cost
+volume and U-Net pass per keyframe over the ``rendered_volume_views`` keyframes that best overlap
+it when that is set, plus a density MLP per sample), at
 ``1 / rendered_depth_stride`` of the keyframe's size, keeps the pixels whose accumulated opacity
 reaches ``rendered_min_opacity`` (the ray met a clear surface), and fuses them into the global map
 exactly as input depth (same voxels, same OV sampling of the keyframe's own ``ov`` map, same
@@ -99,7 +99,8 @@ def render_keyframe_depth(
     runtime: ModelRuntime, keyframe: Any, config: GlobalMapConfig
 ) -> RenderedKeyframe:
     """Render the model's depth at ``keyframe``'s pose at ``1 / rendered_depth_stride`` of its size,
-    from a cost volume over the ``rendered_volume_views`` keyframes that best overlap it.
+    from the window's volume, or (``rendered_volume_views`` > 1) from a cost volume over that many
+    keyframes that best overlap it.
 
     Raises :class:`RuntimeNotReady` (no model, no keyframes) like the runtime's render.
     """
