@@ -16,6 +16,9 @@ Bounds (``--bounds``):
 No input depth reaches the network in any case; bounds ``own`` and ``fixed`` use the frames'
 depth points for the box only, as the "no depth" rows of docs/EVALUATION.md do.
 
+A scene without ground truth (a real RGB-D recording, ``scripts/make_real_data.sh``: no ``gt/``
+folder) is read with the training loader at the model's working size, its own depth as the truth.
+
 Usage: python benchmarks/volume_views.py data/val/apartment_s1000 [--views 8,16,30,80] [--every 10]
 """
 
@@ -33,15 +36,51 @@ import torch
 import torch.nn.functional as F
 
 from mapper.model.checkpoint import load_model
+from mapper.model.config import ModelConfig
 from mapper.model.field import render_depth_maps
 from mapper.training import evaluate as ev
-from mapper.training.data import select_sources
+from mapper.training.data import Scene, load_scene, select_sources
 
 FRUSTUM_RANGE_M = 4.0
 FIXED_VIEWS = 8
 
 
-def frame_depth_error(model: torch.nn.Module, scene: ev.EvalScene, frame: int, n_views: int, bounds_mode: str,
+@dataclasses.dataclass
+class DepthScene:
+    """What this benchmark reads of a scene: the training loader's ``data`` and the true depth."""
+
+    data: Scene
+    gt_depth_m: np.ndarray  # (F, H, W)
+    name: str
+
+    @property
+    def image_wh(self) -> tuple[int, int]:
+        return self.data.image_wh
+
+    @property
+    def K(self) -> np.ndarray:  # noqa: N802 (the intrinsics' usual name)
+        return self.data.K
+
+    @property
+    def world_from_cam(self) -> np.ndarray:
+        return self.data.world_from_cam
+
+    def __len__(self) -> int:
+        return self.data.num_frames
+
+
+def read_scene(path: Path, model_cfg: ModelConfig) -> DepthScene:
+    """An evaluation scene (``gt/``), or a real recording without ground truth (its own depth)."""
+    if (path / "gt").is_dir():
+        scene = ev.load_scene(path)
+        return DepthScene(scene.data, scene.gt_depth_m, scene.name)
+    w, h = model_cfg.image_wh
+    ov_shape = (h // 4, w // 4, model_cfg.fusion.ov_dim)  # no OV maps: zeros (not read here)
+    data = load_scene(path, require_ov=False, image_wh=(w, h), ov_shape=ov_shape)
+    return DepthScene(data, data.depth_m, data.name)
+
+
+def frame_depth_error(model: torch.nn.Module, scene: DepthScene, frame: int, n_views: int, bounds_mode: str,
                       stride: int = 4) -> float:
     """Median relative depth error of ``frame`` rendered from a volume over ``n_views`` sources."""
     w, h = scene.image_wh
@@ -92,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     print("| scene | bounds | " + " | ".join(f"{v} views" for v in views) + " | s |")
     print("|---|---|" + "---|" * len(views) + "---|")
     for d in scenes:
-        scene = ev.load_scene(d)
+        scene = read_scene(d, model.cfg)
         for mode in modes:
             t0 = time.perf_counter()
             cells = []
