@@ -161,11 +161,10 @@ class _Prepared:
     ``set_view_extent`` gave it, without the camera centre), for the bounds of render volumes."""
     render_volumes: dict[tuple[int, ...], _Prepared] = field(default_factory=dict)
     """Render preps over keyframe subsets (``render_volume_views``), by view indices; this version's."""
-    window_volume: tuple[VolumeBounds, Tensor] | None = None
-    """A render volume's prep (``render_volume_views``): the window's (bounds, volume), whose
-    features the blend takes at points outside this prep's bounds (the render volume has none there)."""
     parent: _Prepared | None = None
-    """A render volume's prep: the window's, whose OV gather table it shares (built once)."""
+    """A render volume's prep (``render_volume_views``): the window's, whose OV gather table it
+    shares (built once) and whose volume features the blend takes at points outside this prep's
+    bounds (the render volume has none there)."""
     render_views: int = 0
     """A render volume's prep: the keyframes its volume spans (0: the window's prep)."""
 
@@ -861,11 +860,7 @@ class ModelRuntime:
                 ]
             )
         spaces = {e.ov_space for e in entries if e.ov is not None}
-        mean, var, count = self._volume.statistics()
-        volume = model.volume_features(cost_volume_features(mean, var, count).to(self.device))
-        support = None
-        if self.config.min_view_support > 1:
-            support = (count >= self.config.min_view_support).to(self.device, torch.float32)[None]
+        volume, support = self._volume_and_support(model, *self._volume.statistics())
         prior_only = torch.tensor([e.depth_m is None and e.depth_prior is not None for e in entries],
                                   device=self.device)
         self._prepared = _Prepared(
@@ -886,6 +881,16 @@ class ModelRuntime:
         )
         return self._prepared
 
+    def _volume_and_support(self, model: GovNeSF, mean: Tensor, var: Tensor, count: Tensor
+                            ) -> tuple[Tensor, Tensor | None]:
+        """Cost-volume statistics (C, X, Y, Z) x 2 and (X, Y, Z) -> the 3D U-Net's volume (Dv, X, Y, Z)
+        and the ``min_view_support`` mask (1, X, Y, Z) (None when that is off)."""
+        volume = model.volume_features(cost_volume_features(mean, var, count).to(self.device))
+        support = None
+        if self.config.min_view_support > 1:
+            support = (count >= self.config.min_view_support).to(self.device, torch.float32)[None]
+        return volume, support
+
     # Most render volumes kept per version, the oldest dropped first (a client rendering a few poses
     # over and over reuses them).
     _RENDER_VOLUMES_KEPT = 8
@@ -897,7 +902,7 @@ class ModelRuntime:
         width x height, world_from_cam (4, 4)) and its bounds, or ``prep`` itself: n = 0, a
         window of at most n keyframes, or fewer than 2 of them overlapping the view
         (``ModelRuntimeConfig.render_volume_views``)."""
-        if n <= 0 or len(prep) <= n or len(prep.extents) != len(prep):
+        if n <= 0 or len(prep) <= n:
             return prep
         chosen = self._overlapping_views(prep, K, world_from_cam, width, height, n)
         if chosen.numel() < 2:
@@ -921,19 +926,15 @@ class ModelRuntime:
             min_voxel_size_m=self.config.voxel_size_m or vcfg.min_voxel_size_m,
             margin_m=self.config.bounds_margin_m,
         )
-        mean, var, count = build_cost_volume(
-            bounds, prep.features[idx], prep.K[idx], prep.world_from_cam[idx], self.image_wh
+        features, K_views, poses = prep.features[idx], prep.K[idx], prep.world_from_cam[idx]
+        volume, support = self._volume_and_support(
+            model, *build_cost_volume(bounds, features, K_views, poses, self.image_wh)
         )
-        volume = model.volume_features(cost_volume_features(mean, var, count))
-        support = None
-        if self.config.min_view_support > 1:
-            support = (count >= self.config.min_view_support).to(torch.float32)[None]
         local = _Prepared(
             version=prep.version, bounds=bounds, volume=volume, rgb=prep.rgb, features=prep.features,
             ov=prep.ov, has_ov=prep.has_ov, depth_m=prep.depth_m, K=prep.K,
             world_from_cam=prep.world_from_cam, ov_space=prep.ov_space, support=support,
-            prior_only=prep.prior_only, extents=prep.extents, window_volume=(prep.bounds, prep.volume),
-            parent=prep, render_views=len(key),
+            prior_only=prep.prior_only, extents=prep.extents, parent=prep, render_views=len(key),
         )
         if len(prep.render_volumes) >= self._RENDER_VOLUMES_KEPT:
             prep.render_volumes.pop(next(iter(prep.render_volumes)))
@@ -963,18 +964,19 @@ class ModelRuntime:
     def _density(self, model: GovNeSF, prep: _Prepared, points: Tensor) -> tuple[Tensor, Tensor]:
         """sigma (P,) and volume feature (P, Dv) at (P, 3) points; sigma is 0 where fewer than
         ``min_view_support`` views see the volume (trilinear in the support mask). A render
-        volume's prep (``window_volume``) has no density outside its bounds; v there is the window's."""
+        volume's prep (``parent``) has no density outside its bounds; v there is the window's."""
         sigma, v = model.density_at(prep.volume, prep.bounds, points)
         if prep.support is not None:
             support, _ = sample_volume(prep.support, prep.bounds, points)
             sigma = sigma * support[..., 0]
-        if prep.window_volume is not None:  # a render volume: the window's features outside it
+        if prep.parent is not None:  # a render volume: the window's features outside it
             lo, hi = points.new_tensor(prep.bounds.origin_m), points.new_tensor(prep.bounds.max_corner_m)
             outside = ~((points >= lo) & (points <= hi)).all(dim=-1)
             if bool(outside.any()):
-                bounds, volume = prep.window_volume
+                window = prep.parent
                 v = v.clone()
-                v[outside] = sample_volume(volume, bounds, points[outside].to(volume.dtype))[0].to(v.dtype)
+                v[outside] = sample_volume(window.volume, window.bounds,
+                                           points[outside].to(window.volume.dtype))[0].to(v.dtype)
         return sigma, v
 
     @torch.no_grad()
