@@ -544,7 +544,7 @@ def test_render_volume_views_zero_or_a_small_window_render_from_the_window(model
     assert as_numpy.stats["render_volume_views"] == 3
     assert runtime.render(K, pose, 20, 15, ["depth"], volume_views=1).stats["render_volume_views"] == 0
     # a view that sees none of what the keyframes observed falls back to the window's volume
-    away = look_at((0.0, 0.0, 1.2), (0.0, 0.0, 5.0))
+    away = look_at((10.0, 0.0, 1.2), (20.0, 0.0, 1.2))  # 10 m out, looking further away
     with runtime._lock:
         prep = runtime._prepare()
         K_t = torch.tensor(K, dtype=torch.float32)

@@ -152,6 +152,7 @@ def _rank_main_budget(rank: int, world: int, port: int, cfg: TrainConfig) -> Non
         assert result["step"] == result["max_steps"] == cfg.max_steps
         # the choice is rank 0's on every rank, whatever each rank measured
         assert _agreed(100 + rank, _Dist(rank, world, torch.device("cpu"), False)) == 100
+        dist.barrier()  # both ranks are done with the group before either tears it down
     finally:
         dist.destroy_process_group()
 
