@@ -19,7 +19,11 @@ Reported per run (``--json`` writes them all):
   surfaces: about 1 cm apart in the demo room; median, p90, share within 5 cm);
 * the cost volume's bounds (extent, voxel size);
 * 3D mIoU of ``segment_points`` at the ground-truth surface samples the stream saw: ``govnesf``
-  (learned; with depth also +DGM) and ``average`` (plain averaging), same points, class names as texts;
+  (learned), ``govnesf`` + DGM, ``average`` (plain averaging) and ``average_depth``, same points,
+  class names as texts (without depth the depth test takes the request's points as occluders,
+  ``model.point_occlusion`` / ``queries.point_occlusion``); and the same at the global map's own
+  points (``map_miou_*``: what a robot asks about; each scored against the nearest ground-truth
+  sample within 0.1 m, the rest left in the request and not scored);
 * "find the chair": the top object's distance to the nearest real chair;
 * the global map's points: their distance to the true surface (median, p90);
 * with ``rgb+tri+stereo``, plane-sweep stereo (:mod:`mapper.geometry.plane_sweep`) on top of the
@@ -65,6 +69,7 @@ from mapper.node.queries import map_surface_depth
 from mapper.node.service import MapperNode
 from mapper.training.metrics import masked_psnr
 from protocol.messages import (
+    Error,
     Points,
     QueryPoints,
     Render,
@@ -74,6 +79,9 @@ from protocol.messages import (
     decode,
     encode,
 )
+
+MAP_LABEL_RADIUS_M = 0.1
+"""A global-map point is scored against the nearest ground-truth surface sample within this."""
 
 MODES = {
     "depth": (True, True, False),
@@ -167,13 +175,34 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
     pts, gt = gt_xyz[seen].astype(np.float32), gt_label[seen].astype(np.int64)
     texts = list(CLASS_NAMES)
     methods = [("govnesf", False), ("average", False)]
-    if with_depth or triangulate:  # DGM: input depth, or the sparse prior from the triangulated points
-        methods.append(("govnesf", True))
+    # the depth test: input depth; without, the request's points as occluders (model.point_occlusion,
+    # queries.point_occlusion) or, with those off, the sparse prior of the triangulated points
+    methods += [("govnesf", True), ("average_depth", True)]
     for method, use_depth in methods:
         seg = _query(node, SegmentPoints(xyz=pts, texts=texts, method=method, use_depth=use_depth))  # type: ignore[arg-type]
+        name = f"miou_{method}{'+dgm' if use_depth and method == 'govnesf' else ''}"
+        if isinstance(seg, Error) and seg.code == "not_ready":  # no depth test available (settings off)
+            row[name] = None
+            continue
         assert isinstance(seg, Segmentation), seg
-        name = f"miou_{method}{'+dgm' if use_depth else ''}"
         row[name] = mean_iou(seg.label.astype(np.int64), gt, len(texts))[0]
+    # a robot's own case: segment_points at the global map's points (what query_points returns),
+    # each scored against the nearest ground-truth surface sample's label within MAP_LABEL_RADIUS_M
+    # (farther map points stay in the request, e.g. as occluders, and are not scored)
+    map_xyz = np.asarray(node.state.global_map.snapshot().xyz, np.float32)
+    if len(map_xyz):
+        near_d, near_i = cKDTree(gt_xyz).query(map_xyz)
+        scored = near_d <= MAP_LABEL_RADIUS_M
+        row["map_scored_points"] = int(scored.sum())
+        for method, use_depth in methods:
+            seg = _query(node, SegmentPoints(xyz=map_xyz, texts=texts, method=method, use_depth=use_depth))  # type: ignore[arg-type]
+            name = f"map_miou_{method}{'+dgm' if use_depth and method == 'govnesf' else ''}"
+            if isinstance(seg, Error) and seg.code == "not_ready":
+                row[name] = None
+                continue
+            assert isinstance(seg, Segmentation), seg
+            truth = gt_label[near_i[scored]].astype(np.int64)
+            row[name] = mean_iou(seg.label[scored].astype(np.int64), truth, len(texts))[0]
     reply = _query(node, QueryPoints(texts=["find the chair"], objects=True))
     row["chair_m"] = (chair_distance(reply.objects[0].centroid, scene)
                       if isinstance(reply, Points) and reply.objects else None)

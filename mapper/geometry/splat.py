@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 
 __all__ = [
-    "MAX_REACH_PX", "REF_DEPTH_M", "check_camera", "fill_holes", "remove_speckles", "scaled_camera",
-    "see_through", "splat_points", "splat_scale", "upsample_nearest",
+    "MAX_REACH_PX", "REF_DEPTH_M", "check_camera", "fill_holes", "occluder_depths", "point_spacing",
+    "remove_speckles", "scaled_camera", "see_through", "splat_points", "splat_scale", "upsample_nearest",
 ]
 
 MAX_REACH_PX = 2
@@ -146,6 +146,51 @@ def splat_points(
     covered = np.isfinite(zbuf)
     depth[covered] = zbuf[covered]
     return index.reshape(height, width), depth.reshape(height, width)
+
+
+def point_spacing(xyz: np.ndarray, sample: int = 4096, seed: int = 0) -> float:  # xyz (N, 3)
+    """The median distance from a point of ``xyz`` to its nearest other point (m), over up to
+    ``sample`` points drawn at random (seeded: the same cloud gives the same answer); 0 for fewer
+    than two points or a cloud whose points all coincide. Non-finite rows are ignored."""
+    from scipy.spatial import cKDTree
+
+    xyz = np.asarray(xyz, np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"xyz must have shape (N, 3), got {xyz.shape}")
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    if xyz.shape[0] < 2:
+        return 0.0
+    probe = xyz
+    if xyz.shape[0] > sample:
+        probe = xyz[np.random.default_rng(seed).choice(xyz.shape[0], sample, replace=False)]
+    dist, _ = cKDTree(xyz, balanced_tree=False, compact_nodes=False).query(probe, k=2)  # a quick build
+    return float(np.median(dist[:, 1]))
+
+
+def occluder_depths(
+    xyz: np.ndarray,  # (N, 3) world points (m): the occluders
+    K: np.ndarray,  # (M, 4) [fx, fy, cx, cy] per view, for width x height
+    world_from_cam: np.ndarray,  # (M, 4, 4) camera-to-world per view
+    width: int,
+    height: int,
+    footprint_m: float,
+) -> np.ndarray:  # (M, H, W) float32 z-depth, 0 = no point
+    """Each view's z-buffer of the points ``xyz`` (:func:`splat_points` with ``footprint_m``; a
+    high-resolution camera is splatted at the lower resolution :func:`splat_scale` picks and
+    upsampled, as ``render`` does): the depth of the nearest of them at every pixel. A point's
+    own pixel always holds it or a nearer point, so testing a point against it as Depth Guided
+    Masking tests against a depth map tells whether another of the points hides it in that view."""
+    K = np.asarray(K, np.float64).reshape(-1, 4)
+    poses = np.asarray(world_from_cam, np.float64).reshape(-1, 4, 4)
+    if K.shape[0] != poses.shape[0]:
+        raise ValueError(f"K has {K.shape[0]} views and world_from_cam {poses.shape[0]}")
+    out = np.zeros((K.shape[0], height, width), np.float32)
+    for m in range(K.shape[0]):
+        scale = splat_scale(K[m], footprint_m)
+        K_s, width_s, height_s = scaled_camera(K[m], width, height, scale)
+        _, z = splat_points(xyz, K_s, poses[m], width_s, height_s, footprint_m)
+        out[m] = upsample_nearest(z, scale, height, width)
+    return out
 
 
 def _shifted(n: int, k: int, axis: int, step: int) -> tuple[tuple[slice, ...], tuple[slice, ...]]:

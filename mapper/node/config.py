@@ -369,6 +369,14 @@ class QueryConfig:
     depth, and their features were sampled at those estimated surfaces). 0 (default) = the
     ``map_when_more_confident`` rule: measured in docs/QUERIES.md, 0.75 there cost 3-4 points. 0..1."""
 
+    point_occlusion: bool = True
+    """``average_depth`` without input depth: keyframes without depth count a point where the
+    request's own points do not hide it in that keyframe (its z-buffer of them,
+    :func:`mapper.geometry.splat.occluder_depths`, each point covering
+    ``model.point_occlusion_footprint`` times the request's median point spacing), as the learned
+    model's ``model.point_occlusion`` does for ``govnesf`` with ``use_depth``. Off: only keyframes
+    with input depth count for ``average_depth``."""
+
     evicted_views: str = "off"
     """Keep what keyframes that left the window saw, for the averaging methods
     (:mod:`mapper.node.evicted_views`): when a keyframe leaves, a worker adds its OV sample at every

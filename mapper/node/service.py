@@ -64,7 +64,7 @@ import threading
 import time
 import traceback
 from collections import Counter, deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from types import FrameType
 from typing import TYPE_CHECKING, Any
@@ -1463,6 +1463,23 @@ class MapperNode:
             )
         return handler(msg)
 
+    def _occluder_depths(self, xyz: np.ndarray, keyframes: Sequence[Keyframe]) -> dict[int, np.ndarray]:
+        """``queries.point_occlusion``: for each of ``keyframes`` without input depth (by index), its
+        (H, W) z-buffer of the request's points ``xyz`` (N, 3), the depth ``average_depth`` tests
+        against there. Empty when the setting is off, no keyframe lacks depth or there are no points."""
+        need = [i for i, k in enumerate(keyframes) if k.depth_m is None]
+        if not self.config.queries.point_occlusion or not need or xyz.shape[0] == 0:
+            return {}
+        from mapper.geometry.splat import occluder_depths, point_spacing
+
+        footprint = self.config.model.point_occlusion_footprint * point_spacing(xyz)
+        out = {}
+        for i in need:
+            k = keyframes[i]
+            out[i] = occluder_depths(xyz, np.asarray(k.K)[None], np.asarray(k.world_from_cam)[None],
+                                     k.width, k.height, footprint)[0]
+        return out
+
     def _segment_average(self, msg: SegmentPoints, use_depth: bool) -> Segmentation:
         """``average`` / ``average_depth``: OpenScene-2D averaging over the window's keyframes where
         they see a point, together with the views of keyframes that left the window at its nearest
@@ -1475,10 +1492,13 @@ class MapperNode:
         with self.state.lock:
             keyframes = self.state.window.keyframes
         with_ov = [k for k in keyframes if k.ov is not None]
+        xyz = np.asarray(msg.xyz, np.float32)
+        occluders = self._occluder_depths(xyz, with_ov) if use_depth else {}
         views = [
-            (k.ov, k.K, k.world_from_cam, (k.width, k.height), k.depth_m)
-            for k in with_ov
-            if k.ov is not None and (not use_depth or k.depth_m is not None)
+            (k.ov, k.K, k.world_from_cam, (k.width, k.height),
+             k.depth_m if k.depth_m is not None else occluders.get(i))
+            for i, k in enumerate(with_ov)
+            if k.ov is not None and (not use_depth or k.depth_m is not None or i in occluders)
         ]
         gmap = self.state.global_map  # its snapshot and evicted views together (a load swaps the map)
         map_store = gmap.evicted
@@ -1509,7 +1529,6 @@ class MapperNode:
         t_views = time.perf_counter()
         text_emb = encoder.encode(list(msg.texts))
         t_text = time.perf_counter()
-        xyz = np.asarray(msg.xyz, np.float32)
         nearest = map_snap.nearest_with_feature(xyz, self.map_radius_m) if map_has_features else None
         t_near = time.perf_counter()
         prior = self._evicted_prior(map_store, map_snap, nearest, "depth" if use_depth else "all", text_emb)

@@ -154,6 +154,7 @@ class _Prepared:
     support: Tensor | None = None  # (1, X, Y, Z) 1 where >= min_view_support views see the voxel
     max_density: Tensor | None = None  # (X, Y, Z) dilated max sub-voxel density (1/m), on first use
     prior_only: Tensor | None = None  # (M,) bool: the view's depth_m is a prior (no input depth)
+    input_depth: Tensor | None = None  # (M,) bool: the view's depth_m is input depth
     free_space: Tensor | None = None  # (X, Y, Z) bool carved by the priors (carve_free_space), on first use
     ov_table: Tensor | None = None  # (M * h_ov * w_ov, D) ``ov`` channel-last, on first use
     extents: list[Tensor] = field(default_factory=list)
@@ -863,9 +864,11 @@ class ModelRuntime:
         volume, support = self._volume_and_support(model, *self._volume.statistics())
         prior_only = torch.tensor([e.depth_m is None and e.depth_prior is not None for e in entries],
                                   device=self.device)
+        input_depth = torch.tensor([e.depth_m is not None for e in entries], device=self.device)
         self._prepared = _Prepared(
             version=self.version,
             prior_only=prior_only,
+            input_depth=input_depth,
             bounds=self._volume.bounds,
             volume=volume,
             rgb=torch.stack([e.rgb for e in entries]),
@@ -1065,14 +1068,17 @@ class ModelRuntime:
     # -- view selection -----------------------------------------------------------------------
 
     def _view_groups(
-        self, prep: _Prepared, points: Tensor, allowed: Tensor, k: int | None = None
+        self, prep: _Prepared, points: Tensor, allowed: Tensor, k: int | None = None,
+        depth_m: Tensor | None = None,
     ) -> list[tuple[Tensor, Tensor]]:
         """Split (P, 3) points into groups sharing a source-view set.
 
         Returns ``[(point_indices (p,), view_indices (k,)), ...]``; points no allowed view sees
         are in no group. With at most ``source_views`` allowed views there is one group (views
         that do not see a point are masked per point by the network). ``k``: views per group
-        (default ``source_views``).
+        (default ``source_views``). ``depth_m`` (M, H, W): a view sees a point only where this
+        depth agrees with it (or has none), the DGM test (``dgm_view_selection``), so the views
+        chosen are the ones DGM keeps.
         """
         candidates = allowed.nonzero().squeeze(-1)
         k = self.source_views if k is None else k
@@ -1095,6 +1101,8 @@ class ModelRuntime:
                 uv, z = project_points(chunk.unsqueeze(0).expand(len(candidates), -1, -1), Ks, cam_from_world)
                 vis_parts.append(in_view(uv, z, width, height).T)  # (p, M)
             vis = torch.cat(vis_parts)  # (P, M)
+        if depth_m is not None:
+            vis = vis & self._depth_agrees(points, Ks, cam_from_world, depth_m[candidates])
         seen = vis.any(dim=1)
         if candidates.numel() <= k:
             idx = seen.nonzero().squeeze(-1)
@@ -1128,23 +1136,29 @@ class ModelRuntime:
                 out.append((idx, candidates[views]))
         return out
 
-    def _all_views(self, prep: _Prepared, need_ov: bool, use_depth: bool) -> SourceViews:
-        """Every view of the window as one SourceViews (no copies), for ``sample_views_indexed``."""
+    def _all_views(
+        self, prep: _Prepared, need_ov: bool, use_depth: bool, depth_m: Tensor | None = None
+    ) -> SourceViews:
+        """Every view of the window as one SourceViews (no copies), for ``sample_views_indexed``.
+        ``depth_m`` (M, H, W): the depth DGM tests against instead of the window's (``_occluder_depth``)."""
         if need_ov:
             assert prep.ov is not None
             ov = prep.ov
         else:  # the OV branch is not needed: a 1-channel dummy keeps sampling cheap
             ov = torch.zeros(len(prep), 1, 1, 1, device=self.device)
-        depth = prep.depth_m if use_depth else None
+        depth = (prep.depth_m if depth_m is None else depth_m) if use_depth else None
         return SourceViews(prep.rgb, prep.features, ov, prep.K, prep.world_from_cam, depth)
 
-    def _source_views(self, prep: _Prepared, view_idx: Tensor, need_ov: bool, use_depth: bool) -> SourceViews:
+    def _source_views(
+        self, prep: _Prepared, view_idx: Tensor, need_ov: bool, use_depth: bool, depth_m: Tensor | None = None
+    ) -> SourceViews:
         if need_ov:
             assert prep.ov is not None
             ov = prep.ov[view_idx]
         else:  # the OV branch is not needed: a 1-channel dummy keeps sampling cheap
             ov = torch.zeros(len(view_idx), 1, 1, 1, device=self.device)
-        depth = prep.depth_m[view_idx] if (use_depth and prep.depth_m is not None) else None
+        window_depth = prep.depth_m if depth_m is None else depth_m
+        depth = window_depth[view_idx] if (use_depth and window_depth is not None) else None
         return SourceViews(
             rgb=prep.rgb[view_idx],
             features=prep.features[view_idx],
@@ -1248,9 +1262,15 @@ class ModelRuntime:
             cosines = None  # (N, T) every text's cosine, only when asked for
             if keep_cosines:
                 cosines = torch.zeros(n, emb.shape[0], dtype=torch.float32, device=self.device)
-            groups = self._view_groups(prep, pts, prep.has_ov, self.point_source_views)
+            occluders = self._occluder_depth(prep, pts) if use_depth else None
+            t_occ = time.perf_counter()
+            if occluders is not None:
+                timing["occluders"] = (t_occ - t2) * 1e3
+            dgm_depth = occluders if occluders is not None else prep.depth_m
+            select_by = dgm_depth if (use_depth and self.config.dgm_view_selection) else None
+            groups = self._view_groups(prep, pts, prep.has_ov, self.point_source_views, depth_m=select_by)
             t3 = time.perf_counter()
-            timing["view_selection"] = (t3 - t2) * 1e3
+            timing["view_selection"] = (t3 - t_occ) * 1e3
 
             def answer(sub: Tensor, cos: Tensor, valid: Tensor) -> None:  # cos (p, T), valid (p,)
                 # each point is in one view group, so in one chunk: its rows are written once
@@ -1262,17 +1282,67 @@ class ModelRuntime:
 
             if self.config.batched_view_groups and groups:
                 # one network pass over every view group (each point with its own views)
-                for sub, samples, v, ov_maps in self._point_batches(model, prep, pts, groups, use_depth):
+                for sub, samples, v, ov_maps in self._point_batches(model, prep, pts, groups, use_depth,
+                                                                    depth_m=occluders):
                     cos, valid, _ = model.point_cosines(samples, v, emb, ov_maps=ov_maps,
                                                         fusion=self.point_head)
                     answer(sub, cos, valid)
             for idx, views_idx in groups if not self.config.batched_view_groups else []:
-                for sub, out in self._point_outputs(model, prep, pts, idx, views_idx, use_depth):
+                for sub, out in self._point_outputs(model, prep, pts, idx, views_idx, use_depth,
+                                                    depth_m=occluders):
                     answer(sub, F.normalize(out.ov, dim=-1) @ emb.T, out.valid)
             timing["network"] = (time.perf_counter() - t3) * 1e3
         timing["total"] = (time.perf_counter() - t0) * 1e3
         cos_np = None if cosines is None else cosines.cpu().numpy()
         return label.cpu().numpy(), score.cpu().numpy(), cos_np, timing
+
+    def _depth_agrees(
+        self,
+        points: Tensor,  # (P, 3)
+        K: Tensor,  # (M, 4)
+        cam_from_world: Tensor,  # (M, 4, 4)
+        depth_m: Tensor,  # (M, H, W) at the working size, 0 = none
+    ) -> Tensor:  # (P, M) bool
+        """The DGM test of ``GovNeSF.sample_views`` for every (point, view): the view's depth at
+        the point's pixel (nearest) agrees with the point's z within ``depth_mask_ratio``, or the
+        view has no depth there (or the point is outside it)."""
+        ratio = self._require_model().cfg.render.depth_mask_ratio
+        m, height, width = depth_m.shape
+        flat = depth_m.reshape(m, -1)
+        parts = []
+        for i in range(0, points.shape[0], 65536):
+            chunk = points[i : i + 65536]
+            # uv (M, p, 2), z (M, p)
+            uv, z = project_points(chunk.unsqueeze(0).expand(m, -1, -1), K, cam_from_world)
+            col = uv[..., 0].nan_to_num(0.0).floor().clamp(0, width - 1).long()
+            row = uv[..., 1].nan_to_num(0.0).floor().clamp(0, height - 1).long()
+            measured = flat.gather(1, row * width + col)  # (M, p)
+            has = torch.isfinite(measured) & (measured > 0)
+            parts.append(((z - measured).abs() <= ratio * measured) | ~has)
+        return torch.cat(parts, dim=1).T
+
+    def _occluder_depth(self, prep: _Prepared, pts: Tensor) -> Tensor | None:  # pts (P, 3)
+        """(M, H, W) float32 at the working size: the depth DGM tests the request's points against
+        (``point_occlusion``): each view without input depth gets its z-buffer of the request's
+        points (:func:`mapper.geometry.splat.occluder_depths`), each view with input depth keeps
+        it. None (the window's depth and priors) when ``point_occlusion`` is off, every view has
+        input depth, or there are no points. Call with the runtime's lock held."""
+        if not self.config.point_occlusion or pts.shape[0] == 0 or prep.input_depth is None:
+            return None
+        need = (~prep.input_depth).nonzero().squeeze(-1)
+        if need.numel() == 0:
+            return None
+        from mapper.geometry.splat import occluder_depths, point_spacing
+
+        xyz = pts.detach().cpu().numpy()
+        width, height = self.image_wh
+        footprint = self.config.point_occlusion_footprint * point_spacing(xyz)
+        z = occluder_depths(xyz, prep.K[need].cpu().numpy(), prep.world_from_cam[need].cpu().numpy(),
+                            width, height, footprint)  # (m, H, W)
+        out = (prep.depth_m.clone() if prep.depth_m is not None
+               else torch.zeros(len(prep), height, width, device=self.device))
+        out[need] = torch.from_numpy(z).to(out)
+        return out
 
     def _point_batches(
         self,
@@ -1281,12 +1351,13 @@ class ModelRuntime:
         pts: Tensor,
         groups: list[tuple[Tensor, Tensor]],
         use_depth: bool,
+        depth_m: Tensor | None = None,
     ) -> Iterator[tuple[Tensor, PointViewSamples, Tensor, OVMaps]]:
         """Every view group's points in chunks of ``chunk_points``, each point with its own views:
         yields (point indices (p,), samples (``sample_views_indexed``), volume features (p, Dv),
-        the chunk's OV maps). Call with the runtime's lock held."""
+        the chunk's OV maps). ``depth_m``: see ``_all_views``. Call with the runtime's lock held."""
         members, view_idx, slots = _group_slots(groups)
-        views = self._all_views(prep, need_ov=False, use_depth=use_depth)
+        views = self._all_views(prep, need_ov=False, use_depth=use_depth, depth_m=depth_m)
         for i in range(0, members.numel(), self.config.chunk_points):
             sel = slice(i, i + self.config.chunk_points)
             sub = members[sel]
@@ -1324,13 +1395,15 @@ class ModelRuntime:
             return [(sub, s, v) for sub, s, v, _ in self._point_batches(model, prep, pts, groups, use_depth)]
 
     def _point_outputs(
-        self, model: GovNeSF, prep: _Prepared, pts: Tensor, idx: Tensor, views_idx: Tensor, use_depth: bool
+        self, model: GovNeSF, prep: _Prepared, pts: Tensor, idx: Tensor, views_idx: Tensor, use_depth: bool,
+        depth_m: Tensor | None = None,
     ) -> Iterator[tuple[Tensor, PointOutputs]]:
         """``model.query_points`` for the points ``pts[idx]`` over the views ``views_idx``, in
         chunks of ``chunk_points``: yields (point indices, outputs). The OV features are blended
         straight from the window's maps (``OVMaps``), never sampled per view (nor copied per
-        view group); the same answers as sampling them first, up to float rounding."""
-        views = self._source_views(prep, views_idx, need_ov=False, use_depth=use_depth)
+        view group); the same answers as sampling them first, up to float rounding. ``depth_m``:
+        see ``_all_views``."""
+        views = self._source_views(prep, views_idx, need_ov=False, use_depth=use_depth, depth_m=depth_m)
         ov_maps = prep.ov_maps(views_idx, self.image_wh)
         for i in range(0, idx.numel(), self.config.chunk_points):
             sub = idx[i : i + self.config.chunk_points]

@@ -8,9 +8,11 @@ checkpoint served) with the plugins ``govnesf serve`` installs (:mod:`mapper.nod
 learned-model handlers and rendered-depth points, triangulation, and the in-process OV backend
 when configured. The workers run inline between frames. Then ``segment_points`` is asked, as a
 robot would, for the evaluation's ground-truth points with the 20 class names as texts, for
-``govnesf``, ``average`` and ``govnesf`` with ``use_depth`` (the depth prior from plane-sweep
-stereo and the triangulated points, ``[stereo]``), and each answer is scored against the
-ground-truth labels.
+``govnesf``, ``average``, ``govnesf`` with ``use_depth`` (Depth Guided Masking without depth:
+the requested points hide one another in each keyframe, ``model.point_occlusion``; with it off,
+the depth prior from plane-sweep stereo and the triangulated points, ``[stereo]``) and
+``average_depth`` (the same test for averaging, ``queries.point_occlusion``), and each answer is
+scored against the ground-truth labels.
 
 Example::
 
@@ -38,7 +40,8 @@ __all__ = ["NODE_ROWS", "NodeEvalSettings", "node_rgb_only_rows"]
 NODE_ROWS = {
     ("govnesf", False): "Node RGB-only: govnesf",
     ("average", False): "Node RGB-only: average",
-    ("govnesf", True): "Node RGB-only: govnesf + depth-prior DGM",
+    ("govnesf", True): "Node RGB-only: govnesf + DGM",
+    ("average_depth", True): "Node RGB-only: average_depth",
 }
 """(segment_points method, use_depth) -> row name."""
 

@@ -168,7 +168,8 @@ def test_save_failure_on_the_node_is_internal_and_changes_nothing(tmp_path: Path
 
 def test_without_depth_semantic_requests_are_not_ready(node: MapperNode) -> None:
     """Frames with ov but no depth count for the window, add no map points; semantic requests
-    then answer not_ready, except the depth-free averaging baseline."""
+    then answer not_ready, except the averaging methods (``average_depth`` tests a point against
+    the request's other points in keyframes without depth, ``queries.point_occlusion``)."""
     from clients.harness import sim_stream
     from protocol.errors import RemoteError
 
@@ -179,12 +180,11 @@ def test_without_depth_semantic_requests_are_not_ready(node: MapperNode) -> None
         with pytest.raises(RemoteError, match="none carries an open-vocabulary feature") as info:
             client.query_points(["chair"])
         assert info.value.code == "not_ready"
-        with pytest.raises(RemoteError, match="needs keyframes with both depth and ov") as info:
-            client.segment_points(np.zeros((2, 3), np.float32), ["chair"], method="average_depth")
-        assert info.value.code == "not_ready"
         far = np.array([[0.0, 0.0, -50.0], [1.0, 1.0, 1.0]], np.float32)
         seg = client.segment_points(far, ["chair"], method="average", timeout_s=60.0)
         assert seg.label.shape == (2,) and seg.label[0] == -1
+        tested = client.segment_points(far, ["chair"], method="average_depth", timeout_s=60.0)
+        np.testing.assert_array_equal(tested.label, seg.label)  # two points hide nothing of each other
         status = client.status()
         assert status.extra["global_points"] == 0 and status.keyframes == 3
 

@@ -104,7 +104,9 @@ def test_an_extent_set_before_the_keyframe_is_applied_is_used_and_depth_keyframe
 
 
 def test_a_sparse_depth_prior_masks_views_only_where_it_exists(model: GovNeSF) -> None:
-    runtime = make_runtime(model, source_views=3, view_cell_m=0.25)
+    # the prior is what DGM tests against without input depth when the request's points are not
+    # the occluders (point_occlusion off)
+    runtime = make_runtime(model, source_views=3, view_cell_m=0.25, point_occlusion=False)
     window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
     runtime.attach(window)
     kfs = [keyframe(i, orbit(i), depth_m=None) for i in range(5)]
@@ -209,3 +211,105 @@ def test_a_keyframe_with_a_wild_pose_is_left_out_of_the_bounds(model: GovNeSF) -
     window.consider(keyframe(5, orbit(5, radius=1.0), depth_m=None))
     runtime.sync()
     assert runtime.bounds_outliers == 1  # counted once
+
+
+def _shell_and_core(half: float = 0.6, step: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+    """(S, 3) points on the faces of a cube of half size ``half`` around (0, 0, 0.5) and (C, 3)
+    points near its centre, which every camera outside the cube sees only through it."""
+    g = np.arange(-half, half + 1e-9, step)
+    a, b = (x.ravel() for x in np.meshgrid(g, g))
+    faces = []
+    for axis in range(3):
+        for side in (-half, half):
+            f = np.zeros((a.size, 3))
+            f[:, axis] = side
+            f[:, (axis + 1) % 3], f[:, (axis + 2) % 3] = a, b
+            faces.append(f)
+    shell = np.unique(np.concatenate(faces).round(6), axis=0) + [0.0, 0.0, 0.5]
+    core = np.random.default_rng(1).uniform(-0.08, 0.08, (40, 3)) + [0.0, 0.0, 0.5]
+    return shell.astype(np.float32), core.astype(np.float32)
+
+
+def test_the_requests_points_hide_one_another_in_views_without_input_depth(model: GovNeSF) -> None:
+    shell, core = _shell_and_core()
+    pts = np.concatenate([shell, core])
+    texts = ["a", "b", "c"]
+    runs = {}
+    for occlusion in (True, False):
+        runtime = make_runtime(model, source_views=3, view_cell_m=0.25, point_occlusion=occlusion)
+        window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
+        runtime.attach(window)
+        for i in range(5):
+            window.consider(keyframe(i, orbit(i), depth_m=None))
+        plain, _, _ = runtime.segment(pts, texts)
+        label, score, timing = runtime.segment(pts, texts, use_depth=True)
+        runs[occlusion] = (plain, label, score, timing)
+    plain, label, score, timing = runs[True]
+    core_rows = slice(len(shell), None)
+    assert (plain[core_rows] >= 0).all()  # without the depth test every view sees the core
+    assert (label[core_rows] == -1).all() and (score[core_rows] == 0).all()  # the shell hides it everywhere
+    facing = np.isclose(shell[:, 0], 0.6)  # the face towards the first camera, (2, 0, 1.2)
+    assert (label[: len(shell)][facing] >= 0).all()  # it is seen: answered
+    assert (label[: len(shell)] == -1).any()  # faces no camera sees (behind the front ones) are not
+    assert "occluders" in timing
+    off_plain, off_label, _, off_timing = runs[False]  # off: no prior either, so nothing is masked
+    np.testing.assert_array_equal(off_label, off_plain)
+    assert "occluders" not in off_timing
+    alone = make_runtime(model, source_views=3, view_cell_m=0.25)
+    window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
+    alone.attach(window)
+    for i in range(5):
+        window.consider(keyframe(i, orbit(i), depth_m=None))
+    core_alone, _, _ = alone.segment(core, texts, use_depth=True)  # asked alone, nothing hides the core
+    assert (core_alone >= 0).all()
+
+
+def test_keyframes_with_input_depth_keep_it_for_the_depth_test(model: GovNeSF) -> None:
+    shell, core = _shell_and_core()
+    pts = np.concatenate([shell, core])
+    answers = []
+    for occlusion in (True, False):
+        runtime = make_runtime(model, source_views=3, view_cell_m=0.25, point_occlusion=occlusion)
+        window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
+        runtime.attach(window)
+        for i in range(5):
+            window.consider(keyframe(i, orbit(i), depth_m=2.0))
+        label, score, timing = runtime.segment(pts, ["a", "b", "c"], use_depth=True)
+        assert "occluders" not in timing
+        answers.append((label, score))
+    np.testing.assert_array_equal(answers[0][0], answers[1][0])
+    np.testing.assert_array_equal(answers[0][1], answers[1][1])
+
+
+def test_dgm_view_selection_chooses_views_that_pass_the_depth_test(model: GovNeSF) -> None:
+    # three near keyframes whose depth contradicts the points (a surface 0.3 m in front of them)
+    # and three farther ones whose depth agrees; two views a point
+    near = [keyframe(i, orbit(i, radius=1.5), depth_m=0.3) for i in range(3)]
+    far = [keyframe(i + 3, orbit(i + 3, radius=2.5), depth_m=2.6) for i in range(3)]
+    pts = np.random.default_rng(2).uniform(-0.05, 0.05, (30, 3)).astype(np.float32) + [0.0, 0.0, 0.5]
+    out = {}
+    for selection in (False, True):
+        runtime = make_runtime(model, source_views=2, point_source_views=2, view_cell_m=1.0,
+                               dgm_view_selection=selection)
+        window = KeyframeWindow(WindowConfig(max_keyframes=8, min_translation_m=0.05, min_rotation_deg=5))
+        runtime.attach(window)
+        for kf in near + far:
+            window.consider(kf)
+        out[selection] = (runtime.segment(pts, ["a", "b", "c"])[0],
+                          runtime.segment(pts, ["a", "b", "c"], use_depth=True)[0])
+    plain_off, dgm_off = out[False]
+    plain_on, dgm_on = out[True]
+    np.testing.assert_array_equal(plain_on, plain_off)  # without the depth test nothing changes
+    assert (dgm_off == -1).all()  # the two nearest views are chosen, then both masked
+    assert (dgm_on >= 0).all()  # the views that pass the test are chosen instead
+
+
+def test_point_occlusion_settings_are_checked_with_the_key_named() -> None:
+    from mapper.node.config import ConfigError, load_config
+
+    cfg = load_config(None, {})
+    assert cfg.model.point_occlusion is True and cfg.model.dgm_view_selection is True
+    for key, bad in (("model.point_occlusion_footprint", 0.0), ("model.point_occlusion_footprint", 1e3),
+                     ("model.point_occlusion", "yes"), ("model.dgm_view_selection", 1)):
+        with pytest.raises(ConfigError, match=key.split(".")[1]):
+            load_config(None, {key: bad})

@@ -8,7 +8,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapper.geometry.splat import MAX_REACH_PX, fill_holes, remove_speckles, see_through, splat_points
+from mapper.geometry.splat import (
+    MAX_REACH_PX,
+    fill_holes,
+    occluder_depths,
+    point_spacing,
+    remove_speckles,
+    see_through,
+    splat_points,
+)
 
 K = np.array([50.0, 50.0, 20.0, 15.0])  # 40 x 30 image
 
@@ -197,3 +205,49 @@ def test_surface_depth_covers_a_voxel_grid_wall_at_every_resolution(
     assert (w_s, h_s) == (-(-width // 3), -(-height // 3)) and np.allclose(K_s * 3, K)
     up = upsample_nearest(np.arange(w_s * h_s).reshape(h_s, w_s), 3, height, width)
     assert up.shape == (height, width) and up[4, 7] == 1 * w_s + 2
+
+
+def test_point_spacing_is_the_median_nearest_neighbour_distance() -> None:
+    grid = plane_points(2.0, spacing=0.05, half=0.5)
+    assert point_spacing(grid) == pytest.approx(0.05)
+    assert point_spacing(grid, sample=50) == pytest.approx(0.05)  # subsampled: the same on a grid
+    big = np.random.default_rng(0).uniform(-1, 1, (20000, 3))
+    assert point_spacing(big) == point_spacing(big)  # seeded: the same cloud, the same answer
+    with_nan = np.concatenate([grid, np.full((3, 3), np.nan)])
+    assert point_spacing(with_nan) == pytest.approx(0.05)
+    assert point_spacing(np.zeros((1, 3))) == 0.0 and point_spacing(np.zeros((5, 3))) == 0.0
+    with pytest.raises(ValueError, match="xyz"):
+        point_spacing(np.zeros((4, 2)))
+
+
+def test_occluder_depths_hide_points_behind_nearer_ones_in_each_view() -> None:
+    near = plane_points(1.0, spacing=0.01, half=0.2)  # a card 1 m in front of the first camera
+    far = plane_points(3.0, spacing=0.02, half=1.5)  # a wall behind it
+    xyz = np.concatenate([near, far])
+    poses = np.stack([np.eye(4), np.eye(4)])
+    poses[1, :3, 3] = [1.0, 0.0, 0.0]  # a second camera, off to the side: the card is out of its view
+    Ks = np.stack([K, K])
+    z = occluder_depths(xyz, Ks, poses, 40, 30, footprint_m=0.03)
+    assert z.shape == (2, 30, 40) and z.dtype == np.float32
+    for m in range(2):  # each view equals its own splat at this resolution
+        np.testing.assert_array_equal(z[m], splat_points(xyz, K, poses[m], 40, 30, 0.03)[1])
+    # the depth test of DGM: a wall point behind the card is hidden in view 0, seen in view 1
+    behind = np.array([0.0, 0.0, 3.0])
+    u, v = (int(K[0] * behind[0] / 3.0 + K[2]), int(K[1] * behind[1] / 3.0 + K[3]))
+    assert abs(3.0 - z[0, v, u]) > 0.25 * z[0, v, u]  # masked: the card at 1 m is in front
+    assert z[0, v, u] == pytest.approx(1.0)
+    p1 = behind - poses[1, :3, 3]
+    u1, v1 = int(K[0] * p1[0] / p1[2] + K[2]), int(K[1] * p1[1] / p1[2] + K[3])
+    assert z[1, v1, u1] == pytest.approx(3.0)  # seen: its own depth
+    with pytest.raises(ValueError, match="views"):
+        occluder_depths(xyz, Ks, poses[:1], 40, 30, 0.03)
+
+
+def test_occluder_depths_of_a_high_resolution_camera_leave_no_holes_between_points() -> None:
+    K_hi = np.array([525.0, 525.0, 320.0, 240.0])
+    wall = plane_points(2.0, spacing=0.05, half=2.0)  # 5 cm apart: ~13 px apart at 640 x 480
+    z = occluder_depths(wall, K_hi[None], np.eye(4)[None], 640, 480, footprint_m=0.05)
+    assert (z[0] > 0).all()  # splatted at a lower resolution and upsampled
+    np.testing.assert_allclose(z[0], 2.0, rtol=1e-6)
+    _, plain = splat_points(wall, K_hi, np.eye(4), 640, 480, 0.05)
+    assert (plain == 0).mean() > 0.5  # at full resolution the footprint is clipped: mostly holes
