@@ -186,6 +186,10 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
             continue
         assert isinstance(seg, Segmentation), seg
         row[name] = mean_iou(seg.label.astype(np.int64), gt, len(texts))[0]
+        for stage in ("total", "occluders", "view_selection"):  # the node's own stage timings (ms)
+            if stage in seg.timing_ms:
+                row[f"ms_{stage}_{name[5:]}"] = seg.timing_ms[stage]
+    row["segment_points"] = len(pts)
     # a robot's own case: segment_points at the global map's points (what query_points returns),
     # each scored against the nearest ground-truth surface sample's label within MAP_LABEL_RADIUS_M
     # (farther map points stay in the request, e.g. as occluders, and are not scored)

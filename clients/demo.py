@@ -22,8 +22,9 @@ Steps, each printed as it happens:
    SimLSeg features) streams into a fresh node; once its background workers (points triangulated
    from the posed RGB and plane-sweep stereo depths, ``mapper/node/plugins/triangulation.py``, and
    rendered depth) are idle,
-   "find the chair" must again lie within 0.5 m of a real chair, ``segment_points`` mIoU
-   (``govnesf`` and ``average``) is printed, and the view of step 5 is rendered again
+   "find the chair" must again lie within 0.5 m of a real chair, ``segment_points`` mIoU (the
+   four methods of step 5; the depth test takes the requested points as occluders) is printed,
+   and the view of step 5 is rendered again
    (``rgb_only/render.png``; PSNR and depth error printed; docs/RGB_ONLY.md).
 
 Outputs under ``out/demo/`` (override with ``--out``): ``*.ply`` / ``*.json`` per query,
@@ -262,12 +263,12 @@ def _queries(client: MapperClient, out: Path, scene: Any, rlog: Any, failures: l
 
 
 def _segment_points(client: MapperClient, xyz: np.ndarray, gt: np.ndarray, texts: list[str],
-                    extra: dict[str, Any], report: dict[str, Any], with_depth: bool = True) -> None:
-    """Step 5, first part: ``segment_points`` with each method at the seen samples (mIoU);
-    ``with_depth=False`` (step 7, no depth anywhere): ``govnesf`` and ``average`` only."""
+                    extra: dict[str, Any], report: dict[str, Any]) -> None:
+    """Step 5, first part: ``segment_points`` with each method at the seen samples (mIoU). In step
+    7 (no depth anywhere) the depth test of ``govnesf+DGM`` and ``average_depth`` takes the
+    requested points as occluders (``model.point_occlusion``,
+    ``queries.point_occlusion``; docs/RGB_ONLY.md)."""
     methods = [("govnesf", False), ("govnesf", True), ("average_depth", False), ("average", False)]
-    if not with_depth:
-        methods = [("govnesf", False), ("average", False)]
     if "govnesf" not in extra.get("segment_methods", []):
         print("  (the node serves no learned model: govnesf rows skipped; see the node log)")
         methods = [m for m in methods if m[0] != "govnesf"]
@@ -415,7 +416,7 @@ def _rgb_only_pass(args: argparse.Namespace, out: Path, room: _Room, failures: l
             seen = room.gt_views > 0  # the same poses as step 3: the same seen samples
             texts = list(CLASS_NAMES)
             _segment_points(client, room.gt_xyz[seen], room.gt_label[seen].astype(np.int64), texts,
-                            extra, report, with_depth=False)
+                            extra, report)
             (rgb_out / "segmentation.json").write_text(json.dumps(report, indent=1) + "\n")
             _render_view(client, args, rgb_out, room, extra, None)
         code = node.signal(signal.SIGINT)

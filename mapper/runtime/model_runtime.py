@@ -1341,7 +1341,14 @@ class ModelRuntime:
                             width, height, footprint)  # (m, H, W)
         out = (prep.depth_m.clone() if prep.depth_m is not None
                else torch.zeros(len(prep), height, width, device=self.device))
-        out[need] = torch.from_numpy(z).to(out)
+        occ = torch.from_numpy(z).to(out)
+        if self.config.point_occlusion_prior_veto and prep.depth_m is not None:
+            # an occluder that the keyframe's own depth prior sees through (the prior's surface is
+            # farther by more than the DGM tolerance) is dropped: likely a point off its surface
+            prior = prep.depth_m[need]
+            ratio = self._require_model().cfg.render.depth_mask_ratio
+            occ = torch.where((prior > 0) & (prior > (1.0 + ratio) * occ), torch.zeros_like(occ), occ)
+        out[need] = occ
         return out
 
     def _point_batches(

@@ -308,8 +308,29 @@ def test_point_occlusion_settings_are_checked_with_the_key_named() -> None:
     from mapper.node.config import ConfigError, load_config
 
     cfg = load_config(None, {})
-    assert cfg.model.point_occlusion is True and cfg.model.dgm_view_selection is True
+    assert cfg.model.point_occlusion and cfg.model.dgm_view_selection and cfg.model.point_occlusion_prior_veto
+    assert cfg.queries.point_occlusion
     for key, bad in (("model.point_occlusion_footprint", 0.0), ("model.point_occlusion_footprint", 1e3),
-                     ("model.point_occlusion", "yes"), ("model.dgm_view_selection", 1)):
+                     ("model.point_occlusion", "yes"), ("model.dgm_view_selection", 1),
+                     ("model.point_occlusion_prior_veto", "no"), ("queries.point_occlusion", 0)):
         with pytest.raises(ConfigError, match=key.split(".")[1]):
             load_config(None, {key: bad})
+
+
+def test_an_occluder_that_the_keyframes_depth_prior_sees_through_is_dropped(model: GovNeSF) -> None:
+    shell, core = _shell_and_core()
+    pts = np.concatenate([shell, core])
+    core_rows = slice(len(shell), None)
+    out = {}
+    for veto in (False, True):
+        runtime = make_runtime(model, source_views=3, view_cell_m=0.25, point_occlusion_prior_veto=veto)
+        window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
+        runtime.attach(window)
+        kfs = [keyframe(i, orbit(i), depth_m=None) for i in range(5)]
+        for kf in kfs:
+            window.consider(kf)
+        for kf in kfs:  # each keyframe's prior: a surface 5 m away, behind the whole shell
+            runtime.set_view_depth_prior(keyframe_key(kf), np.full((30, 40), 5.0, np.float32))
+        out[veto] = runtime.segment(pts, ["a", "b", "c"], use_depth=True)[0]
+    assert (out[False][core_rows] == -1).all()  # the shell hides the core
+    assert (out[True][core_rows] >= 0).all()  # the priors see through the shell: it hides nothing
