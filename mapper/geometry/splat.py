@@ -174,22 +174,44 @@ def occluder_depths(
     width: int,
     height: int,
     footprint_m: float,
+    *,
+    threads: int = 1,
+    compiled: bool = True,
 ) -> np.ndarray:  # (M, H, W) float32 z-depth, 0 = no point
     """Each view's z-buffer of the points ``xyz`` (:func:`splat_points` with ``footprint_m``; a
     high-resolution camera is splatted at the lower resolution :func:`splat_scale` picks and
     upsampled, as ``render`` does): the depth of the nearest of them at every pixel. A point's
     own pixel always holds it or a nearer point, so testing a point against it as Depth Guided
-    Masking tests against a depth map tells whether another of the points hides it in that view."""
+    Masking tests against a depth map tells whether another of the points hides it in that view.
+    ``compiled``: the views of one resolution in one launch of
+    :func:`mapper.model.ops.occlusion_kernel.zbuffer_views` on ``threads`` threads (the same
+    depths); False: :func:`splat_points` view by view (the reference)."""
     K = np.asarray(K, np.float64).reshape(-1, 4)
     poses = np.asarray(world_from_cam, np.float64).reshape(-1, 4, 4)
     if K.shape[0] != poses.shape[0]:
         raise ValueError(f"K has {K.shape[0]} views and world_from_cam {poses.shape[0]}")
-    out = np.zeros((K.shape[0], height, width), np.float32)
+    if not (np.isfinite(footprint_m) and footprint_m >= 0):
+        raise ValueError(f"footprint_m must be finite and >= 0, got {footprint_m}")
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"xyz must have shape (N, 3), got {xyz.shape}")
     for m in range(K.shape[0]):
-        scale = splat_scale(K[m], footprint_m)
-        K_s, width_s, height_s = scaled_camera(K[m], width, height, scale)
-        _, z = splat_points(xyz, K_s, poses[m], width_s, height_s, footprint_m)
-        out[m] = upsample_nearest(z, scale, height, width)
+        check_camera(K[m], poses[m], width, height)
+    out = np.zeros((K.shape[0], height, width), np.float32)
+    scales = np.array([splat_scale(K[m], footprint_m) for m in range(K.shape[0])], np.int64)
+    for scale in np.unique(scales).tolist():
+        views = np.flatnonzero(scales == scale)
+        K_s, width_s, height_s = scaled_camera(K[views], width, height, scale)  # (m, 4)
+        if compiled:
+            from mapper.model.ops.occlusion_kernel import zbuffer_views
+
+            z = zbuffer_views(xyz, np.linalg.inv(poses[views]), K_s, width_s, height_s, footprint_m,
+                              MAX_REACH_PX, threads=threads)
+        else:
+            z = np.stack([splat_points(xyz, K_s[i], poses[v], width_s, height_s, footprint_m)[1]
+                          for i, v in enumerate(views.tolist())])
+        for i, v in enumerate(views.tolist()):
+            out[v] = upsample_nearest(z[i], scale, height, width)
     return out
 
 

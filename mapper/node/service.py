@@ -1353,6 +1353,7 @@ class MapperNode:
                 log.exception("text encoder warm-up for %r failed", space)
             if first:
                 _warm_kernels("mapper.model.ops.average_kernel")
+                _warm_kernels("mapper.model.ops.occlusion_kernel")  # depth tests without depth
 
         threading.Thread(target=warm, name="mapper-encoder-warmup", daemon=True).start()
 
@@ -1474,10 +1475,12 @@ class MapperNode:
 
         footprint = self.config.model.point_occlusion_footprint * point_spacing(xyz)
         out = {}
-        for i in need:
-            k = keyframes[i]
-            out[i] = occluder_depths(xyz, np.asarray(k.K)[None], np.asarray(k.world_from_cam)[None],
-                                     k.width, k.height, footprint)[0]
+        for size in {(keyframes[i].width, keyframes[i].height) for i in need}:  # one launch a size
+            same = [i for i in need if (keyframes[i].width, keyframes[i].height) == size]
+            z = occluder_depths(xyz, np.stack([np.asarray(keyframes[i].K, np.float64) for i in same]),
+                                np.stack([np.asarray(keyframes[i].world_from_cam, np.float64) for i in same]),
+                                size[0], size[1], footprint, threads=0)
+            out.update({i: z[j] for j, i in enumerate(same)})
         return out
 
     def _segment_average(self, msg: SegmentPoints, use_depth: bool) -> Segmentation:

@@ -1088,7 +1088,18 @@ class ModelRuntime:
         width, height = self.image_wh
         cam_from_world = invert_pose(prep.world_from_cam[candidates])  # (M, 4, 4)
         Ks = prep.K[candidates]
-        if points.device.type == "cpu" and points.dtype == cam_from_world.dtype == Ks.dtype == torch.float32:
+        cpu_kernels = (points.device.type == "cpu"
+                       and points.dtype == cam_from_world.dtype == Ks.dtype == torch.float32)
+        if cpu_kernels and depth_m is not None:  # in view and passing the depth test, one compiled pass
+            from mapper.model.ops.occlusion_kernel import depth_test_matrix
+
+            ratio = self._require_model().cfg.render.depth_mask_ratio
+            vis = torch.from_numpy(depth_test_matrix(points.numpy(), cam_from_world.numpy(), Ks.numpy(),
+                                                     (width, height), DEFAULT_EPS,
+                                                     depth_m[candidates].float().numpy(), ratio,
+                                                     threads=torch.get_num_threads()))  # (P, M)
+            depth_m = None  # applied
+        elif cpu_kernels:
             from mapper.model.ops.average_kernel import in_view_matrix
 
             vis = torch.from_numpy(in_view_matrix(points.numpy(), cam_from_world.numpy(), Ks.numpy(),
@@ -1338,7 +1349,7 @@ class ModelRuntime:
         width, height = self.image_wh
         footprint = self.config.point_occlusion_footprint * point_spacing(xyz)
         z = occluder_depths(xyz, prep.K[need].cpu().numpy(), prep.world_from_cam[need].cpu().numpy(),
-                            width, height, footprint)  # (m, H, W)
+                            width, height, footprint, threads=torch.get_num_threads())  # (m, H, W)
         out = (prep.depth_m.clone() if prep.depth_m is not None
                else torch.zeros(len(prep), height, width, device=self.device))
         occ = torch.from_numpy(z).to(out)
