@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from clients.harness import look_at
 from mapper.geometry.splat import MAX_REACH_PX, occluder_depths, splat_points
 from mapper.model.ops.average_kernel import in_view_matrix
 from mapper.model.ops.geometry import in_view, invert_pose, project_points
@@ -16,24 +17,12 @@ from mapper.model.ops.occlusion_kernel import depth_test_matrix, zbuffer_views
 W, H = 40, 30
 
 
-def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    z = target - eye
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x = x / np.linalg.norm(x)
-    y = np.cross(z, x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.stack([x, y, z], axis=1)
-    pose[:3, 3] = eye
-    return pose
-
-
 def _scene(seed: int, n: int = 3000, views: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     pts = rng.uniform([-2, -2, 0], [2, 2, 2], (n, 3))
-    poses = np.stack([_look_at(np.array([3 * np.cos(a), 3 * np.sin(a), 1.0]), np.zeros(3))
+    poses = np.stack([look_at(np.array([3 * np.cos(a), 3 * np.sin(a), 1.0]), np.zeros(3))
                       for a in rng.uniform(0, 2 * np.pi, views)])
-    poses[0] = _look_at(np.array([0.5, 0.2, 1.0]), np.array([3.0, 0.0, 1.0]))  # in the cloud: some behind
+    poses[0] = look_at(np.array([0.5, 0.2, 1.0]), np.array([3.0, 0.0, 1.0]))  # in the cloud: some behind
     K = np.tile([30.0, 30.0, W / 2, H / 2], (views, 1)) * rng.uniform(0.8, 1.2, (views, 1))
     return pts, K, poses
 

@@ -2,49 +2,27 @@
 count a point only where the request's own points do not hide it, the averaging counterpart of
 ``model.point_occlusion`` (tested in tests/mapper/test_rgb_bounds.py).
 
-A node in-process (no sockets, no model) with a fake one-hot 4-d space. Two RGB-only keyframes
-look along +z from the origin and see class c0 everywhere; a third looks along -x at the point
-(0, 0, 3) from the side and sees c1. The request holds a card of points at z = 1 that fills the
-first two keyframes' views and a few points at z = 3 behind it, which the third sees past the card."""
+A node in-process (no sockets, no model) with the fake one-hot 4-d space of test_whole_map. Two
+RGB-only keyframes look along +z from the origin and see class c0 everywhere; a third looks along
+-x at the point (0, 0, 3) from the side and sees c1. The request holds a card of points at z = 1
+that fills the first two keyframes' views and a few points at z = 3 behind it, which the third
+sees past the card."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pytest
 
 from mapper.node.config import config_from_dict
 from mapper.node.service import MapperNode
-from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
 from protocol.messages import Error, Frame, Segmentation, SegmentPoints, decode, encode
+from tests.mapper.test_whole_map import SPACE, D, onehot_space  # noqa: F401 (the autouse fixture)
 
-SPACE = "test-onehot-occl"
-D = 4
 W, H = 32, 24
 K = np.array([30.0, 30.0, 16.0, 12.0])
 SIDE = np.array([[0, 0, -1, 3.0], [0, 1, 0, 0], [1, 0, 0, 3.0], [0, 0, 0, 1]], float)  # at (3, 0, 3), +z = -x
-
-
-class OneHotEncoder:
-    space = SPACE
-    dim = D
-
-    def encode(self, texts: Sequence[str]) -> np.ndarray:
-        out = np.zeros((len(texts), D), np.float32)
-        for i, t in enumerate(texts):
-            last = t.strip()[-1:]
-            out[i, int(last) % D if last.isdigit() else 0] = 1.0
-        return out
-
-
-@pytest.fixture(autouse=True)
-def onehot_space() -> Iterator[None]:
-    register_text_encoder(SPACE, OneHotEncoder)
-    yield
-    unregister_text_encoder(SPACE)
 
 
 def _frame(seq: int, pose: np.ndarray, cls: int) -> Frame:

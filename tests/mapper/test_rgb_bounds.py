@@ -38,6 +38,17 @@ def _room_points(half_x: float, half_y: float, n: int = 400, seed: int = 0) -> n
     return np.column_stack([x, y, rng.uniform(0.0, 2.5, n)])
 
 
+def _rgb_only_runtime(model: GovNeSF, n: int = 5, **overrides: object) -> tuple[ModelRuntime, list]:
+    """A runtime over ``n`` keyframes without depth on the orbit, 3 views a point (cells of 0.25 m)."""
+    runtime = make_runtime(model, source_views=3, view_cell_m=0.25, **overrides)
+    window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
+    runtime.attach(window)
+    kfs = [keyframe(i, orbit(i), depth_m=None) for i in range(n)]
+    for kf in kfs:
+        window.consider(kf)
+    return runtime, kfs
+
+
 def test_view_extents_grow_and_shrink_the_volume_of_rgb_only_keyframes(model: GovNeSF) -> None:
     runtime = make_runtime(model, max_range_m=3.0, bounds_margin_m=0.0)
     window = KeyframeWindow(WindowConfig(max_keyframes=8, min_translation_m=0.05, min_rotation_deg=5))
@@ -106,12 +117,7 @@ def test_an_extent_set_before_the_keyframe_is_applied_is_used_and_depth_keyframe
 def test_a_sparse_depth_prior_masks_views_only_where_it_exists(model: GovNeSF) -> None:
     # the prior is what DGM tests against without input depth when the request's points are not
     # the occluders (point_occlusion off)
-    runtime = make_runtime(model, source_views=3, view_cell_m=0.25, point_occlusion=False)
-    window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
-    runtime.attach(window)
-    kfs = [keyframe(i, orbit(i), depth_m=None) for i in range(5)]
-    for kf in kfs:
-        window.consider(kf)
+    runtime, kfs = _rgb_only_runtime(model, point_occlusion=False)
     rng = np.random.default_rng(0)
     pts = rng.uniform([-0.4, -0.4, 0.3], [0.4, 0.4, 0.7], (200, 3)).astype(np.float32)
     plain, plain_score, _ = runtime.segment(pts, ["a", "b", "c"])
@@ -236,11 +242,7 @@ def test_the_requests_points_hide_one_another_in_views_without_input_depth(model
     texts = ["a", "b", "c"]
     runs = {}
     for occlusion in (True, False):
-        runtime = make_runtime(model, source_views=3, view_cell_m=0.25, point_occlusion=occlusion)
-        window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
-        runtime.attach(window)
-        for i in range(5):
-            window.consider(keyframe(i, orbit(i), depth_m=None))
+        runtime, _ = _rgb_only_runtime(model, point_occlusion=occlusion)
         plain, _, _ = runtime.segment(pts, texts)
         label, score, timing = runtime.segment(pts, texts, use_depth=True)
         runs[occlusion] = (plain, label, score, timing)
@@ -255,11 +257,7 @@ def test_the_requests_points_hide_one_another_in_views_without_input_depth(model
     off_plain, off_label, _, off_timing = runs[False]  # off: no prior either, so nothing is masked
     np.testing.assert_array_equal(off_label, off_plain)
     assert "occluders" not in off_timing
-    alone = make_runtime(model, source_views=3, view_cell_m=0.25)
-    window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
-    alone.attach(window)
-    for i in range(5):
-        window.consider(keyframe(i, orbit(i), depth_m=None))
+    alone, _ = _rgb_only_runtime(model)
     core_alone, _, _ = alone.segment(core, texts, use_depth=True)  # asked alone, nothing hides the core
     assert (core_alone >= 0).all()
 
@@ -323,12 +321,7 @@ def test_an_occluder_that_the_keyframes_depth_prior_sees_through_is_dropped(mode
     core_rows = slice(len(shell), None)
     out = {}
     for veto in (False, True):
-        runtime = make_runtime(model, source_views=3, view_cell_m=0.25, point_occlusion_prior_veto=veto)
-        window = KeyframeWindow(WindowConfig(max_keyframes=6, min_translation_m=0.05, min_rotation_deg=5))
-        runtime.attach(window)
-        kfs = [keyframe(i, orbit(i), depth_m=None) for i in range(5)]
-        for kf in kfs:
-            window.consider(kf)
+        runtime, kfs = _rgb_only_runtime(model, point_occlusion_prior_veto=veto)
         for kf in kfs:  # each keyframe's prior: a surface 5 m away, behind the whole shell
             runtime.set_view_depth_prior(keyframe_key(kf), np.full((30, 40), 5.0, np.float32))
         out[veto] = runtime.segment(pts, ["a", "b", "c"], use_depth=True)[0]

@@ -265,9 +265,12 @@ def blend_kernel(
 
 
 @numba.njit(parallel=True, cache=True, boundscheck=False)
-def _in_view_kernel(pts, cam_from_world, K, width, height, eps, out, block):  # pragma: no cover - compiled
-    # pts (P, 3) float32; cam_from_world (M, 4, 4) float32; K (M, 4) float32; out (P, M) bool
+def _depth_test_kernel(pts, cam_from_world, K, width, height, eps, depth, ratio, out,
+                       block):  # pragma: no cover - compiled
+    # pts (P, 3) float32; cam_from_world (M, 4, 4) float32; K (M, 4) float32; depth (M, h, w) float32
+    # (a (M, 1, 1) zero depth: in view only); out (P, M) bool
     n_pts, n_views = out.shape
+    d_h, d_w = depth.shape[1], depth.shape[2]
     n_blocks = (n_pts + block - 1) // block
     for blk in numba.prange(n_blocks):
         for i in range(blk * block, min(n_pts, (blk + 1) * block)):
@@ -282,7 +285,32 @@ def _in_view_kernel(pts, cam_from_world, K, width, height, eps, out, block):  # 
                 cy = x * R[1, 0] + y * R[1, 1] + z * R[1, 2] + R[1, 3]
                 u = cx / cz * K[v, 0] + K[v, 2]
                 vv = cy / cz * K[v, 1] + K[v, 3]
-                out[i, v] = u >= 0 and u <= width and vv >= 0 and vv <= height
+                if not (u >= 0 and u <= width and vv >= 0 and vv <= height):
+                    out[i, v] = False
+                    continue
+                col = min(max(int(np.floor(u)), 0), d_w - 1)
+                row = min(max(int(np.floor(vv)), 0), d_h - 1)
+                measured = depth[v, row, col]
+                if measured > 0 and np.isfinite(measured):
+                    out[i, v] = abs(cz - measured) <= ratio * measured
+                else:
+                    out[i, v] = True
+
+
+def depth_test_launch(
+    pts: np.ndarray, cam_from_world: np.ndarray, K: np.ndarray, image_wh: tuple[int, int], eps: float,
+    depth_m: np.ndarray, ratio: float, threads: int, block: int,
+) -> np.ndarray:  # (P, M) bool
+    """One launch of the in-view and depth-test kernel (:func:`in_view_matrix`,
+    :func:`mapper.model.ops.occlusion_kernel.depth_test_matrix`)."""
+    out = np.empty((pts.shape[0], cam_from_world.shape[0]), np.bool_)
+    with launch(threads):
+        _depth_test_kernel(np.ascontiguousarray(pts, np.float32),
+                           np.ascontiguousarray(cam_from_world, np.float32),
+                           np.ascontiguousarray(K, np.float32), np.float32(image_wh[0]),
+                           np.float32(image_wh[1]), np.float32(eps),
+                           np.ascontiguousarray(depth_m, np.float32), np.float32(ratio), out, int(block))
+    return out
 
 
 def in_view_matrix(
@@ -297,14 +325,9 @@ def in_view_matrix(
 ) -> np.ndarray:  # (P, M) bool
     """``in_view(*project_points(pts, K, cam_from_world), W, H)`` for every (point, view) at once
     (no border), as one compiled CPU kernel: the same float32 arithmetic, without the (M, P, 2)
-    projections."""
-    out = np.empty((pts.shape[0], cam_from_world.shape[0]), np.bool_)
-    with launch(threads):
-        _in_view_kernel(np.ascontiguousarray(pts, np.float32),
-                        np.ascontiguousarray(cam_from_world, np.float32),
-                        np.ascontiguousarray(K, np.float32), np.float32(image_wh[0]),
-                        np.float32(image_wh[1]), np.float32(eps), out, int(block))
-    return out
+    projections (the depth-test kernel with no depth)."""
+    no_depth = np.zeros((cam_from_world.shape[0], 1, 1), np.float32)
+    return depth_test_launch(pts, cam_from_world, K, image_wh, eps, no_depth, 0.0, threads, block)
 
 
 @contextlib.contextmanager

@@ -9,8 +9,8 @@ Two stages of ``segment_points`` with a depth test on keyframes without input de
   smallest z), in parallel over views, float64 arithmetic as the numpy reference;
 * :func:`depth_test_matrix`: for every (point, view), whether the point projects into the view and
   passes the DGM test against a depth map (the view's depth at the point's nearest pixel agrees
-  within ``ratio`` of it, or there is none), in parallel over blocks of points, the float32
-  arithmetic of :func:`mapper.model.ops.average_kernel.in_view_matrix`.
+  within ``ratio`` of it, or there is none), in parallel over blocks of points: the kernel of
+  :func:`mapper.model.ops.average_kernel.in_view_matrix` (which is it without depth).
 
 Neither materialises anything of size (points, views) beyond the boolean answer. The numpy / torch
 paths they replace spent 8 ms a view on 100k points (z-buffers) and 0.35 s on 106k points x 84
@@ -22,7 +22,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from mapper.model.ops.average_kernel import launch
+from mapper.model.ops.average_kernel import depth_test_launch, launch
 
 __all__ = ["depth_test_matrix", "warm_up", "zbuffer_views"]
 
@@ -87,38 +87,6 @@ def zbuffer_views(
     return out.astype(np.float32)
 
 
-@numba.njit(parallel=True, cache=True, boundscheck=False)
-def _depth_test_kernel(pts, cam_from_world, K, width, height, eps, depth, ratio, out,
-                       block):  # pragma: no cover - compiled
-    # pts (P, 3) float32; cam_from_world (M, 4, 4) float32; K (M, 4) float32; depth (M, H, W) float32
-    n_pts, n_views = out.shape
-    d_h, d_w = depth.shape[1], depth.shape[2]
-    n_blocks = (n_pts + block - 1) // block
-    for blk in numba.prange(n_blocks):
-        for i in range(blk * block, min(n_pts, (blk + 1) * block)):
-            x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
-            for v in range(n_views):
-                R = cam_from_world[v]
-                cz = x * R[2, 0] + y * R[2, 1] + z * R[2, 2] + R[2, 3]
-                if not cz > eps:
-                    out[i, v] = False
-                    continue
-                cx = x * R[0, 0] + y * R[0, 1] + z * R[0, 2] + R[0, 3]
-                cy = x * R[1, 0] + y * R[1, 1] + z * R[1, 2] + R[1, 3]
-                u = cx / cz * K[v, 0] + K[v, 2]
-                vv = cy / cz * K[v, 1] + K[v, 3]
-                if not (u >= 0 and u <= width and vv >= 0 and vv <= height):
-                    out[i, v] = False
-                    continue
-                col = min(max(int(np.floor(u)), 0), d_w - 1)
-                row = min(max(int(np.floor(vv)), 0), d_h - 1)
-                measured = depth[v, row, col]
-                if measured > 0 and np.isfinite(measured):
-                    out[i, v] = abs(cz - measured) <= ratio * measured
-                else:
-                    out[i, v] = True
-
-
 def depth_test_matrix(
     pts: np.ndarray,  # (P, 3) float32 world points
     cam_from_world: np.ndarray,  # (M, 4, 4) float32
@@ -133,14 +101,7 @@ def depth_test_matrix(
 ) -> np.ndarray:  # (P, M) bool
     """In view (:func:`mapper.model.ops.average_kernel.in_view_matrix`) and passing the DGM test of
     ``GovNeSF.sample_views`` against ``depth_m`` (nearest pixel; a pixel without depth passes)."""
-    out = np.empty((pts.shape[0], cam_from_world.shape[0]), np.bool_)
-    with launch(threads):
-        _depth_test_kernel(np.ascontiguousarray(pts, np.float32),
-                           np.ascontiguousarray(cam_from_world, np.float32),
-                           np.ascontiguousarray(K, np.float32), np.float32(image_wh[0]),
-                           np.float32(image_wh[1]), np.float32(eps),
-                           np.ascontiguousarray(depth_m, np.float32), np.float32(ratio), out, int(block))
-    return out
+    return depth_test_launch(pts, cam_from_world, K, image_wh, eps, depth_m, ratio, threads, block)
 
 
 def warm_up() -> None:
