@@ -16,8 +16,9 @@ import cv2
 import numpy as np
 
 __all__ = [
-    "MAX_REACH_PX", "REF_DEPTH_M", "check_camera", "fill_holes", "occluder_depths", "point_spacing",
-    "remove_speckles", "scaled_camera", "see_through", "splat_points", "splat_scale", "upsample_nearest",
+    "MAX_REACH_PX", "REF_DEPTH_M", "check_camera", "fill_holes", "fill_nearest", "occluder_depths",
+    "point_spacing", "remove_speckles", "scaled_camera", "see_through", "splat_points", "splat_scale",
+    "upsample_nearest",
 ]
 
 MAX_REACH_PX = 2
@@ -309,6 +310,31 @@ def fill_holes(
         span = np.maximum(d_before + d_after, 1).astype(np.float32)
         interp = (before * d_after + after * d_before) / span
         out[agree] = interp[agree]
+    return out
+
+
+def fill_nearest(
+    z: np.ndarray,  # (H, W) z-depth (m), 0 = nothing
+    max_px: float,
+) -> np.ndarray:  # (H, W) float32
+    """Pixels without depth within ``max_px`` pixels (Euclidean) of a pixel with depth take the
+    depth of the nearest such pixel; other pixels are returned unchanged; ``max_px = 0`` fills
+    nothing. Unlike :func:`fill_holes` it extends a surface past its edge (a wall up into an
+    unseen ceiling), so it is a last resort for pixels nothing else covers."""
+    from scipy.ndimage import distance_transform_edt
+
+    z = np.asarray(z)
+    if z.ndim != 2:
+        raise ValueError(f"z must have shape (H, W), got {z.shape}")
+    if not (np.isfinite(max_px) and max_px >= 0):
+        raise ValueError(f"max_px must be finite and >= 0, got {max_px}")
+    out = z.astype(np.float32).copy()
+    empty = ~(out > 0)
+    if max_px == 0 or not empty.any() or empty.all():
+        return out
+    dist, (rows, cols) = distance_transform_edt(empty, return_indices=True)
+    fill = empty & (dist <= max_px)
+    out[fill] = out[rows[fill], cols[fill]]
     return out
 
 

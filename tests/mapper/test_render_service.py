@@ -234,9 +234,13 @@ def test_render_takes_the_global_maps_surface_where_it_has_one(
 def test_rgb_only_render_takes_the_surfaces_of_the_measured_geometry(
     node: MapperNode, model: GovNeSF
 ) -> None:
+    from dataclasses import replace
+
     from mapper.node.queries import surface_depth
 
-    runtime = runtime_for(model)  # surface_from_map = "auto"
+    # surface_from_map = "auto"; the pixels nothing covers marched (the nearest fill: its own test)
+    config = replace(ModelRuntimeConfig(device="cpu"), surface_nearest_fill_px=0.0)
+    runtime = ModelRuntime(config, model=model, text_encoder=lambda space: FakeEncoder())
     install_learned_handlers(node, runtime)
     for seq in range(4):  # RGB-only keyframes: the map's surfaces are not measured ones
         rgb_only = frame(seq)
@@ -269,8 +273,8 @@ def test_rgb_only_render_takes_the_plane_of_the_geometry_across_a_gap(
 
     from mapper.node.queries import surface_depth
 
-    runtime = ModelRuntime(replace(ModelRuntimeConfig(device="cpu"), surface_planes=planes), model=model,
-                           text_encoder=lambda space: FakeEncoder())  # fmt: skip
+    config = replace(ModelRuntimeConfig(device="cpu"), surface_planes=planes, surface_nearest_fill_px=0.0)
+    runtime = ModelRuntime(config, model=model, text_encoder=lambda space: FakeEncoder())
     install_learned_handlers(node, runtime)
     for seq in range(4):
         rgb_only = frame(seq)
@@ -310,7 +314,8 @@ def test_rgb_only_render_fills_from_the_map_where_the_geometry_has_no_surface(
 
     from mapper.node.queries import surface_depth
 
-    config = replace(ModelRuntimeConfig(device="cpu"), surface_planes=False, surface_map_fill=fill)
+    config = replace(ModelRuntimeConfig(device="cpu"), surface_planes=False, surface_map_fill=fill,
+                     surface_nearest_fill_px=0.0)
     runtime = ModelRuntime(config, model=model, text_encoder=lambda space: FakeEncoder())
     install_learned_handlers(node, runtime)
     for seq in range(3):  # with depth: the global map gets surface points
@@ -340,3 +345,43 @@ def test_rgb_only_render_fills_from_the_map_where_the_geometry_has_no_surface(
     else:
         assert reply.timing_ms["surface_pixels"] == on.sum()
         assert not np.allclose(reply.depth_m[only_map], whole[only_map], rtol=1e-3)  # marched there
+
+
+@pytest.mark.parametrize("reach", [0.0, 2.0, 10_000.0])
+def test_rgb_only_render_fills_the_rest_from_the_nearest_surface(
+    node: MapperNode, model: GovNeSF, reach: float
+) -> None:
+    """``model.surface_nearest_fill_px``: pixels no measured surface covers take the nearest covered
+    pixel's depth within that reach (0: marched); covered pixels keep theirs."""
+    from dataclasses import replace
+
+    from mapper.geometry.splat import fill_nearest
+    from mapper.node.queries import surface_depth
+
+    config = replace(ModelRuntimeConfig(device="cpu"), surface_planes=False, surface_nearest_fill_px=reach)
+    runtime = ModelRuntime(config, model=model, text_encoder=lambda space: FakeEncoder())
+    install_learned_handlers(node, runtime)
+    for seq in range(4):
+        rgb_only = frame(seq)
+        rgb_only.depth_m = None
+        node.handle_ingest(encode(rgb_only))
+    node.drain_integrations()
+    yy, zz = np.meshgrid(np.linspace(-1, 1, 60), np.linspace(0, 0.5, 20), indexing="ij")
+    points = np.column_stack([np.full(yy.size, -0.3), yy.ravel(), zz.ravel()])  # the wall's lower part
+    node.surface_points.append(lambda: points)
+    K, pose = np.array([10.0, 10.0, 6.0, 4.5]), look_at((2.2, 0.0, 0.6), (0.0, 0.0, 0.6))
+    footprint = config.surface_geometry_footprint * node.state.global_map.snapshot().voxel_size_m
+    splat = surface_depth(points, footprint, K, pose, 12, 9, config)
+    on = splat > 0
+    assert 5 < on.sum() < on.size - 5  # the upper rows see no measured point
+    reply = query(node, Render(width=12, height=9, K=K, world_from_cam=pose, outputs=["depth"]))
+    assert isinstance(reply, RenderResult) and reply.depth_m is not None
+    np.testing.assert_allclose(reply.depth_m[on], splat[on], rtol=1e-5)
+    filled = fill_nearest(splat, reach) if reach > 0 else splat
+    assert reply.timing_ms["surface_pixels"] == (filled > 0).sum()
+    extra = (filled > 0) & ~on
+    np.testing.assert_allclose(reply.depth_m[extra], filled[extra], rtol=1e-5)
+    if reach >= 10_000:
+        assert (filled > 0).all()
+    if reach == 0:
+        assert not extra.any()

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from mapper.geometry.splat import (
     MAX_REACH_PX,
     fill_holes,
+    fill_nearest,
     occluder_depths,
     point_spacing,
     remove_speckles,
@@ -251,3 +252,19 @@ def test_occluder_depths_of_a_high_resolution_camera_leave_no_holes_between_poin
     np.testing.assert_allclose(z[0], 2.0, rtol=1e-6)
     _, plain = splat_points(wall, K_hi, np.eye(4), 640, 480, 0.05)
     assert (plain == 0).mean() > 0.5  # at full resolution the footprint is clipped: mostly holes
+
+
+def test_fill_nearest_extends_surfaces_only_within_its_reach() -> None:
+    z = np.zeros((5, 8), np.float32)
+    z[:, :2] = 2.0  # a surface on the left
+    z[0, 7] = 5.0  # a lone far pixel on the right
+    out = fill_nearest(z, 2.0)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(out[:, :2], 2.0)  # pixels with depth are unchanged
+    np.testing.assert_array_equal(out[:, 2:4], 2.0)  # within 2 px of the surface: its depth
+    assert (out[1:, 4] == 0).all()  # beyond the reach of both: still empty
+    assert out[0, 6] == 5.0 and out[0, 5] == 5.0 and out[2, 7] == 5.0  # the nearest of the two
+    np.testing.assert_array_equal(fill_nearest(z, 0.0), z)
+    np.testing.assert_array_equal(fill_nearest(np.zeros((3, 3)), 5.0), 0.0)  # nothing to extend
+    with pytest.raises(ValueError, match="max_px"):
+        fill_nearest(z, -1.0)

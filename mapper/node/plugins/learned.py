@@ -169,6 +169,10 @@ def make_render_handler(runtime: ModelRuntime, node: MapperNode | None = None) -
                 fill = map_surface_depth(snap, np.asarray(msg.K, np.float64), msg.world_from_cam,
                                          msg.width, msg.height, runtime.config)  # fmt: skip
                 surface = np.where(surface > 0, surface, fill)
+            if surface_source == "geometry" and runtime.config.surface_nearest_fill_px > 0:
+                from mapper.geometry.splat import fill_nearest
+
+                surface = fill_nearest(surface, runtime.config.surface_nearest_fill_px)
         surface_ms = (time.perf_counter() - t_surface) * 1e3
         try:
             frame = runtime.render(
