@@ -1467,9 +1467,10 @@ class MapperNode:
     def _occluder_depths(self, xyz: np.ndarray, keyframes: Sequence[Keyframe]) -> dict[int, np.ndarray]:
         """``queries.point_occlusion``: for each of ``keyframes`` without input depth (by index), its
         (H, W) z-buffer of the request's points ``xyz`` (N, 3), the depth ``average_depth`` tests
-        against there. Empty when the setting is off, no keyframe lacks depth or there are no points."""
+        against there (all zeros for a request without points). Empty when the setting is off or no
+        keyframe lacks depth."""
         need = [i for i, k in enumerate(keyframes) if k.depth_m is None]
-        if not self.config.queries.point_occlusion or not need or xyz.shape[0] == 0:
+        if not self.config.queries.point_occlusion or not need:
             return {}
         from mapper.geometry.splat import occluder_depths, point_spacing
 

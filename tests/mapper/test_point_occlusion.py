@@ -77,6 +77,11 @@ def test_average_depth_without_depth_masks_views_in_which_other_requested_points
         assert (tested.label[: len(card)][seen] == 0).all()  # the card hides nothing of itself
         alone = _segment(node, "average_depth", core)  # asked alone, nothing hides the core
         assert isinstance(alone, Segmentation) and (alone.label == 0).all()
+        for xyz in (np.zeros((0, 3), np.float32), np.tile(core[:1], (20, 1))):  # no points; one place
+            reply = _segment(node, "average_depth", xyz)
+            assert isinstance(reply, Segmentation) and reply.label.shape == (len(xyz),)
+            if len(xyz):
+                assert (reply.label == 0).all()  # coincident points hide nothing of one another
     finally:
         node.stop()
 
