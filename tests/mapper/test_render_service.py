@@ -231,22 +231,28 @@ def test_render_takes_the_global_maps_surface_where_it_has_one(
         assert not np.allclose(reply.depth_m[on], surface[on], rtol=1e-3)
 
 
-def test_rgb_only_render_takes_the_surfaces_of_the_measured_geometry(
-    node: MapperNode, model: GovNeSF
-) -> None:
+def _rgb_only_node(node: MapperNode, model: GovNeSF, **overrides: object) -> ModelRuntime:
+    """Serve ``model`` on ``node`` with ``[model]`` overrides and stream 4 keyframes without depth."""
     from dataclasses import replace
 
-    from mapper.node.queries import surface_depth
-
-    # surface_from_map = "auto"; the pixels nothing covers marched (the nearest fill: its own test)
-    config = replace(ModelRuntimeConfig(device="cpu"), surface_nearest_fill_px=0.0)
-    runtime = ModelRuntime(config, model=model, text_encoder=lambda space: FakeEncoder())
+    runtime = ModelRuntime(replace(ModelRuntimeConfig(device="cpu"), **overrides), model=model,
+                           text_encoder=lambda space: FakeEncoder())  # fmt: skip
     install_learned_handlers(node, runtime)
     for seq in range(4):  # RGB-only keyframes: the map's surfaces are not measured ones
         rgb_only = frame(seq)
         rgb_only.depth_m = None
         node.handle_ingest(encode(rgb_only))
     node.drain_integrations()
+    return runtime
+
+
+def test_rgb_only_render_takes_the_surfaces_of_the_measured_geometry(
+    node: MapperNode, model: GovNeSF
+) -> None:
+    from mapper.node.queries import surface_depth
+
+    # surface_from_map = "auto"; the pixels nothing covers marched (the nearest fill: its own test)
+    runtime = _rgb_only_node(node, model, surface_nearest_fill_px=0.0)
     yy, zz = np.meshgrid(np.linspace(-1, 1, 60), np.linspace(0, 1.2, 40), indexing="ij")
     wall = np.column_stack([yy.ravel(), zz.ravel()])
     points = np.column_stack([np.full(len(wall), -0.3), wall])  # a plane x = -0.3 m, seen from +x
@@ -269,18 +275,9 @@ def test_rgb_only_render_takes_the_surfaces_of_the_measured_geometry(
 def test_rgb_only_render_takes_the_plane_of_the_geometry_across_a_gap(
     node: MapperNode, model: GovNeSF, planes: bool
 ) -> None:
-    from dataclasses import replace
-
     from mapper.node.queries import surface_depth
 
-    config = replace(ModelRuntimeConfig(device="cpu"), surface_planes=planes, surface_nearest_fill_px=0.0)
-    runtime = ModelRuntime(config, model=model, text_encoder=lambda space: FakeEncoder())
-    install_learned_handlers(node, runtime)
-    for seq in range(4):
-        rgb_only = frame(seq)
-        rgb_only.depth_m = None
-        node.handle_ingest(encode(rgb_only))
-    node.drain_integrations()
+    runtime = _rgb_only_node(node, model, surface_planes=planes, surface_nearest_fill_px=0.0)
     # a wall x = -0.3 m with no measured points in the band 0.3 m < z < 0.9 m (flat-shaded there)
     yy, zz = np.meshgrid(np.linspace(-1, 1, 60), np.linspace(0, 1.2, 40), indexing="ij")
     wall = np.column_stack([np.full(yy.size, -0.3), yy.ravel(), zz.ravel()])
@@ -353,19 +350,11 @@ def test_rgb_only_render_fills_the_rest_from_the_nearest_surface(
 ) -> None:
     """``model.surface_nearest_fill_px``: pixels no measured surface covers take the nearest covered
     pixel's depth within that reach (0: marched); covered pixels keep theirs."""
-    from dataclasses import replace
-
     from mapper.geometry.splat import fill_nearest
     from mapper.node.queries import surface_depth
 
-    config = replace(ModelRuntimeConfig(device="cpu"), surface_planes=False, surface_nearest_fill_px=reach)
-    runtime = ModelRuntime(config, model=model, text_encoder=lambda space: FakeEncoder())
-    install_learned_handlers(node, runtime)
-    for seq in range(4):
-        rgb_only = frame(seq)
-        rgb_only.depth_m = None
-        node.handle_ingest(encode(rgb_only))
-    node.drain_integrations()
+    runtime = _rgb_only_node(node, model, surface_planes=False, surface_nearest_fill_px=reach)
+    config = runtime.config
     yy, zz = np.meshgrid(np.linspace(-1, 1, 60), np.linspace(0, 0.5, 20), indexing="ij")
     points = np.column_stack([np.full(yy.size, -0.3), yy.ravel(), zz.ravel()])  # the wall's lower part
     node.surface_points.append(lambda: points)
