@@ -83,3 +83,24 @@ def test_the_depth_test_matrix_is_in_view_times_the_dgm_test() -> None:
                                  threads=2)
     np.testing.assert_array_equal(no_depth, in_view_matrix(pts, cam, K.astype(np.float32), (W, H), 1e-6,
                                                            threads=2))
+
+
+def test_the_runtimes_torch_depth_test_equals_the_kernel() -> None:
+    """``ModelRuntime._depth_agrees`` (the path off the CPU kernels, e.g. CUDA) and the kernel agree."""
+    from mapper.model.field import GovNeSF
+    from tests.mapper.test_runtime import TINY, make_runtime
+
+    pts, K, poses = _scene(5)
+    pts = pts.astype(np.float32)
+    rng = np.random.default_rng(6)
+    depth = rng.uniform(0.5, 5.0, (len(K), H, W)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.3] = 0.0
+    torch.manual_seed(0)
+    runtime = make_runtime(GovNeSF(TINY).eval())
+    ratio = runtime._require_model().cfg.render.depth_mask_ratio
+    cam = invert_pose(torch.from_numpy(poses).float())
+    agrees = runtime._depth_agrees(torch.from_numpy(pts), torch.from_numpy(K).float(), cam,
+                                   torch.from_numpy(depth)).numpy()
+    vis = in_view_matrix(pts, cam.numpy(), K.astype(np.float32), (W, H), 1e-6, threads=2)
+    got = depth_test_matrix(pts, cam.numpy(), K.astype(np.float32), (W, H), 1e-6, depth, ratio, threads=2)
+    assert ((vis & agrees) != got).mean() < 1e-3
