@@ -37,6 +37,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="kernel threads (the node: torch's)")
     parser.add_argument("--reference", action="store_true", help="also time the numpy reference")
     args = parser.parse_args()
+    if min(args.points) < 2 or args.views < 1 or args.repeats < 1 or args.threads < 1:
+        parser.error("--points must be >= 2 each, --views, --repeats and --threads >= 1")
     factor = ModelRuntimeConfig().point_occlusion_footprint
     rows = []
     for n in args.points:

@@ -174,21 +174,27 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
     seen = gt_views > 0
     pts, gt = gt_xyz[seen].astype(np.float32), gt_label[seen].astype(np.int64)
     texts = list(CLASS_NAMES)
-    methods = [("govnesf", False), ("average", False)]
-    # the depth test: input depth; without, the request's points as occluders (model.point_occlusion,
-    # queries.point_occlusion) or, with those off, the sparse prior of the triangulated points
-    methods += [("govnesf", True), ("average_depth", True)]
-    for method, use_depth in methods:
-        seg = _query(node, SegmentPoints(xyz=pts, texts=texts, method=method, use_depth=use_depth))  # type: ignore[arg-type]
-        name = f"miou_{method}{'+dgm' if use_depth and method == 'govnesf' else ''}"
-        if isinstance(seg, Error) and seg.code == "not_ready":  # no depth test available (settings off)
-            row[name] = None
-            continue
-        assert isinstance(seg, Segmentation), seg
-        row[name] = mean_iou(seg.label.astype(np.int64), gt, len(texts))[0]
-        for stage in ("total", "occluders", "view_selection"):  # the node's own stage timings (ms)
-            if stage in seg.timing_ms:
-                row[f"ms_{stage}_{name[5:]}"] = seg.timing_ms[stage]
+    # with use_depth the depth test: input depth; without, the request's points as occluders
+    # (model.point_occlusion, queries.point_occlusion) or, with those off, the keyframes' depth priors
+    methods = [("govnesf", False), ("average", False), ("govnesf", True), ("average_depth", True)]
+
+    def score(prefix: str, xyz: np.ndarray, scored: np.ndarray, truth: np.ndarray, timings: bool) -> None:
+        """mIoU of every method's answer at ``xyz`` (rows ``scored`` against ``truth``), as
+        ``row[prefix + method]``; None where the node has no such test (settings off). ``timings``:
+        also the node's own stage timings (ms), as ``row["ms_" + stage + "_" + method]``."""
+        for method, use_depth in methods:
+            seg = _query(node, SegmentPoints(xyz=xyz, texts=texts, method=method, use_depth=use_depth))  # type: ignore[arg-type]
+            name = f"{prefix}{method}{'+dgm' if use_depth and method == 'govnesf' else ''}"
+            if isinstance(seg, Error) and seg.code == "not_ready":
+                row[name] = None
+                continue
+            assert isinstance(seg, Segmentation), seg
+            row[name] = mean_iou(seg.label[scored].astype(np.int64), truth, len(texts))[0]
+            for stage in ("total", "occluders", "view_selection") if timings else ():
+                if stage in seg.timing_ms:
+                    row[f"ms_{stage}_{name[len(prefix):]}"] = seg.timing_ms[stage]
+
+    score("miou_", pts, np.ones(len(pts), bool), gt, timings=True)
     row["segment_points"] = len(pts)
     # a robot's own case: segment_points at the global map's points (what query_points returns),
     # each scored against the nearest ground-truth surface sample's label within MAP_LABEL_RADIUS_M
@@ -198,15 +204,7 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         near_d, near_i = cKDTree(gt_xyz).query(map_xyz)
         scored = near_d <= MAP_LABEL_RADIUS_M
         row["map_scored_points"] = int(scored.sum())
-        for method, use_depth in methods:
-            seg = _query(node, SegmentPoints(xyz=map_xyz, texts=texts, method=method, use_depth=use_depth))  # type: ignore[arg-type]
-            name = f"map_miou_{method}{'+dgm' if use_depth and method == 'govnesf' else ''}"
-            if isinstance(seg, Error) and seg.code == "not_ready":
-                row[name] = None
-                continue
-            assert isinstance(seg, Segmentation), seg
-            truth = gt_label[near_i[scored]].astype(np.int64)
-            row[name] = mean_iou(seg.label[scored].astype(np.int64), truth, len(texts))[0]
+        score("map_miou_", map_xyz, scored, gt_label[near_i[scored]].astype(np.int64), timings=False)
     reply = _query(node, QueryPoints(texts=["find the chair"], objects=True))
     row["chair_m"] = (chair_distance(reply.objects[0].centroid, scene)
                       if isinstance(reply, Points) and reply.objects else None)

@@ -1098,22 +1098,23 @@ class ModelRuntime:
                                                      (width, height), DEFAULT_EPS,
                                                      depth_m[candidates].float().numpy(), ratio,
                                                      threads=torch.get_num_threads()))  # (P, M)
-            depth_m = None  # applied
         elif cpu_kernels:
             from mapper.model.ops.average_kernel import in_view_matrix
 
             vis = torch.from_numpy(in_view_matrix(points.numpy(), cam_from_world.numpy(), Ks.numpy(),
                                                   (width, height), DEFAULT_EPS,
                                                   threads=torch.get_num_threads()))  # (P, M)
-        else:
+        else:  # off the CPU kernels (CUDA): in view and, with depth_m, the DGM test of one projection
+            view_depth = None if depth_m is None else depth_m[candidates]
             vis_parts = []
             for i in range(0, n_points, 65536):
                 chunk = points[i : i + 65536]
                 uv, z = project_points(chunk.unsqueeze(0).expand(len(candidates), -1, -1), Ks, cam_from_world)
-                vis_parts.append(in_view(uv, z, width, height).T)  # (p, M)
+                ok = in_view(uv, z, width, height)  # (M, p)
+                if view_depth is not None:
+                    ok = ok & self._depth_agrees(uv, z, view_depth)
+                vis_parts.append(ok.T)  # (p, M)
             vis = torch.cat(vis_parts)  # (P, M)
-        if depth_m is not None:
-            vis = vis & self._depth_agrees(points, Ks, cam_from_world, depth_m[candidates])
         seen = vis.any(dim=1)
         if candidates.numel() <= k:
             idx = seen.nonzero().squeeze(-1)
@@ -1309,28 +1310,20 @@ class ModelRuntime:
 
     def _depth_agrees(
         self,
-        points: Tensor,  # (P, 3)
-        K: Tensor,  # (M, 4)
-        cam_from_world: Tensor,  # (M, 4, 4)
+        uv: Tensor,  # (M, p, 2) pixel coordinates at the working size
+        z: Tensor,  # (M, p) z-depth
         depth_m: Tensor,  # (M, H, W) at the working size, 0 = none
-    ) -> Tensor:  # (P, M) bool
-        """The DGM test of ``GovNeSF.sample_views`` for every (point, view): the view's depth at
+    ) -> Tensor:  # (M, p) bool
+        """The DGM test of ``GovNeSF.sample_views`` for every (view, point): the view's depth at
         the point's pixel (nearest) agrees with the point's z within ``depth_mask_ratio``, or the
-        view has no depth there (or the point is outside it)."""
+        view has no depth there (points outside the image: its clamped edge pixel)."""
         ratio = self._require_model().cfg.render.depth_mask_ratio
         m, height, width = depth_m.shape
-        flat = depth_m.reshape(m, -1)
-        parts = []
-        for i in range(0, points.shape[0], 65536):
-            chunk = points[i : i + 65536]
-            # uv (M, p, 2), z (M, p)
-            uv, z = project_points(chunk.unsqueeze(0).expand(m, -1, -1), K, cam_from_world)
-            col = uv[..., 0].nan_to_num(0.0).floor().clamp(0, width - 1).long()
-            row = uv[..., 1].nan_to_num(0.0).floor().clamp(0, height - 1).long()
-            measured = flat.gather(1, row * width + col)  # (M, p)
-            has = torch.isfinite(measured) & (measured > 0)
-            parts.append(((z - measured).abs() <= ratio * measured) | ~has)
-        return torch.cat(parts, dim=1).T
+        col = uv[..., 0].nan_to_num(0.0).floor().clamp(0, width - 1).long()
+        row = uv[..., 1].nan_to_num(0.0).floor().clamp(0, height - 1).long()
+        measured = depth_m.reshape(m, -1).gather(1, row * width + col)  # (M, p)
+        has = torch.isfinite(measured) & (measured > 0)
+        return ((z - measured).abs() <= ratio * measured) | ~has
 
     def _occluder_depth(self, prep: _Prepared, pts: Tensor) -> Tensor | None:  # pts (P, 3)
         """(M, H, W) float32 at the working size: the depth DGM tests the request's points against

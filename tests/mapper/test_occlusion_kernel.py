@@ -99,8 +99,9 @@ def test_the_runtimes_torch_depth_test_equals_the_kernel() -> None:
     runtime = make_runtime(GovNeSF(TINY).eval())
     ratio = runtime._require_model().cfg.render.depth_mask_ratio
     cam = invert_pose(torch.from_numpy(poses).float())
-    agrees = runtime._depth_agrees(torch.from_numpy(pts), torch.from_numpy(K).float(), cam,
-                                   torch.from_numpy(depth)).numpy()
+    Kt = torch.from_numpy(K).float()
+    uv, z = project_points(torch.from_numpy(pts).unsqueeze(0).expand(len(K), -1, -1), Kt, cam)
+    agrees = runtime._depth_agrees(uv, z, torch.from_numpy(depth)).T.numpy()
     vis = in_view_matrix(pts, cam.numpy(), K.astype(np.float32), (W, H), 1e-6, threads=2)
     got = depth_test_matrix(pts, cam.numpy(), K.astype(np.float32), (W, H), 1e-6, depth, ratio, threads=2)
     assert ((vis & agrees) != got).mean() < 1e-3
