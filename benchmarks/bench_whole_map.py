@@ -17,7 +17,10 @@ method (``average``, ``average_depth``, ``govnesf``). Runs:
   rule before it: where both answer, the map's text only where its cosine is higher
   (``map_when_more_confident = true``);
 * ``bounded, no learned map features``: ``global_map.learned_features = false``; with ``, evicted
-  views for both`` / ``, no evicted views`` also ``queries.evicted_views = "both"`` / ``"off"``.
+  views for both`` / ``, no evicted views`` also ``queries.evicted_views = "both"`` / ``"off"``;
+* ``bounded, learned features at every eviction`` (``, no evicted views``):
+  ``global_map.learned_features_once = false``, the rule before 2026-12-05 (a voxel mixed with the
+  model's blend each time a keyframe that saw it leaves).
 
 Every other run uses the shipped ``[queries]`` (``map_radius_voxels = 2.5``, ``map_blend = 0.75``);
 the unbounded run too, so the comparison is like for like. (The "window first" rows of
@@ -79,7 +82,7 @@ def _count_keyframes(frames: list[bytes]) -> int:
 
 def _node(
     tmp: Path, max_keyframes: int, *, radius_voxels: float, learned: bool, more_confident: bool, blend: float,
-    evicted: str = "depth",
+    evicted: str = "depth", learned_once: bool = True,
 ) -> tuple[Any, Any, Any]:
     """(node, its map-features worker or None, the model runtime) for one run."""
     from mapper.node.config import config_from_dict
@@ -92,7 +95,8 @@ def _node(
             "map_dir": str(tmp),
             "events_endpoint": "",
             "window": {"max_keyframes": max_keyframes},
-            "global_map": {"rendered_depth": False, "learned_features": learned},
+            "global_map": {"rendered_depth": False, "learned_features": learned,
+                           "learned_features_once": learned_once},
             "queries": {"map_radius_voxels": radius_voxels, "map_when_more_confident": more_confident,
                         "map_blend": blend, "evicted_views": evicted},
         }
@@ -204,6 +208,9 @@ def bench_scene(
             bounded, radius, False, confident, blend, "both"),
         "bounded, no learned map features, no evicted views": (
             bounded, radius, False, confident, blend, "off"),
+        "bounded, learned features at every eviction": (bounded, radius, True, confident, blend, "depth"),
+        "bounded, learned features at every eviction, no evicted views": (
+            bounded, radius, True, confident, blend, "off"),
     }
     if only:
         unknown = sorted(set(only) - set(runs))
@@ -221,7 +228,7 @@ def bench_scene(
     for name, (max_kf, radius_voxels, learned, more_confident, map_blend, evicted) in runs.items():
         node, blender, _ = _node(
             tmp, max_kf, radius_voxels=radius_voxels, learned=learned, more_confident=more_confident,
-            blend=map_blend, evicted=evicted,
+            blend=map_blend, evicted=evicted, learned_once="every eviction" not in name,
         )
         ingest_s = _run(frames, node, blender)
         row: dict[str, Any] = {"max_keyframes": max_kf, "ingest_s": round(ingest_s, 2)}

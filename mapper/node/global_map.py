@@ -541,6 +541,8 @@ class GlobalSemanticMap:
         self._last_seen_kf = np.zeros(cap, np.int64)
         self._feat_stamp = np.zeros(cap, np.int64)
         """The version whose snapshots first include each row's current feature bytes."""
+        self._learned = np.zeros(cap, np.uint8)
+        """1 where :meth:`set_features` gave the voxel a learned feature (saved with the map)."""
         self._feat_reset = self._version + 1
         """Rows moved or were replaced (prune, restore, clear) in this version: snapshots'
         ``feat_reset``."""
@@ -553,12 +555,13 @@ class GlobalSemanticMap:
         self.keyframes_integrated = 0
         self.integrate_seconds_total = 0.0
         self.points_learned = 0
-        """Voxel feature updates by :meth:`set_features` (a voxel may count once per keyframe)."""
+        """Voxel feature updates by :meth:`set_features` (a voxel counts once with
+        ``learned_features_once``, else once per keyframe that saw it)."""
         self.integrate_recent_s: deque[float] = deque(maxlen=_RECENT_INTEGRATES)
         """Seconds of the latest integrates (for the p50 / p95 in :meth:`stats`)."""
 
     _ROW_FIELDS = ("_keys", "_xyz", "_weight", "_feat", "_feat_norm", "_feat_weight", "_hits",
-                   "_last_seen_ns", "_last_seen_kf", "_feat_stamp")  # fmt: skip
+                   "_last_seen_ns", "_last_seen_kf", "_feat_stamp", "_learned")  # fmt: skip
 
     def _grow(self, need: int) -> None:
         cap = self._keys.shape[0]
@@ -784,9 +787,12 @@ class GlobalSemanticMap:
                                   "none of its voxels is in the map any more")
         return IntegrateStats(points, touched, 0, 0, True, time.perf_counter() - started)
 
-    def seen_voxels(self, keyframe: KeyframeLike) -> tuple[np.ndarray, np.ndarray]:
+    def seen_voxels(
+        self, keyframe: KeyframeLike, *, unlearned: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:  # (U,) int64 keys, (U, 3) float32 positions
         """The map voxels a keyframe's observations fall in (those still in the map): (keys (U,)
-        int64, fused positions (U, 3) float32). Empty without depth. No lock held while observing."""
+        int64, fused positions (U, 3) float32). Empty without depth. No lock held while observing.
+        ``unlearned``: only voxels :meth:`set_features` has not given a learned feature yet."""
         obs = self.observe(keyframe)
         if isinstance(obs, str):
             return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
@@ -794,6 +800,8 @@ class GlobalSemanticMap:
         ukeys = np.unique(keys[ok])
         with self._lock:
             rows, found = self._rows_of(ukeys)
+            if unlearned:
+                found &= self._learned[rows] == 0
             return ukeys[found], self._xyz[rows[found]].copy()
 
     def _rows_of(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -818,7 +826,8 @@ class GlobalSemanticMap:
         the fused average: docs/QUERIES.md), and keeps its norm and feature weight, so later
         observations still fuse as a running weighted mean; a voxel without one takes the
         feature's direction with norm 1 and its geometric confidence as feature weight. Voxels
-        pruned since are skipped. Returns the number of voxels set. Raises ``ValueError``
+        pruned since are skipped, and with ``global_map.learned_features_once`` (default) voxels
+        given a learned feature before. Returns the number of voxels set. Raises ``ValueError``
         (nothing changed) on a shape or dimension mismatch."""
         keys = np.asarray(keys, np.int64).reshape(-1)
         feats = np.asarray(features, np.float32)
@@ -832,6 +841,8 @@ class GlobalSemanticMap:
                 raise ValueError(f"features have dimension {dims['D']}, the global map's {self._dim}")
             rows, found = self._rows_of(keys)
             keep = found & good
+            if self.config.learned_features_once:
+                keep[keep] = self._learned[rows[keep]] == 0
             if not keep.any():
                 return 0
             self._set_dim(int(dims["D"]))
@@ -845,6 +856,7 @@ class GlobalSemanticMap:
             self._feat_stamp[rows] = self._version + 1
             self._feat_norm[rows[fresh]] = 1.0
             self._feat_weight[rows[fresh]] = np.maximum(self._weight[rows[fresh]], 1e-6)
+            self._learned[rows] = 1
             self.points_learned += int(rows.shape[0])
             self._version += 1
             return int(rows.shape[0])
@@ -1054,6 +1066,7 @@ class GlobalSemanticMap:
                 f"{prefix}.hits": self._hits[:n].copy(),
                 f"{prefix}.last_seen_ns": self._last_seen_ns[:n].copy(),
                 f"{prefix}.age_kf": (self._kf_counter - self._last_seen_kf[:n]).astype(np.int64),
+                f"{prefix}.learned": self._learned[:n].copy(),
             }
             if self._feat is not None:
                 arrays[f"{prefix}.feat"] = self._feat[:n].copy()
@@ -1103,6 +1116,12 @@ class GlobalSemanticMap:
                 raise ValueError(f"global map section: {name} must be {dtype} {shape}, got {desc}")
         for name in spec:
             got[name] = arrays[f"{prefix}.{name}"]
+        learned = arrays.get(f"{prefix}.learned")  # optional: maps saved before 2026-12-05 lack it
+        if learned is not None and (learned.dtype != np.uint8 or learned.shape != (n,)):
+            raise ValueError(
+                f"global map section: learned must be uint8 ({n},), got {learned.dtype} {learned.shape}"
+            )
+        got["learned"] = learned if learned is not None else np.zeros(n, np.uint8)
         if not np.isfinite(got["xyz"]).all() or not (got["weight"] >= 0).all():
             raise ValueError("global map section: xyz must be finite and weights >= 0")
         if manifest.get("voxel_size_m") == self.config.voxel_size_m:
@@ -1137,6 +1156,7 @@ class GlobalSemanticMap:
             self._hits[:m] = got["hits"][rows]
             self._last_seen_ns[:m] = got["last_seen_ns"][rows]
             self._last_seen_kf[:m] = -got["age_kf"][rows]
+            self._learned[:m] = got["learned"][rows] != 0
             if self._feat is not None:
                 self._feat[:m] = got["feat"][rows]
             srt = np.argsort(self._keys[:m], kind="stable")

@@ -14,7 +14,9 @@ map before it is lost:
   observations fall in (:meth:`GlobalSemanticMap.seen_voxels`, merged), asks the plugin's
   ``features`` callback ONCE for the blended features at their fused positions (the model's
   cached volume is recomputed once per window change, so batching is what keeps this cheap), and
-  sets them (:meth:`GlobalSemanticMap.set_features`: new direction, the fused norm and weight kept).
+  sets them (:meth:`GlobalSemanticMap.set_features`: new direction, the fused norm and weight kept);
+  with ``global_map.learned_features_once`` (default) only for voxels that have no learned
+  feature yet, so a voxel takes the blend of the window its first observers were in.
 
 The core stays torch-free: the callback is supplied by the learned plugin
 (``mapper.node.plugins.learned``: ``ModelRuntime.point_features``). A keyframe whose turn came
@@ -147,7 +149,8 @@ class PreEvictionFeatures:
         keyframes = [k for k, m in items if m is gmap]
         if not keyframes:
             return
-        parts = [gmap.seen_voxels(k) for k in keyframes]
+        once = gmap.config.learned_features_once  # voxels that have their learned feature are not asked again
+        parts = [gmap.seen_voxels(k, unlearned=once) for k in keyframes]
         keys = np.concatenate([p[0] for p in parts])
         xyz = np.concatenate([p[1] for p in parts])
         keys, first = np.unique(keys, return_index=True)  # a voxel seen by several keyframes once

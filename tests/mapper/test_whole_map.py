@@ -349,6 +349,72 @@ def test_set_features_refuses_a_wrong_shape_and_changes_nothing() -> None:
     assert gmap.version == version and gmap.points_learned == 0
 
 
+def _learned_map(once: bool) -> tuple[GlobalSemanticMap, np.ndarray]:
+    from mapper.node.window import Keyframe
+
+    gmap = GlobalSemanticMap(GlobalMapConfig(learned_features_once=once))
+    f = _frame(0, np.eye(4), 0)  # fused c0 everywhere
+    gmap.integrate(Keyframe(seq=0, stamp_ns=0, camera="cam0", K=f.K, world_from_cam=f.world_from_cam,
+                            rgb=f.rgb, depth_m=f.depth_m, ov=f.ov, ov_space=SPACE))  # fmt: skip
+    keys = gmap.to_arrays()[0]["global.keys"]
+    return gmap, keys
+
+
+def _unit_feat(gmap: GlobalSemanticMap) -> np.ndarray:
+    feat = gmap.snapshot().feat
+    assert feat is not None
+    f = feat.astype(np.float64)
+    return f / np.linalg.norm(f, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("once", [True, False])
+def test_learned_features_enter_a_voxel_once_or_at_every_eviction(once: bool) -> None:
+    gmap, keys = _learned_map(once)
+    c2, c3 = np.zeros((len(keys), D), np.float32), np.zeros((len(keys), D), np.float32)
+    c2[:, 2], c3[:, 3] = 1.0, 1.0
+    half = len(keys) // 2
+    assert gmap.set_features(keys[:half], c2[:half]) == half  # the first eviction: c0 + c2
+    first = _unit_feat(gmap)
+    np.testing.assert_allclose(first[:half, [0, 2]], np.sqrt(0.5), atol=2e-3)
+    np.testing.assert_allclose(first[half:], np.eye(D)[[0] * (len(keys) - half)], atol=1e-6)  # not set yet
+    set_again = gmap.set_features(keys, c3)  # a later eviction of keyframes that saw them all
+    after = _unit_feat(gmap)
+    if once:  # only the voxels without a learned feature take it
+        assert set_again == len(keys) - half and gmap.points_learned == len(keys)
+        np.testing.assert_allclose(after[:half], first[:half], atol=1e-6)
+        np.testing.assert_allclose(after[half:, [0, 3]], np.sqrt(0.5), atol=2e-3)
+    else:  # every time an equal mix with what the voxel has: c0 keeps about a quarter of the say
+        assert set_again == len(keys) and gmap.points_learned == len(keys) + half
+        expect = np.array([0.5, 0.0, 0.5, np.sqrt(0.5)]) / np.linalg.norm([0.5, 0.0, 0.5, np.sqrt(0.5)])
+        np.testing.assert_allclose(after[:half], np.tile(expect, (half, 1)), atol=3e-3)
+    # the worker asks the model only for the voxels still without a learned feature
+    from mapper.node.window import Keyframe
+
+    f = _frame(0, np.eye(4), 0)
+    kf = Keyframe(seq=0, stamp_ns=0, camera="cam0", K=f.K, world_from_cam=f.world_from_cam, rgb=f.rgb,
+                  depth_m=f.depth_m, ov=f.ov, ov_space=SPACE)  # fmt: skip
+    assert gmap.seen_voxels(kf)[0].shape[0] == len(keys)
+    assert gmap.seen_voxels(kf, unlearned=True)[0].shape[0] == 0
+
+
+def test_learned_flags_survive_save_and_load_and_old_maps_load_without_them() -> None:
+    gmap, keys = _learned_map(True)
+    c3 = np.zeros((3, D), np.float32)
+    c3[:, 3] = 1.0
+    gmap.set_features(keys[:3], c3)
+    arrays, manifest = gmap.to_arrays()
+    assert int(arrays["global.learned"].sum()) == 3
+    back = GlobalSemanticMap(GlobalMapConfig())
+    back.restore(arrays, manifest, map_version=1)
+    assert back.set_features(keys[:3], c3) == 0 and back.set_features(keys[3:5], c3[:2]) == 2  # flags kept
+    old = {k: v for k, v in arrays.items() if k != "global.learned"}  # a map saved before the flag
+    back.restore(old, manifest, map_version=1)
+    assert back.set_features(keys[:3], c3) == 3
+    bad = dict(arrays, **{"global.learned": arrays["global.learned"][:-1]})
+    with pytest.raises(ValueError, match="learned must be uint8"):
+        back.restore(bad, manifest, map_version=1)
+
+
 def test_fill_from_map_takes_a_more_confident_map_answer_only_when_asked() -> None:
     snap = _one_point_snapshot()
     emb = np.eye(D, dtype=np.float32)
