@@ -3,7 +3,8 @@
     govnesf evaluate --checkpoint checkpoints/cpu-small.json --data data/eval \\
         [--distill checkpoints/distill.json] [--out results.json] [--markdown tables.md] \\
         [--max-points 20000] [--views-per-point all|K] [--source-views N] [--samples S] \\
-        [--novel-views N] [--no-2d] [--no-3d] [--no-oracle] [--no-depth-input-rows] [--no-surface-renders]
+        [--novel-views N] [--no-2d] [--no-3d] [--no-oracle] [--no-depth-input-rows] \\
+        [--no-point-occlusion-rows] [--no-surface-renders]
 
 ``--data`` takes scene directories (``govnesf sim record`` exports, ``scripts/make_eval_data.sh``)
 or folders of them. Prints progress and the Markdown tables; ``--out`` writes every number as
@@ -76,6 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="2D: skip the rows rendered at the sources' measured surfaces (the node's render)")
     p.add_argument("--no-depth-input-rows", action="store_true",
                    help="3D: skip the rows that use no input depth (frustum bounds, rendered-depth DGM)")
+    p.add_argument("--no-point-occlusion-rows", action="store_true",
+                   help="3D: skip the rows tested against each frame's z-buffer of the evaluated points")
     p.add_argument("--rgb-only-node", action="store_true",
                    help="3D: also stream each scene WITHOUT depth through an in-process node serving "
                    "--checkpoint (the plugins `govnesf serve` installs) and score its segment_points "
@@ -139,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
         oracle=not args.no_oracle, clip_to_volume=not args.no_clip,
         pixel_stride=args.pixel_stride, averaging_borders_px=tuple(args.averaging_border_px),
         weight_threshold=args.weight_threshold, no_depth_input=not args.no_depth_input_rows,
+        point_occlusion=not args.no_point_occlusion_rows,
         surface_renders=not args.no_surface_renders,
         rgb_only_node=str(args.checkpoint) if args.rgb_only_node else None, node_config=args.node_config,
     )

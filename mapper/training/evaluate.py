@@ -686,6 +686,14 @@ class EvalSettings:
     (``render_view_full``); rows "... at measured surfaces (depth input)"."""
     surface_footprint_m: float = 0.05
     """Footprint of each source depth point in that splat (the node's map voxel, 5 cm)."""
+    point_occlusion: bool = True
+    """3D: also the rows with a visibility cue from the evaluated points themselves and no input
+    depth: each stream frame's z-buffer of those points (:func:`mapper.geometry.splat.occluder_depths`,
+    each point over ``point_occlusion_footprint`` x their median spacing, as the node's
+    ``model.point_occlusion``) as the depth of Depth Guided Masking and of the averaging's depth
+    test (every averaging border). Rows "... + point occlusion (no depth input)"."""
+    point_occlusion_footprint: float = 3.0
+    """The node's ``model.point_occlusion_footprint``."""
     rgb_only_node: str | None = None
     """3D: the checkpoint path to serve in an in-process node that the scene is streamed into
     WITHOUT depth, with the plugins ``govnesf serve`` installs; its ``segment_points`` answers
@@ -833,6 +841,20 @@ def _evaluate_3d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
         record("Averaging, GT-visible views (oracle)", feats, time.perf_counter() - t0,
                occluded_weight=0.0, invalid=float((nv == 0).float().mean()))
 
+    point_depth: Tensor | None = None  # (N, H, W) the frames' z-buffers of the evaluated points
+    if settings.point_occlusion:
+        point_depth = point_occlusion_depths(sp, scene.image_wh, settings.point_occlusion_footprint)
+        pd = point_depth.numpy()
+        views_pts = [OVView(scene.ov[k], scene.K[k], scene.world_from_cam[k], scene.image_wh, pd[k])
+                     for k in range(len(scene))]
+        for border in settings.averaging_borders_px:
+            t0 = time.perf_counter()
+            feats, nv = average_features(pts, views_pts, use_depth=True, device=device, border_px=border)
+            counted = _averaging_mask(pts, K, poses, scene.image_wh, point_depth, border)
+            suffix = "" if border == AVERAGING_BORDER_PX else f", {border:g} px border"
+            record("Averaging + point occlusion (no depth input)" + suffix, feats, time.perf_counter() - t0,
+                   occluded_weight=_uniform_occluded_share(counted, occluded),
+                   invalid=float((nv == 0).float().mean()))
     for mname, model in models.items():
         t0 = time.perf_counter()
         views, bounds = scene_sources(model, scene, device=device)
@@ -849,6 +871,13 @@ def _evaluate_3d(scene: EvalScene, models: dict[str, GovNeSF], text_emb: Tensor,
                    invalid=float((~pb.valid).float().mean()), volume_seconds=t_vol)
         if settings.no_depth_input:
             _no_depth_input_rows(scene, model, mname, sp, settings, record, device)
+        if point_depth is not None:
+            t0 = time.perf_counter()
+            v = dataclasses.replace(views, depth_m=point_depth.to(views.K.device))
+            pb = blend_points(model, v, volume, bounds, pts.to(device), depth_guided_masking=True,
+                              views_per_point=vpp, chunk_size=settings.chunk_points)
+            record(f"{mname} + point occlusion (no depth input)", pb.ov, time.perf_counter() - t0,
+                   occluded_weight=occluded_share(pb, occluded), invalid=float((~pb.valid).float().mean()))
     if settings.rgb_only_node is not None:
         from mapper.training.eval_node import NodeEvalSettings, node_rgb_only_rows
 
@@ -909,6 +938,19 @@ def _no_depth_input_rows(scene: EvalScene, model: GovNeSF, mname: str, sp: Scene
     record(f"Averaging + {mname} rendered-depth test (no depth input)", feats, time.perf_counter() - t0,
            occluded_weight=_uniform_occluded_share(counted, occluded),
            invalid=float((nv == 0).float().mean()), **depth_stats)
+
+
+def point_occlusion_depths(sp: ScenePoints, image_wh: tuple[int, int], footprint: float) -> Tensor:
+    """(N, H, W) float32: each stream frame's z-buffer of the evaluated points, each point over
+    ``footprint`` x their median nearest-neighbour spacing (0 = no point): the depth a point is
+    tested against for the rows "... + point occlusion (no depth input)" (the node's
+    ``model.point_occlusion`` rule, here with the evaluated points as the request)."""
+    from mapper.geometry.splat import occluder_depths, point_spacing
+
+    xyz = sp.xyz.numpy()
+    z = occluder_depths(xyz, sp.K.numpy(), sp.world_from_cam.numpy(), image_wh[0], image_wh[1],
+                        footprint * point_spacing(xyz), threads=torch.get_num_threads())
+    return torch.from_numpy(z)
 
 
 def _averaging_mask(pts: Tensor, K: Tensor, poses: Tensor, image_wh: tuple[int, int],

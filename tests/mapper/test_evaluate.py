@@ -7,6 +7,7 @@ classifies every point away from the label boundaries perfectly.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -182,13 +183,33 @@ def test_perfect_features_give_perfect_3d_scores(scene: ev.EvalScene) -> None:
     settings = ev.EvalSettings(do_2d=False, max_points=None, averaging_borders_px=(10.0, 0.0))
     res = ev.evaluate_scene(scene, {"uniform": tiny_model(uniform=True)}, text_embeddings(), settings)["3d"]
     for name in ("Averaging (no depth)", "Averaging + depth test", "Averaging, GT-visible views (oracle)",
-                 "Averaging (no depth), 0 px border", "uniform (no depth)", "uniform + DGM"):
+                 "Averaging (no depth), 0 px border", "uniform (no depth)", "uniform + DGM",
+                 "Averaging + point occlusion (no depth input)",
+                 "Averaging + point occlusion (no depth input), 0 px border",
+                 "uniform + point occlusion (no depth input)"):
         s = res[name].scores()
         assert s.miou == pytest.approx(1.0) and s.oacc == pytest.approx(1.0), name
         assert s.num_valid == len(scene.points_xyz)
         assert res[name].extra["occluded_weight"] == pytest.approx(0.0)  # a floor occludes nothing
     # Three classes present: IoU defined for exactly those.
     assert np.isfinite(res["Averaging (no depth)"].scores().iou).sum() == 3
+
+
+def test_point_occlusion_depths_hide_a_point_under_the_floor(scene: ev.EvalScene) -> None:
+    floor = torch.from_numpy(scene.points_xyz)
+    hidden = torch.tensor([[-0.6, 0.0, -0.7]])  # under floor points in every view: 2.7 m, floor 2 m
+    xyz = torch.cat([floor, hidden])
+    Kt, poses = torch.from_numpy(scene.K).float(), torch.from_numpy(scene.world_from_cam).float()
+    inside, visible = ev.gt_visibility(xyz, Kt, poses, torch.from_numpy(scene.gt_depth_m))
+    sp = ev.ScenePoints(gt=np.zeros(len(xyz), np.int64), xyz=xyz, K=Kt, world_from_cam=poses,
+                        in_image=inside, visible=visible)  # fmt: skip
+    depth = ev.point_occlusion_depths(sp, scene.image_wh, 3.0)
+    assert depth.shape == (len(scene), H, W) and depth.dtype == torch.float32
+    uv, z, mask = ev.candidate_views(dataclasses.replace(sources(tiny_model(), scene)[0], depth_m=depth), xyz,
+                                     depth_guided_masking=True)
+    assert not mask[-1].any()  # every view sees the floor in front of it
+    assert mask[:-1].all()  # the floor points pass in every view: nothing is in front of them
+    assert torch.allclose(z[:, :-1], torch.full_like(z[:, :-1], HEIGHT_M), atol=1e-4)
 
 
 def test_occluded_weight_counts_views_that_do_not_see_the_point(scene: ev.EvalScene) -> None:
