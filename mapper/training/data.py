@@ -38,8 +38,15 @@ from torch import Tensor
 
 from mapper.model.config import ModelConfig
 from mapper.model.ops.cost_volume import VolumeBounds, bounds_from_points
-from mapper.model.ops.geometry import frustum_points, pixel_rays, sample_bilinear, scale_uv
-from mapper.model.supervision import ray_distance
+from mapper.model.ops.geometry import (
+    frustum_points,
+    invert_pose,
+    pixel_rays,
+    project_points,
+    sample_bilinear,
+    scale_uv,
+)
+from mapper.model.supervision import ray_distance, surface_points, visibility_targets
 from protocol.recording import read_recording
 
 __all__ = [
@@ -497,6 +504,10 @@ class TrainSample:
     blend_sources: int = 0
     """> 0: only the first ``blend_sources`` of ``sources`` are blended; the cost volume (and its
     bounds) is built over all of them (``RaySampler.volume_sources``). 0: every source does both."""
+    target_ov_point: Tensor | None = None
+    """(R, D) the point-level OV target at each ray's true surface point when it is not the target
+    frame's own feature (``RaySampler.point_ov_target = "visible_mean"``: the mean over every frame
+    of the scene that sees the point, :func:`visible_mean_features`); None: ``target_ov``."""
 
     def to(self, device: torch.device | str) -> TrainSample:
         return TrainSample(
@@ -511,6 +522,7 @@ class TrainSample:
             None if self.target_t is None else self.target_t.to(device),
             self.has_ov,
             self.blend_sources,
+            None if self.target_ov_point is None else self.target_ov_point.to(device),
         )
 
 
@@ -541,9 +553,15 @@ class RaySampler:
         extra_scenes: list[Scene] | None = None,
         extra_weight: float = 0.0,
         volume_sources: int = 0,
+        point_ov_target: str = "frame",
+        point_ov_rel_tol: float = 0.05,
     ) -> None:
         if not scenes:
             raise ValueError("RaySampler needs at least one scene")
+        if point_ov_target not in POINT_OV_TARGETS:
+            raise ValueError(f"point_ov_target {point_ov_target!r} must be one of {POINT_OV_TARGETS}")
+        if not point_ov_rel_tol >= 0.0:
+            raise ValueError(f"point_ov_rel_tol {point_ov_rel_tol} out of range: must be >= 0")
         if volume_sources < 0:
             raise ValueError(f"volume_sources {volume_sources} out of range: must be >= 0")
         if rays_per_view < 1:
@@ -586,6 +604,11 @@ class RaySampler:
         """Fraction of examples whose colours are jittered (:func:`photometric_jitter`)."""
         self.photometric_strength = photometric_strength
         self.volume_sources = volume_sources
+        self.point_ov_target = point_ov_target
+        """"frame": the point-level OV target is the target frame's own feature at the ray's pixel;
+        "visible_mean": the mean over every frame that sees the ray's surface point
+        (:func:`visible_mean_features`, depth agreement within ``point_ov_rel_tol``)."""
+        self.point_ov_rel_tol = point_ov_rel_tol
         """> the number of sources: each example's cost volume is built over N frames, N drawn
         uniformly from [num_sources, volume_sources]: the blend's sources and the next best
         overlapping frames (as the node's volume spans its whole window while each point blends a
@@ -655,11 +678,64 @@ class RaySampler:
             has_ov=scene.has_ov,
             blend_sources=blend_sources,
         )
+        if self.point_ov_target == "visible_mean" and scene.has_ov:  # no draw: the stream is unchanged
+            keep = target_t > 0
+            mean = target_ov.clone()
+            if bool(keep.any()):
+                pts = surface_points(sample.origins[keep], sample.directions[keep], target_t[keep])
+                got, n_views = visible_mean_features(scene, pts, rel_tol=self.point_ov_rel_tol)
+                sub = mean[keep]
+                sub[n_views > 0] = got[n_views > 0]
+                mean[keep] = sub
+            sample.target_ov_point = mean
         # Drawn after everything else, so that examples without it are unchanged.
         if self.photometric_prob > 0 and bool(rng.random() < self.photometric_prob):
             src_rgb, tgt_rgb = photometric_jitter(sources.rgb, target_rgb, self.photometric_strength, rng)
             sample.sources.rgb, sample.target_rgb = src_rgb, tgt_rgb
         return sample
+
+
+POINT_OV_TARGETS = ("frame", "visible_mean")
+"""``RaySampler.point_ov_target`` / ``TrainConfig.point_ov_target`` values."""
+
+
+def visible_mean_features(
+    scene: Scene,
+    points: Tensor,  # (P, 3) world points (m)
+    *,
+    rel_tol: float = 0.05,
+    chunk_frames: int = 32,
+) -> tuple[Tensor, Tensor]:  # (P, D) float32 unit rows (zero where no frame sees it), (P,) int64
+    """The mean of the unit OV features of every frame of ``scene`` that sees each point, its
+    direction: a target for the point-level OV loss that is the consensus of the views that see the
+    point instead of one frame's own (view-dependent) 2D prediction. A frame sees a point when it
+    projects inside the image, in front of it, and the frame's depth agrees
+    (:func:`mapper.model.supervision.visibility_targets`, ``rel_tol``); features are sampled
+    bilinearly from the frames' OV maps. Also the number of frames that see each point."""
+    pts = points.detach().float().cpu()
+    if pts.ndim != 2 or pts.shape[-1] != 3:
+        raise ValueError(f"points must have shape (P, 3), got {tuple(pts.shape)}")
+    if not scene.has_ov:
+        raise ValueError(f"scene {scene.name} has no ov maps")
+    w, h = scene.image_wh
+    total = torch.zeros(pts.shape[0], scene.ov_dim)
+    count = torch.zeros(pts.shape[0], dtype=torch.int64)
+    for start in range(0, scene.num_frames, chunk_frames):
+        idx = np.arange(start, min(start + chunk_frames, scene.num_frames))
+        K = torch.from_numpy(scene.K[idx]).float()
+        poses = torch.from_numpy(scene.world_from_cam[idx]).float()
+        depth = torch.from_numpy(scene.depth_m[idx]).float()
+        visible, _ = visibility_targets(pts, K, poses, depth, (w, h), rel_tol=rel_tol)  # (P, n)
+        for j, f in enumerate(idx):
+            sees = visible[:, j]
+            if not bool(sees.any()):
+                continue
+            uv, _ = project_points(pts[sees].unsqueeze(0), K[j : j + 1], invert_pose(poses[j : j + 1]))
+            ov_map = torch.from_numpy(scene.ov[f]).permute(2, 0, 1).float()  # (D, h, w)
+            feat, _ = sample_bilinear(ov_map, scale_uv(uv[0], (w, h), (ov_map.shape[-1], ov_map.shape[-2])))
+            total[sees] += torch.nn.functional.normalize(feat, dim=-1)
+            count[sees] += 1
+    return torch.nn.functional.normalize(total, dim=-1), count
 
 
 def photometric_jitter(

@@ -61,6 +61,7 @@ from mapper.model.supervision import (
     visibility_targets,
 )
 from mapper.training.data import (
+    POINT_OV_TARGETS,
     RaySampler,
     Scene,
     TrainSample,
@@ -157,6 +158,11 @@ class TrainConfig:
     point_ov_weight: float = 0.0
     """Weight of the point-level OV loss: ``1 - cos`` of the blended OV feature AT the true surface
     point of each target ray (the 3D task's query) against the target's OV (0 = off)."""
+    point_ov_target: str = "frame"
+    """What that loss compares with: "frame", the target frame's own OV feature at the ray's pixel
+    (one view's 2D prediction, whose errors depend on the view); "visible_mean", the mean of the
+    unit OV features of every frame of the scene whose depth says it sees the point
+    (``mapper.training.data.visible_mean_features``, ``visibility_rel_tol``; training depth only)."""
     visibility_weight: float = 0.0
     """Weight of the visibility loss on the OV blending weights at those surface points: ``-log``
     of the weight mass on the source views whose depth says they see the point (blend mode only;
@@ -232,6 +238,7 @@ class TrainConfig:
             (self.point_ov_weight >= 0, "point_ov_weight", ">= 0"),
             (self.visibility_weight >= 0, "visibility_weight", ">= 0"),
             (self.visibility_rel_tol >= 0, "visibility_rel_tol", ">= 0"),
+            (self.point_ov_target in POINT_OV_TARGETS, "point_ov_target", f"one of {POINT_OV_TARGETS}"),
             (0.0 <= self.photometric_prob <= 1.0, "photometric_prob", "in [0, 1]"),
             (0.0 <= self.depth_guided_masking_prob <= 1.0, "depth_guided_masking_prob", "in [0, 1]"),
             (0.0 <= self.photometric_strength < 1.0, "photometric_strength", "in [0, 1)"),
@@ -437,7 +444,8 @@ def _surface_point_losses(
     po = model.query_points(views, volume, src.bounds, points, depth_guided_masking=dgm)
     out: dict[str, torch.Tensor] = {}
     if cfg.point_ov_weight > 0:
-        out["point_ov"] = ov_cosine_loss(po.ov, s.target_ov[keep], po.valid)
+        target = s.target_ov if s.target_ov_point is None else s.target_ov_point
+        out["point_ov"] = ov_cosine_loss(po.ov, target[keep], po.valid)
     if cfg.visibility_weight > 0 and po.ov_weights is not None:
         w, h = src.rgb.shape[-1], src.rgb.shape[-2]
         n = len(views)  # the blended sources (the first ones of src)
@@ -726,6 +734,8 @@ def _load_data(cfg: TrainConfig, dd: _Dist, model_cfg: ModelConfig | None) -> _D
         extra_scenes=extra_scenes,
         extra_weight=cfg.extra_train_weight,
         volume_sources=cfg.volume_sources,
+        point_ov_target=cfg.point_ov_target,
+        point_ov_rel_tol=cfg.visibility_rel_tol,
     )
     val_views: list[ValidationView] = []
     text_emb = np.zeros((0, ov_dim), np.float32)

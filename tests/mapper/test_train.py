@@ -18,7 +18,7 @@ from test_data import tiny_model_config, write_text_embeddings, write_tiny_scene
 
 from mapper.model.checkpoint import load_model
 from mapper.model.field import GovNeSF
-from mapper.training.data import RaySampler, load_scene
+from mapper.training.data import RaySampler, Scene, load_scene
 from mapper.training.train import (
     TrainConfig,
     budget_probe_steps,
@@ -519,3 +519,68 @@ def test_volume_sources_add_frames_to_the_volume_only(
 
 def target_excluded(sample) -> bool:  # type: ignore[no-untyped-def]
     return sample.target not in set(sample.sources.indices.tolist())
+
+
+def _down_scene(occluded_in_last: bool) -> Scene:
+    """Three 8x6 frames 2 m above the floor z = 0 looking down, each frame's OV map one constant
+    one-hot feature (frame k: e_k); the last frame's depth says 1 m (an occluder) if asked."""
+    w, h, d = 8, 6, 4
+    K = np.array([4.0, 4.0, 4.0, 3.0])
+    poses = []
+    for cx in (-0.1, 0.0, 0.1):
+        pose = np.eye(4)
+        pose[:3, :3] = np.diag([1.0, -1.0, -1.0])
+        pose[:3, 3] = [cx, 0.0, 2.0]
+        poses.append(pose)
+    ov = np.zeros((3, 3, 4, d), np.float16)
+    for k in range(3):
+        ov[k, ..., k] = 1.0
+    depth = np.full((3, h, w), 2.0, np.float32)
+    if occluded_in_last:
+        depth[2] = 1.0
+    return Scene(name="down", rgb=np.zeros((3, h, w, 3), np.uint8), depth_m=depth, ov=ov,
+                 K=np.tile(K, (3, 1)), world_from_cam=np.stack(poses),
+                 points_m=np.zeros((3, 1, 3), np.float32), class_names=["a", "b", "c", "d"])  # fmt: skip
+
+
+@pytest.mark.parametrize("occluded", [False, True])
+def test_visible_mean_features_average_the_frames_that_see_a_point(occluded: bool) -> None:
+    from mapper.training.data import visible_mean_features
+
+    scene = _down_scene(occluded)
+    pts = torch.tensor([[0.0, 0.0, 0.0], [50.0, 0.0, 0.0]])  # on the floor under every camera; far outside
+    mean, count = visible_mean_features(scene, pts)
+    seen = 2 if occluded else 3
+    assert count.tolist() == [seen, 0]
+    expect = torch.zeros(4)
+    expect[:seen] = 1.0 / np.sqrt(seen)
+    assert torch.allclose(mean[0], expect, atol=1e-6)
+    assert torch.equal(mean[1], torch.zeros(4))
+    with pytest.raises(ValueError, match=r"\(P, 3\)"):
+        visible_mean_features(scene, torch.zeros(3))
+
+
+def test_point_ov_target_visible_mean_keeps_the_rays_and_trains(data_root: Path) -> None:
+    torch.set_num_threads(1)
+    scene = load_scene(data_root / "train" / "tiny_s0")
+    frame = RaySampler([scene], tiny_model_config(), rays_per_view=32, seed=5)
+    mean = RaySampler([scene], tiny_model_config(), rays_per_view=32, seed=5, point_ov_target="visible_mean")
+    a, b = frame.sample(1, 0), mean.sample(1, 0)
+    assert a.target_ov_point is None and b.target_ov_point is not None
+    assert torch.equal(a.origins, b.origins) and torch.equal(a.target_ov, b.target_ov)  # the same example
+    assert b.target_t is not None
+    hit = b.target_t > 0
+    assert bool(hit.any())
+    norms = b.target_ov_point[hit].norm(dim=-1)
+    assert torch.allclose(norms, torch.ones_like(norms), atol=1e-5)  # the target frame itself sees each point
+    assert torch.equal(b.target_ov_point[~hit], b.target_ov[~hit])
+    with pytest.raises(ValueError, match="point_ov_target"):
+        RaySampler([scene], tiny_model_config(), rays_per_view=8, point_ov_target="labels")
+    with pytest.raises(ValueError, match="point_ov_target"):
+        TrainConfig(point_ov_target="labels")
+    cfg = _cfg(data_root, data_root / "unused", point_ov_weight=1.0, point_ov_target="visible_mean",
+               rays_per_view=32, batch_views=1)  # fmt: skip
+    model = GovNeSF(tiny_model_config())
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)
+    out = train_step(model, opt, mean, cfg, 1, 0, 1, torch.device("cpu"))
+    assert np.isfinite(out["point_ov"]) and out["point_ov"] > 0
