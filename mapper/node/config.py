@@ -194,7 +194,7 @@ class GlobalMapConfig:
     the window (then the window still holds the views that first observed it). Off: again at every
     keyframe that saw it and leaves, each time an equal mix with the direction it has, so after k
     evictions the fused average keeps only about 2^-k of the say. Whole-map ``segment_points`` on
-    9 recorded scenes, bounded window minus unbounded: worst scene -1.6 once against -2.6 every
+    9 recorded scenes, bounded window minus unbounded: worst scene -1.6 once against -2.7 every
     time (``govnesf``; docs/QUERIES.md). Once also spares the model the voxels already set."""
 
     learned_features_batch: int = 4

@@ -604,15 +604,15 @@ class RaySampler:
         """Fraction of examples whose colours are jittered (:func:`photometric_jitter`)."""
         self.photometric_strength = photometric_strength
         self.volume_sources = volume_sources
+        """> the number of sources: each example's cost volume is built over N frames, N drawn
+        uniformly from [num_sources, volume_sources]: the blend's sources and the next best
+        overlapping frames (as the node's volume spans its whole window while each point blends a
+        few views); 0 (or <= num_sources): over the blend's sources."""
         self.point_ov_target = point_ov_target
         """"frame": the point-level OV target is the target frame's own feature at the ray's pixel;
         "visible_mean": the mean over every frame that sees the ray's surface point
         (:func:`visible_mean_features`, depth agreement within ``point_ov_rel_tol``)."""
         self.point_ov_rel_tol = point_ov_rel_tol
-        """> the number of sources: each example's cost volume is built over N frames, N drawn
-        uniformly from [num_sources, volume_sources]: the blend's sources and the next best
-        overlapping frames (as the node's volume spans its whole window while each point blends a
-        few views); 0 (or <= num_sources): over the blend's sources."""
 
     def rng(self, step: int, item: int) -> np.random.Generator:
         return np.random.default_rng(np.random.SeedSequence([self.seed, step, item]))
