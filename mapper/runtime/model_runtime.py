@@ -230,9 +230,16 @@ def _cell_view_sets(order: Tensor, chosen: Tensor, n_views: int) -> tuple[Tensor
     cells."""
     n_cells = order.shape[0]
     rows = torch.where(chosen, order, torch.full_like(order, n_views)).sort(dim=1).values  # unused last
-    uniq, inverse = torch.unique(rows, dim=0, return_inverse=True)  # (G, k), (C,)
-    first = torch.full((uniq.shape[0],), n_cells, dtype=torch.long, device=order.device)
+    if n_views <= 62:  # each set as one int64 bit mask: a 1-D unique, several times faster than by rows
+        bits = torch.where(chosen, torch.bitwise_left_shift(torch.ones_like(order), order), 0).sum(dim=1)
+        _, inverse = torch.unique(bits, return_inverse=True)  # a cell's views are distinct: the sum is the OR
+        n_groups = int(inverse.max()) + 1 if n_cells else 0
+    else:
+        uniq, inverse = torch.unique(rows, dim=0, return_inverse=True)  # (G, k), (C,)
+        n_groups = uniq.shape[0]
+    first = torch.full((n_groups,), n_cells, dtype=torch.long, device=order.device)
     first.scatter_reduce_(0, inverse, torch.arange(n_cells, device=order.device), reduce="amin")
+    uniq = rows[first]  # (G, k) each group's sorted views (and the unused marks)
     by_first = torch.argsort(first)  # groups in the order of their first cell
     non_empty = uniq[by_first, 0] < n_views
     kept = by_first[non_empty]

@@ -128,7 +128,9 @@ def test_cell_view_sets_equal_the_dict_of_sorted_tuples() -> None:
     from mapper.runtime.model_runtime import _cell_view_sets
 
     gen = torch.Generator().manual_seed(5)
-    for n_cells, n_views, k in ((500, 12, 4), (1, 3, 3), (200, 30, 16), (300, 5, 3)):  # the last: sets repeat
+    # (300, 5, 3): sets repeat; (150, 62, 16): the largest bit-mask case; (150, 70, 16): rows, not masks
+    for n_cells, n_views, k in ((500, 12, 4), (1, 3, 3), (200, 30, 16), (300, 5, 3), (150, 62, 16),
+                                (150, 70, 16)):
         order = torch.stack([torch.randperm(n_views, generator=gen)[:k] for _ in range(n_cells)])
         chosen = torch.rand(n_cells, k, generator=gen) < 0.7
         chosen[0] = False  # a cell with no view
