@@ -194,23 +194,24 @@ def bench_scene(
     bounded = max(1, math.ceil(n_kf / 3))
     shipped = QueryConfig()
     radius, confident, blend = shipped.map_radius_voxels, shipped.map_when_more_confident, shipped.map_blend
-    runs = {  # max keyframes, map radius (voxels), learned map features, map when more confident, blend,
+    runs = {  # max keyframes, map radius (voxels), learned map features ("once" per voxel,
+        # "every" eviction, "" none), map when more confident, blend,
         # the evicted keyframes' views (queries.evicted_views)
-        "unbounded": (10_000, radius, True, confident, blend, "depth"),
-        "bounded": (bounded, radius, True, confident, blend, "depth"),
-        "bounded, evicted views for both methods": (bounded, radius, True, confident, blend, "both"),
-        "bounded, no evicted views": (bounded, radius, True, confident, blend, "off"),
-        "bounded, window only": (bounded, 0.0, True, False, 0.0, "off"),
-        "bounded, more confident (before the blend)": (bounded, radius, True, True, 0.0, "depth"),
-        "unbounded, more confident (before the blend)": (10_000, radius, True, True, 0.0, "depth"),
-        "bounded, no learned map features": (bounded, radius, False, confident, blend, "depth"),
+        "unbounded": (10_000, radius, "once", confident, blend, "depth"),
+        "bounded": (bounded, radius, "once", confident, blend, "depth"),
+        "bounded, evicted views for both methods": (bounded, radius, "once", confident, blend, "both"),
+        "bounded, no evicted views": (bounded, radius, "once", confident, blend, "off"),
+        "bounded, window only": (bounded, 0.0, "once", False, 0.0, "off"),
+        "bounded, more confident (before the blend)": (bounded, radius, "once", True, 0.0, "depth"),
+        "unbounded, more confident (before the blend)": (10_000, radius, "once", True, 0.0, "depth"),
+        "bounded, no learned map features": (bounded, radius, "", confident, blend, "depth"),
         "bounded, no learned map features, evicted views for both": (
-            bounded, radius, False, confident, blend, "both"),
+            bounded, radius, "", confident, blend, "both"),
         "bounded, no learned map features, no evicted views": (
-            bounded, radius, False, confident, blend, "off"),
-        "bounded, learned features at every eviction": (bounded, radius, True, confident, blend, "depth"),
+            bounded, radius, "", confident, blend, "off"),
+        "bounded, learned features at every eviction": (bounded, radius, "every", confident, blend, "depth"),
         "bounded, learned features at every eviction, no evicted views": (
-            bounded, radius, True, confident, blend, "off"),
+            bounded, radius, "every", confident, blend, "off"),
     }
     if only:
         unknown = sorted(set(only) - set(runs))
@@ -227,8 +228,8 @@ def bench_scene(
     }
     for name, (max_kf, radius_voxels, learned, more_confident, map_blend, evicted) in runs.items():
         node, blender, _ = _node(
-            tmp, max_kf, radius_voxels=radius_voxels, learned=learned, more_confident=more_confident,
-            blend=map_blend, evicted=evicted, learned_once="every eviction" not in name,
+            tmp, max_kf, radius_voxels=radius_voxels, learned=bool(learned), more_confident=more_confident,
+            blend=map_blend, evicted=evicted, learned_once=learned != "every",
         )
         ingest_s = _run(frames, node, blender)
         row: dict[str, Any] = {"max_keyframes": max_kf, "ingest_s": round(ingest_s, 2)}

@@ -17,8 +17,8 @@ import numpy as np
 
 __all__ = [
     "MAX_REACH_PX", "REF_DEPTH_M", "check_camera", "fill_holes", "fill_nearest", "occluder_depths",
-    "point_spacing", "remove_speckles", "scaled_camera", "see_through", "splat_points", "splat_scale",
-    "upsample_nearest",
+    "point_spacing", "remove_speckles", "request_occluder_depths", "scaled_camera", "see_through",
+    "splat_points", "splat_scale", "upsample_nearest",
 ]
 
 MAX_REACH_PX = 2
@@ -214,6 +214,24 @@ def occluder_depths(
         for i, v in enumerate(views.tolist()):
             out[v] = upsample_nearest(z[i], scale, height, width)
     return out
+
+
+def request_occluder_depths(
+    xyz: np.ndarray,  # (N, 3) world points (m): the request's points
+    K: np.ndarray,  # (M, 4) [fx, fy, cx, cy] per view, for width x height
+    world_from_cam: np.ndarray,  # (M, 4, 4) camera-to-world per view
+    width: int,
+    height: int,
+    spacings: float,
+    *,
+    threads: int = 1,
+) -> np.ndarray:  # (M, H, W) float32 z-depth, 0 = no point
+    """:func:`occluder_depths` of a request's own points, each covering ``spacings`` times their
+    median nearest-neighbour spacing (:func:`point_spacing`): the depth Depth Guided Masking tests
+    those points against without input depth (``model.point_occlusion``,
+    ``queries.point_occlusion``, the evaluation's point-occlusion rows)."""
+    return occluder_depths(xyz, K, world_from_cam, width, height, spacings * point_spacing(xyz),
+                           threads=threads)
 
 
 def _shifted(n: int, k: int, axis: int, step: int) -> tuple[tuple[slice, ...], tuple[slice, ...]]:

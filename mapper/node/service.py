@@ -1472,15 +1472,15 @@ class MapperNode:
         need = [i for i, k in enumerate(keyframes) if k.depth_m is None]
         if not self.config.queries.point_occlusion or not need:
             return {}
-        from mapper.geometry.splat import occluder_depths, point_spacing
+        from mapper.geometry.splat import request_occluder_depths
 
-        footprint = self.config.model.point_occlusion_footprint * point_spacing(xyz)
         out = {}
         for size in {(keyframes[i].width, keyframes[i].height) for i in need}:  # one launch a size
             same = [i for i in need if (keyframes[i].width, keyframes[i].height) == size]
-            z = occluder_depths(xyz, np.stack([np.asarray(keyframes[i].K, np.float64) for i in same]),
-                                np.stack([np.asarray(keyframes[i].world_from_cam, np.float64) for i in same]),
-                                size[0], size[1], footprint, threads=0)
+            z = request_occluder_depths(
+                xyz, np.stack([np.asarray(keyframes[i].K, np.float64) for i in same]),
+                np.stack([np.asarray(keyframes[i].world_from_cam, np.float64) for i in same]),
+                size[0], size[1], self.config.model.point_occlusion_footprint, threads=0)
             out.update({i: z[j] for j, i in enumerate(same)})
         return out
 

@@ -1335,7 +1335,7 @@ class ModelRuntime:
     def _occluder_depth(self, prep: _Prepared, pts: Tensor) -> Tensor | None:  # pts (P, 3)
         """(M, H, W) float32 at the working size: the depth DGM tests the request's points against
         (``point_occlusion``): each view without input depth gets its z-buffer of the request's
-        points (:func:`mapper.geometry.splat.occluder_depths`), each view with input depth keeps
+        points (:func:`mapper.geometry.splat.request_occluder_depths`), each view with input depth keeps
         it. None (the window's depth and priors) when ``point_occlusion`` is off, every view has
         input depth, or there are no points. Call with the runtime's lock held."""
         if not self.config.point_occlusion or pts.shape[0] == 0 or prep.input_depth is None:
@@ -1343,13 +1343,13 @@ class ModelRuntime:
         need = (~prep.input_depth).nonzero().squeeze(-1)
         if need.numel() == 0:
             return None
-        from mapper.geometry.splat import occluder_depths, point_spacing
+        from mapper.geometry.splat import request_occluder_depths
 
-        xyz = pts.detach().cpu().numpy()
         width, height = self.image_wh
-        footprint = self.config.point_occlusion_footprint * point_spacing(xyz)
-        z = occluder_depths(xyz, prep.K[need].cpu().numpy(), prep.world_from_cam[need].cpu().numpy(),
-                            width, height, footprint, threads=torch.get_num_threads())  # (m, H, W)
+        z = request_occluder_depths(pts.detach().cpu().numpy(), prep.K[need].cpu().numpy(),
+                                    prep.world_from_cam[need].cpu().numpy(), width, height,
+                                    self.config.point_occlusion_footprint,
+                                    threads=torch.get_num_threads())  # (m, H, W)
         out = (prep.depth_m.clone() if prep.depth_m is not None
                else torch.zeros(len(prep), height, width, device=self.device))
         occ = torch.from_numpy(z).to(out)

@@ -726,13 +726,14 @@ def visible_mean_features(
         poses = torch.from_numpy(scene.world_from_cam[idx]).float()
         depth = torch.from_numpy(scene.depth_m[idx]).float()
         visible, _ = visibility_targets(pts, K, poses, depth, (w, h), rel_tol=rel_tol)  # (P, n)
+        uv, _ = project_points(pts.unsqueeze(0), K, invert_pose(poses))  # (n, P, 2)
         for j, f in enumerate(idx):
             sees = visible[:, j]
             if not bool(sees.any()):
                 continue
-            uv, _ = project_points(pts[sees].unsqueeze(0), K[j : j + 1], invert_pose(poses[j : j + 1]))
             ov_map = torch.from_numpy(scene.ov[f]).permute(2, 0, 1).float()  # (D, h, w)
-            feat, _ = sample_bilinear(ov_map, scale_uv(uv[0], (w, h), (ov_map.shape[-1], ov_map.shape[-2])))
+            map_wh = (ov_map.shape[-1], ov_map.shape[-2])
+            feat, _ = sample_bilinear(ov_map, scale_uv(uv[j, sees], (w, h), map_wh))
             total[sees] += torch.nn.functional.normalize(feat, dim=-1)
             count[sees] += 1
     return torch.nn.functional.normalize(total, dim=-1), count

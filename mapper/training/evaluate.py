@@ -688,8 +688,9 @@ class EvalSettings:
     """Footprint of each source depth point in that splat (the node's map voxel, 5 cm)."""
     point_occlusion: bool = True
     """3D: also the rows with a visibility cue from the evaluated points themselves and no input
-    depth: each stream frame's z-buffer of those points (:func:`mapper.geometry.splat.occluder_depths`,
-    each point over ``point_occlusion_footprint`` x their median spacing, as the node's
+    depth: each stream frame's z-buffer of those points
+    (:func:`mapper.geometry.splat.request_occluder_depths`, each point over
+    ``point_occlusion_footprint`` x their median spacing, as the node's
     ``model.point_occlusion``) as the depth of Depth Guided Masking and of the averaging's depth
     test (every averaging border). Rows "... + point occlusion (no depth input)"."""
     point_occlusion_footprint: float = 3.0
@@ -945,12 +946,11 @@ def point_occlusion_depths(sp: ScenePoints, image_wh: tuple[int, int], footprint
     ``footprint`` x their median nearest-neighbour spacing (0 = no point): the depth a point is
     tested against for the rows "... + point occlusion (no depth input)" (the node's
     ``model.point_occlusion`` rule, here with the evaluated points as the request)."""
-    from mapper.geometry.splat import occluder_depths, point_spacing
+    from mapper.geometry.splat import request_occluder_depths
 
-    xyz = sp.xyz.numpy()
-    z = occluder_depths(xyz, sp.K.numpy(), sp.world_from_cam.numpy(), image_wh[0], image_wh[1],
-                        footprint * point_spacing(xyz), threads=torch.get_num_threads())
-    return torch.from_numpy(z)
+    return torch.from_numpy(request_occluder_depths(sp.xyz.numpy(), sp.K.numpy(), sp.world_from_cam.numpy(),
+                                                    image_wh[0], image_wh[1], footprint,
+                                                    threads=torch.get_num_threads()))
 
 
 def _averaging_mask(pts: Tensor, K: Tensor, poses: Tensor, image_wh: tuple[int, int],
