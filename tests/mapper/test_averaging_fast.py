@@ -257,3 +257,27 @@ def test_prior_of_left_views_equals_averaging_all_views(seed: int, use_depth: bo
         average_similarities(pts, kept, texts, use_depth=use_depth, prior=(mean, row + 10**6, prior[2]))
     with pytest.raises(ValueError, match="compiled CPU path"):
         average_similarities(pts, kept, texts, use_depth=use_depth, prior=prior, impl="torch")
+
+
+@pytest.mark.parametrize("use_depth", [False, True])
+def test_neighbouring_points_read_shared_taps_once_with_the_same_answers(use_depth: bool) -> None:
+    # the kernel sums points two at a time and reads the rows of a cell quad that both points'
+    # view has once for both: points next to each other (duplicates, 1 mm apart, a raster of
+    # points on a plane) take that path; each answer is still that point's alone, the same as
+    # with any other neighbour (a permutation, each point alone) and as the reference
+    pts, views = random_scene(6, n_points=400)
+    rng = np.random.default_rng(6)
+    grid = np.stack(np.meshgrid(np.linspace(-1.0, 1.0, 40), np.linspace(-0.8, 0.8, 30), [1.8]), -1)
+    near = np.concatenate([np.repeat(pts, 2, axis=0), pts + rng.normal(0, 1e-3, pts.shape).astype(np.float32),
+                           grid.reshape(-1, 3).astype(np.float32)])
+    f_ref, n_ref = average_features_reference(near, views, use_depth=use_depth)
+    f, n = average_features(near, views, use_depth=use_depth, impl="kernel")
+    assert torch.equal(n, n_ref) and int((n > 0).sum()) > 500
+    assert torch.allclose(f, f_ref, atol=1e-5, rtol=0)
+    perm = rng.permutation(near.shape[0])
+    f_perm, n_perm = average_features(near[perm], views, use_depth=use_depth, impl="kernel")
+    assert torch.equal(n_perm, n[perm])
+    assert torch.allclose(f_perm, f[perm], atol=1e-6, rtol=0)
+    alone = [average_features(near[i : i + 1], views, use_depth=use_depth, impl="kernel")[0]
+             for i in range(60)]
+    assert torch.allclose(torch.cat(alone), f[:60], atol=1e-6, rtol=0)

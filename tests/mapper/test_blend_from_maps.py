@@ -221,6 +221,31 @@ def test_blend_kernel_equals_the_torch_path(per_point_views: bool, monkeypatch: 
         assert fusion._blend_kernel_applies(grad_table, uv, weights)
 
 
+def test_blend_kernel_neighbours_sharing_cells_equal_the_torch_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the kernel blends points two at a time and reads a cell quad that both points' slot has once
+    # for both: pairs on the same cells (duplicates and near-duplicates), pairs that share only
+    # some slots, and an odd count (the last point alone)
+    import mapper.model.fusion as fusion
+
+    gen = torch.Generator().manual_seed(8)
+    m, c, h, w, P, N = 3, 384, 15, 20, 301, 6
+    table = _maps(m, c, h, w).permute(0, 2, 3, 1).reshape(-1, c).contiguous()
+    view_idx = torch.randint(0, m, (P, N), generator=gen)
+    view_idx[1::2] = view_idx[0:-1:2]  # neighbours with the same slots' maps
+    uv = torch.rand(P, N, 2, generator=gen) * torch.tensor([float(w), float(h)])
+    uv[1::2] = uv[0:-1:2] + 0.01 * torch.rand(P // 2, N, 2, generator=gen)
+    uv[3::4, ::2] += 3.0  # some slots on other cells
+    weights = torch.rand(P, N, generator=gen) * (torch.rand(P, N, generator=gen) > 0.2)
+    mine = blend_from_maps(table, (w, h), view_idx, uv, weights)
+    monkeypatch.setattr(fusion, "_blend_kernel_applies", lambda *_: False)
+    ref = blend_from_maps(table, (w, h), view_idx, uv, weights)
+    monkeypatch.undo()
+    torch.testing.assert_close(mine, ref, rtol=1e-5, atol=1e-5)
+    alone = torch.cat([blend_from_maps(table, (w, h), view_idx[p : p + 1], uv[p : p + 1], weights[p : p + 1])
+                       for p in range(40)])
+    torch.testing.assert_close(alone, mine[:40], rtol=0, atol=1e-6)
+
+
 def test_cosines_from_maps_equal_normalised_blend_times_texts(monkeypatch: pytest.MonkeyPatch) -> None:
     """The compiled cosine kernel == F.normalize(blend_from_maps(...)) @ texts.T; points whose
     weights are all 0 get cosines 0; sizes that do not fit are refused."""

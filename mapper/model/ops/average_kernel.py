@@ -9,6 +9,13 @@ cosines with the texts are written. Nothing of size (pairs, ...) or (points, vie
 materialised; the torch / numpy path (``baselines._chunks``) made those arrays and spent most of
 its time there (docs/BENCHMARKS.md).
 
+The D-dimensional sums are bound by loading the taps' rows (four rows of D floats per point and
+view), so points are summed two at a time (:func:`accumulate_taps`): where both fall on the same
+cell quad of a view, as neighbouring points mostly do (89% of the taps on ``govnesf bench``'s
+stream points), its rows are read once for both. Each point's sum is the same expression in the
+same order either way, so the answers do not depend on a point's neighbour. ``blend_kernel`` (the
+learned model's blend over each point's chosen views) sums its points the same way.
+
 The selection arithmetic is the reference's, in float32 and in the same order (projection
 ``R p + t`` without contraction, ``x / z * f + c``; the depth test's nearest pixel; the corners
 and weights of ``grid_sample(bilinear, border, align_corners=False)``), so the views that count
@@ -49,6 +56,52 @@ def _add_taps(acc, table, r00, r01, r10, r11, w00, w01, w10, w11):  # pragma: no
     a, b, c, d = table[r00], table[r01], table[r10], table[r11]
     for k in range(acc.shape[0]):
         acc[k] += w00 * a[k] + w01 * b[k] + w10 * c[k] + w11 * d[k]
+
+
+@numba.njit(fastmath=True, boundscheck=False, cache=True)
+def _add_taps2(acc, acc2, table, r00, r01, r10, r11, w00, w01, w10, w11, u00, u01, u10,
+               u11):  # pragma: no cover - compiled
+    """:func:`_add_taps` for two points on the same four rows (weights w.. into ``acc``, u.. into
+    ``acc2``): each row is read once for both."""
+    a, b, c, d = table[r00], table[r01], table[r10], table[r11]
+    for k in range(acc.shape[0]):
+        ak, bk, ck, dk = a[k], b[k], c[k], d[k]
+        acc[k] += w00 * ak + w01 * bk + w10 * ck + w11 * dk
+        acc2[k] += u00 * ak + u01 * bk + u10 * ck + u11 * dk
+
+
+_NO_KEY = np.int64(1) << np.int64(62)
+
+
+@numba.njit(cache=True, boundscheck=False)
+def accumulate_taps(acc, acc2, table, key, rows, wts, m, m2):  # pragma: no cover - compiled
+    """Sum two points' bilinear taps into ``acc`` (point 0) and ``acc2`` (point 1; ``m2`` < 0:
+    there is no second point). Point q's j-th entry (``j < m`` for q = 0, ``m2`` for q = 1) has a
+    sort key ``key[q, j]`` (its view or slot, ascending along j), four table rows
+    ``rows[q, 4j:4j+4]`` and their weights ``wts[q, 4j:4j+4]``; each point's entries are summed in
+    their order. Where both points have an entry with the same key on the same rows (the same cell
+    quad of the same map: neighbouring points mostly do), the rows are read once for both
+    (:func:`_add_taps2`): the tap loads, not the arithmetic, bound this sum, and each sum is the
+    same expression either way."""
+    a, b = 0, 0
+    while a < m or b < m2:
+        ka = key[0, a] if a < m else _NO_KEY
+        kb = key[1, b] if b < m2 else _NO_KEY
+        ja, jb = 4 * a, 4 * b
+        if ka == kb and rows[0, ja] == rows[1, jb]:  # the first row fixes the quad (rows are global)
+            _add_taps2(acc, acc2, table, rows[0, ja], rows[0, ja + 1], rows[0, ja + 2], rows[0, ja + 3],
+                       wts[0, ja], wts[0, ja + 1], wts[0, ja + 2], wts[0, ja + 3],
+                       wts[1, jb], wts[1, jb + 1], wts[1, jb + 2], wts[1, jb + 3])
+            a += 1
+            b += 1
+        elif ka <= kb:
+            _add_taps(acc, table, rows[0, ja], rows[0, ja + 1], rows[0, ja + 2], rows[0, ja + 3],
+                      wts[0, ja], wts[0, ja + 1], wts[0, ja + 2], wts[0, ja + 3])
+            a += 1
+        else:
+            _add_taps(acc2, table, rows[1, jb], rows[1, jb + 1], rows[1, jb + 2], rows[1, jb + 3],
+                      wts[1, jb], wts[1, jb + 1], wts[1, jb + 2], wts[1, jb + 3])
+            b += 1
 
 
 @numba.njit(fastmath=True, boundscheck=False, cache=True)
@@ -95,84 +148,112 @@ def _kernel(
     n_pts = pts.shape[0]
     n_views = cam_from_world.shape[0]
     dim = table.shape[1]
-    n_texts = texts.shape[0]
-    weighted = view_weights.shape[1] > 0
-    has_prior = prior_row.shape[0] > 0
     n_blocks = (n_pts + block - 1) // block
     for blk in numba.prange(n_blocks):
-        acc = np.empty(dim, np.float32)
-        p_view = np.empty(n_views, np.int64)
+        accs = np.empty((2, dim), np.float32)
         p_u = np.empty(n_views, np.float32)
         p_v = np.empty(n_views, np.float32)
         p_w = np.empty(n_views, np.float32)
-        for i in range(blk * block, min(n_pts, (blk + 1) * block)):
-            x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
-            m = 0
-            wsum = _F0
-            for v in range(n_views):
-                R = cam_from_world[v]
-                cz = x * R[2, 0] + y * R[2, 1] + z * R[2, 2] + R[2, 3]
-                if not cz > eps:
+        key = np.empty((2, n_views), np.int64)
+        rows = np.empty((2, 4 * n_views), np.int64)
+        wts = np.empty((2, 4 * n_views), np.float32)
+        m_q = np.zeros(2, np.int64)
+        active = np.zeros(2, np.bool_)
+        hi = min(n_pts, (blk + 1) * block)
+        for i0 in range(blk * block, hi, 2):  # points in pairs: neighbours share most taps
+            n_q = min(2, hi - i0)
+            for q in range(n_q):
+                i = i0 + q
+                m, wsum = _select(pts, i, cam_from_world, K, right, bottom, border, eps, use_depth,
+                                  has_depth, depth_flat, d_off, d_w, d_h, d_scale, depth_tol, distance_power,
+                                  view_weights, key[q], p_u, p_v, p_w)
+                count[i] = m
+                pw = _F0
+                if prior_row.shape[0] > 0 and prior_row[i] >= 0:
+                    pw = prior_w[i]
+                active[q] = m > 0 or pw > 0
+                m_q[q] = m
+                if not active[q]:
+                    m_q[q] = 0
                     continue
-                cx = x * R[0, 0] + y * R[0, 1] + z * R[0, 2] + R[0, 3]
-                cy = x * R[1, 0] + y * R[1, 1] + z * R[1, 2] + R[1, 3]
-                u = cx / cz * K[v, 0] + K[v, 2]
-                vv = cy / cz * K[v, 1] + K[v, 3]
-                if not (u >= border and u <= right[v] and vv >= border and vv <= bottom[v]):
-                    continue
-                if weighted and not view_weights[v, i] > 0:
-                    continue
-                if use_depth and has_depth[v]:
-                    col = min(max(np.floor(u * d_scale[v, 0]), _F0), np.float32(d_w[v] - 1))
-                    row = min(max(np.floor(vv * d_scale[v, 1]), _F0), np.float32(d_h[v] - 1))
-                    d = depth_flat[d_off[v] + np.int64(row) * d_w[v] + np.int64(col)]
-                    if not (d > 0 and abs(d - cz) <= depth_tol * d):
-                        continue
-                w = _F1
-                if distance_power != 0:
-                    w = max(cz, np.float32(1e-6)) ** (-distance_power)
-                if weighted:
-                    w = w * view_weights[v, i]
-                p_view[m], p_u[m], p_v[m], p_w[m] = v, u, vv, w
-                wsum += w
-                m += 1
-            count[i] = m
-            pw = _F0
-            if has_prior and prior_row[i] >= 0:
-                pw = prior_w[i]
-            if m == 0 and not pw > 0:
+                inv = _F1 / (wsum + pw)
+                acc = accs[q]
+                acc[:] = _F0
+                if pw > 0:
+                    pri = prior[prior_row[i]]
+                    ps = pw * inv
+                    for k in range(dim):
+                        acc[k] = pri[k] * ps
+                for k in range(m):
+                    v = key[q, k]
+                    r00, r01, r10, r11, tx, ty = corners(p_u[k] * ov_scale[v, 0], p_v[k] * ov_scale[v, 1],
+                                                         ov_w[v], ov_h[v])
+                    sc = p_w[k] * inv
+                    j = 4 * k
+                    rows[q, j], rows[q, j + 1] = ov_off[v] + r00, ov_off[v] + r01
+                    rows[q, j + 2], rows[q, j + 3] = ov_off[v] + r10, ov_off[v] + r11
+                    wts[q, j], wts[q, j + 1] = (_F1 - tx) * (_F1 - ty) * sc, tx * (_F1 - ty) * sc
+                    wts[q, j + 2], wts[q, j + 3] = (_F1 - tx) * ty * sc, tx * ty * sc
+            accumulate_taps(accs[0], accs[1], table, key, rows, wts, m_q[0], m_q[1] if n_q == 2 else 0)
+            for q in range(n_q):
+                if active[q]:
+                    _write(accs[q], raw, texts, out, i0 + q)
+
+
+@numba.njit(cache=True, boundscheck=False, inline="always")
+def _select(pts, i, cam_from_world, K, right, bottom, border, eps, use_depth, has_depth, depth_flat, d_off,
+            d_w, d_h, d_scale, depth_tol, distance_power, view_weights, p_view, p_u, p_v,
+            p_w):  # pragma: no cover - compiled
+    """The views that count for point i (in front, inside the image less the border, the weight
+    and the depth test), in view order: their indices, pixels and weights into ``p_view`` ..
+    ``p_w``; returns (how many, the sum of their weights)."""
+    x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
+    weighted = view_weights.shape[1] > 0
+    m = 0
+    wsum = _F0
+    for v in range(cam_from_world.shape[0]):
+        R = cam_from_world[v]
+        cz = x * R[2, 0] + y * R[2, 1] + z * R[2, 2] + R[2, 3]
+        if not cz > eps:
+            continue
+        cx = x * R[0, 0] + y * R[0, 1] + z * R[0, 2] + R[0, 3]
+        cy = x * R[1, 0] + y * R[1, 1] + z * R[1, 2] + R[1, 3]
+        u = cx / cz * K[v, 0] + K[v, 2]
+        vv = cy / cz * K[v, 1] + K[v, 3]
+        if not (u >= border and u <= right[v] and vv >= border and vv <= bottom[v]):
+            continue
+        if weighted and not view_weights[v, i] > 0:
+            continue
+        if use_depth and has_depth[v]:
+            col = min(max(np.floor(u * d_scale[v, 0]), _F0), np.float32(d_w[v] - 1))
+            row = min(max(np.floor(vv * d_scale[v, 1]), _F0), np.float32(d_h[v] - 1))
+            d = depth_flat[d_off[v] + np.int64(row) * d_w[v] + np.int64(col)]
+            if not (d > 0 and abs(d - cz) <= depth_tol * d):
                 continue
-            inv = _F1 / (wsum + pw)
-            acc[:] = _F0
-            if pw > 0:
-                pri = prior[prior_row[i]]
-                ps = pw * inv
-                for k in range(dim):
-                    acc[k] = pri[k] * ps
-            for k in range(m):
-                v = p_view[k]
-                wf, hf = np.float32(ov_w[v]), np.float32(ov_h[v])
-                gx = min(max(_F2 * (p_u[k] * ov_scale[v, 0]) / wf - _F1, -_F2), _F2)
-                gy = min(max(_F2 * (p_v[k] * ov_scale[v, 1]) / hf - _F1, -_F2), _F2)
-                ix = min(max(((gx + _F1) * wf - _F1) / _F2, _F0), wf - _F1)
-                iy = min(max(((gy + _F1) * hf - _F1) / _F2, _F0), hf - _F1)
-                x0f, y0f = np.floor(ix), np.floor(iy)
-                tx, ty = ix - x0f, iy - y0f
-                x0, y0 = np.int64(x0f), np.int64(y0f)
-                x1, y1 = min(x0 + 1, ov_w[v] - 1), min(y0 + 1, ov_h[v] - 1)
-                r0, r1 = ov_off[v] + y0 * ov_w[v], ov_off[v] + y1 * ov_w[v]
-                s = p_w[k] * inv
-                _add_taps(acc, table, r0 + x0, r0 + x1, r1 + x0, r1 + x1,
-                          (_F1 - tx) * (_F1 - ty) * s, tx * (_F1 - ty) * s, (_F1 - tx) * ty * s, tx * ty * s)
-            norm = max(np.sqrt(_dot(acc, acc)), np.float32(1e-12))
-            if raw:
-                norm = _F1
-            if n_texts == 0:
-                for k in range(dim):
-                    out[i, k] = acc[k] / norm
-            else:
-                for t in range(n_texts):
-                    out[i, t] = _dot(acc, texts[t]) / norm
+        w = _F1
+        if distance_power != 0:
+            w = max(cz, np.float32(1e-6)) ** (-distance_power)
+        if weighted:
+            w = w * view_weights[v, i]
+        p_view[m], p_u[m], p_v[m], p_w[m] = v, u, vv, w
+        wsum += w
+        m += 1
+    return m, wsum
+
+
+@numba.njit(cache=True, boundscheck=False, inline="always")
+def _write(acc, raw, texts, out, i):  # pragma: no cover - compiled
+    """Point i's output from its weighted sum ``acc``: the cosines with ``texts`` (T > 0), else
+    the unit feature, or with ``raw`` the sum itself."""
+    norm = max(np.sqrt(_dot(acc, acc)), np.float32(1e-12))
+    if raw:
+        norm = _F1
+    if texts.shape[0] == 0:
+        for k in range(acc.shape[0]):
+            out[i, k] = acc[k] / norm
+    else:
+        for t in range(texts.shape[0]):
+            out[i, t] = _dot(acc, texts[t]) / norm
 
 
 @numba.njit(cache=True, boundscheck=False, inline="always")
@@ -197,17 +278,23 @@ def corners(u, v, map_w, map_h):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, boundscheck=False, inline="always")
-def _blend_point(acc, table, map_w, map_h, view_idx, uv, weights, p):  # pragma: no cover - compiled
-    """acc += point p's weighted bilinear taps over its slots (:func:`corners`; slots of weight 0
-    skipped)."""
+def _blend_taps(table, map_w, map_h, view_idx, uv, weights, p, key, rows, wts):  # pragma: no cover - compiled
+    """Point p's taps for :func:`accumulate_taps` (its slots of non-zero weight, in slot order,
+    keyed by slot; :func:`corners` of each slot's map); returns how many."""
+    m = 0
     for n in range(weights.shape[1]):
         w = weights[p, n]
         if w == 0:
             continue
         r00, r01, r10, r11, tx, ty = corners(uv[p, n, 0], uv[p, n, 1], map_w, map_h)
         base = view_idx[p, n] * map_w * map_h
-        _add_taps(acc, table, base + r00, base + r01, base + r10, base + r11, w * ((_F1 - tx) * (_F1 - ty)),
-                  w * (tx * (_F1 - ty)), w * ((_F1 - tx) * ty), w * (tx * ty))
+        j = 4 * m
+        key[m] = n
+        rows[j], rows[j + 1], rows[j + 2], rows[j + 3] = base + r00, base + r01, base + r10, base + r11
+        wts[j], wts[j + 1] = w * ((_F1 - tx) * (_F1 - ty)), w * (tx * (_F1 - ty))
+        wts[j + 2], wts[j + 3] = w * ((_F1 - tx) * ty), w * (tx * ty)
+        m += 1
+    return m
 
 
 @numba.njit(parallel=True, cache=True, boundscheck=False)
@@ -219,23 +306,34 @@ def _blend_kernel(
     uv,  # (P, N, 2) float32 pixel coordinates in the maps' resolution
     weights,  # (P, N) float32
     texts,  # (T, C) float32; T = 0: write the blends themselves
-    out,  # (P, C) blends (zeroed by the caller) or (P, T) each text's cosine with the unit blend
+    out,  # (P, C) blends or (P, T) each text's cosine with the unit blend
     block,  # int: points per parallel task
 ):  # pragma: no cover - compiled
-    n_pts = weights.shape[0]
+    n_pts, n_slots = weights.shape
     n_texts = texts.shape[0]
     n_blocks = (n_pts + block - 1) // block
     for blk in numba.prange(n_blocks):
-        acc = np.empty(table.shape[1], np.float32)
-        for p in range(blk * block, min(n_pts, (blk + 1) * block)):
-            if n_texts == 0:
-                _blend_point(out[p], table, map_w, map_h, view_idx, uv, weights, p)
-                continue
-            acc[:] = _F0
-            _blend_point(acc, table, map_w, map_h, view_idx, uv, weights, p)
-            inv = _F1 / max(np.sqrt(_dot(acc, acc)), np.float32(1e-12))  # F.normalize's eps
-            for t in range(n_texts):
-                out[p, t] = _dot(acc, texts[t]) * inv
+        accs = np.empty((2, table.shape[1]), np.float32)
+        key = np.empty((2, n_slots), np.int64)
+        rows = np.empty((2, 4 * n_slots), np.int64)
+        wts = np.empty((2, 4 * n_slots), np.float32)
+        hi = min(n_pts, (blk + 1) * block)
+        for p0 in range(blk * block, hi, 2):  # points in pairs: neighbours share most taps
+            n_q = min(2, hi - p0)
+            accs[:] = _F0
+            m = _blend_taps(table, map_w, map_h, view_idx, uv, weights, p0, key[0], rows[0], wts[0])
+            m2 = 0
+            if n_q == 2:
+                m2 = _blend_taps(table, map_w, map_h, view_idx, uv, weights, p0 + 1, key[1], rows[1], wts[1])
+            accumulate_taps(accs[0], accs[1], table, key, rows, wts, m, m2)
+            for q in range(n_q):
+                acc = accs[q]
+                if n_texts == 0:
+                    out[p0 + q, :] = acc
+                    continue
+                inv = _F1 / max(np.sqrt(_dot(acc, acc)), np.float32(1e-12))  # F.normalize's eps
+                for t in range(n_texts):
+                    out[p0 + q, t] = _dot(acc, texts[t]) * inv
 
 
 def blend_kernel(
@@ -254,7 +352,7 @@ def blend_kernel(
     ``F.normalize(blend) @ texts.T`` instead, each point's blend kept in a C-vector while its
     cosines are taken (the (P, C) blends are never written). Arguments checked by the caller."""
     n_out = table.shape[1] if texts is None else texts.shape[0]
-    out = np.zeros((weights.shape[0], n_out), np.float32)
+    out = np.empty((weights.shape[0], n_out), np.float32)
     txt = np.zeros((0, table.shape[1]), np.float32) if texts is None else texts
     with launch(threads):
         _blend_kernel(np.ascontiguousarray(table, np.float32), int(map_wh[0]), int(map_wh[1]),
