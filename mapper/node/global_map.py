@@ -478,24 +478,37 @@ class GlobalMapSnapshot:
         radius_m: float,
     ) -> np.ndarray:
         """(N,) int64 row of the nearest map point that carries a feature within ``radius_m`` of
-        each point, -1 where there is none. The k-d tree over those points is built once per
-        snapshot (per map version) and shared by later calls."""
+        each point, -1 where there is none. The index over those points is built once per snapshot
+        (per map version) and shared by later calls: a grid of voxel-sized cells
+        (:class:`mapper.node.query_kernels.NearestGrid`), or a k-d tree where that grid would be too
+        large (a sparse map over a large extent); the same answers either way."""
         pts = np.asarray(xyz, np.float64).reshape(-1, 3)
         out = np.full(pts.shape[0], -1, np.int64)
         if pts.shape[0] == 0 or radius_m <= 0:
             return out
+        from mapper.node.query_kernels import NearestGrid  # numba: compiled or loaded when first used
+
         with self._cache_lock:
-            entry = self._cache.get("feature_tree")
+            entry = self._cache.get("feature_index")
             if entry is None:
                 rows = np.flatnonzero(self.feat_weight > 0)
-                tree = cKDTree(self.xyz[rows].astype(np.float64)) if rows.size else None
-                entry = (tree, rows)
-                self._cache["feature_tree"] = entry
-        tree, rows = entry
-        if tree is None:
+                index: NearestGrid | cKDTree | None = None
+                if rows.size:
+                    at = self.xyz[rows].astype(np.float64)
+                    index = NearestGrid.build(at, self.voxel_size_m)
+                    if index is None:  # a sparse map over a large extent
+                        index = cKDTree(at)
+                entry = (index, rows)
+                self._cache["feature_index"] = entry
+        index, rows = entry
+        if index is None:
             return out
-        dist, idx = tree.query(pts, distance_upper_bound=radius_m, workers=_query_workers())
-        hit = np.isfinite(dist)
+        if isinstance(index, NearestGrid):
+            idx = index.nearest(pts, radius_m, threads=_query_workers())
+            hit = idx >= 0
+        else:
+            dist, idx = index.query(pts, distance_upper_bound=radius_m, workers=_query_workers())
+            hit = np.isfinite(dist)
         out[hit] = rows[idx[hit]]
         return out
 

@@ -1,7 +1,8 @@
 """Compiled (numba) kernels of the node's queries: the map rows' cosines with the texts, computed
 the same way for every row (so a cache can rescore a block's changed rows only and get the bits
-that scoring the whole block gives), and the radius components behind ``query_points``' object
-clusters.
+that scoring the whole block gives), the radius components behind ``query_points``' object
+clusters, and the nearest map point within a radius (:class:`NearestGrid`, the whole-map answers
+of ``segment_points`` and ``render``).
 
 Both are CPU functions of numpy arrays; :func:`warm_up` compiles them (or loads them from numba's
 on-disk cache) on one-row problems, which the node does in its warm-up thread.
@@ -16,7 +17,7 @@ import numpy as np
 
 from mapper.model.ops.average_kernel import _dot, launch  # numba + numpy only (no torch)
 
-__all__ = ["component_cells", "row_cosines", "warm_up"]
+__all__ = ["NearestGrid", "component_cells", "row_cosines", "warm_up"]
 
 _ROWS_PER_TASK = 256
 _HALF_OFFSETS = np.array(
@@ -198,9 +199,116 @@ def component_cells(
     return int(n), label
 
 
+_GRID_MAX_CELLS = 1 << 24
+"""A :class:`NearestGrid` holds at most this many cells (or 8x its points): 64 MB of int32 starts."""
+
+
+@numba.njit(boundscheck=False, cache=True, inline="always")
+def _scan_cells(q, pts, order, starts, dims, lo, hi, best_d2, best):  # pragma: no cover - compiled
+    """The nearest of the points in the cells lo .. hi (inclusive, clipped to the grid) to q, if
+    nearer than best_d2 (of equidistant points the lower ``order``): returns (d2, sorted index)."""
+    for cx in range(max(lo[0], 0), min(hi[0], dims[0] - 1) + 1):
+        for cy in range(max(lo[1], 0), min(hi[1], dims[1] - 1) + 1):
+            base = (cx * dims[1] + cy) * dims[2]
+            for cz in range(max(lo[2], 0), min(hi[2], dims[2] - 1) + 1):
+                c = base + cz
+                for j in range(starts[c], starts[c + 1]):
+                    dx, dy, dz = q[0] - pts[j, 0], q[1] - pts[j, 1], q[2] - pts[j, 2]
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 < best_d2 or (d2 == best_d2 and order[j] < order[best]):
+                        best_d2, best = d2, j
+    return best_d2, best
+
+
+@numba.njit(parallel=True, boundscheck=False, cache=True)
+def _grid_nearest(queries, pts, order, starts, dims, origin, cell, radius, out, block):  # pragma: no cover
+    n = queries.shape[0]
+    r2 = radius * radius
+    sure2 = (cell * (1.0 - 1e-9)) ** 2  # a nearest point this close is nearer than any outside the 3^3 cells
+    for task in numba.prange((n + block - 1) // block):
+        lo = np.empty(3, np.int64)
+        hi = np.empty(3, np.int64)
+        for i in range(task * block, min(n, (task + 1) * block)):
+            q = queries[i]
+            for a in range(3):
+                g = np.floor((q[a] - origin[a]) / cell)
+                g = min(max(g, -4.0e18), 4.0e18)
+                lo[a] = np.int64(g) - 1
+                hi[a] = np.int64(g) + 1
+            best_d2, best = _scan_cells(q, pts, order, starts, dims, lo, hi, np.inf, np.int64(-1))
+            if not (best >= 0 and best_d2 < sure2):  # every cell the radius reaches
+                for a in range(3):
+                    lo[a] = np.int64(min(max(np.floor((q[a] - radius - origin[a]) / cell), -4.0e18), 4.0e18))
+                    hi[a] = np.int64(min(max(np.floor((q[a] + radius - origin[a]) / cell), -4.0e18), 4.0e18))
+                best_d2, best = _scan_cells(q, pts, order, starts, dims, lo, hi, best_d2, best)
+            out[i] = best if (best >= 0 and best_d2 < r2) else -1
+
+
+class NearestGrid:
+    """The nearest of a fixed point set within a radius, for many queries: the points bucketed in a
+    dense grid of cubes of side ``cell_m`` over their bounding box (a CSR of int32 cell starts). A
+    query scans its own cell and the 26 around it; a point found nearer than one cell side is the
+    nearest of all (every point outside those cells is at least that far), else it scans every cell
+    the radius reaches. The answers of a k-d tree query with ``distance_upper_bound`` (the nearest
+    point strictly within the radius, distances in float64), except that of equidistant points
+    this takes the lowest index (a k-d tree takes any).
+
+    :meth:`build` returns None when the grid would exceed ``_GRID_MAX_CELLS`` cells (and 8x the
+    points): a sparse map over a large extent, where a k-d tree is the better index."""
+
+    def __init__(self, pts: np.ndarray, starts: np.ndarray, dims: np.ndarray, origin: np.ndarray,
+                 cell_m: float, order: np.ndarray) -> None:
+        self.pts = pts  # (P, 3) float64, sorted by cell
+        self.starts = starts  # (cells + 1,) int32
+        self.dims = dims  # (3,) int64
+        self.origin = origin  # (3,) float64
+        self.cell_m = cell_m
+        self.order = order  # (P,) int64: the given index of each sorted point
+
+    @classmethod
+    def build(cls, points: np.ndarray, cell_m: float) -> NearestGrid | None:
+        """Index ``points`` (P, 3) (finite) with cubes of side ``cell_m`` > 0; None if too large."""
+        pts = np.asarray(points, np.float64).reshape(-1, 3)
+        if not cell_m > 0:
+            raise ValueError(f"cell_m must be > 0, got {cell_m}")
+        if pts.shape[0] == 0:
+            return cls(pts, np.zeros(2, np.int32), np.ones(3, np.int64), np.zeros(3), float(cell_m),
+                       np.zeros(0, np.int64))
+        origin = pts.min(axis=0)
+        span = np.floor((pts.max(axis=0) - origin) / cell_m) + 1.0
+        if float(np.prod(span)) > max(_GRID_MAX_CELLS, 8 * pts.shape[0]) or pts.shape[0] >= 2**31:
+            return None
+        dims = span.astype(np.int64)
+        idx = np.minimum(np.floor((pts - origin) / cell_m).astype(np.int64), dims - 1)
+        lin = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
+        order = np.argsort(lin, kind="stable")
+        counts = np.bincount(lin, minlength=int(np.prod(dims)))
+        starts = np.zeros(counts.shape[0] + 1, np.int32)
+        np.cumsum(counts, out=starts[1:])
+        return cls(np.ascontiguousarray(pts[order]), starts, dims, origin, float(cell_m), order)
+
+    def nearest(self, queries: np.ndarray, radius_m: float, *, threads: int = 0) -> np.ndarray:
+        """(N,) int64 index (into the built points) of each query's nearest point strictly within
+        ``radius_m``, -1 where there is none. ``queries`` (N, 3) must be finite (the caller's
+        check: the node validates request points at the boundary)."""
+        q = np.ascontiguousarray(np.asarray(queries, np.float64).reshape(-1, 3))
+        out = np.full(q.shape[0], -1, np.int64)
+        if q.shape[0] == 0 or self.order.shape[0] == 0 or not radius_m > 0:
+            return out
+        with launch(threads):
+            _grid_nearest(q, self.pts, self.order, self.starts, self.dims, self.origin, self.cell_m,
+                          float(radius_m), out, _ROWS_PER_TASK)
+        hit = out >= 0
+        out[hit] = self.order[out[hit]]
+        return out
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels now, on one-row problems."""
     row_cosines(np.ones((1, 2), np.float32), np.ones((1, 2), np.float32), threads=1)
     cell = np.array([62], np.int64)  # cell (2, 2, 2) of a 5 x 5 x 5 grid
     one = np.ones(1, np.int64)
     component_cells(np.zeros((1, 3)), cell, np.full(3, 5, np.int64), one - 1, one, 0.1)
+    grid = NearestGrid.build(np.zeros((1, 3)), 0.1)
+    assert grid is not None
+    grid.nearest(np.zeros((1, 3)), 0.1, threads=1)

@@ -576,3 +576,25 @@ def test_depth_tested_answers_keep_the_more_confident_rule(tmp_path: Path) -> No
     want = _segment(more_confident, "average_depth", [ON_B])
     assert plain.label.tolist() == [3]  # blended
     assert tested.label.tolist() == want.label.tolist() and tested.score.tolist() == want.score.tolist()
+
+
+def test_nearest_with_feature_grid_and_kd_tree_agree(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the snapshot's index is a voxel grid, or a k-d tree where the grid would be too large: the
+    # same rows either way, on and off the map's surfaces and beyond the radius
+    from mapper.node import query_kernels
+
+    node = _node(tmp_path)
+    _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
+    snap = node.state.global_map.snapshot()
+    rng = np.random.default_rng(0)
+    have = snap.xyz[snap.has_feature]
+    queries = np.concatenate([have + rng.normal(0, 0.03, have.shape), rng.uniform(-3, 3, (500, 3))])
+    grid_rows = snap.nearest_with_feature(queries.astype(np.float32), 0.075)
+    assert isinstance(snap._cache["feature_index"][0], query_kernels.NearestGrid)
+    monkeypatch.setattr(query_kernels.NearestGrid, "build", classmethod(lambda cls, pts, cell: None))
+    snap2 = node.state.global_map.snapshot()
+    snap2._cache.clear()
+    tree_rows = snap2.nearest_with_feature(queries.astype(np.float32), 0.075)
+    assert not isinstance(snap2._cache["feature_index"][0], query_kernels.NearestGrid)
+    np.testing.assert_array_equal(grid_rows, tree_rows)
+    assert (grid_rows >= 0).sum() > have.shape[0] // 2 and (grid_rows < 0).any()
