@@ -5,9 +5,10 @@ tree, in a child process whose imports come from that tree, alternating rev / th
 ``--rounds`` times: an in-process node with the learned model (``checkpoints/cpu-small``) takes
 ``govnesf bench``'s stream (``--frames`` frames of ``clients.cli.bench.make_frames``: depth,
 384-d ``ov``), then answers ``segment_points`` on ``--points`` stream points (``govnesf``,
-``govnesf`` with DGM, ``average``, ``average_depth``) and a 160x120 ``render`` (colour, depth,
-labels), each ``--repeats`` times after one warm-up. Prints min / median seconds per query and
-tree, and how equal the answers are (labels equal, largest score / depth difference).
+``govnesf`` with DGM, ``average``, ``average_depth``; ``--shuffle``: the points in one fixed random
+order, as an unordered cloud would come) and a 160x120 ``render`` (colour, depth, labels), each
+``--repeats`` times after one warm-up. Prints min / median seconds per query and tree, and how
+equal the answers are (labels equal, largest score / depth difference).
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/queries_vs_rev.py --rev HEAD~1
 """
@@ -31,7 +32,7 @@ ROOT = Path(__file__).resolve().parent.parent
 QUERIES = ("govnesf", "govnesf+dgm", "average", "average_depth", "render")
 
 
-def _worker(out: Path, frames: int, points: int, repeats: int) -> None:
+def _worker(out: Path, frames: int, points: int, repeats: int, shuffle: bool) -> None:
     """Runs in a child whose ``mapper`` / ``clients`` / ``protocol`` come from the tree under test."""
     import torch
 
@@ -55,6 +56,8 @@ def _worker(out: Path, frames: int, points: int, repeats: int) -> None:
                 node.handle_ingest(frame)
             node.drain_integrations()
             xyz = stream_points(points).astype(np.float32)
+            if shuffle:  # the same permutation in both trees
+                xyz = np.ascontiguousarray(xyz[np.random.default_rng(0).permutation(xyz.shape[0])])
             pose = look_at(np.array([3.0, 0.0, 1.5]), np.array([0.0, 0.0, 0.3]))
             msgs = {
                 "govnesf": SegmentPoints(xyz=xyz, texts=SEGMENT_TEXTS, method="govnesf"),
@@ -88,6 +91,7 @@ def _run_in(tree: Path, out: Path, args: argparse.Namespace) -> dict[str, list[f
     env = {**os.environ, "PYTHONPATH": str(tree), "HF_HUB_OFFLINE": "1"}
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", str(out), "--frames", str(args.frames),
            "--points", str(args.points), "--repeats", str(args.repeats)]
+    cmd += ["--shuffle"] if args.shuffle else []
     done = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise SystemExit(f"the measurement in {tree} failed:\n{done.stderr[-2000:]}")
@@ -111,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rev", default="HEAD", help="git revision to compare against (default HEAD)")
     p.add_argument("--frames", type=int, default=300)
     p.add_argument("--points", type=int, default=100_000)
+    p.add_argument("--shuffle", action="store_true", help="the points in a random (fixed) order")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--rounds", type=int, default=2, help="alternations of rev and this tree")
     p.add_argument("--worker", type=Path, help=argparse.SUPPRESS)
@@ -118,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     if min(args.frames, args.points, args.repeats, args.rounds) < 1:
         p.error("--frames, --points, --repeats and --rounds must be >= 1")
     if args.worker is not None:
-        _worker(args.worker, args.frames, args.points, args.repeats)
+        _worker(args.worker, args.frames, args.points, args.repeats, args.shuffle)
         return 0
     with tempfile.TemporaryDirectory() as tmp:
         rev_tree = Path(tmp) / "rev"
@@ -134,7 +139,8 @@ def main(argv: list[str] | None = None) -> int:
                 for q in QUERIES:
                     times[label][q] += got[q]
                 print(f"round {r + 1}: {label} done", flush=True)
-        print(f"{args.points} points, {args.frames} frames, {args.rounds} x {args.repeats} repeats, "
+        print(f"{args.points} points{' (shuffled)' if args.shuffle else ''}, {args.frames} frames, "
+              f"{args.rounds} x {args.repeats} repeats, "
               f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}")
         for q in QUERIES:
             a, b = times["rev"][q], times["tree"][q]

@@ -351,6 +351,13 @@ class QueryConfig:
     map's nearest point with a feature within this many map voxels (``global_map.voxel_size_m``);
     0 = window only. 0..100."""
 
+    spatial_sort: bool = True
+    """``segment_points`` with ``average`` / ``average_depth`` answers points that do not come in a
+    spatially coherent order (e.g. a shuffled or randomly sampled cloud) in Z-order of map voxels
+    instead, and returns the answers in the request's order: the averaging kernel reads the OV taps
+    neighbouring points share once (:func:`mapper.node.queries.spatial_order`; the same answers,
+    measured in docs/BENCHMARKS.md). False = the request's order."""
+
     map_when_more_confident: bool = True
     """``segment_points`` also answers a point the window sees from that nearest map point when the
     map names another text with a higher cosine than the window's answer (keyframes that left the

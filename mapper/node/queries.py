@@ -773,6 +773,41 @@ def segment_average_cosines(
     return sims_t.numpy(), n_views.numpy()
 
 
+COHERENT_PAIR_SHARE = 0.5
+""":func:`spatial_order` leaves points in their order when at least this share of the consecutive
+pairs (0, 1), (2, 3), ... lie within one cell of each other."""
+
+
+def spatial_order(
+    xyz: np.ndarray,  # (N, 3) float32 world metres, finite
+    cell_m: float,
+) -> np.ndarray | None:  # (N,) int64 permutation, or None
+    """The order in which to answer ``segment_points``' points: None (their own order) where they
+    already come spatially coherent (at least ``COHERENT_PAIR_SHARE`` of the consecutive pairs
+    within ``cell_m`` of each other, e.g. pixels of a depth image in raster order), else the
+    permutation that sorts them along a Z-order (Morton) curve of cells of side ``cell_m``
+    (stable within a cell). The answering kernels sum neighbouring points together and read the
+    OV taps they share once (:func:`mapper.model.ops.average_kernel.accumulate_taps`); each point's
+    answer does not depend on the order.
+
+    >>> pts = np.array([[0.0, 0, 0], [5, 5, 5], [0.01, 0, 0], [5.01, 5, 5]], np.float32)
+    >>> spatial_order(pts, 0.05).tolist()
+    [0, 2, 1, 3]
+    >>> spatial_order(pts[[0, 2, 1, 3]], 0.05) is None
+    True
+    """
+    n = xyz.shape[0]
+    if n < 4:
+        return None
+    pts = np.asarray(xyz, np.float64)
+    step = pts[1 : 2 * (n // 2) : 2] - pts[0 : 2 * (n // 2) : 2]
+    if np.mean(np.einsum("ij,ij->i", step, step) <= cell_m * cell_m) >= COHERENT_PAIR_SHARE:
+        return None
+    from mapper.node.query_kernels import morton_codes  # numba: compiled or loaded when first used
+
+    return np.argsort(morton_codes(pts, pts.min(axis=0), cell_m), kind="stable")
+
+
 def best_text(
     cos: np.ndarray,  # (N, T) float32 cosines
     seen: np.ndarray,  # (N,) bool: rows that have an answer

@@ -17,7 +17,7 @@ import numpy as np
 
 from mapper.model.ops.average_kernel import _dot, launch  # numba + numpy only (no torch)
 
-__all__ = ["NearestGrid", "component_cells", "row_cosines", "warm_up"]
+__all__ = ["NearestGrid", "component_cells", "morton_codes", "row_cosines", "warm_up"]
 
 _ROWS_PER_TASK = 256
 _HALF_OFFSETS = np.array(
@@ -303,6 +303,42 @@ class NearestGrid:
         return out
 
 
+@numba.njit(boundscheck=False, cache=True, inline="always")
+def _spread_bits(v):  # pragma: no cover - compiled
+    """The 21 low bits of the uint64 ``v`` moved to every third bit (bit i -> bit 3i)."""
+    v = v & np.uint64(0x1FFFFF)
+    v = (v | (v << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
+    v = (v | (v << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
+    v = (v | (v << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
+    v = (v | (v << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
+    return (v | (v << np.uint64(2))) & np.uint64(0x1249249249249249)
+
+
+@numba.njit(boundscheck=False, cache=True)
+def _morton_codes(pts, origin, cell, out):  # pragma: no cover - compiled
+    top = np.float64(2**21 - 1)
+    for i in range(pts.shape[0]):
+        code = np.uint64(0)
+        for a in range(3):
+            c = min(max(np.floor((pts[i, a] - origin[a]) / cell), 0.0), top)
+            code |= _spread_bits(np.uint64(c)) << np.uint64(a)
+        out[i] = code
+
+
+def morton_codes(
+    pts: np.ndarray,  # (N, 3) finite world metres
+    origin: np.ndarray,  # (3,) the grid's corner
+    cell_m: float,
+) -> np.ndarray:  # (N,) uint64
+    """Each point's Z-order (Morton) code: its cell ``floor((p - origin) / cell_m)``, clipped to
+    [0, 2^21 - 1] per axis, with the bits of x, y and z interleaved (x lowest)."""
+    if not cell_m > 0:
+        raise ValueError(f"cell_m must be > 0, got {cell_m}")
+    out = np.empty(pts.shape[0], np.uint64)
+    _morton_codes(np.ascontiguousarray(pts, np.float64), np.asarray(origin, np.float64), float(cell_m), out)
+    return out
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernels now, on one-row problems."""
     row_cosines(np.ones((1, 2), np.float32), np.ones((1, 2), np.float32), threads=1)
@@ -312,3 +348,4 @@ def warm_up() -> None:
     grid = NearestGrid.build(np.zeros((1, 3)), 0.1)
     assert grid is not None
     grid.nearest(np.zeros((1, 3)), 0.1, threads=1)
+    morton_codes(np.zeros((1, 3)), np.zeros(3), 0.1)

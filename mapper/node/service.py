@@ -65,7 +65,7 @@ import time
 import traceback
 from collections import Counter, deque
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from types import FrameType
 from typing import TYPE_CHECKING, Any
 
@@ -1485,6 +1485,31 @@ class MapperNode:
         return out
 
     def _segment_average(self, msg: SegmentPoints, use_depth: bool) -> Segmentation:
+        """``average`` / ``average_depth`` (:meth:`_segment_average_ordered`) with the points in
+        Z-order of map voxels where they do not come spatially coherent (``queries.spatial_sort``,
+        :func:`mapper.node.queries.spatial_order`), the answers returned in the request's order.
+        (The learned model's path groups its points by view set and cell already: a shuffled
+        request costs it about as much as a coherent one, docs/BENCHMARKS.md.)"""
+        if not self.config.queries.spatial_sort:
+            return self._segment_average_ordered(msg, use_depth)
+        from mapper.node.queries import spatial_order
+
+        started = time.perf_counter()
+        order = spatial_order(np.asarray(msg.xyz, np.float32), self.config.global_map.voxel_size_m)
+        if order is None:
+            return self._segment_average_ordered(msg, use_depth)
+        sorted_ms = 1e3 * (time.perf_counter() - started)
+        reply = self._segment_average_ordered(replace(msg, xyz=np.asarray(msg.xyz)[order]), use_depth)
+        for name in ("label", "score", "source"):  # back to the request's order
+            arr = getattr(reply, name)
+            if arr is not None:
+                back = np.empty_like(arr)
+                back[order] = arr
+                setattr(reply, name, back)
+        reply.timing_ms["spatial_sort"] = sorted_ms
+        return reply
+
+    def _segment_average_ordered(self, msg: SegmentPoints, use_depth: bool) -> Segmentation:
         """``average`` / ``average_depth``: OpenScene-2D averaging over the window's keyframes where
         they see a point, together with the views of keyframes that left the window at its nearest
         map voxel (``queries.evicted_views``, :meth:`_evicted_prior`), and the global map's fused
