@@ -480,27 +480,28 @@ class GlobalMapSnapshot:
         """(N,) int64 row of the nearest map point that carries a feature within ``radius_m`` of
         each point, -1 where there is none. The index over those points is built once per snapshot
         (per map version) and shared by later calls: a grid of voxel-sized cells
-        (:class:`mapper.node.query_kernels.NearestGrid`), or a k-d tree where that grid would be too
-        large (a sparse map over a large extent); the same answers either way."""
+        (:class:`mapper.node.query_kernels.NearestGrid`) for radii up to its
+        ``MAX_REACH_CELLS`` voxels, else (and where the grid would be too large: a sparse map over a
+        large extent) a k-d tree. The same rows either way, except that of equidistant map points
+        the grid takes the lowest row (the tree any)."""
         pts = np.asarray(xyz, np.float64).reshape(-1, 3)
         out = np.full(pts.shape[0], -1, np.int64)
         if pts.shape[0] == 0 or radius_m <= 0:
             return out
         from mapper.node.query_kernels import NearestGrid  # numba: compiled or loaded when first used
 
+        grid = radius_m <= NearestGrid.MAX_REACH_CELLS * self.voxel_size_m
         with self._cache_lock:
-            entry = self._cache.get("feature_index")
-            if entry is None:
-                rows = np.flatnonzero(self.feat_weight > 0)
-                index: NearestGrid | cKDTree | None = None
-                if rows.size:
-                    at = self.xyz[rows].astype(np.float64)
-                    index = NearestGrid.build(at, self.voxel_size_m)
-                    if index is None:  # a sparse map over a large extent
-                        index = cKDTree(at)
-                entry = (index, rows)
-                self._cache["feature_index"] = entry
-        index, rows = entry
+            rows = self._cache.get("feature_rows")
+            if rows is None:
+                rows = self._cache["feature_rows"] = np.flatnonzero(self.feat_weight > 0)
+            index = self._cache.get("feature_grid" if grid else "feature_tree", False)
+            if index is False:
+                at = self.xyz[rows].astype(np.float64)
+                index = NearestGrid.build(at, self.voxel_size_m) if grid and rows.size else None
+                if index is None and rows.size:  # a large radius, or a grid too large for the map
+                    index = cKDTree(at)
+                self._cache["feature_grid" if grid else "feature_tree"] = index
         if index is None:
             return out
         if isinstance(index, NearestGrid):

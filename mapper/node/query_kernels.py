@@ -254,7 +254,11 @@ class NearestGrid:
     this takes the lowest index (a k-d tree takes any).
 
     :meth:`build` returns None when the grid would exceed ``_GRID_MAX_CELLS`` cells (and 8x the
-    points): a sparse map over a large extent, where a k-d tree is the better index."""
+    points): a sparse map over a large extent, where a k-d tree is the better index. A query that
+    finds nothing within one cell scans (2 r / cell + 1)^3 cells; beyond ``MAX_REACH_CELLS`` cells
+    of radius a k-d tree is the better index too."""
+
+    MAX_REACH_CELLS = 4.0
 
     def __init__(self, pts: np.ndarray, starts: np.ndarray, dims: np.ndarray, origin: np.ndarray,
                  cell_m: float, order: np.ndarray) -> None:

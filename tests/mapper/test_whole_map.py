@@ -579,8 +579,10 @@ def test_depth_tested_answers_keep_the_more_confident_rule(tmp_path: Path) -> No
 
 
 def test_nearest_with_feature_grid_and_kd_tree_agree(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    # the snapshot's index is a voxel grid, or a k-d tree where the grid would be too large: the
-    # same rows either way, on and off the map's surfaces and beyond the radius
+    # the snapshot's index is a voxel grid, or a k-d tree where the grid would be too large or the
+    # radius beyond its reach: the same rows either way, on and off the map's surfaces
+    from scipy.spatial import cKDTree
+
     from mapper.node import query_kernels
 
     node = _node(tmp_path)
@@ -590,11 +592,18 @@ def test_nearest_with_feature_grid_and_kd_tree_agree(tmp_path: Path, monkeypatch
     have = snap.xyz[snap.has_feature]
     queries = np.concatenate([have + rng.normal(0, 0.03, have.shape), rng.uniform(-3, 3, (500, 3))])
     grid_rows = snap.nearest_with_feature(queries.astype(np.float32), 0.075)
-    assert isinstance(snap._cache["feature_index"][0], query_kernels.NearestGrid)
+    assert isinstance(snap._cache["feature_grid"], query_kernels.NearestGrid)
+    # a radius beyond the grid's reach (voxels of 5 cm here) takes the k-d tree
+    far_rows = snap.nearest_with_feature(queries.astype(np.float32), 0.5)
+    assert "feature_tree" in snap._cache and (far_rows >= 0).sum() > (grid_rows >= 0).sum()
     monkeypatch.setattr(query_kernels.NearestGrid, "build", classmethod(lambda cls, pts, cell: None))
     snap2 = node.state.global_map.snapshot()
     snap2._cache.clear()
     tree_rows = snap2.nearest_with_feature(queries.astype(np.float32), 0.075)
-    assert not isinstance(snap2._cache["feature_index"][0], query_kernels.NearestGrid)
+    assert isinstance(snap2._cache["feature_grid"], cKDTree)  # no grid: the tree in its place
     np.testing.assert_array_equal(grid_rows, tree_rows)
     assert (grid_rows >= 0).sum() > have.shape[0] // 2 and (grid_rows < 0).any()
+    rows = np.flatnonzero(snap.has_feature)
+    dist, idx = cKDTree(snap.xyz[rows].astype(np.float64)).query(queries, distance_upper_bound=0.5)
+    np.testing.assert_array_equal(far_rows, np.where(np.isfinite(dist), rows[np.minimum(idx, rows.size - 1)],
+                                                     -1))
