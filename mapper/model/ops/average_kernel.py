@@ -171,10 +171,9 @@ def _kernel(
                 pw = _F0
                 if prior_row.shape[0] > 0 and prior_row[i] >= 0:
                     pw = prior_w[i]
-                active[q] = m > 0 or pw > 0
                 m_q[q] = m
-                if not active[q]:
-                    m_q[q] = 0
+                active[q] = m > 0 or pw > 0
+                if not active[q]:  # no taps, no prior: the output row stays 0
                     continue
                 inv = _F1 / (wsum + pw)
                 acc = accs[q]
