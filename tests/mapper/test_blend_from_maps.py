@@ -299,3 +299,17 @@ def test_point_cosines_equal_the_point_outputs() -> None:
     assert torch.equal(valid, out.valid) and torch.equal(num_views, out.num_views) and bool(valid.any())
     torch.testing.assert_close(cos, expected, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(cos_sampled, expected, rtol=1e-4, atol=1e-5)
+
+
+def test_contiguous_uv_copies_the_same_values() -> None:
+    # the blend kernel's copy of (P, N, 2) pixel pairs: one 8-byte element per pair where the pair
+    # is contiguous, numpy's copy otherwise; always C-contiguous float32 and the same values
+    from mapper.model.ops.average_kernel import _contiguous_uv
+
+    base = np.random.default_rng(0).random((16, 301, 2)).astype(np.float32)
+    base[0, 0] = [np.nan, np.inf]
+    for uv in (base.transpose(1, 0, 2), base, base[:, ::2], base.astype(np.float64).transpose(1, 0, 2),
+               base[:, :, ::-1].transpose(1, 0, 2), base[:0].transpose(1, 0, 2)):
+        out = _contiguous_uv(uv)
+        assert out.dtype == np.float32 and out.flags.c_contiguous and out.shape == uv.shape
+        np.testing.assert_array_equal(out, uv.astype(np.float32))

@@ -335,6 +335,16 @@ def _blend_kernel(
                     out[p0 + q, t] = _dot(acc, texts[t]) * inv
 
 
+def _contiguous_uv(uv: np.ndarray) -> np.ndarray:  # (P, N, 2) -> the same, C-contiguous float32
+    """``np.ascontiguousarray(uv, np.float32)``, several times faster for the usual case: a
+    transposed view of slot-major (N, P, 2) pixel pairs (``sample_views_indexed``), copied as one
+    8-byte element per pair (the same bits)."""
+    if uv.dtype == np.float32 and uv.ndim == 3 and uv.shape[2] == 2 and uv.strides[2] == 4 \
+            and not uv.flags.c_contiguous:
+        return np.ascontiguousarray(uv.view(np.complex64)).view(np.float32)
+    return np.ascontiguousarray(uv, np.float32)
+
+
 def blend_kernel(
     table: np.ndarray,  # (M * h * w, C) float32
     map_wh: tuple[int, int],
@@ -355,7 +365,7 @@ def blend_kernel(
     txt = np.zeros((0, table.shape[1]), np.float32) if texts is None else texts
     with launch(threads):
         _blend_kernel(np.ascontiguousarray(table, np.float32), int(map_wh[0]), int(map_wh[1]),
-                      np.ascontiguousarray(view_idx, np.int64), np.ascontiguousarray(uv, np.float32),
+                      np.ascontiguousarray(view_idx, np.int64), _contiguous_uv(uv),
                       np.ascontiguousarray(weights, np.float32), np.ascontiguousarray(txt, np.float32), out,
                       int(block))
     return out
