@@ -4,7 +4,7 @@ that scoring the whole block gives), the radius components behind ``query_points
 clusters, and the nearest map point within a radius (:class:`NearestGrid`, the whole-map answers
 of ``segment_points`` and ``render``).
 
-Both are CPU functions of numpy arrays; :func:`warm_up` compiles them (or loads them from numba's
+All are CPU functions of numpy arrays; :func:`warm_up` compiles them (or loads them from numba's
 on-disk cache) on one-row problems, which the node does in its warm-up thread.
 """
 
@@ -259,6 +259,8 @@ class NearestGrid:
     of radius a k-d tree is the better index too."""
 
     MAX_REACH_CELLS = 4.0
+    """The largest radius, in cells, the grid should answer (``GlobalMapSnapshot`` takes a k-d
+    tree beyond it): a miss then scans at most 9^3 cells."""
 
     def __init__(self, pts: np.ndarray, starts: np.ndarray, dims: np.ndarray, origin: np.ndarray,
                  cell_m: float, order: np.ndarray) -> None:
