@@ -260,7 +260,7 @@ class NearestGrid:
 
     MAX_REACH_CELLS = 4.0
     """The largest radius, in cells, the grid should answer (``GlobalMapSnapshot`` takes a k-d
-    tree beyond it): a miss then scans at most 9^3 cells."""
+    tree beyond it): a miss then scans at most 10^3 cells."""
 
     def __init__(self, pts: np.ndarray, starts: np.ndarray, dims: np.ndarray, origin: np.ndarray,
                  cell_m: float, order: np.ndarray) -> None:
