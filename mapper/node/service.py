@@ -54,6 +54,7 @@ callbacks (called under the state lock); saving more state goes through ``MapSta
 
 from __future__ import annotations
 
+import copy
 import importlib
 import logging
 import math
@@ -65,7 +66,7 @@ import time
 import traceback
 from collections import Counter, deque
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from types import FrameType
 from typing import TYPE_CHECKING, Any
 
@@ -1495,11 +1496,14 @@ class MapperNode:
         from mapper.node.queries import spatial_order
 
         started = time.perf_counter()
-        order = spatial_order(np.asarray(msg.xyz, np.float32), self.config.global_map.voxel_size_m)
+        xyz = np.asarray(msg.xyz, np.float32)
+        order = spatial_order(xyz, self.config.global_map.voxel_size_m)
         if order is None:
             return self._segment_average_ordered(msg, use_depth)
         sorted_ms = 1e3 * (time.perf_counter() - started)
-        reply = self._segment_average_ordered(replace(msg, xyz=np.asarray(msg.xyz)[order]), use_depth)
+        in_order = copy.copy(msg)  # a permutation of points validated at the boundary: not checked again
+        in_order.xyz = xyz[order]
+        reply = self._segment_average_ordered(in_order, use_depth)
         for name in ("label", "score", "source"):  # back to the request's order
             arr = getattr(reply, name)
             if arr is not None:
