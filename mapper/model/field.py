@@ -604,6 +604,73 @@ class GovNeSF(nn.Module):
         cos = cosines_from_maps(ov_maps.table, ov_maps.map_wh, ov_maps.view_idx, uv, weights, texts)
         return cos, valid, samples.mask.sum(dim=1)
 
+    def answer_kernel_applies(self, views: SourceViews, points: Tensor, ov_maps: OVMaps,
+                              fusion: FusionNet | None = None) -> bool:
+        """:meth:`point_cosines_indexed` runs as one compiled CPU pass: blend mode, the compiled
+        sampling and point kernels switched on, everything on the CPU in float32, no gradient."""
+        net = self.fusion if fusion is None else fusion
+        return (
+            self.distill is None
+            and self.compiled_sampling
+            and net.fast_inference
+            and net.point_kernel
+            and _sample_kernel_applies(views, points, sample_ov=False)
+            and ov_maps.table.device.type == "cpu"
+            and ov_maps.table.dtype == torch.float32
+        )
+
+    def point_cosines_indexed(
+        self,
+        views: SourceViews,
+        view_idx: Tensor,  # (P, N) long: each point's views (indices into ``views``)
+        slot_mask: Tensor,  # (P, N) bool: False for padding slots
+        points: Tensor,  # (P, 3)
+        depth_guided_masking: bool,
+        v: Tensor,  # (P, Dv) volume features at the points
+        texts: Tensor,  # (T, D) unit text embeddings
+        ov_maps: OVMaps,  # the OV maps of ``views`` (``ov_maps.view_idx`` is not read: ``view_idx`` is)
+        *,
+        fusion: FusionNet | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """``point_cosines(sample_views_indexed(views, view_idx, slot_mask, points,
+        depth_guided_masking, sample_ov=False), v, texts, ov_maps=..., fusion=fusion)`` as one
+        compiled pass (:mod:`mapper.model.ops.answer_kernel`): the same cosines without the
+        pairs' samples ever leaving per-block buffers. Only where :meth:`answer_kernel_applies`.
+
+        Returns:
+            cosines (P, T) (0 where no view sees the point), valid (P,) bool, num_views (P,) long.
+        """
+        from mapper.model.ops.answer_kernel import answer_points
+
+        net = self.fusion if fusion is None else fusion
+        if not self.answer_kernel_applies(views, points, ov_maps, fusion):
+            raise ValueError("point_cosines_indexed needs the compiled CPU path (answer_kernel_applies)")
+        P, N = view_idx.shape
+        if points.shape != (P, 3) or slot_mask.shape != (P, N) or v.shape[0] != P:
+            raise ValueError(f"points {tuple(points.shape)} / slot_mask {tuple(slot_mask.shape)} / volume "
+                             f"features {tuple(v.shape)} do not fit view_idx {tuple(view_idx.shape)}")
+        if view_idx.numel() and not (0 <= int(view_idx.min()) and int(view_idx.max()) < len(views)):
+            raise ValueError(f"view_idx must index the {len(views)} views, got {int(view_idx.min())}.."
+                             f"{int(view_idx.max())}")
+        if tuple(ov_maps.image_wh) != tuple(views.image_wh):
+            raise ValueError(f"ov_maps are for {ov_maps.image_wh} images, the views are {views.image_wh}")
+        rgb_t, feat_t, _ = views.channel_last()
+        depth = None
+        if depth_guided_masking and views.depth_m is not None:
+            d = views.depth_m
+            depth = (d.to(torch.float32).numpy(), (int(d.shape[-1]), int(d.shape[-2])))
+        cos, valid, num_views = answer_points(
+            net.point_kernel_weights(), points.numpy(), view_idx.T.numpy(), slot_mask.T.numpy(),
+            invert_pose(views.world_from_cam).to(torch.float32).numpy(), views.K.to(torch.float32).numpy(),
+            camera_centers(views.world_from_cam).to(torch.float32).numpy(), views.image_wh, DEFAULT_EPS,
+            (rgb_t.numpy(), (int(views.rgb.shape[-1]), int(views.rgb.shape[-2]))),
+            (feat_t.numpy(), (int(views.features.shape[-1]), int(views.features.shape[-2]))),
+            depth, self.cfg.render.depth_mask_ratio, v.to(torch.float32).numpy(),
+            (ov_maps.table.numpy(), ov_maps.map_wh), texts.to(torch.float32).numpy(),
+            threads=torch.get_num_threads(),
+        )
+        return torch.from_numpy(cos), torch.from_numpy(valid), torch.from_numpy(num_views)
+
 
 def _sample_kernel_applies(views: SourceViews, points: Tensor, sample_ov: bool) -> bool:
     """``sample_views_indexed`` takes the compiled kernel: CPU float32 maps and points, no OV

@@ -1299,7 +1299,15 @@ class ModelRuntime:
                 if cosines is not None:
                     cosines[sub] = cos.float() * valid[:, None]
 
-            if self.config.batched_view_groups and groups:
+            if self.config.batched_view_groups and groups and self._answer_in_one_pass(model, prep, pts):
+                members, view_idx, slots = _group_slots(groups)
+                views = self._all_views(prep, need_ov=False, use_depth=use_depth, depth_m=occluders)
+                v, _ = sample_volume(prep.volume, prep.bounds, pts[members].to(prep.volume.dtype))
+                cos, valid, _ = model.point_cosines_indexed(
+                    views, view_idx, slots, pts[members], use_depth, v, emb,
+                    prep.ov_maps(view_idx, self.image_wh), fusion=self.point_head)
+                answer(members, cos, valid)
+            elif self.config.batched_view_groups and groups:
                 # one network pass over every view group (each point with its own views)
                 for sub, samples, v, ov_maps in self._point_batches(model, prep, pts, groups, use_depth,
                                                                     depth_m=occluders):
@@ -1361,6 +1369,15 @@ class ModelRuntime:
             occ = torch.where((prior > 0) & (prior > (1.0 + ratio) * occ), torch.zeros_like(occ), occ)
         out[need] = occ
         return out
+
+    def _answer_in_one_pass(self, model: GovNeSF, prep: _Prepared, pts: Tensor) -> bool:
+        """``segment`` answers every point in one compiled pass (``model.fused_point_answers`` and
+        :meth:`GovNeSF.answer_kernel_applies`) instead of chunk by chunk."""
+        if not self.config.fused_point_answers or prep.ov is None:
+            return False
+        views = self._all_views(prep, need_ov=False, use_depth=False)
+        return model.answer_kernel_applies(views, pts, prep.ov_maps(torch.zeros(0, dtype=torch.long),
+                                                                    self.image_wh), self.point_head)
 
     def _point_batches(
         self,

@@ -157,7 +157,8 @@ def test_node_warms_the_point_kernels(tmp_path: Path) -> None:
     try:
         assert node.kernel_modules == ["mapper.node.query_kernels"]
         install_learned_handlers(node, make_runtime(GovNeSF(TINY).eval(), source_views=3))
-        assert node.kernel_modules[1:] == ["mapper.model.ops.sample_kernel", "mapper.model.ops.fusion_kernel"]
+        assert node.kernel_modules[1:] == ["mapper.model.ops.sample_kernel", "mapper.model.ops.fusion_kernel",
+                                           "mapper.model.ops.answer_kernel"]
         for module in node.kernel_modules:
             assert callable(importlib.import_module(module).warm_up)
     finally:

@@ -270,7 +270,8 @@ def install_learned_handlers(node: MapperNode, runtime: ModelRuntime) -> Rendere
     node.status_providers["model"] = runtime.stats
     if not runtime.load_error and runtime.device.type == "cpu":
         # the point answers' compiled kernels, warmed by node.start()
-        node.kernel_modules += ["mapper.model.ops.sample_kernel", "mapper.model.ops.fusion_kernel"]
+        node.kernel_modules += ["mapper.model.ops.sample_kernel", "mapper.model.ops.fusion_kernel",
+                                "mapper.model.ops.answer_kernel"]
     if not runtime.load_error and node.config.global_map.learned_features:
         install_pre_eviction_features(node, runtime)
     if runtime.load_error or not node.config.global_map.rendered_depth:
