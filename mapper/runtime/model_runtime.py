@@ -195,6 +195,13 @@ def _keyframe_key(keyframe: Any) -> tuple[str, int, int]:
     return (str(getattr(keyframe, "camera", "")), int(keyframe.seq), int(keyframe.stamp_ns))
 
 
+FUSED_CHUNK_POINTS = 65536
+"""Points per call of the one-pass point answers (``model.fused_point_answers``): its samples stay in
+per-block buffers whatever the call's size; this bounds the copies of the points' view indices
+(16 views a point: 8 MB a call), not the kernel's work. A multiple of the kernel's blocks, so the
+answers do not depend on it."""
+
+
 def _group_slots(groups: Sequence[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor, Tensor]:
     """View groups ``[(point_indices (p,), view_indices (k,)), ...]`` -> the points of every group
     (G,), each one's views (G, k_max) and slot mask (G, k_max) (False = padding, a masked view).
@@ -1302,11 +1309,15 @@ class ModelRuntime:
             if self.config.batched_view_groups and groups and self._answer_in_one_pass(model, prep, pts):
                 members, view_idx, slots = _group_slots(groups)
                 views = self._all_views(prep, need_ov=False, use_depth=use_depth, depth_m=occluders)
-                v, _ = sample_volume(prep.volume, prep.bounds, pts[members].to(prep.volume.dtype))
-                cos, valid, _ = model.point_cosines_indexed(
-                    views, view_idx, slots, pts[members], use_depth, v, emb,
-                    prep.ov_maps(view_idx, self.image_wh), fusion=self.point_head)
-                answer(members, cos, valid)
+                for i in range(0, members.numel(), FUSED_CHUNK_POINTS):
+                    sel = slice(i, i + FUSED_CHUNK_POINTS)
+                    sub = members[sel]
+                    chunk_views, chunk_slots = _chunk_slots(view_idx, slots, sel)
+                    v, _ = sample_volume(prep.volume, prep.bounds, pts[sub].to(prep.volume.dtype))
+                    cos, valid, _ = model.point_cosines_indexed(
+                        views, chunk_views, chunk_slots, pts[sub], use_depth, v, emb,
+                        prep.ov_maps(chunk_views, self.image_wh), fusion=self.point_head)
+                    answer(sub, cos, valid)
             elif self.config.batched_view_groups and groups:
                 # one network pass over every view group (each point with its own views)
                 for sub, samples, v, ov_maps in self._point_batches(model, prep, pts, groups, use_depth,
