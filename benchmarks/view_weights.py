@@ -34,12 +34,30 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 
+def point_normals(xyz: np.ndarray, k: int = 12) -> np.ndarray:
+    """(P, 3) unit normals of a point cloud: the least principal axis of each point's k nearest
+    points (the points themselves, no other geometry). Unoriented."""
+    from scipy.spatial import cKDTree
+
+    k = min(k, len(xyz))
+    _, nn = cKDTree(xyz).query(xyz, k=k)
+    local = xyz[nn] - xyz[nn].mean(axis=1, keepdims=True)  # (P, k, 3)
+    _, vecs = np.linalg.eigh(np.einsum("pki,pkj->pij", local, local))
+    return vecs[:, :, 0]  # eigh sorts ascending: the smallest variance's axis
+
+
 def weightings(learned: torch.Tensor, mask: torch.Tensor, dist: torch.Tensor, ov: torch.Tensor,
-               ) -> dict[str, torch.Tensor]:
+               incidence: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Per-view weights (P, k) of every row. learned / mask / dist: (P, k), views sorted by
-    distance; ov: (P, k, D) the views' OV features (0 where masked)."""
+    distance; ov: (P, k, D) the views' OV features (0 where masked); incidence (P, k): |cos| of the
+    angle between each view's ray and the point's normal estimated from the points."""
     sel = mask.float()
     rows = {"learned": learned * sel, "uniform": sel}
+    if incidence is not None:
+        for beta in (0.7, 2.0):
+            q = incidence.clamp_min(0.05) ** beta
+            rows[f"learned x incidence^{beta:g}"] = learned * sel * q
+            rows[f"uniform x incidence^{beta:g}"] = sel * q
     for a, s in ((2.0, 6.0), (1.0, 2.0), (0.0, 1.0)):
         q = torch.exp(-(dist - a).clamp_min(0) / s)
         rows[f"learned x dist({a:g}, {s:g})"] = learned * sel * q
@@ -100,13 +118,17 @@ def main(argv: list[str] | None = None) -> int:
             pb = ev.blend_points(model, views, volume, bounds, sp.xyz, depth_guided_masking=dgm)
             uv, _, _ = ev.candidate_views(views, sp.xyz, depth_guided_masking=dgm)
             idx, sel = pb.view_index, pb.mask  # (P, k), nearest first
-            dist = torch.cdist(sp.xyz, camera_centers(views.world_from_cam)).gather(1, idx)
+            centres = camera_centers(views.world_from_cam)  # (M, 3)
+            dist = torch.cdist(sp.xyz, centres).gather(1, idx)
+            rays = F.normalize(sp.xyz[:, None, :] - centres[idx], dim=-1)  # (P, k, 3)
+            normal = torch.from_numpy(point_normals(sp.xyz.double().numpy())).to(rays)
+            incidence = (rays * normal[:, None, :]).sum(-1).abs()
             o_wh = (views.ov.shape[-1], views.ov.shape[-2])
             ov = torch.zeros(*idx.shape, views.ov.shape[1])
             for n in torch.unique(idx[sel]).tolist():
                 r, s = torch.nonzero((idx == n) & sel, as_tuple=True)
                 ov[r, s] = sample_bilinear(views.ov[n], scale_uv(uv[n, r], views.image_wh, o_wh))[0]
-            for name, w in weightings(pb.weights, sel, dist, ov).items():
+            for name, w in weightings(pb.weights, sel, dist, ov, incidence).items():
                 w = w / w.sum(1, keepdim=True).clamp_min(1e-12)
                 pred = np.asarray(predict_labels(blend(w, ov), emb))
                 miou = 100 * segmentation_scores(confusion_matrix(sp.gt, pred)).miou
