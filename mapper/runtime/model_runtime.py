@@ -1307,16 +1307,8 @@ class ModelRuntime:
                     cosines[sub] = cos.float() * valid[:, None]
 
             if self.config.batched_view_groups and groups and self._answer_in_one_pass(model, prep, pts):
-                members, view_idx, slots = _group_slots(groups)
-                views = self._all_views(prep, need_ov=False, use_depth=use_depth, depth_m=occluders)
-                for i in range(0, members.numel(), FUSED_CHUNK_POINTS):
-                    sel = slice(i, i + FUSED_CHUNK_POINTS)
-                    sub = members[sel]
-                    chunk_views, chunk_slots = _chunk_slots(view_idx, slots, sel)
-                    v, _ = sample_volume(prep.volume, prep.bounds, pts[sub].to(prep.volume.dtype))
-                    cos, valid, _ = model.point_cosines_indexed(
-                        views, chunk_views, chunk_slots, pts[sub], use_depth, v, emb,
-                        prep.ov_maps(chunk_views, self.image_wh), fusion=self.point_head)
+                for sub, cos, valid in self._one_pass_cosines(model, prep, pts, groups, use_depth, emb,
+                                                              depth_m=occluders):
                     answer(sub, cos, valid)
             elif self.config.batched_view_groups and groups:
                 # one network pass over every view group (each point with its own views)
@@ -1389,6 +1381,31 @@ class ModelRuntime:
         views = self._all_views(prep, need_ov=False, use_depth=False)
         return model.answer_kernel_applies(views, pts, prep.ov_maps(torch.zeros(0, dtype=torch.long),
                                                                     self.image_wh), self.point_head)
+
+    def _one_pass_cosines(
+        self,
+        model: GovNeSF,
+        prep: _Prepared,
+        pts: Tensor,  # (P, 3)
+        groups: list[tuple[Tensor, Tensor]],
+        use_depth: bool,
+        emb: Tensor,  # (T, D) unit text embeddings
+        depth_m: Tensor | None = None,
+    ) -> Iterator[tuple[Tensor, Tensor, Tensor]]:
+        """Every view group's points in calls of :data:`FUSED_CHUNK_POINTS` to
+        :meth:`GovNeSF.point_cosines_indexed`: yields (point indices (p,), cosines (p, T), valid
+        (p,)). ``depth_m``: see ``_all_views``. Call with the runtime's lock held."""
+        members, view_idx, slots = _group_slots(groups)
+        views = self._all_views(prep, need_ov=False, use_depth=use_depth, depth_m=depth_m)
+        for i in range(0, members.numel(), FUSED_CHUNK_POINTS):
+            sel = slice(i, i + FUSED_CHUNK_POINTS)
+            sub = members[sel]
+            chunk_views, chunk_slots = _chunk_slots(view_idx, slots, sel)
+            v, _ = sample_volume(prep.volume, prep.bounds, pts[sub].to(prep.volume.dtype))
+            ov_maps = prep.ov_maps(chunk_views, self.image_wh)
+            cos, valid, _ = model.point_cosines_indexed(views, chunk_views, chunk_slots, pts[sub], use_depth,
+                                                        v, emb, ov_maps, fusion=self.point_head)
+            yield sub, cos, valid
 
     def _point_batches(
         self,
