@@ -641,6 +641,7 @@ class GovNeSF(nn.Module):
             cosines (P, T) (0 where no view sees the point), valid (P,) bool, num_views (P,) long.
         """
         from mapper.model.ops.answer_kernel import answer_points
+        from mapper.model.ops.sample_kernel import pair_args
 
         net = self.fusion if fusion is None else fusion
         if not self.answer_kernel_applies(views, points, ov_maps, fusion):
@@ -659,15 +660,17 @@ class GovNeSF(nn.Module):
         if depth_guided_masking and views.depth_m is not None:
             d = views.depth_m
             depth = (d.to(torch.float32).numpy(), (int(d.shape[-1]), int(d.shape[-2])))
-        cos, valid, num_views = answer_points(
-            net.point_kernel_weights(), points.numpy(), view_idx.T.numpy(), slot_mask.T.numpy(),
+        pairs = pair_args(
             invert_pose(views.world_from_cam).to(torch.float32).numpy(), views.K.to(torch.float32).numpy(),
             camera_centers(views.world_from_cam).to(torch.float32).numpy(), views.image_wh, DEFAULT_EPS,
             (rgb_t.numpy(), (int(views.rgb.shape[-1]), int(views.rgb.shape[-2]))),
             (feat_t.numpy(), (int(views.features.shape[-1]), int(views.features.shape[-2]))),
-            depth, self.cfg.render.depth_mask_ratio, v.to(torch.float32).numpy(),
-            (ov_maps.table.numpy(), ov_maps.map_wh), texts.to(torch.float32).numpy(),
-            threads=torch.get_num_threads(),
+            depth, self.cfg.render.depth_mask_ratio,
+        )
+        cos, valid, num_views = answer_points(
+            net.point_kernel_weights(), points.numpy(), view_idx.T.numpy(), slot_mask.T.numpy(), pairs,
+            v.to(torch.float32).numpy(), (ov_maps.table.numpy(), ov_maps.map_wh),
+            texts.to(torch.float32).numpy(), threads=torch.get_num_threads(),
         )
         return torch.from_numpy(cos), torch.from_numpy(valid), torch.from_numpy(num_views)
 

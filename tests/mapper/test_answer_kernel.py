@@ -73,19 +73,21 @@ def test_the_block_size_changes_nothing() -> None:
     rgb_t, feat_t, _ = views.channel_last()
     ov_maps = prep.ov_maps(idx, runtime.image_wh)
     from mapper.model.ops.geometry import camera_centers, invert_pose
+    from mapper.model.ops.sample_kernel import pair_args
 
     def run(block: int):  # -> (cos, valid, num_views)
         assert views.depth_m is not None
-        return answer_kernel.answer_points(
-            model.fusion.point_kernel_weights(), pts.numpy(), idx.T.numpy(), slots.T.numpy(),
+        pairs = pair_args(
             invert_pose(views.world_from_cam).numpy(), views.K.numpy(),
-            camera_centers(views.world_from_cam).numpy(),
-            views.image_wh, 1e-6, (rgb_t.numpy(), (views.rgb.shape[-1], views.rgb.shape[-2])),
+            camera_centers(views.world_from_cam).numpy(), views.image_wh, 1e-6,
+            (rgb_t.numpy(), (views.rgb.shape[-1], views.rgb.shape[-2])),
             (feat_t.numpy(), (views.features.shape[-1], views.features.shape[-2])),
             (views.depth_m.numpy(), (views.depth_m.shape[-1], views.depth_m.shape[-2])),
-            model.cfg.render.depth_mask_ratio, v.numpy(), (ov_maps.table.numpy(), ov_maps.map_wh),
-            texts.numpy(),
-            threads=2, block=block,
+            model.cfg.render.depth_mask_ratio,
+        )
+        return answer_kernel.answer_points(
+            model.fusion.point_kernel_weights(), pts.numpy(), idx.T.numpy(), slots.T.numpy(), pairs,
+            v.numpy(), (ov_maps.table.numpy(), ov_maps.map_wh), texts.numpy(), threads=2, block=block,
         )
 
     first = run(1)

@@ -18,9 +18,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from mapper.model.ops.average_kernel import _blend_taps, _dot, accumulate_taps, launch
+from mapper.model.ops.average_kernel import blend_range, launch
 from mapper.model.ops.fusion_kernel import _POW2, RANGE_MIN_M, PointKernelWeights, _point_block, default_block
-from mapper.model.ops.sample_kernel import pair_args, sample_pair
+from mapper.model.ops.sample_kernel import PairArgs, pair_args, sample_pair
 
 __all__ = ["answer_points", "warm_up"]
 
@@ -50,7 +50,7 @@ def _answer_kernel(
 ):  # pragma: no cover - compiled
     n_slots, n_pts = view_idx.shape
     ov_t, ov_w, ov_h, ov_sx, ov_sy = ov
-    n_feat, n_vol, n_texts = feat[0].shape[1], vol.shape[0], texts.shape[0]
+    n_feat, n_vol = feat[0].shape[1], vol.shape[0]
     n_blocks = (n_pts + block - 1) // block
     for blk in numba.prange(n_blocks):
         p0 = blk * block
@@ -95,23 +95,7 @@ def _answer_kernel(
                 b_view[j, n] = view_idx[n, p0 + j]
                 b_uv[j, n, 0] = s_uv[n * block + j, 0] * ov_sx
                 b_uv[j, n, 1] = s_uv[n * block + j, 1] * ov_sy
-        accs = np.empty((2, ov_t.shape[1]), np.float32)
-        key = np.empty((2, nk), np.int64)
-        rows = np.empty((2, 4 * nk), np.int64)
-        wts = np.empty((2, 4 * nk), np.float32)
-        for j0 in range(0, nb, 2):
-            n_q = min(2, nb - j0)
-            accs[:] = _F0
-            m = _blend_taps(ov_t, ov_w, ov_h, b_view, b_uv, weights, j0, key[0], rows[0], wts[0])
-            m2 = 0
-            if n_q == 2:
-                m2 = _blend_taps(ov_t, ov_w, ov_h, b_view, b_uv, weights, j0 + 1, key[1], rows[1], wts[1])
-            accumulate_taps(accs[0], accs[1], ov_t, key, rows, wts, m, m2)
-            for q in range(n_q):
-                acc = accs[q]
-                inv = _F1 / max(np.sqrt(_dot(acc, acc)), np.float32(1e-12))  # F.normalize's eps
-                for t in range(n_texts):
-                    out[p0 + j0 + q, t] = _dot(acc, texts[t]) * inv
+        blend_range(ov_t, ov_w, ov_h, b_view, b_uv, weights, 0, nb, texts, out, p0)
         for j in range(nb):
             valid[p0 + j] = b_valid[j]
             seen = 0
@@ -125,15 +109,7 @@ def answer_points(
     pts: np.ndarray,  # (P, 3) float32 world points
     view_idx: np.ndarray,  # (N, P) int64, slot-major
     slot_mask: np.ndarray,  # (N, P) bool
-    cam_from_world: np.ndarray,  # (M, 4, 4) float32
-    K: np.ndarray,  # (M, 4) float32
-    centres: np.ndarray,  # (M, 3) float32
-    image_wh: tuple[int, int],
-    eps: float,
-    rgb: tuple[np.ndarray, tuple[int, int]],  # (M * h * w, 3) channel-last table, its map (w, h)
-    features: tuple[np.ndarray, tuple[int, int]],  # (M * h * w, F), its map (w, h)
-    depth: tuple[np.ndarray, tuple[int, int]] | None,  # (M, dh, dw) depth maps, (dw, dh); None: no test
-    depth_ratio: float,
+    pairs: PairArgs,  # the cameras and maps the pairs are sampled from (sample_kernel.pair_args)
     volume_features: np.ndarray,  # (P, Dv) float32
     ov: tuple[np.ndarray, tuple[int, int]],  # (M * h * w, C) OV maps, channel-last, their (w, h)
     texts: np.ndarray,  # (T, C) float32 unit text embeddings
@@ -146,7 +122,7 @@ def answer_points(
     docstring): cosines (P, T) (0 where no view sees the point), valid (P,), num_views (P,).
     ``block``: points per parallel task (0: the point kernel's :func:`default_block`)."""
     N, P = view_idx.shape
-    n_feat = features[0].shape[1]
+    n_feat = pairs.feat[0].shape[1]
     if (slot_mask.shape != (N, P) or pts.shape != (P, 3)
             or volume_features.shape != (P, weights.volume_feature_dim)):
         raise ValueError(f"answer_points: points {pts.shape}, slot_mask {slot_mask.shape} and volume "
@@ -155,11 +131,10 @@ def answer_points(
         raise ValueError(f"answer_points: {n_feat} feature channels / texts {texts.shape} do not fit the "
                          f"network (feature_dim {weights.feature_dim}) or the {ov[0].shape[1]}-channel OV "
                          "maps")
-    cameras, rgb_maps, feat_maps, depth_args = pair_args(cam_from_world, K, centres, image_wh, eps, rgb,
-                                                         features, depth, depth_ratio)
     ov_table, (ov_w, ov_h) = ov
+    width, height = float(pairs.cameras[3]), float(pairs.cameras[4])
     ov_maps = (np.ascontiguousarray(ov_table, np.float32), int(ov_w), int(ov_h),
-               np.float32(ov_w / image_wh[0]), np.float32(ov_h / image_wh[1]))  # scale_uv's factors
+               np.float32(ov_w / width), np.float32(ov_h / height))  # scale_uv's factors
     out = np.zeros((P, texts.shape[0]), np.float32)
     valid = np.zeros(P, np.bool_)
     num_views = np.zeros(P, np.int64)
@@ -168,7 +143,7 @@ def answer_points(
     with launch(threads):
         _answer_kernel(
             np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(view_idx, np.int64),
-            np.ascontiguousarray(slot_mask, np.bool_), cameras, rgb_maps, feat_maps, depth_args,
+            np.ascontiguousarray(slot_mask, np.bool_), pairs.cameras, pairs.rgb, pairs.feat, pairs.depth,
             np.ascontiguousarray(volume_features.T, np.float32), bool(weights.range_encoding), weights.params,
             _POW2, ov_maps, np.ascontiguousarray(texts, np.float32), out, valid, num_views,
             int(block or default_block(N, weights.attention_dim)),
@@ -179,9 +154,9 @@ def answer_points(
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernel now, on a one-point problem."""
     one = np.zeros((1, 1), np.int64)
+    pairs = pair_args(np.eye(4, dtype=np.float32)[None], np.ones((1, 4), np.float32),
+                      np.zeros((1, 3), np.float32), (1, 1), 1e-6, (np.zeros((1, 3), np.float32), (1, 1)),
+                      (np.zeros((1, 2), np.float32), (1, 1)), (np.ones((1, 1, 1), np.float32), (1, 1)), 0.1)
     answer_points(PointKernelWeights.zeros(2, 1, 2, 2), np.zeros((1, 3), np.float32), one,
-                  np.ones((1, 1), np.bool_), np.eye(4, dtype=np.float32)[None], np.ones((1, 4), np.float32),
-                  np.zeros((1, 3), np.float32), (1, 1), 1e-6,
-                  (np.zeros((1, 3), np.float32), (1, 1)), (np.zeros((1, 2), np.float32), (1, 1)),
-                  (np.ones((1, 1, 1), np.float32), (1, 1)), 0.1, np.zeros((1, 1), np.float32),
+                  np.ones((1, 1), np.bool_), pairs, np.zeros((1, 1), np.float32),
                   (np.zeros((1, 4), np.float32), (1, 1)), np.zeros((1, 4), np.float32), threads=1)

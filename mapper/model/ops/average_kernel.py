@@ -37,8 +37,8 @@ import numba
 import numpy as np
 
 __all__ = [
-    "LAUNCH_LOCK", "average_kernel", "blend_kernel", "check_prior", "in_view_matrix", "kernel_threads",
-    "launch", "warm_up",
+    "LAUNCH_LOCK", "average_kernel", "blend_kernel", "blend_range", "check_prior", "in_view_matrix",
+    "kernel_threads", "launch", "warm_up",
 ]
 
 _F0 = np.float32(0.0)
@@ -296,6 +296,36 @@ def _blend_taps(table, map_w, map_h, view_idx, uv, weights, p, key, rows, wts): 
     return m
 
 
+@numba.njit(cache=True, boundscheck=False, inline="always")
+def blend_range(table, map_w, map_h, view_idx, uv, weights, lo, hi, texts, out,
+                shift):  # pragma: no cover - compiled
+    """Points lo .. hi - 1 of (view_idx, uv, weights) (see :func:`_blend_kernel`) blended two at a
+    time (neighbours share most taps, :func:`accumulate_taps`) into rows p + ``shift`` of ``out``:
+    the blend itself (T = 0) or each text's cosine with the unit blend."""
+    n_slots, n_texts = weights.shape[1], texts.shape[0]
+    accs = np.empty((2, table.shape[1]), np.float32)
+    key = np.empty((2, n_slots), np.int64)
+    rows = np.empty((2, 4 * n_slots), np.int64)
+    wts = np.empty((2, 4 * n_slots), np.float32)
+    for p0 in range(lo, hi, 2):
+        n_q = min(2, hi - p0)
+        accs[:] = _F0
+        m = _blend_taps(table, map_w, map_h, view_idx, uv, weights, p0, key[0], rows[0], wts[0])
+        m2 = 0
+        if n_q == 2:
+            m2 = _blend_taps(table, map_w, map_h, view_idx, uv, weights, p0 + 1, key[1], rows[1], wts[1])
+        accumulate_taps(accs[0], accs[1], table, key, rows, wts, m, m2)
+        for q in range(n_q):
+            acc = accs[q]
+            row = p0 + q + shift
+            if n_texts == 0:
+                out[row, :] = acc
+                continue
+            inv = _F1 / max(np.sqrt(_dot(acc, acc)), np.float32(1e-12))  # F.normalize's eps
+            for t in range(n_texts):
+                out[row, t] = _dot(acc, texts[t]) * inv
+
+
 @numba.njit(parallel=True, cache=True, boundscheck=False)
 def _blend_kernel(
     table,  # (R, C) float32: M maps of h x w rows, channel-last, view-major
@@ -308,31 +338,11 @@ def _blend_kernel(
     out,  # (P, C) blends or (P, T) each text's cosine with the unit blend
     block,  # int: points per parallel task
 ):  # pragma: no cover - compiled
-    n_pts, n_slots = weights.shape
-    n_texts = texts.shape[0]
+    n_pts = weights.shape[0]
     n_blocks = (n_pts + block - 1) // block
     for blk in numba.prange(n_blocks):
-        accs = np.empty((2, table.shape[1]), np.float32)
-        key = np.empty((2, n_slots), np.int64)
-        rows = np.empty((2, 4 * n_slots), np.int64)
-        wts = np.empty((2, 4 * n_slots), np.float32)
-        hi = min(n_pts, (blk + 1) * block)
-        for p0 in range(blk * block, hi, 2):  # points in pairs: neighbours share most taps
-            n_q = min(2, hi - p0)
-            accs[:] = _F0
-            m = _blend_taps(table, map_w, map_h, view_idx, uv, weights, p0, key[0], rows[0], wts[0])
-            m2 = 0
-            if n_q == 2:
-                m2 = _blend_taps(table, map_w, map_h, view_idx, uv, weights, p0 + 1, key[1], rows[1], wts[1])
-            accumulate_taps(accs[0], accs[1], table, key, rows, wts, m, m2)
-            for q in range(n_q):
-                acc = accs[q]
-                if n_texts == 0:
-                    out[p0 + q, :] = acc
-                    continue
-                inv = _F1 / max(np.sqrt(_dot(acc, acc)), np.float32(1e-12))  # F.normalize's eps
-                for t in range(n_texts):
-                    out[p0 + q, t] = _dot(acc, texts[t]) * inv
+        blend_range(table, map_w, map_h, view_idx, uv, weights, blk * block, min(n_pts, (blk + 1) * block),
+                    texts, out, 0)
 
 
 def _contiguous_uv(uv: np.ndarray) -> np.ndarray:  # (P, N, 2) -> the same, C-contiguous float32

@@ -17,13 +17,15 @@ views carry no key in the attention and no weight in the blends).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numba
 import numpy as np
 
 from mapper.model.ops.average_kernel import corners, launch
 from mapper.model.ops.geometry import _UV_LIMIT as UV_LIMIT
 
-__all__ = ["pair_args", "sample_pair", "sample_pairs", "warm_up"]
+__all__ = ["PairArgs", "pair_args", "sample_pair", "sample_pairs", "warm_up"]
 
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
@@ -128,19 +130,28 @@ def _sample_kernel(
                         rgb, rgb_out, feat, feat_out, depth, mask, dirs, dist, uv, i)
 
 
+class PairArgs(NamedTuple):
+    """:func:`sample_pair`'s argument groups (:func:`pair_args` makes them)."""
+
+    cameras: tuple  # (cam_from_world, K, centres, width, height, eps)
+    rgb: tuple  # (table, w, h, sx, sy)
+    feat: tuple  # (table, w, h, sx, sy)
+    depth: tuple  # (use_depth, flat depths, dw, dh, sx, sy, ratio)
+
+
 def pair_args(
     cam_from_world: np.ndarray,  # (M, 4, 4) float32
     K: np.ndarray,  # (M, 4) float32
     centres: np.ndarray,  # (M, 3) float32
     image_wh: tuple[int, int],
     eps: float,
-    rgb: tuple[np.ndarray, tuple[int, int]],
-    features: tuple[np.ndarray, tuple[int, int]],
-    depth: tuple[np.ndarray, tuple[int, int]] | None,
+    rgb: tuple[np.ndarray, tuple[int, int]],  # (M * h * w, 3) channel-last table, its map (w, h)
+    features: tuple[np.ndarray, tuple[int, int]],  # (M * h * w, F), its map (w, h)
+    depth: tuple[np.ndarray, tuple[int, int]] | None,  # (M, dh, dw) depth maps, (dw, dh); None: no test
     depth_ratio: float,
-) -> tuple[tuple, tuple, tuple, tuple]:
-    """:func:`sample_pair`'s ``cameras``, ``rgb``, ``feat`` and ``depth`` tuples (arguments as
-    :func:`sample_pairs`)."""
+) -> PairArgs:
+    """:func:`sample_pair`'s ``cameras``, ``rgb``, ``feat`` and ``depth`` groups, contiguous
+    float32."""
     W, H = image_wh
 
     def scale(to: int, frm: int) -> np.float32:
@@ -158,7 +169,7 @@ def pair_args(
                np.ascontiguousarray(centres, np.float32), np.float32(W), np.float32(H), np.float32(eps))
     depth_args = (depth is not None, d_flat, int(dw), int(dh), scale(dw, W), scale(dh, H),
                   np.float32(depth_ratio))
-    return cameras, maps(rgb), maps(features), depth_args
+    return PairArgs(cameras, maps(rgb), maps(features), depth_args)
 
 
 def sample_pairs(
@@ -170,10 +181,10 @@ def sample_pairs(
     centres: np.ndarray,  # (M, 3) float32
     image_wh: tuple[int, int],
     eps: float,
-    rgb: tuple[np.ndarray, tuple[int, int]],  # (M * h * w, 3) channel-last table, its map (w, h)
-    features: tuple[np.ndarray, tuple[int, int]],  # (M * h * w, F), its map (w, h)
-    depth: tuple[np.ndarray, tuple[int, int]] | None,  # (M, dh, dw) depth maps, (dw, dh); None: no test
-    depth_ratio: float,
+    rgb: tuple[np.ndarray, tuple[int, int]],
+    features: tuple[np.ndarray, tuple[int, int]],
+    depth: tuple[np.ndarray, tuple[int, int]] | None,
+    depth_ratio: float,  # these as pair_args'
     *,
     threads: int,
     block: int = 1024,
