@@ -640,12 +640,37 @@ class GovNeSF(nn.Module):
         Returns:
             cosines (P, T) (0 where no view sees the point), valid (P,) bool, num_views (P,) long.
         """
+        return self._answer_indexed(views, view_idx, slot_mask, points, depth_guided_masking, v, texts,
+                                    ov_maps, fusion)
+
+    def point_features_indexed(
+        self,
+        views: SourceViews,
+        view_idx: Tensor,  # (P, N) long
+        slot_mask: Tensor,  # (P, N) bool
+        points: Tensor,  # (P, 3)
+        depth_guided_masking: bool,
+        v: Tensor,  # (P, Dv)
+        ov_maps: OVMaps,
+        *,
+        fusion: FusionNet | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """:meth:`point_cosines_indexed`'s pass for the features themselves: ``point_outputs``'
+        ``ov`` (P, D) (0 rows where no view sees the point), valid (P,) bool, num_views (P,) long."""
+        return self._answer_indexed(views, view_idx, slot_mask, points, depth_guided_masking, v, None,
+                                    ov_maps, fusion)
+
+    def _answer_indexed(
+        self, views: SourceViews, view_idx: Tensor, slot_mask: Tensor, points: Tensor,
+        depth_guided_masking: bool, v: Tensor, texts: Tensor | None, ov_maps: OVMaps,
+        fusion: FusionNet | None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
         from mapper.model.ops.answer_kernel import answer_points
         from mapper.model.ops.sample_kernel import pair_args
 
         net = self.fusion if fusion is None else fusion
         if not self.answer_kernel_applies(views, points, ov_maps, fusion):
-            raise ValueError("point_cosines_indexed needs the compiled CPU path (answer_kernel_applies)")
+            raise ValueError("the one-pass point answers need the compiled CPU path (answer_kernel_applies)")
         P, N = view_idx.shape
         if points.shape != (P, 3) or slot_mask.shape != (P, N) or v.shape[0] != P:
             raise ValueError(f"points {tuple(points.shape)} / slot_mask {tuple(slot_mask.shape)} / volume "
@@ -670,7 +695,7 @@ class GovNeSF(nn.Module):
         cos, valid, num_views = answer_points(
             net.point_kernel_weights(), points.numpy(), view_idx.T.numpy(), slot_mask.T.numpy(), pairs,
             v.to(torch.float32).numpy(), (ov_maps.table.numpy(), ov_maps.map_wh),
-            texts.to(torch.float32).numpy(), threads=torch.get_num_threads(),
+            None if texts is None else texts.to(torch.float32).numpy(), threads=torch.get_num_threads(),
         )
         return torch.from_numpy(cos), torch.from_numpy(valid), torch.from_numpy(num_views)
 

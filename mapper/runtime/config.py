@@ -214,10 +214,11 @@ class ModelRuntimeConfig:
     reference path; the dense render always uses it)."""
 
     fused_point_answers: bool = True
-    """The learned ``segment_points`` (with ``batched_view_groups``, on the CPU in float32) samples,
-    weighs and blends every point in ONE compiled pass (:mod:`mapper.model.ops.answer_kernel`),
-    each block of points' samples kept in small buffers; the same answers as the three kernels run
-    chunk by chunk (False, the reference path), without writing the pairs' samples to memory."""
+    """The learned ``segment_points`` (with ``batched_view_groups``) and the learned features
+    written into the global map (``point_features``), on the CPU in float32, sample, weigh and
+    blend every point in ONE compiled pass (:mod:`mapper.model.ops.answer_kernel`), each block of
+    points' samples kept in small buffers; the same answers as the three kernels run chunk by chunk
+    (False, the reference path), without writing the pairs' samples to memory."""
 
     surface_from_map: str = "auto"
     """``render`` on a node: pixels where a measured surface is known are rendered AT it: one

@@ -1389,12 +1389,13 @@ class ModelRuntime:
         pts: Tensor,  # (P, 3)
         groups: list[tuple[Tensor, Tensor]],
         use_depth: bool,
-        emb: Tensor,  # (T, D) unit text embeddings
+        emb: Tensor | None,  # (T, D) unit text embeddings; None: the features themselves
         depth_m: Tensor | None = None,
     ) -> Iterator[tuple[Tensor, Tensor, Tensor]]:
         """Every view group's points in calls of :data:`FUSED_CHUNK_POINTS` to
-        :meth:`GovNeSF.point_cosines_indexed`: yields (point indices (p,), cosines (p, T), valid
-        (p,)). ``depth_m``: see ``_all_views``. Call with the runtime's lock held."""
+        :meth:`GovNeSF.point_cosines_indexed` (``emb=None``: :meth:`GovNeSF.point_features_indexed`):
+        yields (point indices (p,), cosines (p, T) or features (p, D), valid (p,)). ``depth_m``: see
+        ``_all_views``. Call with the runtime's lock held."""
         members, view_idx, slots = _group_slots(groups)
         views = self._all_views(prep, need_ov=False, use_depth=use_depth, depth_m=depth_m)
         for i in range(0, members.numel(), FUSED_CHUNK_POINTS):
@@ -1403,9 +1404,12 @@ class ModelRuntime:
             chunk_views, chunk_slots = _chunk_slots(view_idx, slots, sel)
             v, _ = sample_volume(prep.volume, prep.bounds, pts[sub].to(prep.volume.dtype))
             ov_maps = prep.ov_maps(chunk_views, self.image_wh)
-            cos, valid, _ = model.point_cosines_indexed(views, chunk_views, chunk_slots, pts[sub], use_depth,
-                                                        v, emb, ov_maps, fusion=self.point_head)
-            yield sub, cos, valid
+            args = (views, chunk_views, chunk_slots, pts[sub], use_depth, v)
+            if emb is None:
+                out, valid, _ = model.point_features_indexed(*args, ov_maps, fusion=self.point_head)
+            else:
+                out, valid, _ = model.point_cosines_indexed(*args, emb, ov_maps, fusion=self.point_head)
+            yield sub, out, valid
 
     def _point_batches(
         self,
@@ -1500,7 +1504,13 @@ class ModelRuntime:
             n = pts.shape[0]
             feats = torch.zeros(n, prep.ov.shape[1], dtype=torch.float32, device=self.device)
             valid = torch.zeros(n, dtype=torch.bool, device=self.device)
-            for idx, views_idx in self._view_groups(prep, pts, prep.has_ov, self.point_source_views):
+            groups = self._view_groups(prep, pts, prep.has_ov, self.point_source_views)
+            if groups and self._answer_in_one_pass(model, prep, pts):
+                for sub, out_ov, ok in self._one_pass_cosines(model, prep, pts, groups, use_depth, None):
+                    feats[sub] = out_ov * ok[:, None]  # each point is in one group: written once
+                    valid[sub] = ok
+                groups = []
+            for idx, views_idx in groups:
                 for sub, out in self._point_outputs(model, prep, pts, idx, views_idx, use_depth):
                     feats[sub] = torch.where(out.valid[:, None], out.ov.float(), feats[sub])
                     valid[sub] = out.valid | valid[sub]

@@ -134,3 +134,34 @@ def test_the_runtime_answers_the_same_either_way(chunk: int, monkeypatch: pytest
         np.testing.assert_allclose(a[1], b[1], atol=1e-6)
         np.testing.assert_allclose(a[2], b[2], atol=1e-6)
     assert (answers[0][0] >= 0).any()
+
+
+@pytest.mark.parametrize("use_depth", [False, True])
+def test_the_features_themselves_equal_point_outputs(use_depth: bool) -> None:
+    """``point_features_indexed``: the blended OV features, as ``point_outputs(...).ov``."""
+    model, runtime, prep, views, (idx, slots, pts, v, texts) = _problem(use_depth, seed=13)
+    ov_maps = prep.ov_maps(idx, runtime.image_wh)
+    with torch.no_grad():
+        samples = model.sample_views_indexed(views, idx, slots, pts, use_depth, sample_ov=False)
+        ref = model.point_outputs(samples, v, ov_maps=ov_maps)
+        feats, valid, n = model.point_features_indexed(views, idx, slots, pts, use_depth, v, ov_maps)
+    assert feats.shape == ref.ov.shape
+    assert torch.equal(valid, ref.valid) and torch.equal(n, ref.num_views)
+    torch.testing.assert_close(feats, ref.ov, atol=1e-6, rtol=1e-5)
+    assert torch.all(feats[~valid] == 0)
+    with torch.no_grad(), pytest.raises(ValueError, match="no embedding"):  # no texts: not the features
+        model.point_cosines_indexed(views, idx, slots, pts, use_depth, v, texts[:0], ov_maps)
+
+
+def test_the_runtime_point_features_the_same_either_way() -> None:
+    """``ModelRuntime.point_features`` (the learned features written into the global map): the one
+    pass against one pass per view group."""
+    model, runtime, _, _ = _window(use_depth=False)
+    pts = _points(700, seed=17).numpy()
+    answers = []
+    for fused in (True, False):
+        runtime.config = dataclasses.replace(runtime.config, fused_point_answers=fused)
+        answers.append(runtime.point_features(pts))
+    np.testing.assert_array_equal(answers[0][1], answers[1][1])
+    assert answers[0][1].any() and not answers[0][1].all()
+    np.testing.assert_allclose(answers[0][0], answers[1][0], atol=1e-5, rtol=1e-4)

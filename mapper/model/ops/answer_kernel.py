@@ -42,8 +42,9 @@ def _answer_kernel(
     params,  # PointKernelWeights.params
     pow2,  # fusion_kernel._POW2
     ov,  # (table (M * h * w, C), w, h, sx, sy): the OV maps
-    texts,  # (T, C) float32 unit text embeddings
-    out,  # out (P, T) float32: each text's cosine with the point's unit blend (0 where none)
+    texts,  # (T, C) float32 unit text embeddings; T = 0: write the blends themselves
+    out,  # out (P, T) float32: each text's cosine with the point's unit blend (0 where none), or
+    # (P, C) the blends
     valid,  # out (P,) bool: some view sees the point
     num_views,  # out (P,) int64: the views that see it
     block,  # int: points per parallel task
@@ -112,15 +113,22 @@ def answer_points(
     pairs: PairArgs,  # the cameras and maps the pairs are sampled from (sample_kernel.pair_args)
     volume_features: np.ndarray,  # (P, Dv) float32
     ov: tuple[np.ndarray, tuple[int, int]],  # (M * h * w, C) OV maps, channel-last, their (w, h)
-    texts: np.ndarray,  # (T, C) float32 unit text embeddings
+    texts: np.ndarray | None,  # (T, C) float32 unit text embeddings; None: the blends themselves
     *,
     threads: int,
     block: int = 0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # (P, T) float32, (P,) bool, (P,) int64
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # (P, T) or (P, C) float32, (P,) bool, (P,) int64
     """Each text's cosine with each point's learned OV feature, as ``GovNeSF.point_cosines`` over
     ``sample_views_indexed`` samples computes it with the compiled kernels (see the module
-    docstring): cosines (P, T) (0 where no view sees the point), valid (P,), num_views (P,).
-    ``block``: points per parallel task (0: the point kernel's :func:`default_block`)."""
+    docstring): cosines (P, T) (0 where no view sees the point), valid (P,), num_views (P,). With
+    ``texts=None`` the features themselves, (P, C), as ``GovNeSF.point_outputs(...).ov`` (0 rows
+    where no view sees the point). ``block``: points per parallel task (0: the point kernel's
+    :func:`default_block`)."""
+    n_ov = ov[0].shape[1]
+    raw = texts is None
+    if texts is not None and texts.shape[0] == 0:
+        raise ValueError("answer_points: texts holds no embedding (texts=None asks for the features)")
+    texts = np.zeros((0, n_ov), np.float32) if texts is None else texts
     N, P = view_idx.shape
     n_feat = pairs.feat[0].shape[1]
     if (slot_mask.shape != (N, P) or pts.shape != (P, 3)
@@ -135,7 +143,7 @@ def answer_points(
     width, height = float(pairs.cameras[3]), float(pairs.cameras[4])
     ov_maps = (np.ascontiguousarray(ov_table, np.float32), int(ov_w), int(ov_h),
                np.float32(ov_w / width), np.float32(ov_h / height))  # scale_uv's factors
-    out = np.zeros((P, texts.shape[0]), np.float32)
+    out = np.zeros((P, n_ov if raw else texts.shape[0]), np.float32)
     valid = np.zeros(P, np.bool_)
     num_views = np.zeros(P, np.int64)
     if P == 0:
