@@ -20,7 +20,7 @@ sample (3D segmentation). Distill mode (``mode="distill"``): the OV feature is r
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 import torch.nn.functional as F
@@ -52,6 +52,9 @@ from mapper.model.ops.geometry import (
 from mapper.model.ops.rendering import Rays
 from mapper.model.render import march_rays
 from mapper.model.unet3d import VolumeUNet
+
+if TYPE_CHECKING:
+    from mapper.model.ops.sample_kernel import PairArgs
 
 __all__ = [
     "FieldOutputs",
@@ -369,28 +372,15 @@ class GovNeSF(nn.Module):
         """``sample_views_indexed(..., sample_ov=False)`` by the compiled CPU kernel
         (:func:`mapper.model.ops.sample_kernel.sample_pairs`): the same masks, the samples up to
         float rounding, 0 colour and features where masked."""
-        from mapper.model.ops.sample_kernel import sample_pairs
+        from mapper.model.ops.sample_kernel import sample_pairs_from
 
         P, N = view_idx.shape
         if points.shape != (P, 3) or slot_mask.shape != (P, N):
             raise ValueError(f"points {tuple(points.shape)} / slot_mask {tuple(slot_mask.shape)} do not fit "
                              f"view_idx {tuple(view_idx.shape)}")
-        if view_idx.numel() and not (0 <= int(view_idx.min()) and int(view_idx.max()) < len(views)):
-            raise ValueError(f"view_idx must index the {len(views)} views, got {int(view_idx.min())}.."
-                             f"{int(view_idx.max())}")
-        rgb_t, feat_t, _ = views.channel_last()
-        depth = None
-        if depth_masking and views.depth_m is not None:
-            d = views.depth_m
-            depth = (d.to(torch.float32).numpy(), (int(d.shape[-1]), int(d.shape[-2])))
-        samples, mask, dirs, dist, uv = sample_pairs(
-            points.numpy(), view_idx.T.numpy(), slot_mask.T.numpy(),
-            invert_pose(views.world_from_cam).to(torch.float32).numpy(), views.K.to(torch.float32).numpy(),
-            camera_centers(views.world_from_cam).to(torch.float32).numpy(), views.image_wh, DEFAULT_EPS,
-            (rgb_t.numpy(), (int(views.rgb.shape[-1]), int(views.rgb.shape[-2]))),
-            (feat_t.numpy(), (int(views.features.shape[-1]), int(views.features.shape[-2]))),
-            depth, self.cfg.render.depth_mask_ratio, threads=torch.get_num_threads(),
-        )
+        pairs = self._pair_args(views, view_idx, depth_masking)
+        samples, mask, dirs, dist, uv = sample_pairs_from(
+            points.numpy(), view_idx.T.numpy(), slot_mask.T.numpy(), pairs, threads=torch.get_num_threads())
         per_point = torch.from_numpy(samples).reshape(-1, N, P).permute(2, 1, 0)  # (P, N, 3 + F), P fastest
         return PointViewSamples(
             rgb=per_point[..., :3],
@@ -400,6 +390,27 @@ class GovNeSF(nn.Module):
             source_dirs=torch.from_numpy(dirs).reshape(3, N, P).permute(2, 1, 0),  # P fastest, as samples
             uv=torch.from_numpy(uv).reshape(N, P, 2).transpose(0, 1),
             source_range=torch.from_numpy(dist).reshape(N, P).T,
+        )
+
+    def _pair_args(self, views: SourceViews, view_idx: Tensor, depth_masking: bool) -> PairArgs:
+        """The compiled per-pair sampling's cameras and maps (:func:`mapper.model.ops.sample_kernel.
+        pair_args`) of ``views``; ``ValueError`` unless ``view_idx`` indexes them."""
+        from mapper.model.ops.sample_kernel import pair_args
+
+        if view_idx.numel() and not (0 <= int(view_idx.min()) and int(view_idx.max()) < len(views)):
+            raise ValueError(f"view_idx must index the {len(views)} views, got {int(view_idx.min())}.."
+                             f"{int(view_idx.max())}")
+        rgb_t, feat_t, _ = views.channel_last()
+        depth = None
+        if depth_masking and views.depth_m is not None:
+            d = views.depth_m
+            depth = (d.to(torch.float32).numpy(), (int(d.shape[-1]), int(d.shape[-2])))
+        return pair_args(
+            invert_pose(views.world_from_cam).to(torch.float32).numpy(), views.K.to(torch.float32).numpy(),
+            camera_centers(views.world_from_cam).to(torch.float32).numpy(), views.image_wh, DEFAULT_EPS,
+            (rgb_t.numpy(), (int(views.rgb.shape[-1]), int(views.rgb.shape[-2]))),
+            (feat_t.numpy(), (int(views.features.shape[-1]), int(views.features.shape[-2]))),
+            depth, self.cfg.render.depth_mask_ratio,
         )
 
     def forward(
@@ -604,10 +615,11 @@ class GovNeSF(nn.Module):
         cos = cosines_from_maps(ov_maps.table, ov_maps.map_wh, ov_maps.view_idx, uv, weights, texts)
         return cos, valid, samples.mask.sum(dim=1)
 
-    def answer_kernel_applies(self, views: SourceViews, points: Tensor, ov_maps: OVMaps,
+    def answer_kernel_applies(self, views: SourceViews, points: Tensor, ov: Tensor,
                               fusion: FusionNet | None = None) -> bool:
         """:meth:`point_cosines_indexed` runs as one compiled CPU pass: blend mode, the compiled
-        sampling and point kernels switched on, everything on the CPU in float32, no gradient."""
+        sampling and point kernels switched on, everything (``ov``: the OV maps or their table) on
+        the CPU in float32, no gradient."""
         net = self.fusion if fusion is None else fusion
         return (
             self.distill is None
@@ -615,8 +627,8 @@ class GovNeSF(nn.Module):
             and net.fast_inference
             and net.point_kernel
             and _sample_kernel_applies(views, points, sample_ov=False)
-            and ov_maps.table.device.type == "cpu"
-            and ov_maps.table.dtype == torch.float32
+            and ov.device.type == "cpu"
+            and ov.dtype == torch.float32
         )
 
     def point_cosines_indexed(
@@ -666,32 +678,17 @@ class GovNeSF(nn.Module):
         fusion: FusionNet | None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         from mapper.model.ops.answer_kernel import answer_points
-        from mapper.model.ops.sample_kernel import pair_args
 
         net = self.fusion if fusion is None else fusion
-        if not self.answer_kernel_applies(views, points, ov_maps, fusion):
+        if not self.answer_kernel_applies(views, points, ov_maps.table, fusion):
             raise ValueError("the one-pass point answers need the compiled CPU path (answer_kernel_applies)")
         P, N = view_idx.shape
         if points.shape != (P, 3) or slot_mask.shape != (P, N) or v.shape[0] != P:
             raise ValueError(f"points {tuple(points.shape)} / slot_mask {tuple(slot_mask.shape)} / volume "
                              f"features {tuple(v.shape)} do not fit view_idx {tuple(view_idx.shape)}")
-        if view_idx.numel() and not (0 <= int(view_idx.min()) and int(view_idx.max()) < len(views)):
-            raise ValueError(f"view_idx must index the {len(views)} views, got {int(view_idx.min())}.."
-                             f"{int(view_idx.max())}")
         if tuple(ov_maps.image_wh) != tuple(views.image_wh):
             raise ValueError(f"ov_maps are for {ov_maps.image_wh} images, the views are {views.image_wh}")
-        rgb_t, feat_t, _ = views.channel_last()
-        depth = None
-        if depth_guided_masking and views.depth_m is not None:
-            d = views.depth_m
-            depth = (d.to(torch.float32).numpy(), (int(d.shape[-1]), int(d.shape[-2])))
-        pairs = pair_args(
-            invert_pose(views.world_from_cam).to(torch.float32).numpy(), views.K.to(torch.float32).numpy(),
-            camera_centers(views.world_from_cam).to(torch.float32).numpy(), views.image_wh, DEFAULT_EPS,
-            (rgb_t.numpy(), (int(views.rgb.shape[-1]), int(views.rgb.shape[-2]))),
-            (feat_t.numpy(), (int(views.features.shape[-1]), int(views.features.shape[-2]))),
-            depth, self.cfg.render.depth_mask_ratio,
-        )
+        pairs = self._pair_args(views, view_idx, depth_guided_masking)
         cos, valid, num_views = answer_points(
             net.point_kernel_weights(), points.numpy(), view_idx.T.numpy(), slot_mask.T.numpy(), pairs,
             v.to(torch.float32).numpy(), (ov_maps.table.numpy(), ov_maps.map_wh),

@@ -1379,8 +1379,7 @@ class ModelRuntime:
         if not self.config.fused_point_answers or prep.ov is None:
             return False
         views = self._all_views(prep, need_ov=False, use_depth=False)
-        return model.answer_kernel_applies(views, pts, prep.ov_maps(torch.zeros(0, dtype=torch.long),
-                                                                    self.image_wh), self.point_head)
+        return model.answer_kernel_applies(views, pts, prep.ov, self.point_head)
 
     def _one_pass_cosines(
         self,
@@ -1509,11 +1508,11 @@ class ModelRuntime:
                 for sub, out_ov, ok in self._one_pass_cosines(model, prep, pts, groups, use_depth, None):
                     feats[sub] = out_ov * ok[:, None]  # each point is in one group: written once
                     valid[sub] = ok
-                groups = []
-            for idx, views_idx in groups:
-                for sub, out in self._point_outputs(model, prep, pts, idx, views_idx, use_depth):
-                    feats[sub] = torch.where(out.valid[:, None], out.ov.float(), feats[sub])
-                    valid[sub] = out.valid | valid[sub]
+            else:
+                for idx, views_idx in groups:
+                    for sub, out in self._point_outputs(model, prep, pts, idx, views_idx, use_depth):
+                        feats[sub] = torch.where(out.valid[:, None], out.ov.float(), feats[sub])
+                        valid[sub] = out.valid | valid[sub]
         return feats.cpu().numpy(), valid.cpu().numpy()
 
     @torch.no_grad()

@@ -43,7 +43,7 @@ def test_one_pass_equals_the_three_kernels(use_depth: bool) -> None:
     ov_maps = prep.ov_maps(idx, runtime.image_wh)
     ref_cos, ref_valid, ref_n = _reference(model, views, idx, slots, pts, use_depth, v, texts, ov_maps)
     with torch.no_grad():
-        assert model.answer_kernel_applies(views, pts, ov_maps)
+        assert model.answer_kernel_applies(views, pts, ov_maps.table)
         cos, valid, n = model.point_cosines_indexed(views, idx, slots, pts, use_depth, v, texts, ov_maps)
     assert torch.equal(valid, ref_valid) and torch.equal(n, ref_n)
     assert bool(valid.any()) and not bool(valid.all())  # some points seen, some not
@@ -112,7 +112,7 @@ def test_no_points_and_bad_shapes() -> None:
         with pytest.raises(ValueError, match="do not fit"):
             model.point_cosines_indexed(views, idx, slots, pts, False, v, texts[:, :3], ov_maps)
     # and where it does not apply (autograd), it says so instead of answering differently
-    assert not model.answer_kernel_applies(views, pts.requires_grad_(True), ov_maps)
+    assert not model.answer_kernel_applies(views, pts.requires_grad_(True), ov_maps.table)
 
 
 @pytest.mark.parametrize("chunk", [65536, 256])

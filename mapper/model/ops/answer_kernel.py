@@ -8,9 +8,11 @@ samples (23 floats a pair: 1.6M pairs, about 150 MB, for 100k points over 16 vie
 to memory and read back, chunk by chunk. Here each block of points goes through all three steps
 while its samples sit in per-block buffers, using the same compiled functions
 (:func:`~mapper.model.ops.sample_kernel.sample_pair`, ``_point_block``,
-:func:`~mapper.model.ops.average_kernel.accumulate_taps`) in the same order, so the answers are the
+:func:`~mapper.model.ops.average_kernel.blend_range`) in the same order, so the answers are the
 same numbers as the three kernels' (tests/mapper/test_answer_kernel.py). A block also skips the
-trailing padding slots none of its points uses (padding is masked: it changes no answer).
+trailing padding slots none of its points uses (padding is masked: it changes no answer). Without
+texts the pass writes each point's blended feature instead (the learned features the node writes
+into the global map).
 """
 
 from __future__ import annotations
@@ -23,10 +25,6 @@ from mapper.model.ops.fusion_kernel import _POW2, RANGE_MIN_M, PointKernelWeight
 from mapper.model.ops.sample_kernel import PairArgs, pair_args, sample_pair
 
 __all__ = ["answer_points", "warm_up"]
-
-_F0 = np.float32(0.0)
-_F1 = np.float32(1.0)
-
 
 @numba.njit(parallel=True, cache=True, boundscheck=False)
 def _answer_kernel(

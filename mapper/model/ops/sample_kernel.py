@@ -25,7 +25,7 @@ import numpy as np
 from mapper.model.ops.average_kernel import corners, launch
 from mapper.model.ops.geometry import _UV_LIMIT as UV_LIMIT
 
-__all__ = ["PairArgs", "pair_args", "sample_pair", "sample_pairs", "warm_up"]
+__all__ = ["PairArgs", "pair_args", "sample_pair", "sample_pairs", "sample_pairs_from", "warm_up"]
 
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
@@ -193,20 +193,31 @@ def sample_pairs(
     samples (3 + F, N * P) float32 (colour, then features; 0 where masked), mask (N * P,) bool,
     dirs (3, N * P), dist (N * P,), uv (N * P, 2) in ``image_wh`` pixels. Arguments are checked by
     the caller (``GovNeSF.sample_views_indexed``)."""
+    pairs = pair_args(cam_from_world, K, centres, image_wh, eps, rgb, features, depth, depth_ratio)
+    return sample_pairs_from(pts, view_idx, slot_mask, pairs, threads=threads, block=block)
+
+
+def sample_pairs_from(
+    pts: np.ndarray,  # (P, 3) float32
+    view_idx: np.ndarray,  # (N, P) int64, slot-major
+    slot_mask: np.ndarray,  # (N, P) bool
+    pairs: PairArgs,  # the cameras and maps (pair_args)
+    *,
+    threads: int,
+    block: int = 1024,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`sample_pairs` with the cameras and maps already grouped (:func:`pair_args`)."""
     N, P = view_idx.shape
-    n_feat = features[0].shape[1]
-    samples = np.empty((3 + n_feat, N * P), np.float32)  # colour rows, then feature rows
+    samples = np.empty((3 + pairs.feat[0].shape[1], N * P), np.float32)  # colour rows, then feature rows
     mask = np.empty(N * P, np.bool_)
     dirs = np.empty((3, N * P), np.float32)
     dist = np.empty(N * P, np.float32)
     uv = np.empty((N * P, 2), np.float32)
-    cameras, rgb_maps, feat_maps, depth_args = pair_args(cam_from_world, K, centres, image_wh, eps, rgb,
-                                                         features, depth, depth_ratio)
     if N * P:
         with launch(threads):
             _sample_kernel(np.ascontiguousarray(pts, np.float32), np.ascontiguousarray(view_idx, np.int64),
-                           np.ascontiguousarray(slot_mask, np.bool_), cameras, rgb_maps, feat_maps,
-                           depth_args, samples[:3], samples[3:], mask, dirs, dist, uv, int(block))
+                           np.ascontiguousarray(slot_mask, np.bool_), *pairs, samples[:3], samples[3:], mask,
+                           dirs, dist, uv, int(block))
     return samples, mask, dirs, dist, uv
 
 
