@@ -9,14 +9,18 @@ blended with different per-view weights over exactly those views:
   (2D OV models see far surfaces worse; SimLSeg's own rule is a = 2, s = 6 m);
 * ``x agree(k)``: times ``exp(k (cos(f_n, m) - 1))``, the agreement of the view's OV feature with
   the weighted mean ``m`` (one pass of robust averaging);
-* ``nearest K``: only the K nearest of those views.
+* ``nearest K``: only the K nearest of those views;
+* ``x colour(s)``: times ``exp(-(|c_n - m| / s)^2)``, the distance of the view's colour at the
+  point to the weighted mean colour ``m``, re-weighted three times (photo-consistency: a view that
+  sees an occluder sees its colour).
 
 It tells which cues a blend could learn from (the range encoding, ``FusionConfig.range_encoding``,
 feeds the distance), without training. Tune on validation scenes (``data/val``).
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/view_weights.py data/val/apartment_s100[0-2]   # ~4 min
 
-Prints per-scene mIoU (%) and the mean per row.
+Prints per-scene mIoU (%) and the share of the blend's weight on views that do not see the point
+(ground truth), with the mean per row.
 """
 
 from __future__ import annotations
@@ -46,13 +50,30 @@ def point_normals(xyz: np.ndarray, k: int = 12) -> np.ndarray:
     return vecs[:, :, 0]  # eigh sorts ascending: the smallest variance's axis
 
 
+def colour_reweighted(base: torch.Tensor, rgb: torch.Tensor, scale: float,
+                      iterations: int = 3) -> torch.Tensor:
+    """(P, k) ``base`` weights times ``exp(-(|c_n - m| / scale)^2)``, ``m`` the mean of the views'
+    colours ``rgb`` (P, k, 3) under the current weights, ``iterations`` times from ``base``."""
+    w = base
+    for _ in range(iterations):
+        mean = (w.unsqueeze(-1) * rgb).sum(1) / w.sum(1, keepdim=True).clamp_min(1e-12)
+        w = base * torch.exp(-((rgb - mean.unsqueeze(1)).norm(dim=-1) / scale).square())
+    return w
+
+
 def weightings(learned: torch.Tensor, mask: torch.Tensor, dist: torch.Tensor, ov: torch.Tensor,
-               incidence: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+               incidence: torch.Tensor | None = None,
+               rgb: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Per-view weights (P, k) of every row. learned / mask / dist: (P, k), views sorted by
     distance; ov: (P, k, D) the views' OV features (0 where masked); incidence (P, k): |cos| of the
-    angle between each view's ray and the point's normal estimated from the points."""
+    angle between each view's ray and the point's normal estimated from the points; rgb (P, k, 3):
+    the views' colours at the point."""
     sel = mask.float()
     rows = {"learned": learned * sel, "uniform": sel}
+    if rgb is not None:
+        for scale in (0.1, 0.2):
+            rows[f"learned x colour({scale:g})"] = colour_reweighted(learned * sel, rgb, scale)
+            rows[f"uniform x colour({scale:g})"] = colour_reweighted(sel, rgb, scale)
     if incidence is not None:
         for beta in (0.7, 2.0):
             q = incidence.clamp_min(0.05) ** beta
@@ -107,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(exc))
     settings = ev.EvalSettings(max_points=args.max_points, do_2d=False)
     table: dict[str, list[float]] = {}
+    shares: dict[str, list[float]] = {}
     for scene_dir in args.scenes:
         scene = ev.load_scene(scene_dir)
         emb = torch.from_numpy(get_text_encoder().encode(scene.class_names[:NUM_SCANNET_CLASSES]))
@@ -125,16 +147,23 @@ def main(argv: list[str] | None = None) -> int:
             incidence = (rays * normal[:, None, :]).sum(-1).abs()
             o_wh = (views.ov.shape[-1], views.ov.shape[-2])
             ov = torch.zeros(*idx.shape, views.ov.shape[1])
+            rgb = torch.zeros(*idx.shape, 3)
             for n in torch.unique(idx[sel]).tolist():
                 r, s = torch.nonzero((idx == n) & sel, as_tuple=True)
                 ov[r, s] = sample_bilinear(views.ov[n], scale_uv(uv[n, r], views.image_wh, o_wh))[0]
-            for name, w in weightings(pb.weights, sel, dist, ov, incidence).items():
+                rgb[r, s] = sample_bilinear(views.rgb[n], uv[n, r])[0]
+            occluded = sp.occluded.gather(1, idx) & sel
+            for name, w in weightings(pb.weights, sel, dist, ov, incidence, rgb).items():
                 w = w / w.sum(1, keepdim=True).clamp_min(1e-12)
                 pred = np.asarray(predict_labels(blend(w, ov), emb))
                 miou = 100 * segmentation_scores(confusion_matrix(sp.gt, pred)).miou
-                table.setdefault(("with DGM: " if dgm else "no depth: ") + name, []).append(miou)
+                key = ("with DGM: " if dgm else "no depth: ") + name
+                table.setdefault(key, []).append(miou)
+                shares.setdefault(key, []).append(100 * float((w * occluded).sum(1)[sel.any(1)].mean()))
         print(f"{scene.name} done", file=sys.stderr, flush=True)
-    print(scene_table([p.name for p in args.scenes], table))
+    names = [p.name for p in args.scenes]
+    print("3D mIoU (%)\n" + scene_table(names, table))
+    print("\nweight on occluded views (%, ground-truth visibility)\n" + scene_table(names, shares))
     return 0
 
 

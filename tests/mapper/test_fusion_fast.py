@@ -210,3 +210,83 @@ def test_range_encoding_needs_ranges() -> None:
     plain = _net(SMALL.fusion, 16, 8, seed=19)
     with torch.no_grad():
         _assert_same(plain(*args), plain(*args, torch.ones(10, 3, dtype=torch.float64)), atol=0.0)
+
+
+# ---- the colour-consistency cue (issue 10: photo-consistency as a depth-free visibility cue) ----
+COLOURED = replace(SMALL.fusion, colour_consistency=True)
+
+
+def test_colour_deviation_float64_reference() -> None:
+    """[d0, d1] against a per-point loop in float64: distance to the mean and to a once re-weighted
+    mean of the views that see the point; 0 where masked and for a point no view sees."""
+    from mapper.model.fusion import COLOUR_CONSISTENCY_SIGMA, colour_deviation
+
+    rgb, _, _, _, mask, _ = _inputs(40, 5, 4, 2, seed=40, p_fastest=False)
+    got = colour_deviation(rgb, mask)
+    assert got.shape == (40, 5, 2) and torch.all(got[~mask] == 0)
+    for p in range(40):
+        seen = rgb[p][mask[p]]
+        if not len(seen):
+            assert torch.all(got[p] == 0)
+            continue
+        d0 = (seen - seen.mean(0)).norm(dim=-1)
+        w = torch.exp(-((d0 / COLOUR_CONSISTENCY_SIGMA) ** 2))
+        robust = (w[:, None] * seen).sum(0) / w.sum()
+        torch.testing.assert_close(got[p][mask[p]], torch.stack([d0, (seen - robust).norm(dim=-1)], -1))
+
+
+def test_colour_deviation_flags_the_odd_view_out() -> None:
+    """Four views agree, one sees another colour: it gets the largest d1, the others ~0; a single
+    view and identical colours give 0 (no NaN), in float32 and float16 inputs too."""
+    from mapper.model.fusion import colour_deviation
+
+    rgb = torch.tensor([[[0.2, 0.4, 0.6]] * 4 + [[0.9, 0.1, 0.1]]], dtype=torch.float64)
+    d = colour_deviation(rgb, torch.ones(1, 5, dtype=torch.bool))
+    assert int(d[0, :, 1].argmax()) == 4 and float(d[0, :4, 1].max()) < 1e-3
+    one = torch.tensor([[True, False, False, False, False]])
+    for dtype in (torch.float32, torch.float16):
+        for m in (one, torch.ones(1, 5, dtype=torch.bool)):
+            same = torch.full((1, 5, 3), 0.5, dtype=dtype)
+            out = colour_deviation(same, m)
+            assert torch.isfinite(out).all() and torch.all(out == 0)
+
+
+@pytest.mark.parametrize("p_fastest", [False, True])
+@pytest.mark.parametrize("with_query", [False, True])
+def test_colour_encoding_fast_equals_reference(with_query: bool, p_fastest: bool) -> None:
+    net = _net(COLOURED, 16, 8, seed=41)  # CE random and non-zero here
+    assert net.colour_encoding is not None
+    rgb, feat, vol, dirs, mask, query = _inputs(129, 6, 16, 8, seed=42, p_fastest=p_fastest)
+    q = query if with_query else None
+    with torch.no_grad():
+        ref = net.forward_reference(rgb, feat, vol, dirs, mask, q)
+        _assert_same(ref, net.forward_fast(rgb, feat, vol, dirs, mask, q), atol=1e-10)
+        # CE reaches the weights: without it (zeroed) they differ
+        net.colour_encoding.weight.zero_()
+        other = net.forward_reference(rgb, feat, vol, dirs, mask, q)
+    assert not torch.allclose(other.ov_weights, ref.ov_weights)
+
+
+def test_colour_consistency_starts_as_the_photo_consistency_prior() -> None:
+    """A fresh CE is zero and the prior is 1: the OV weights are a net without it (sharing every
+    other parameter) times exp(-(d1 / sigma)^2), renormalised; the colour weights are its own."""
+    from mapper.model.fusion import COLOUR_CONSISTENCY_SIGMA, colour_deviation
+
+    plain = _net(SMALL.fusion, 16, 8, seed=43)
+    coloured = FusionNet(16, 8, COLOURED).double().eval()
+    assert coloured.colour_encoding is not None and coloured.colour_prior is not None
+    assert float(coloured.colour_prior) == 1.0
+    missing, unexpected = coloured.load_state_dict(plain.state_dict(), strict=False)
+    assert sorted(missing) == ["colour_encoding.bias", "colour_encoding.weight", "colour_prior"]
+    assert not unexpected
+    args = _inputs(64, 5, 16, 8, seed=44, p_fastest=False)
+    rgb, mask = args[0], args[4]
+    with torch.no_grad():
+        ours, theirs = coloured(*args), plain(*args)
+        ref = coloured.forward_reference(*args)
+    _assert_same(ref, ours, atol=1e-12)
+    prior = torch.exp(-(colour_deviation(rgb, mask)[..., 1] / COLOUR_CONSISTENCY_SIGMA) ** 2)
+    expected = theirs.ov_weights * prior
+    expected = expected / expected.sum(1, keepdim=True).clamp_min(1e-300)
+    torch.testing.assert_close(ours.ov_weights, expected, atol=1e-12, rtol=0.0)
+    torch.testing.assert_close(ours.color_weights, theirs.color_weights, atol=1e-12, rtol=0.0)
