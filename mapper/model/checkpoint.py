@@ -279,22 +279,22 @@ def _load_into(model: GovNeSF, state: dict[str, torch.Tensor], *, strict: bool) 
     )
 
 
-def load_weights_except(path: str | Path, model: GovNeSF, *, prefixes: tuple[str, ...]) -> dict[str, Any]:
+def load_weights_except(path: str | Path, model: GovNeSF, *, prefix: str) -> dict[str, Any]:
     """Load a checkpoint's weights into ``model`` in place (float32), where the model has extra
-    parameters under ``prefixes`` that the checkpoint lacks (they keep their values); returns the
+    parameters under ``prefix`` that the checkpoint lacks (they keep their values); returns the
     metadata. Every other parameter must match by name and shape, and the checkpoint may not hold
     anything the model lacks."""
-    if not prefixes or not all(prefixes):
-        raise ValueError("prefixes must name the model's extra parameters")
+    if not prefix:
+        raise ValueError("prefix must name the model's extra parameters")
     meta = load_metadata(path)
     weights_path, _, _ = checkpoint_paths(path)
     state = _read_verified(weights_path, meta.get("weights_sha256"))
     ours = model.state_dict()
-    missing = sorted(k for k in ours if k not in state and not k.startswith(prefixes))
-    unexpected = sorted(k for k in state if k not in ours or k.startswith(prefixes))
+    missing = sorted(k for k in ours if k not in state and not k.startswith(prefix))
+    unexpected = sorted(k for k in state if k not in ours or k.startswith(prefix))
     if missing or unexpected:
         raise ValueError(
-            f"checkpoint {path}: missing {missing}, unexpected {unexpected} (extra prefixes {prefixes!r})"
+            f"checkpoint {path}: missing {missing}, unexpected {unexpected} (extra prefix {prefix!r})"
         )
     _load_into(model, state, strict=False)
     return meta

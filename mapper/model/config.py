@@ -99,11 +99,6 @@ class FusionConfig:
     """Feed each view's camera-to-point distance to the blend (``x^n += RE(log r^n)``, next to
     the direction encoding DE): 2D OV models see near surfaces better than far ones. Off: the
     paper's inputs (and the checkpoints made before it)."""
-    colour_consistency: bool = False
-    """Feed each view's colour disagreement with the other views to the blend (``x^n +=
-    CE(c^n)``, ``mapper.model.fusion.colour_deviation``): a view whose colour at the point differs
-    from the views' robust mean likely sees an occluder (photo-consistency, a visibility cue
-    computed without depth). Off: the paper's inputs (and the checkpoints made before it)."""
 
     def __post_init__(self) -> None:
         if self.attention_dim % self.num_heads:

@@ -4,13 +4,10 @@ For P points and N source views (a view that does not see a point is masked out)
 
     x^n   = [mean_n f, var_n f, v, rgb^n, f^n]        cross-view statistics + volume + own view
     x^n   = MLP_a(x^n) + DE(d^n) [+ RE(log r^n)]       d^n: unit direction source camera -> point,
-            [+ CE(c^n)]                               r^n: its distance (``range_encoding``),
-                                                      c^n: its colour's disagreement with the
-                                                      views' / sigma (``colour_consistency``)
+                                                      r^n: its distance (``range_encoding``)
     x_att = CVA(x^n)                                  linear attention over views + extra token
     w_c^n = MLP_c(x_att^n + RDE(d_q, d^n))            colour weights, depend on the query ray
-    w_s^n = MLP_s(x_att^n) [- beta (c^n_1)^2]          OV weights, source-view agnostic (beta: a
-                                                      learned scalar, ``colour_prior``, 1 at first)
+    w_s^n = MLP_s(x_att^n)                            OV weights, source-view agnostic
     c = sum softmax(w_c)^n rgb^n;  s = sum softmax(w_s)^n f_ov^n   (masked softmax over views)
 
 RDE is the IBRNet relative direction ``[unit(d_q - d^n), d_q . d^n]``. A point no view sees gets
@@ -27,14 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mapper.model.config import FusionConfig
-from mapper.model.ops.fusion_kernel import (
-    COLOUR_CONSISTENCY_SIGMA,
-    COLOUR_PRIOR_INIT,
-    RANGE_MIN_M,
-    PointKernelWeights,
-    kernel_applies,
-    point_ov_weights,
-)
+from mapper.model.ops.fusion_kernel import RANGE_MIN_M, PointKernelWeights, kernel_applies, point_ov_weights
 from mapper.model.ops.geometry import bilinear_corners
 
 __all__ = [
@@ -45,7 +35,6 @@ __all__ = [
     "FusionOutputs",
     "blend",
     "blend_from_maps",
-    "colour_deviation",
     "cosines_from_maps",
     "masked_mean_var",
     "masked_softmax",
@@ -241,28 +230,6 @@ class CrossViewAttention(nn.Module):
         return y[:, 1:]
 
 
-def colour_deviation(rgb: Tensor, mask: Tensor, sigma: float = COLOUR_CONSISTENCY_SIGMA) -> Tensor:
-    """Each view's colour disagreement with the views that see the point (photo-consistency).
-
-    ``d0`` is the distance of the view's colour to the masked mean colour; ``d1`` the distance to
-    a robust mean, re-weighted once by ``exp(-(d0 / sigma)^2)`` (views that see an occluder pull
-    the plain mean towards its colour). A single view gets 0.
-
-    Args:
-        rgb: (P, N, 3) colours in [0, 1]; mask: (P, N) bool.
-
-    Returns:
-        (P, N, 2) ``[d0, d1]``, 0 where masked.
-    """
-    m = mask.to(rgb.dtype).unsqueeze(-1)  # (P, N, 1)
-    mean = (rgb * m).sum(dim=1, keepdim=True) / m.sum(dim=1, keepdim=True).clamp_min(1.0)
-    d0 = (rgb - mean).norm(dim=-1, keepdim=True)  # (P, N, 1)
-    w = torch.exp(-(d0 / sigma).square()) * m
-    robust = (rgb * w).sum(dim=1, keepdim=True) / w.sum(dim=1, keepdim=True).clamp_min(1e-12)
-    d1 = (rgb - robust).norm(dim=-1, keepdim=True)
-    return torch.cat([d0, d1], dim=-1) * m
-
-
 def _masked_mean_var_fast(values: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
     """``masked_mean_var`` (same formula) reduced over views in the (C, N, P) order, where the
     inputs of ``GovNeSF.sample_views_indexed`` are contiguous (P fastest): values (P, N, C),
@@ -321,13 +288,6 @@ class FusionNet(nn.Module):
             self.range_encoding = nn.Linear(1, a)
             nn.init.zeros_(self.range_encoding.weight)
             nn.init.zeros_(self.range_encoding.bias)
-        self.colour_encoding: nn.Linear | None = None
-        self.colour_prior: nn.Parameter | None = None
-        if cfg.colour_consistency:  # CE(c^n / sigma), zero at first, and the OV logits' prior
-            self.colour_encoding = nn.Linear(2, a)
-            nn.init.zeros_(self.colour_encoding.weight)
-            nn.init.zeros_(self.colour_encoding.bias)
-            self.colour_prior = nn.Parameter(torch.tensor(COLOUR_PRIOR_INIT))
         self.attention = CrossViewAttention(a, cfg.num_heads)
         self.rel_dir_encoding = nn.Linear(4, a)  # RDE(d_q, d^n)
         self.mlp_c = _mlp(a, a, 1)
@@ -424,7 +384,7 @@ class FusionNet(nn.Module):
         assert isinstance(s1, nn.Linear) and isinstance(s2, nn.Linear)
         A = lin2.weight.shape[0]
         split = 2 * self.feature_dim + self.volume_feature_dim
-        re, ce = self.range_encoding, self.colour_encoding
+        re = self.range_encoding
         w, b = att.qkv.weight.detach(), att.qkv.bias.detach()
         with torch.no_grad():
             extra = att.qkv(att.extra_token.to(w.dtype))  # the extra token's q, k, v
@@ -434,9 +394,6 @@ class FusionNet(nn.Module):
             arr(self.dir_encoding.weight), arr(self.dir_encoding.bias),
             arr(re.weight) if re is not None else np.zeros((A, 1), np.float32),
             arr(re.bias) if re is not None else np.zeros(A, np.float32),
-            arr(ce.weight) if ce is not None else np.zeros((A, 0), np.float32),
-            arr(ce.bias) if ce is not None else np.zeros(A, np.float32),
-            np.float32(self.colour_prior.item()) if self.colour_prior is not None else np.float32(0.0),
             arr(w[:A]), arr(b[:A]), arr(w[A : 2 * A]), arr(b[A : 2 * A]), arr(w[2 * A :]), arr(b[2 * A :]),
             arr(F.elu(extra[A : 2 * A]) + 1.0), arr(extra[2 * A :]),
             np.arange(A, dtype=np.int64) // (A // att.num_heads),
@@ -447,13 +404,6 @@ class FusionNet(nn.Module):
             arr(s1.weight), arr(s1.bias), arr(s2.weight[0]), np.float32(s2.bias.item()),
         )
         return PointKernelWeights(params, self.feature_dim, self.volume_feature_dim, re is not None)
-
-    def _colour_cue(self, rgb: Tensor, mask: Tensor, dtype: torch.dtype) -> Tensor | None:
-        """(P, N, 2) the views' colour disagreement in units of sigma (``colour_consistency``), or
-        None without it."""
-        if self.colour_encoding is None:
-            return None
-        return colour_deviation(rgb.to(dtype), mask) / COLOUR_CONSISTENCY_SIGMA
 
     def _range_input(self, source_range: Tensor | None, shape: tuple[int, int], dtype: torch.dtype) -> Tensor:
         """(P * N, 1) log distance, the input of RE (``range_encoding`` only)."""
@@ -489,15 +439,8 @@ class FusionNet(nn.Module):
         x = self.mlp_a(x) + self.dir_encoding(source_dirs.to(x.dtype))
         if self.range_encoding is not None:
             x = x + self.range_encoding(self._range_input(source_range, (P, N), x.dtype)).view(P, N, -1)
-        cue = self._colour_cue(rgb, mask, x.dtype)  # (P, N, 2) or None
-        if cue is not None:
-            x = x + self.colour_encoding(cue)  # type: ignore[misc]
         x_att = self.attention(x, mask)
-        ov_logits = self.mlp_s(x_att).squeeze(-1)
-        if cue is not None:
-            assert self.colour_prior is not None
-            ov_logits = ov_logits - self.colour_prior * cue[..., 1].square()
-        ov_weights, valid = masked_softmax(ov_logits, mask)
+        ov_weights, valid = masked_softmax(self.mlp_s(x_att).squeeze(-1), mask)
         color_weights = None
         if query_dirs is not None:
             dq = query_dirs.unsqueeze(1).expand_as(source_dirs)
@@ -552,12 +495,6 @@ class FusionNet(nn.Module):
         if self.range_encoding is not None:
             re = self.range_encoding
             x = x.addmm_(self._range_input(source_range, (P, N), dtype), re.weight.T).add_(re.bias)
-        cue = self._colour_cue(rgb, mask, dtype)  # (P, N, 2) or None
-        if cue is not None:
-            ce = self.colour_encoding
-            assert ce is not None and self.colour_prior is not None
-            x = x.addmm_(cue.reshape(P * N, 2), ce.weight.T).add_(ce.bias)
-            prior = (self.colour_prior * cue[..., 1].square()).reshape(P * N, 1)  # subtracted from OV logits
         A = x.shape[-1]
         x_att = self._attention_fast(x.view(P, N, A), mask)  # (P, N, A)
         flat = x_att.view(P * N, A)
@@ -565,10 +502,7 @@ class FusionNet(nn.Module):
         assert isinstance(s1, nn.Linear) and isinstance(s2, nn.Linear)
         if query_dirs is None:
             hs = F.elu(torch.addmm(s1.bias, flat, s1.weight.T), inplace=True)
-            ov_logits = torch.addmm(s2.bias, hs, s2.weight.T)
-            if cue is not None:
-                ov_logits = ov_logits.sub_(prior)
-            ov_weights, valid = masked_softmax(ov_logits.view(P, N), mask)
+            ov_weights, valid = masked_softmax(torch.addmm(s2.bias, hs, s2.weight.T).view(P, N), mask)
             return FusionOutputs(None, ov_weights, valid, x_att)
         c1, c2 = self.mlp_c[0], self.mlp_c[2]
         assert isinstance(c1, nn.Linear) and isinstance(c2, nn.Linear)
@@ -587,10 +521,7 @@ class FusionNet(nn.Module):
         w2 = hidden.new_zeros(2, 2 * A)  # block-diagonal second layers
         w2[0, :A] = s2.weight[0]
         w2[1, A:] = c2.weight[0]
-        logits = torch.addmm(torch.cat([s2.bias, c2.bias]), hidden, w2.T)  # (P*N, 2): [OV, colour]
-        if cue is not None:
-            logits[:, :1].sub_(prior)
-        logits = logits.view(P, N, 2)
+        logits = torch.addmm(torch.cat([s2.bias, c2.bias]), hidden, w2.T).view(P, N, 2)
         weights, valid = masked_softmax(logits.permute(0, 2, 1), mask.unsqueeze(1).expand(P, 2, N))
         # contiguous (P, N) weights, as the reference returns them
         return FusionOutputs(weights[:, 1].contiguous(), weights[:, 0].contiguous(), valid[:, 0], x_att)

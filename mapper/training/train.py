@@ -99,10 +99,6 @@ class TrainConfig:
     """Give the blend each view's camera-to-point distance (``FusionConfig.range_encoding``).
     With ``init_weights`` from a checkpoint without it, the new layer starts at zero (the
     checkpoint's blend) and everything else loads as usual."""
-    colour_consistency: bool = False
-    """Give the blend each view's colour disagreement with the others
-    (``FusionConfig.colour_consistency``); fine-tunes from a checkpoint without it as
-    ``range_encoding`` does."""
     train_dir: str = "data/train"
     val_dir: str = "data/val"
     out_dir: str = "out/train/cpu-small"
@@ -713,8 +709,6 @@ def _with_fusion_options(mcfg: ModelConfig, cfg: TrainConfig) -> ModelConfig:
     options: dict[str, Any] = {k: v for k, v in pairs if v}
     if cfg.range_encoding:
         options["range_encoding"] = True
-    if cfg.colour_consistency:
-        options["colour_consistency"] = True
     return replace(mcfg, fusion=replace(mcfg.fusion, **options)) if options else mcfg
 
 
@@ -806,29 +800,24 @@ def _init_from(model: GovNeSF, path: str, mcfg: ModelConfig, mode: str) -> None:
     """Load ``path``'s weights into ``model`` in place (float32), refusing another config or mode."""
     meta = load_metadata(path)
     theirs = config_from_dict(meta["config"])
-    # a checkpoint without the range (or colour) encoding fine-tunes into a run with it: the new
-    # layer starts at zero, so the run starts as the checkpoint's blend
-    added = [name for name in _ADDABLE_LAYERS
-             if getattr(mcfg.fusion, name) and not getattr(theirs.fusion, name)]
-    if added:
-        theirs = replace(theirs, fusion=replace(theirs.fusion, **{name: True for name in added}))
+    # a checkpoint without the range encoding fine-tunes into a run with it: the new layer starts
+    # at zero, so the run starts as the checkpoint's blend
+    adds_range = mcfg.fusion.range_encoding and not theirs.fusion.range_encoding
+    if adds_range:
+        theirs = replace(theirs, fusion=replace(theirs.fusion, range_encoding=True))
     if theirs != mcfg:
         diff = _config_diff(dataclasses.asdict(mcfg), dataclasses.asdict(theirs))
         raise ValueError(
             f"init_weights {path}: its model config differs from the run's in {diff}; "
             "fine-tuning needs the same preset, OV size and Distill head (a checkpoint without "
-            "range_encoding or colour_consistency may fine-tune into a run with it, not the other way round)"
+            "range_encoding may fine-tune into a run with it, not the other way round)"
         )
     if meta.get("mode", "blend") != mode:
         raise ValueError(f"init_weights {path}: mode {meta.get('mode', 'blend')!r}, the run's is {mode!r}")
-    if added:
-        load_weights_except(path, model, prefixes=tuple(_ADDABLE_LAYERS[name] for name in added))
+    if adds_range:
+        load_weights_except(path, model, prefix="fusion.range_encoding.")
     else:
         load_training_state(path, model)  # the weights only, in place (no optimiser state)
-
-
-_ADDABLE_LAYERS = {"range_encoding": "fusion.range_encoding.", "colour_consistency": "fusion.colour_"}
-"""FusionConfig switches whose zero-initialised layer a fine-tune may add: switch -> parameter prefix."""
 
 
 class _Run:

@@ -55,8 +55,7 @@ def _cfg_of(net: FusionNet) -> FusionConfig:
     lin1 = net.mlp_a[0]
     assert isinstance(lin1, torch.nn.Linear)
     return FusionConfig(hidden_dim=lin1.out_features, attention_dim=net.rel_dir_encoding.out_features,
-                        num_heads=net.attention.num_heads, range_encoding=net.range_encoding is not None,
-                        colour_consistency=net.colour_encoding is not None)
+                        num_heads=net.attention.num_heads, range_encoding=net.range_encoding is not None)
 
 
 @pytest.mark.parametrize("p_fastest", [True, False])
@@ -94,23 +93,6 @@ def test_kernel_range_encoding() -> None:
             net.point_weights(rgb, feat, vol, dirs, mask, r[:, :3])
     _assert_as_accurate(net, weights, rgb, feat, vol, dirs, mask, source_range=r)
     assert not torch.allclose(far, weights)  # the distances reach the weights
-
-
-@pytest.mark.parametrize("p_fastest", [True, False])
-def test_kernel_colour_consistency(p_fastest: bool) -> None:
-    """CE in the kernel: the views' colour disagreement computed per block, as accurate as the
-    torch pass against float64, also when one view's colour changes (so its disagreement does)."""
-    net = _net(replace(SMALL.fusion, colour_consistency=True), 16, 8, seed=33).float()
-    rgb, feat, vol, dirs, mask, _ = _float(*_inputs(300, 7, 16, 8, seed=34, p_fastest=p_fastest))
-    with torch.no_grad():
-        weights, valid = net.point_weights(rgb, feat, vol, dirs, mask)
-        odd = rgb.clone()
-        odd[:, 0] = 1.0 - odd[:, 0]
-        moved, _ = net.point_weights(odd, feat, vol, dirs, mask)
-    _assert_as_accurate(net, weights, rgb, feat, vol, dirs, mask)
-    _assert_as_accurate(net, moved, odd, feat, vol, dirs, mask)
-    assert torch.all(weights[~mask] == 0) and torch.equal(valid, mask.any(1))
-    assert not torch.allclose(moved, weights)
 
 
 def test_block_sizes_and_threads_agree() -> None:

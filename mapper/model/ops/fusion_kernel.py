@@ -8,8 +8,7 @@ session). Here every point block's intermediates stay in small per-block buffers
 of a block as the inner, contiguous, vectorised axis (the samples' own layout, P fastest):
 
     per block of B points:  mean / var over views -> the per-point part of MLP_a's first layer
-    [per point:             the views' colour disagreement (``colour_consistency``)]
-    per view:               MLP_a -> + DE [+ RE] [+ CE] -> q, k, v (linear attention, masked keys)
+    per view:               MLP_a -> + DE [+ RE] -> q, k, v (linear attention, masked keys)
     per view again:         attention output -> LayerNorm -> FFN -> LayerNorm -> MLP_s -> logit
     masked softmax over the views
 
@@ -47,12 +46,6 @@ _POW2 = np.array([2.0**k for k in range(-127, 1)], np.float32)
 subnormal float32, exact."""
 RANGE_MIN_M = 0.05
 """Distances below this (m) read as this in the range encoding (log of a positive number)."""
-COLOUR_CONSISTENCY_SIGMA = 0.2
-"""Scale (colour units, [0, 1]) of the robust mean's weights in the colour-consistency cue
-(``mapper.model.fusion.colour_deviation``) and the cue's unit at the network's input."""
-COLOUR_PRIOR_INIT = 1.0
-"""Initial ``FusionNet.colour_prior`` (beta): the OV logits start at ``- (d1 / sigma)^2``, the
-photo-consistency weighting ``exp(-(d1 / sigma)^2)`` of ``benchmarks/view_weights.py``."""
 
 
 @numba.njit(fastmath=True, error_model="numpy", inline="always", cache=True)
@@ -134,48 +127,6 @@ def _layer_norm_(y, w, b, eps, nb, mu, var):  # pragma: no cover - compiled
             y[d, j] = (y[d, j] - mu[j]) * var[j] * wd + bd
 
 
-@numba.njit(fastmath=True, error_model="numpy", inline="always", cache=True)
-def _colour_deviation(rgb, mf, inv_cnt, p0, nb, cdev):  # pragma: no cover - compiled
-    """``mapper.model.fusion.colour_deviation`` for points p0 .. p0 + nb - 1: rgb (3, N, P), mf
-    (N, block) the mask as 0 / 1, inv_cnt (block,) 1 / max(views, 1) -> cdev (N, 2, block), in
-    units of ``COLOUR_CONSISTENCY_SIGMA`` (``FusionNet._colour_cue``)."""
-    N = mf.shape[0]
-    inv_s = _F1 / np.float32(COLOUR_CONSISTENCY_SIGMA)
-    inv_s2 = inv_s * inv_s
-    for j in range(nb):
-        p = p0 + j
-        m0 = _F0
-        m1 = _F0
-        m2 = _F0
-        for n in range(N):
-            m0 += rgb[0, n, p] * mf[n, j]
-            m1 += rgb[1, n, p] * mf[n, j]
-            m2 += rgb[2, n, p] * mf[n, j]
-        m0 *= inv_cnt[j]
-        m1 *= inv_cnt[j]
-        m2 *= inv_cnt[j]
-        r0 = _F0
-        r1 = _F0
-        r2 = _F0
-        wsum = _F0
-        for n in range(N):
-            e0, e1, e2 = rgb[0, n, p] - m0, rgb[1, n, p] - m1, rgb[2, n, p] - m2
-            sq = e0 * e0 + e1 * e1 + e2 * e2
-            cdev[n, 0, j] = np.sqrt(sq) * inv_s * mf[n, j]
-            w = np.exp(-sq * inv_s2) * mf[n, j]
-            r0 += w * rgb[0, n, p]
-            r1 += w * rgb[1, n, p]
-            r2 += w * rgb[2, n, p]
-            wsum += w
-        inv_w = _F1 / max(wsum, np.float32(1e-12))
-        r0 *= inv_w
-        r1 *= inv_w
-        r2 *= inv_w
-        for n in range(N):
-            e0, e1, e2 = rgb[0, n, p] - r0, rgb[1, n, p] - r1, rgb[2, n, p] - r2
-            cdev[n, 1, j] = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) * inv_s * mf[n, j]
-
-
 @numba.njit(fastmath=True, error_model="numpy", cache=True, boundscheck=False)
 def _point_block(
     inputs,  # the samples (rgb, feat, vol, dirs, mask, log_range), unpacked below
@@ -202,8 +153,6 @@ def _point_block(
         w2, b2,  # (A, H), (A,)
         wde, bde,  # (A, 3), (A,)
         wre, bre,  # (A, 1), (A,) (unused without range encoding)
-        wce, bce,  # (A, 2), (A,): CE; (A, 0) without the colour-consistency cue
-        colour_prior,  # float32: beta, the OV logits' - beta (d1 / sigma)^2
         wq, bq, wk, bk, wv, bv,  # (A, A), (A,) each
         k_extra, v_extra,  # (A,): the extra token's key (after elu + 1) and value
         head,  # (A,) int64: the attention head of each dimension
@@ -222,7 +171,6 @@ def _point_block(
     for d in range(A):
         n_heads = max(n_heads, head[d] + 1)
     use_range = log_range.shape[1] > 0
-    use_colour = wce.shape[1] > 0
     cnt = np.zeros(block, np.float32)
     stats = np.zeros((2 * Fd + Dv, block), np.float32)  # [mean, var, v]
     pp = np.empty((H, block), np.float32)
@@ -245,7 +193,6 @@ def _point_block(
     ibuf = np.empty(block, np.int32)
     pbuf = np.empty(block, np.float32)
     mf = np.empty((N, block), np.float32)  # the mask as 0 / 1
-    cdev = np.zeros((N if use_colour else 0, 2, block), np.float32)  # [d0, d1] of each view
     # masked mean and population variance of the features over the views
     for n in range(N):
         for j in range(nb):
@@ -269,8 +216,6 @@ def _point_block(
         for j in range(nb):
             stats[2 * Fd + c, j] = vol[c, p0 + j]
     _linear(w1p, b1, stats, pp, nb)
-    if use_colour:
-        _colour_deviation(rgb, mf, cnt, p0, nb, cdev)
     # per view: MLP_a + DE (+ RE), then the attention's sums over the views
     for n in range(N):
         for j in range(nb):
@@ -299,10 +244,6 @@ def _point_block(
                 wr, br = wre[a, 0], bre[a]
                 for j in range(nb):
                     xn[a, j] += br + wr * log_range[n, p0 + j]
-            if use_colour:
-                wc0, wc1, bc = wce[a, 0], wce[a, 1], bce[a]
-                for j in range(nb):
-                    xn[a, j] += bc + wc0 * cdev[n, 0, j] + wc1 * cdev[n, 1, j]
         qn = q[n]
         _linear(wq, bq, xn, qn, nb)
         _elu_(qn, nb, ibuf, pbuf)
@@ -378,9 +319,6 @@ def _point_block(
             w = ws2[a]
             for j in range(nb):
                 logit[n, j] += w * hs[a, j]
-        if use_colour:
-            for j in range(nb):
-                logit[n, j] -= colour_prior * cdev[n, 1, j] * cdev[n, 1, j]
     # masked softmax over the views
     for j in range(nb):
         p = p0 + j
@@ -458,8 +396,7 @@ class PointKernelWeights:
         params = (
             z(H, 2 * feature_dim + volume_feature_dim), z(H), z(H, 3 + feature_dim), z(A, H), z(A),
             z(A, 3), z(A),
-            z(A, 1), z(A), z(A, 0), z(A), np.float32(0.0),
-            z(A, A), z(A), z(A, A), z(A), z(A, A), z(A), z(A), z(A), np.zeros(A, np.int64),
+            z(A, 1), z(A), z(A, A), z(A), z(A, A), z(A), z(A, A), z(A), z(A), z(A), np.zeros(A, np.int64),
             z(A, A), z(A), z(A), z(A), eps, z(A), z(A), eps, z(2 * A, A), z(2 * A), z(A, 2 * A), z(A),
             z(A, A), z(A), z(A), np.float32(0.0),
         )
