@@ -136,6 +136,12 @@ class GlobalMapConfig:
     """Rendered pixels whose accumulated opacity is below this add no point (the ray found no
     clear surface). 0..1."""
 
+    rendered_edge_rel: float = 0.1
+    """Rendered pixels whose depth differs from one of their 4 neighbours' by more than this
+    fraction of the nearer of the two add no point: at an occlusion edge the rendered depth blends
+    the near and the far surface ("flying pixels"). 0 = off. 0..10. (0.1 keeps smooth surfaces up
+    to about 70 deg of incidence at the demo's 40 x 30 renders; docs/RGB_ONLY.md.)"""
+
     rendered_weight: float = 0.5
     """Observation weights of rendered-depth points are multiplied by this times the opacity (input
     depth outranks rendered depth in the fused confidence). 0..1."""
@@ -226,6 +232,7 @@ class GlobalMapConfig:
                               "must be an integer")
         _check_range(where, "global_map.rendered_min_opacity", self.rendered_min_opacity, 0.0, 1.0)
         _check_range(where, "global_map.rendered_weight", self.rendered_weight, 0.0, 1.0)
+        _check_range(where, "global_map.rendered_edge_rel", self.rendered_edge_rel, 0.0, 10.0)
         _check_range(where, "global_map.rendered_min_views", self.rendered_min_views, 1, 1000)
         _check_range(where, "global_map.rendered_max_pending", self.rendered_max_pending, 1, 100_000)
         _check_range(where, "global_map.rendered_consistency_sigmas",

@@ -205,6 +205,26 @@ def test_render_keyframe_depth_scales_K_with_the_stride(model: GovNeSF) -> None:
     assert float(rendered.confidence.max()) <= 0.5 + 1e-6 and rendered.ov is kf.ov
 
 
+def test_render_keyframe_depth_drops_the_pixels_at_occlusion_edges(model: GovNeSF) -> None:
+    """``rendered_edge_rel``: the render with the pixels :func:`depth_edges` marks set to 0 (no point);
+    0 keeps every pixel with enough opacity."""
+    from mapper.node.plugins.depth_points import depth_edges
+
+    runtime = _filled_runtime(model, min_opacity=0.0)
+    kf = keyframe(9, orbit(9), depth_m=None)
+    def rendered(rel: float):  # -> RenderedKeyframe
+        cfg = GlobalMapConfig(rendered_min_opacity=0.0, rendered_edge_rel=rel)
+        return render_keyframe_depth(runtime, kf, cfg)
+
+    full = rendered(0.0)
+    for rel in (0.01, 0.1):
+        cut = rendered(rel)
+        edges = depth_edges(full.depth_m, rel)
+        np.testing.assert_array_equal(cut.depth_m, np.where(edges, 0.0, full.depth_m))
+        np.testing.assert_array_equal(cut.confidence, full.confidence)
+    assert depth_edges(full.depth_m, 0.01).any()  # this scene has some
+
+
 def test_render_keyframe_depth_renders_from_the_overlapping_keyframes_volume(model: GovNeSF) -> None:
     runtime = _filled_runtime(model, min_opacity=0.0)
     kf = keyframe(9, orbit(9), depth_m=None)
@@ -218,7 +238,8 @@ def test_render_keyframe_depth_renders_from_the_overlapping_keyframes_volume(mod
     runtime.render = spy  # type: ignore[method-assign]
     by_volume = {}
     for views in (3, 0):
-        cfg = GlobalMapConfig(rendered_depth_stride=4, rendered_min_opacity=0.0, rendered_volume_views=views)
+        cfg = GlobalMapConfig(rendered_depth_stride=4, rendered_min_opacity=0.0, rendered_volume_views=views,
+                              rendered_edge_rel=0.0)
         by_volume[views] = render_keyframe_depth(runtime, kf, cfg).depth_m
     assert seen == [3, 0]
     direct = render(np.asarray(kf.K) * np.array([10 / 40, 7 / 30, 10 / 40, 7 / 30]), kf.world_from_cam, 10, 7,

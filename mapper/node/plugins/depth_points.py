@@ -95,6 +95,29 @@ class RenderedKeyframe:
     confidence: np.ndarray  # (h, w) float32 in [0, 1]: rendered_weight * opacity
 
 
+def depth_edges(depth: np.ndarray, rel: float) -> np.ndarray:
+    """(h, w) bool: pixels with a depth whose 4-neighbour (with a depth) differs from it by more
+    than ``rel`` of the nearer of the two (an occlusion edge; 0 = no depth, never an edge).
+
+    Args:
+        depth: (h, w) z-depth (m), 0 = none.
+    """
+    d = np.asarray(depth, np.float32)
+    edge = np.zeros(d.shape, bool)
+    for axis in (0, 1):
+        a = np.take(d, range(d.shape[axis] - 1), axis=axis)
+        b = np.take(d, range(1, d.shape[axis]), axis=axis)
+        both = (a > 0) & (b > 0)
+        jump = both & (np.abs(a - b) > rel * np.minimum(a, b))
+        lo = [slice(None)] * 2
+        hi = [slice(None)] * 2
+        lo[axis] = slice(0, d.shape[axis] - 1)
+        hi[axis] = slice(1, None)
+        edge[tuple(lo)] |= jump
+        edge[tuple(hi)] |= jump
+    return edge & (d > 0)
+
+
 def render_keyframe_depth(
     runtime: ModelRuntime, keyframe: Any, config: GlobalMapConfig
 ) -> RenderedKeyframe:
@@ -115,6 +138,8 @@ def render_keyframe_depth(
     assert frame.depth_m is not None and frame.opacity is not None
     opacity = np.nan_to_num(frame.opacity.astype(np.float32), nan=0.0)
     depth = np.where(opacity >= config.rendered_min_opacity, frame.depth_m, 0.0).astype(np.float32)
+    if config.rendered_edge_rel > 0:
+        depth[depth_edges(depth, config.rendered_edge_rel)] = 0.0
     return RenderedKeyframe(
         stamp_ns=int(keyframe.stamp_ns),
         K=K,
