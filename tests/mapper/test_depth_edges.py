@@ -27,6 +27,8 @@ def test_slopes_within_the_tolerance_holes_and_empty_images_are_not_edges() -> N
     assert not depth_edges(np.zeros((3, 3), np.float32), 0.1).any()
     assert depth_edges(np.zeros((0, 5), np.float32), 0.1).shape == (0, 5)
     assert not depth_edges(np.full((1, 1), 2.0, np.float32), 0.1).any()
+    with pytest.raises(ValueError, match=r"\(h, w\)"):
+        depth_edges(np.ones((2, 3, 1), np.float32), 0.1)
 
 
 def test_the_config_key_is_checked() -> None:

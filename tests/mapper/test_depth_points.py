@@ -212,6 +212,7 @@ def test_render_keyframe_depth_drops_the_pixels_at_occlusion_edges(model: GovNeS
 
     runtime = _filled_runtime(model, min_opacity=0.0)
     kf = keyframe(9, orbit(9), depth_m=None)
+
     def rendered(rel: float):  # -> RenderedKeyframe
         cfg = GlobalMapConfig(rendered_min_opacity=0.0, rendered_edge_rel=rel)
         return render_keyframe_depth(runtime, kf, cfg)

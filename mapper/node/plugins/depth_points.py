@@ -103,19 +103,16 @@ def depth_edges(depth: np.ndarray, rel: float) -> np.ndarray:
         depth: (h, w) z-depth (m), 0 = none.
     """
     d = np.asarray(depth, np.float32)
+    if d.ndim != 2:
+        raise ValueError(f"depth must be (h, w), got shape {d.shape}")
     edge = np.zeros(d.shape, bool)
-    for axis in (0, 1):
-        a = np.take(d, range(d.shape[axis] - 1), axis=axis)
-        b = np.take(d, range(1, d.shape[axis]), axis=axis)
-        both = (a > 0) & (b > 0)
-        jump = both & (np.abs(a - b) > rel * np.minimum(a, b))
-        lo = [slice(None)] * 2
-        hi = [slice(None)] * 2
-        lo[axis] = slice(0, d.shape[axis] - 1)
-        hi[axis] = slice(1, None)
-        edge[tuple(lo)] |= jump
-        edge[tuple(hi)] |= jump
-    return edge & (d > 0)
+    # each pair of vertical, then horizontal neighbours: (a, b) and the views of ``edge`` at them
+    for a, b, at_a, at_b in ((d[:-1], d[1:], edge[:-1], edge[1:]),
+                             (d[:, :-1], d[:, 1:], edge[:, :-1], edge[:, 1:])):
+        jump = (a > 0) & (b > 0) & (np.abs(a - b) > rel * np.minimum(a, b))
+        at_a |= jump
+        at_b |= jump
+    return edge
 
 
 def render_keyframe_depth(
