@@ -372,14 +372,14 @@ class GovNeSF(nn.Module):
         """``sample_views_indexed(..., sample_ov=False)`` by the compiled CPU kernel
         (:func:`mapper.model.ops.sample_kernel.sample_pairs`): the same masks, the samples up to
         float rounding, 0 colour and features where masked."""
-        from mapper.model.ops.sample_kernel import sample_pairs_from
+        from mapper.model.ops.sample_kernel import sample_pairs
 
         P, N = view_idx.shape
         if points.shape != (P, 3) or slot_mask.shape != (P, N):
             raise ValueError(f"points {tuple(points.shape)} / slot_mask {tuple(slot_mask.shape)} do not fit "
                              f"view_idx {tuple(view_idx.shape)}")
         pairs = self._pair_args(views, view_idx, depth_masking)
-        samples, mask, dirs, dist, uv = sample_pairs_from(
+        samples, mask, dirs, dist, uv = sample_pairs(
             points.numpy(), view_idx.T.numpy(), slot_mask.T.numpy(), pairs, threads=torch.get_num_threads())
         per_point = torch.from_numpy(samples).reshape(-1, N, P).permute(2, 1, 0)  # (P, N, 3 + F), P fastest
         return PointViewSamples(

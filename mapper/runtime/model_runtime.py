@@ -1307,7 +1307,7 @@ class ModelRuntime:
                     cosines[sub] = cos.float() * valid[:, None]
 
             if self.config.batched_view_groups and groups and self._answer_in_one_pass(model, prep, pts):
-                for sub, cos, valid in self._one_pass_cosines(model, prep, pts, groups, use_depth, emb,
+                for sub, cos, valid in self._one_pass_answers(model, prep, pts, groups, use_depth, emb,
                                                               depth_m=occluders):
                     answer(sub, cos, valid)
             elif self.config.batched_view_groups and groups:
@@ -1381,7 +1381,7 @@ class ModelRuntime:
         views = self._all_views(prep, need_ov=False, use_depth=False)
         return model.answer_kernel_applies(views, pts, prep.ov, self.point_head)
 
-    def _one_pass_cosines(
+    def _one_pass_answers(
         self,
         model: GovNeSF,
         prep: _Prepared,
@@ -1505,7 +1505,7 @@ class ModelRuntime:
             valid = torch.zeros(n, dtype=torch.bool, device=self.device)
             groups = self._view_groups(prep, pts, prep.has_ov, self.point_source_views)
             if groups and self._answer_in_one_pass(model, prep, pts):
-                for sub, out_ov, ok in self._one_pass_cosines(model, prep, pts, groups, use_depth, None):
+                for sub, out_ov, ok in self._one_pass_answers(model, prep, pts, groups, use_depth, None):
                     feats[sub] = out_ov * ok[:, None]  # each point is in one group: written once
                     valid[sub] = ok
             else:

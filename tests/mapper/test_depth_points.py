@@ -208,12 +208,12 @@ def test_render_keyframe_depth_scales_K_with_the_stride(model: GovNeSF) -> None:
 def test_render_keyframe_depth_drops_the_pixels_at_occlusion_edges(model: GovNeSF) -> None:
     """``rendered_edge_rel``: the render with the pixels :func:`depth_edges` marks set to 0 (no point);
     0 keeps every pixel with enough opacity."""
-    from mapper.node.plugins.depth_points import depth_edges
+    from mapper.node.plugins.depth_points import RenderedKeyframe, depth_edges
 
     runtime = _filled_runtime(model, min_opacity=0.0)
     kf = keyframe(9, orbit(9), depth_m=None)
 
-    def rendered(rel: float):  # -> RenderedKeyframe
+    def rendered(rel: float) -> RenderedKeyframe:
         cfg = GlobalMapConfig(rendered_min_opacity=0.0, rendered_edge_rel=rel)
         return render_keyframe_depth(runtime, kf, cfg)
 

@@ -110,18 +110,19 @@ def test_kernel_edge_cases() -> None:
     K = np.array([[10.0, 10.0, 2.0, 2.0]], np.float32)
     table = (np.ones((16, 3), np.float32), (4, 4))
     feats = (np.ones((16, 2), np.float32), (4, 4))
-    args = (eye, K, np.zeros((1, 3), np.float32), (4, 4), 1e-6, table, feats, None, 0.1)
+    pairs = sample_kernel.pair_args(eye, K, np.zeros((1, 3), np.float32), (4, 4), 1e-6, table, feats, None,
+                                    0.1)
     out = sample_kernel.sample_pairs(np.zeros((0, 3), np.float32), np.zeros((2, 0), np.int64),
-                                     np.zeros((2, 0), np.bool_), *args, threads=1)
+                                     np.zeros((2, 0), np.bool_), pairs, threads=1)
     assert out[0].shape == (5, 0) and out[1].shape == (0,)
     pts = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0]], np.float32)
     idx = np.zeros((1, 3), np.int64)
     every = np.ones((1, 3), np.bool_)
-    samples, mask, dirs, dist, uv = sample_kernel.sample_pairs(pts, idx, every, *args, threads=2)
+    samples, mask, dirs, dist, uv = sample_kernel.sample_pairs(pts, idx, every, pairs, threads=2)
     assert mask.tolist() == [False, True, False]  # on the camera, in front, behind
     assert np.isfinite(samples).all() and np.isfinite(dirs).all() and np.isfinite(uv).all()
     assert dist.tolist() == [0.0, 1.0, 1.0] and samples[:, 1].tolist() == [1.0] * 5
-    _, padded, *_ = sample_kernel.sample_pairs(pts, idx, np.zeros((1, 3), np.bool_), *args, threads=1)
+    _, padded, *_ = sample_kernel.sample_pairs(pts, idx, np.zeros((1, 3), np.bool_), pairs, threads=1)
     assert not padded.any()
 
 

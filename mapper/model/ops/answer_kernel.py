@@ -26,6 +26,7 @@ from mapper.model.ops.sample_kernel import PairArgs, pair_args, sample_pair
 
 __all__ = ["answer_points", "warm_up"]
 
+
 @numba.njit(parallel=True, cache=True, boundscheck=False)
 def _answer_kernel(
     pts,  # (P, 3) float32 world points

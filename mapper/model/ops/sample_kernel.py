@@ -25,7 +25,7 @@ import numpy as np
 from mapper.model.ops.average_kernel import corners, launch
 from mapper.model.ops.geometry import _UV_LIMIT as UV_LIMIT
 
-__all__ = ["PairArgs", "pair_args", "sample_pair", "sample_pairs", "sample_pairs_from", "warm_up"]
+__all__ = ["PairArgs", "pair_args", "sample_pair", "sample_pairs", "warm_up"]
 
 _F0 = np.float32(0.0)
 _F1 = np.float32(1.0)
@@ -176,37 +176,15 @@ def sample_pairs(
     pts: np.ndarray,  # (P, 3) float32
     view_idx: np.ndarray,  # (N, P) int64, slot-major
     slot_mask: np.ndarray,  # (N, P) bool
-    cam_from_world: np.ndarray,  # (M, 4, 4) float32
-    K: np.ndarray,  # (M, 4) float32
-    centres: np.ndarray,  # (M, 3) float32
-    image_wh: tuple[int, int],
-    eps: float,
-    rgb: tuple[np.ndarray, tuple[int, int]],
-    features: tuple[np.ndarray, tuple[int, int]],
-    depth: tuple[np.ndarray, tuple[int, int]] | None,
-    depth_ratio: float,  # these as pair_args'
-    *,
-    threads: int,
-    block: int = 1024,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every (point, slot) pair at once (see the module docstring). Returns, pair ``n * P + p``:
-    samples (3 + F, N * P) float32 (colour, then features; 0 where masked), mask (N * P,) bool,
-    dirs (3, N * P), dist (N * P,), uv (N * P, 2) in ``image_wh`` pixels. Arguments are checked by
-    the caller (``GovNeSF.sample_views_indexed``)."""
-    pairs = pair_args(cam_from_world, K, centres, image_wh, eps, rgb, features, depth, depth_ratio)
-    return sample_pairs_from(pts, view_idx, slot_mask, pairs, threads=threads, block=block)
-
-
-def sample_pairs_from(
-    pts: np.ndarray,  # (P, 3) float32
-    view_idx: np.ndarray,  # (N, P) int64, slot-major
-    slot_mask: np.ndarray,  # (N, P) bool
     pairs: PairArgs,  # the cameras and maps (pair_args)
     *,
     threads: int,
     block: int = 1024,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`sample_pairs` with the cameras and maps already grouped (:func:`pair_args`)."""
+    """Every (point, slot) pair's samples, pair n * P + p (slot-major, as ``view_idx``):
+    samples (3 + F, N * P) float32 (colour, then features; 0 where masked), mask (N * P,) bool,
+    dirs (3, N * P), dist (N * P,), uv (N * P, 2) in the image's pixels. Arguments are checked by
+    the caller (``GovNeSF.sample_views_indexed``)."""
     N, P = view_idx.shape
     samples = np.empty((3 + pairs.feat[0].shape[1], N * P), np.float32)  # colour rows, then feature rows
     mask = np.empty(N * P, np.bool_)
@@ -224,8 +202,7 @@ def sample_pairs_from(
 def warm_up() -> None:
     """Compile (or load from numba's cache) the kernel now, on a one-pair problem."""
     one = np.zeros((1, 1), np.int64)
-    sample_pairs(np.zeros((1, 3), np.float32), one, np.ones((1, 1), np.bool_),
-                 np.eye(4, dtype=np.float32)[None], np.ones((1, 4), np.float32), np.zeros((1, 3), np.float32),
-                 (1, 1), 1e-6,
-                 (np.zeros((1, 3), np.float32), (1, 1)), (np.zeros((1, 2), np.float32), (1, 1)),
-                 (np.ones((1, 1, 1), np.float32), (1, 1)), 0.1, threads=1)
+    pairs = pair_args(np.eye(4, dtype=np.float32)[None], np.ones((1, 4), np.float32),
+                      np.zeros((1, 3), np.float32), (1, 1), 1e-6, (np.zeros((1, 3), np.float32), (1, 1)),
+                      (np.zeros((1, 2), np.float32), (1, 1)), (np.ones((1, 1, 1), np.float32), (1, 1)), 0.1)
+    sample_pairs(np.zeros((1, 3), np.float32), one, np.ones((1, 1), np.bool_), pairs, threads=1)
