@@ -85,8 +85,8 @@ def _node(
     evicted: str = "depth", learned_once: bool = True,
 ) -> tuple[Any, Any, Any]:
     """(node, its map-features worker or None, the model runtime) for one run."""
+    from mapper.node.backends.learned import install_learned_backend
     from mapper.node.config import config_from_dict
-    from mapper.node.plugins.learned import install_learned_handlers
     from mapper.node.service import MapperNode
     from mapper.runtime.model_runtime import ModelRuntime
 
@@ -105,8 +105,8 @@ def _node(
     runtime = ModelRuntime(config.model)
     if runtime.load_error:
         raise SystemExit(f"no model: {runtime.load_error}")
-    install_learned_handlers(node, runtime)
-    provider = node.status_providers.get("map_features")
+    install_learned_backend(node, runtime)
+    provider = node.ctx.status_providers.get("map_features")
     blender = getattr(provider, "__self__", None)
     return node, blender, runtime
 
@@ -121,8 +121,8 @@ def _run(frames: list[bytes], node: Any, blender: Any) -> float:
             raise SystemExit(f"ingest error: {reply}")
         if blender is not None:
             blender.process_pending()
-        if node.evicted_views is not None:
-            node.evicted_views.process_pending()
+        if node.ctx.evicted_views is not None:
+            node.ctx.evicted_views.process_pending()
     return time.perf_counter() - started
 
 
@@ -146,8 +146,8 @@ def _map_miou(node: Any, xyz: np.ndarray, gt: np.ndarray, texts: list[str]) -> f
     from clients.harness import mean_iou
 
     snap = node.state.global_map.snapshot()
-    emb = node.text_encoder("bench").encode(texts)
-    rows = snap.nearest_with_feature(xyz, node.map_radius_m)
+    emb = node.ctx.text_encoder("bench").encode(texts)
+    rows = snap.nearest_with_feature(xyz, node.ctx.map_radius_m)
     pred = np.full(xyz.shape[0], -1, np.int64)
     hit = rows >= 0
     feats = snap.feat[rows[hit]].astype(np.float32)
@@ -247,7 +247,8 @@ def bench_scene(
         if radius_voxels > 0:
             row["global_map_miou"] = round(100 * _map_miou(node, xyz, gt_label, texts), 2)
         row["map_features"] = (
-            node.status_providers["map_features"]() if "map_features" in node.status_providers else None
+            node.ctx.status_providers["map_features"]()
+            if "map_features" in node.ctx.status_providers else None
         )
         node.stop()
         out["runs"][name] = row

@@ -39,10 +39,10 @@ from clients.sim.export import count_views  # noqa: E402
 from clients.sim.scenes import CLASS_NAMES, LABEL_OF  # noqa: E402
 from mapper.geometry.planes import plane_depth  # noqa: E402
 from mapper.node.config import config_from_dict  # noqa: E402
-from mapper.node.plugins.serve import install_serve_plugins  # noqa: E402
-from mapper.node.plugins.triangulation import keyframe_key  # noqa: E402
 from mapper.node.queries import geometry_planes, map_surface_depth, surface_depth  # noqa: E402
+from mapper.node.serve import install_serve_stages  # noqa: E402
 from mapper.node.service import MapperNode  # noqa: E402
+from mapper.node.workers.triangulation import keyframe_key  # noqa: E402
 from protocol import decode, encode  # noqa: E402
 from protocol.messages import Segmentation, SegmentPoints  # noqa: E402
 
@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
         "stereo": {"prior_geometry": False},  # the keyframes' own priors; the candidates below
     })  # fmt: skip
     node = MapperNode(config)
-    plugins = install_serve_plugins(node)  # as `govnesf serve` builds it
+    plugins = install_serve_stages(node)  # as `govnesf serve` builds it
     runtime, rendered, tri = plugins.runtime, plugins.rendered_depth, plugins.triangulation
     if runtime is None or not runtime.ready:
         raise SystemExit(runtime.load_error if runtime is not None else "serve_model is off")
@@ -105,7 +105,8 @@ def main(argv: list[str] | None = None) -> int:
             prior = runtime._depth_priors.get(keyframe_key(kf))  # what the plugin set
             own[keyframe_key(kf)] = (np.zeros((kf.height, kf.width), np.float32) if prior is None
                                          else prior.cpu().numpy())
-        geometry = np.concatenate([np.asarray(f(), np.float64).reshape(-1, 3) for f in node.surface_points])
+        providers = node.ctx.surface_points
+        geometry = np.concatenate([np.asarray(f(), np.float64).reshape(-1, 3) for f in providers])
         snap = node.state.global_map.snapshot()
         planes = geometry_planes(geometry, config.model)
         footprint = config.model.surface_geometry_footprint * config.global_map.voxel_size_m

@@ -61,7 +61,7 @@ def scene_cosines(scene: Path, max_keyframes: int | None) -> dict[str, np.ndarra
                                           learned=True, more_confident=True, blend=0.75)  # fmt: skip
         try:
             bw._run(frames, node, blender)
-            emb = np.asarray(node.text_encoder("sweep").encode(texts), np.float32)
+            emb = np.asarray(node.ctx.text_encoder("sweep").encode(texts), np.float32)
             label, _, cos_g, _ = runtime.segment_cosines(xyz, texts)
             out: dict[str, np.ndarray] = {"gt": gt["label"].astype(np.int64), "govnesf": cos_g,
                                           "govnesf_seen": label >= 0}  # fmt: skip
@@ -73,7 +73,7 @@ def scene_cosines(scene: Path, max_keyframes: int | None) -> dict[str, np.ndarra
                 cos, n = segment_average_cosines(xyz, views, emb, use_depth=depth)
                 out[method], out[method + "_seen"] = cos, n > 0
             snap = node.state.global_map.snapshot()
-            rows = snap.nearest_with_feature(xyz, node.map_radius_m)
+            rows = snap.nearest_with_feature(xyz, node.ctx.map_radius_m)
             hit = rows >= 0
             map_cos = np.zeros((xyz.shape[0], len(texts)), np.float32)
             assert snap.feat is not None

@@ -33,8 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from clients.cli.bench import SEGMENT_TEXTS, make_frames, stream_points  # noqa: E402
 from mapper.model.fusion import FusionNet  # noqa: E402
 from mapper.model.point_head import load_point_head  # noqa: E402
+from mapper.node.backends.learned import install_learned_backend  # noqa: E402
 from mapper.node.config import config_from_dict  # noqa: E402
-from mapper.node.plugins.learned import install_learned_handlers  # noqa: E402
 from mapper.node.service import MapperNode  # noqa: E402
 from mapper.runtime.model_runtime import ModelRuntime  # noqa: E402
 
@@ -53,11 +53,11 @@ def main() -> int:
                                 "model": {"point_head": ""}})
         node = MapperNode(cfg)
         runtime = ModelRuntime(cfg.model)
-        install_learned_handlers(node, runtime)
+        install_learned_backend(node, runtime)
         try:
             for frame in make_frames(args.frames):
                 node.handle_ingest(frame)
-            node.drain_integrations()
+            node.ctx.drain_integrations()
             xyz = stream_points(args.points).astype(np.float32)
             sha = runtime.metadata["weights_sha256"]
             own = runtime.model.fusion if runtime.model is not None else None

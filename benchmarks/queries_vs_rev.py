@@ -38,8 +38,8 @@ def _worker(out: Path, frames: int, points: int, repeats: int, shuffle: bool) ->
 
     from clients.cli.bench import SEGMENT_TEXTS, make_frames, stream_points
     from clients.harness import look_at
+    from mapper.node.backends.learned import install_learned_backend
     from mapper.node.config import config_from_dict
-    from mapper.node.plugins.learned import install_learned_handlers
     from mapper.node.service import MapperNode
     from mapper.runtime.model_runtime import ModelRuntime
     from protocol import decode, encode
@@ -50,11 +50,11 @@ def _worker(out: Path, frames: int, points: int, repeats: int, shuffle: bool) ->
         cfg = config_from_dict({"map_dir": tmp, "autosave_name": "", "save_on_exit": False})
         node = MapperNode(cfg)
         runtime = ModelRuntime(cfg.model)
-        install_learned_handlers(node, runtime)
+        install_learned_backend(node, runtime)
         try:
             for frame in make_frames(frames):
                 node.handle_ingest(frame)
-            node.drain_integrations()
+            node.ctx.drain_integrations()
             xyz = stream_points(points).astype(np.float32)
             if shuffle:  # the same permutation in both trees
                 xyz = np.ascontiguousarray(xyz[np.random.default_rng(0).permutation(xyz.shape[0])])

@@ -48,7 +48,7 @@ from real_sequence import DEFAULT_DATA, ICL_K, PosedFrame, load_sequence  # noqa
 from rgb_only import parse_overrides  # noqa: E402
 
 from mapper.node.config import config_from_dict  # noqa: E402
-from mapper.node.plugins.serve import install_serve_plugins  # noqa: E402
+from mapper.node.serve import install_serve_stages  # noqa: E402
 from mapper.node.service import MapperNode  # noqa: E402
 from mapper.runtime.model_runtime import ModelRuntime  # noqa: E402
 from mapper.training.metrics import masked_psnr  # noqa: E402
@@ -133,7 +133,7 @@ def run(frames: list[PosedFrame], tree: cKDTree, args: argparse.Namespace, stere
         "map_dir": "/tmp/govnesf-bench-maps", "autosave_name": "", "save_on_exit": False, **sections,
     })  # fmt: skip
     node = MapperNode(config)
-    plugins = install_serve_plugins(node)  # as `govnesf serve` builds it
+    plugins = install_serve_stages(node)  # as `govnesf serve` builds it
     runtime, rendered, tri = plugins.runtime, plugins.rendered_depth, plugins.triangulation
     if runtime is None or not runtime.ready:
         raise SystemExit(runtime.load_error if runtime is not None else "serve_model is off")

@@ -2,7 +2,7 @@
 
 Streams a simulated room (the demo's scene by default) into an in-process node that serves the
 learned model, once WITH input depth and once WITHOUT (RGB + SimLSeg features only; the map's points
-then come from :mod:`mapper.node.plugins.depth_points`), and reports for each:
+then come from :mod:`mapper.node.workers.depth_points`), and reports for each:
 
 * global-map points and the time the rendered-depth worker spent per keyframe;
 * geometric error of the map points: distance to the nearest ground-truth surface point
@@ -34,10 +34,10 @@ import torch
 from scipy.spatial import cKDTree
 
 from clients.harness import chair_distance, sim_stream
+from mapper.node.backends.learned import install_learned_backend
 from mapper.node.config import config_from_dict
-from mapper.node.plugins.learned import install_learned_handlers
-from mapper.node.plugins.triangulation import install_triangulation
 from mapper.node.service import MapperNode
+from mapper.node.workers.triangulation import install_triangulation
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
 from protocol.messages import Points, QueryPoints, decode, encode
 
@@ -69,7 +69,7 @@ def run(args: argparse.Namespace, with_depth: bool, consistency: bool = True) ->
     runtime = ModelRuntime(ModelRuntimeConfig(checkpoint=str(args.checkpoint), device="cpu"))
     if not runtime.ready:
         raise SystemExit(runtime.load_error)
-    points = install_learned_handlers(node, runtime)
+    points = install_learned_backend(node, runtime)
     assert points is not None
     tri = install_triangulation(node, runtime)  # as `govnesf serve` does (None when disabled)
     gt_parts = []

@@ -1,7 +1,7 @@
 """RGB-only robots: sparse triangulated geometry, volume bounds, 3D mIoU and "find the chair".
 
 Streams a simulated room into an in-process node (the node's real plugins: the learned model's
-handlers, rendered-depth map points, and :mod:`mapper.node.plugins.triangulation`) three times:
+handlers, rendered-depth map points, and :mod:`mapper.node.workers.triangulation`) three times:
 
 * ``depth``: frames with depth (the reference: what a robot with a depth camera gets);
 * ``rgb, fixed range``: frames WITHOUT depth, triangulation off (the node before issue 13: volume
@@ -64,8 +64,8 @@ from clients.sim.export import count_views, novel_view_poses
 from clients.sim.scenes import CLASS_NAMES, LABEL_OF
 from mapper.errors import ConfigError
 from mapper.node.config import config_from_dict
-from mapper.node.plugins.serve import install_serve_plugins
 from mapper.node.queries import map_surface_depth
+from mapper.node.serve import install_serve_stages
 from mapper.node.service import MapperNode
 from mapper.training.metrics import masked_psnr
 from protocol.messages import (
@@ -119,7 +119,7 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
         current = _as_dict(config)
         config = config_from_dict({**current, section: {**current.get(section, {}), name: value}})
     node = MapperNode(config)
-    plugins = install_serve_plugins(node)  # as `govnesf serve` builds it
+    plugins = install_serve_stages(node)  # as `govnesf serve` builds it
     runtime, rendered, tri = plugins.runtime, plugins.rendered_depth, plugins.triangulation
     if runtime is None or not runtime.ready:
         raise SystemExit(runtime.load_error if runtime is not None else "serve_model is off")

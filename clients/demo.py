@@ -20,7 +20,7 @@ Steps, each printed as it happens:
 6. save the map, stop the node with SIGINT and check that it exited cleanly (exit code 0);
 7. RGB-only (skip with ``--no-rgb-only``): the same robot WITHOUT a depth camera (rgb, pose and
    SimLSeg features) streams into a fresh node; once its background workers (points triangulated
-   from the posed RGB and plane-sweep stereo depths, ``mapper/node/plugins/triangulation.py``, and
+   from the posed RGB and plane-sweep stereo depths, ``mapper/node/workers/triangulation.py``, and
    rendered depth) are idle,
    "find the chair" must again lie within 0.5 m of a real chair, ``segment_points`` mIoU (the
    four methods of step 5; the depth test takes the requested points as occluders) is printed,

@@ -3,7 +3,7 @@
 
 :class:`TriangulationConfig` is one field of :class:`mapper.node.config.NodeConfig`; the pure
 geometry (:mod:`mapper.geometry.triangulation`) and the node plugin
-(:mod:`mapper.node.plugins.triangulation`) read it.
+(:mod:`mapper.node.workers.triangulation`) read it.
 """
 
 from __future__ import annotations

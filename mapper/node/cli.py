@@ -96,11 +96,11 @@ def serve_main(argv: list[str] | None = None) -> int:
         datefmt="%Y-%m-%dT%H:%M:%S",
         stream=sys.stderr,
     )
-    from mapper.node.plugins.serve import install_serve_plugins
+    from mapper.node.serve import install_serve_stages
     from mapper.node.service import MapperNode  # after logging is set up
 
     node = MapperNode(config)
-    install_serve_plugins(node)  # learned model, triangulation, OV backend (from the config)
+    install_serve_stages(node)  # learned model, triangulation, OV backend (from the config)
     node.install_signal_handlers()
     try:
         node.start()

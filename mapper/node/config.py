@@ -116,7 +116,7 @@ class GlobalMapConfig:
 
     rendered_depth: bool = True
     """Keyframes without input depth add points from the learned model's rendered depth at their
-    pose (when the node serves the model; :mod:`mapper.node.plugins.depth_points`).
+    pose (when the node serves the model; :mod:`mapper.node.workers.depth_points`).
     Off: they add no points."""
 
     rendered_depth_stride: int = 4
@@ -155,7 +155,7 @@ class GlobalMapConfig:
     ``dropped`` in status). 1..100000."""
 
     rendered_consistency: bool = True
-    """Multi-view consistency for rendered-depth points (:func:`mapper.node.plugins.depth_points.
+    """Multi-view consistency for rendered-depth points (:func:`mapper.node.workers.depth_points.
     consistency_mask`): a rendered pixel is kept only where it agrees with the triangulated points
     projecting near it (within ``rendered_consistency_radius_px``) or, where none do, with the
     rendered depth of at least one other recent keyframe that sees it. Off: every pixel above
@@ -192,7 +192,7 @@ class GlobalMapConfig:
 
     learned_features: bool = True
     """When the node serves the learned model: just before a keyframe leaves the window, the map
-    voxels it saw take the model's blended features (:mod:`mapper.node.map_features`), so the
+    voxels it saw take the model's blended features (:mod:`mapper.node.workers.map_features`), so the
     persistent map carries what the model knows, not only plain averages. Off: plain fusion only."""
 
     learned_features_once: bool = True
@@ -503,7 +503,7 @@ OV_BACKEND_KINDS = ("", "clip")
 
 @dataclass(frozen=True)
 class OvBackendConfig:
-    """The in-process open-vocabulary backend (:mod:`mapper.node.plugins.ov_features`): dense features for
+    """The in-process open-vocabulary backend (:mod:`mapper.node.workers.ov_features`): dense features for
     keyframes that arrive without ``ov``, and the text encoder of its space. Off by default.
 
     The CLIP fields are those of :class:`mapper.ov.clip.ClipBackendConfig` (same meaning and
@@ -677,7 +677,7 @@ class NodeConfig:
 
     triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
     """Sparse points triangulated from posed RGB for keyframes without depth (TOML table
-    ``[triangulation]``; :mod:`mapper.node.plugins.triangulation`): global-map points and the
+    ``[triangulation]``; :mod:`mapper.node.workers.triangulation`): global-map points and the
     learned model's volume bounds for RGB-only robots."""
 
     stereo: StereoConfig = field(default_factory=StereoConfig)

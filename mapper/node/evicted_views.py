@@ -23,7 +23,7 @@ node with an unbounded window (docs/QUERIES.md). This module keeps those views' 
   ones (sampled at the voxel's fused position instead of the point).
 
 The learned model's answers do not use it (they get the model's blend written into the map before
-eviction instead: :mod:`mapper.node.map_features`).
+eviction instead: :mod:`mapper.node.workers.map_features`).
 """
 
 from __future__ import annotations
@@ -418,9 +418,9 @@ class EvictedViews:
     """The node's worker that adds evicted keyframes' views to their global map's store (module
     docstring). ``install()`` hooks it into the node (before ``node.start()``)."""
 
-    def __init__(self, node: Any) -> None:  # MapperNode
-        self.node = node
-        cfg = node.config
+    def __init__(self, ctx: Any) -> None:  # NodeContext
+        self.ctx = ctx
+        cfg = ctx.config
         self.queue: KeyframeQueue[tuple[Keyframe, Any]] = KeyframeQueue(  # (keyframe, its GlobalSemanticMap)
             cfg.queries.evicted_views_max_pending
         )
@@ -440,8 +440,8 @@ class EvictedViews:
         self.seconds_total = 0.0
 
     def install(self) -> None:
-        self.node.workers.append(("evicted-views", self.run))
-        self.node.status_providers["evicted_views"] = self.stats
+        self.ctx.workers.append(("evicted-views", self.run))
+        self.ctx.status_providers["evicted_views"] = self.stats
 
     def put(self, keyframe: Keyframe, gmap: Any) -> None:  # gmap: GlobalSemanticMap
         """Queue a keyframe the window evicted (cheap; any thread)."""
@@ -459,7 +459,7 @@ class EvictedViews:
         def work() -> None:
             while len(self.queue) and not stop.is_set():
                 # the integrator first, unless this queue is half full (then nothing is dropped)
-                if self.node.integration_backlog() > 0 and 2 * len(self.queue) < self.queue.max_len:
+                if self.ctx.integration_backlog() > 0 and 2 * len(self.queue) < self.queue.max_len:
                     self.deferred += 1
                     return
                 self._process_one()
@@ -495,8 +495,8 @@ class EvictedViews:
         from mapper.model.baselines import OVView, view_samples  # torch-heavy; imported when first used
 
         started = time.perf_counter()
-        with self.node.state.lock:
-            current = self.node.state.global_map
+        with self.ctx.state.lock:
+            current = self.ctx.state.global_map
         if gmap is not current:  # a map loaded since: the keyframe belongs to the old one
             self.stale += 1
             return
@@ -529,7 +529,7 @@ class EvictedViews:
 
     def stats(self) -> dict[str, Any]:
         """``status`` key ``evicted_views`` (called under the state lock: takes no node lock)."""
-        store = self.node.state.global_map.evicted
+        store = self.ctx.state.global_map.evicted
         return {
             "pending": self.pending,
             "dropped": self.queue.dropped,

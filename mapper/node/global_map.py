@@ -22,9 +22,9 @@ The fusion rule is the pure function :func:`weighted_mean_fusion`; the learned m
 own ``fusion=`` with the same signature (:class:`FusionRule`).
 
 Frames without depth add no points here; when the node serves the learned model,
-:mod:`mapper.node.plugins.depth_points` adds their points later from the model's rendered depth;
+:mod:`mapper.node.workers.depth_points` adds their points later from the model's rendered depth;
 frames without ``ov`` add geometry only (points without a feature); when the node runs an
-in-process OV backend (:mod:`mapper.node.plugins.ov_features`) their features arrive later through
+in-process OV backend (:mod:`mapper.node.workers.ov_features`) their features arrive later through
 :meth:`GlobalSemanticMap.integrate_features`, which fuses features into the voxels the keyframe's
 points fell in without adding geometry weight a second time. Points are kept when their
 keyframe leaves the window. Memory is bounded by ``max_points``: beyond it the voxels with the
@@ -651,7 +651,7 @@ class GlobalSemanticMap:
         """The keyframe's weighted observations (pure; no lock), or the reason there are none.
 
         ``pixel_stride`` overrides ``config.pixel_stride``; ``confidence`` multiplies each pixel's
-        quality weight (e.g. the opacity of a rendered depth, see :mod:`mapper.node.plugins.depth_points`).
+        quality weight (e.g. the opacity of a rendered depth, see :mod:`mapper.node.workers.depth_points`).
         """
         cfg = self.config
         depth = keyframe.depth_m
@@ -773,7 +773,7 @@ class GlobalSemanticMap:
         confidence: np.ndarray | None = None,  # (H, W) weight multiplier in [0, 1]
     ) -> IntegrateStats:
         """Fuse only the OV features of a keyframe whose geometry was integrated before without
-        ``ov`` (the in-process OV backend, :mod:`mapper.node.plugins.ov_features`, computes them later).
+        ``ov`` (the in-process OV backend, :mod:`mapper.node.workers.ov_features`, computes them later).
 
         The observations are those :meth:`integrate` made for the keyframe (same depth, stride,
         confidence, quality weights), so each voxel they fall in receives exactly the feature sum and

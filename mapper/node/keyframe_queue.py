@@ -1,7 +1,7 @@
 """The plumbing the node's per-keyframe background workers share.
 
-A worker (``mapper.node.plugins.depth_points``: points from rendered depth;
-``mapper.node.plugins.ov_features``: OV features from the in-process encoder) is handed
+A worker (``mapper.node.workers.depth_points``: points from rendered depth;
+``mapper.node.workers.ov_features``: OV features from the in-process encoder) is handed
 keyframes on the ingest thread and does the slow work on its own thread (``node.workers``).
 What they share lives here:
 
@@ -114,7 +114,7 @@ class LimitedLog:
 
 def with_current_features(node: Any, keyframe: Any) -> Any:
     """The window's current copy of ``keyframe`` (same camera, seq and stamp) when it has gained OV
-    features since it was queued (the in-process OV backend, :mod:`mapper.node.plugins.ov_features`,
+    features since it was queued (the in-process OV backend, :mod:`mapper.node.workers.ov_features`,
     swaps in a featured copy), else ``keyframe``. ``node`` is a :class:`mapper.node.service.MapperNode`."""
     if keyframe.ov is not None:
         return keyframe

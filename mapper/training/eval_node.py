@@ -107,7 +107,7 @@ def node_rgb_only_rows(
         RuntimeError: the node could not load ``checkpoint`` or refused a query.
     """
     from mapper.node.config import load_config
-    from mapper.node.plugins.serve import install_serve_plugins
+    from mapper.node.serve import install_serve_stages
     from mapper.node.service import MapperNode
     from protocol.messages import Frame, Segmentation, SegmentPoints, decode, encode
 
@@ -120,7 +120,7 @@ def node_rgb_only_rows(
             "model.device": st.device,
         })
         node = MapperNode(config)
-        plugins = install_serve_plugins(node)  # as `govnesf serve` builds it
+        plugins = install_serve_stages(node)  # as `govnesf serve` builds it
         runtime = plugins.runtime
         if runtime is None or not runtime.ready:
             why = "serve_model is off" if runtime is None else runtime.load_error

@@ -164,8 +164,8 @@ def _stream(scene: Path, checkpoint: str) -> Iterator[tuple[float, Any, Any]]:
     """Stream ``scene``'s recording into an in-process node serving ``checkpoint`` (its own FusionNet
     for point answers: ``model.point_head = ""``); yields
     (fraction of the frames ingested, node, runtime) after every frame."""
+    from mapper.node.backends.learned import install_learned_backend
     from mapper.node.config import config_from_dict
-    from mapper.node.plugins.learned import install_learned_handlers
     from mapper.node.service import MapperNode
     from mapper.runtime.model_runtime import ModelRuntime
     from protocol.recording import read_recording
@@ -178,7 +178,7 @@ def _stream(scene: Path, checkpoint: str) -> Iterator[tuple[float, Any, Any]]:
         runtime = ModelRuntime(cfg.model)
         if runtime.model is None:
             raise RuntimeError(runtime.load_error or f"no model from {checkpoint}")
-        install_learned_handlers(node, runtime)
+        install_learned_backend(node, runtime)
         try:
             for i, frame in enumerate(frames):
                 node.handle_ingest(frame)
@@ -197,7 +197,7 @@ def capture_scene(scene: Path, cfg: DistillConfig, gen: np.random.Generator) -> 
         if not todo or frac < todo[0]:
             continue
         todo.pop(0)
-        node.drain_integrations()
+        node.ctx.drain_integrations()
         pick = gen.choice(truth.shape[0], size=min(cfg.points_per_capture, truth.shape[0]), replace=False)
         pts = truth[pick] + gen.normal(0.0, cfg.surface_jitter_m, size=(pick.size, 3)).astype(np.float32)
         use_depth = len(out) % 2 == 1
@@ -298,7 +298,7 @@ def validate_scene(scene: Path, head: str, cfg: DistillConfig, gen: np.random.Ge
     for frac, node, runtime in _stream(scene, cfg.checkpoint):  # one stream: the same window for both
         if frac < 1.0:
             continue
-        node.drain_integrations()
+        node.ctx.drain_integrations()
         student, _ = load_point_head(head, teacher_sha256=runtime.metadata["weights_sha256"])
         for name, network in (("teacher", None), ("head", student)):
             runtime.point_head = network

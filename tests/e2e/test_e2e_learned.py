@@ -17,7 +17,7 @@ from PIL import Image
 from clients.cli import main as govnesf
 from clients.client import MapperClient
 from mapper.model.field import GovNeSF
-from mapper.node.plugins.learned import install_learned_handlers
+from mapper.node.backends.learned import install_learned_backend
 from mapper.node.service import MapperNode
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
 from protocol.errors import RemoteError
@@ -62,7 +62,7 @@ def node(tmp_path: Path) -> Iterator[MapperNode]:
     runtime = ModelRuntime(
         ModelRuntimeConfig(device="cpu"), model=GovNeSF(TINY).eval(), text_encoder=lambda space: FakeEncoder()
     )
-    install_learned_handlers(mapper, runtime)
+    install_learned_backend(mapper, runtime)
     mapper.start()
     try:
         yield mapper

@@ -98,8 +98,8 @@ def test_bounded_and_off() -> None:
 def node_with_map(tmp_path: Path, **queries: object) -> MapperNode:
     """A node with a small map; frames count as arriving (stale answers are only served then)."""
     node = in_process_node(tmp_path, queries=queries)
-    node._text_encoder = lambda what: HashEncoder()  # type: ignore[method-assign]
-    node._ingest_last = math.inf
+    node.ctx.text_encoder = lambda what: HashEncoder()  # type: ignore[method-assign]
+    node.ctx.ingest_last = math.inf
     for i in range(3):
         node.state.global_map.integrate(keyframe(10.0 * i, i + 1, i), map_version=i + 1)
     return node
@@ -142,14 +142,14 @@ def test_node_reuses_then_refreshes_a_stale_answer(tmp_path: Path) -> None:
     node.state.global_map.integrate(keyframe(0.0, 11, 11), map_version=7)
     stale = ask(node)
     assert stale.timing_ms["answer_reused"] == 1.0 and stale.map_version == 3
-    assert node.answer_stats()["reused_stale"] == 1
+    assert node.query_points.stats()["reused_stale"] == 1
     ask(node)  # a second stale request queues no second refresh
-    assert node._refresh_jobs.qsize() == 1
-    assert node.refresh_one(0.0) and not node.refresh_one(0.0)
+    assert node.query_points._refresh_jobs.qsize() == 1
+    assert node.query_points.refresh_one(0.0) and not node.query_points.refresh_one(0.0)
     refreshed = ask(node)
     assert refreshed.timing_ms["answer_reused"] == 1.0 and refreshed.map_version == 7
     same(refreshed, fresh(node))
-    assert node.answer_stats()["refreshes"] == 1
+    assert node.query_points.stats()["refreshes"] == 1
     # another question is computed, not taken from this one
     other = ask(node, max_points=5)
     assert other.timing_ms["answer_reused"] == 0.0 and other.xyz.shape[0] <= 5
@@ -160,7 +160,7 @@ def test_node_recomputes_once_the_stream_stopped(tmp_path: Path) -> None:
     node = node_with_map(tmp_path, answer_max_age_s=60.0)
     ask(node)
     node.state.global_map.integrate(keyframe(0.0, 11, 11), map_version=7)
-    node._ingest_last = time.monotonic() - 10.0
+    node.ctx.ingest_last = time.monotonic() - 10.0
     now = ask(node)
     assert now.timing_ms["answer_reused"] == 0.0 and now.map_version == 7
     same(now, fresh(node))
@@ -226,7 +226,7 @@ def test_started_node_refreshes_in_the_background(tmp_path: Path) -> None:
         node.state.global_map.integrate(keyframe(0.0, 11, 11), map_version=7)
         assert ask(node).map_version == 3
         deadline = time.monotonic() + 20.0
-        while node.answer_stats()["refreshes"] < 1 and time.monotonic() < deadline:
+        while node.query_points.stats()["refreshes"] < 1 and time.monotonic() < deadline:
             time.sleep(0.02)
         refreshed = ask(node)
         assert refreshed.map_version == 7

@@ -1,4 +1,4 @@
-"""Multi-view consistency of rendered-depth points (mapper.node.plugins.depth_points): exact synthetic
+"""Multi-view consistency of rendered-depth points (mapper.node.workers.depth_points): exact synthetic
 cases for :func:`sparse_agreement`, :func:`view_agreement` and :func:`consistency_mask`.
 
 The camera: 10 x 10 pixels, f = 10, principal point (5, 5), pixel centres at +0.5; looking along
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from mapper.node.config import GlobalMapConfig
-from mapper.node.plugins.depth_points import consistency_mask, sparse_agreement, view_agreement
+from mapper.node.workers.depth_points import consistency_mask, sparse_agreement, view_agreement
 
 K = np.array([10.0, 10.0, 5.0, 5.0])
 
@@ -130,9 +130,9 @@ def test_consistency_mask_points_overrule_views_and_no_evidence_rejects() -> Non
 
 def test_view_agreement_mode_follows_the_stereo_setting(tmp_path) -> None:
     from mapper.node.config import ConfigError, config_from_dict
-    from mapper.node.plugins.depth_points import RenderedDepthPoints
-    from mapper.node.plugins.triangulation import SparseTriangulation
     from mapper.node.service import MapperNode
+    from mapper.node.workers.depth_points import RenderedDepthPoints
+    from mapper.node.workers.triangulation import SparseTriangulation
 
     with pytest.raises(ConfigError, match="rendered_view_agreement"):
         config_from_dict({"global_map": {"rendered_view_agreement": "maybe"}})
@@ -144,9 +144,9 @@ def test_view_agreement_mode_follows_the_stereo_setting(tmp_path) -> None:
             "stereo": {"enabled": stereo},
         }))
         try:
-            points = RenderedDepthPoints(node, runtime=None)  # type: ignore[arg-type]
+            points = RenderedDepthPoints(node.ctx, runtime=None)  # type: ignore[arg-type]
             without = points._view_agreement()  # no triangulation plugin installed: nothing sweeps
-            SparseTriangulation(node).install()
+            SparseTriangulation(node.ctx).install()
             answers[(mode, stereo)] = (without, points._view_agreement())
         finally:
             node.stop()

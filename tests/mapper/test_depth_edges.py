@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mapper.node.config import ConfigError, config_from_dict
-from mapper.node.plugins.depth_points import depth_edges
+from mapper.node.workers.depth_points import depth_edges
 
 
 def test_a_step_marks_both_sides_and_nothing_else() -> None:

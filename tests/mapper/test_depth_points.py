@@ -1,4 +1,4 @@
-"""Tests for global-map points from rendered depth (mapper.node.plugins.depth_points) and the pieces it uses:
+"""Tests for global-map points from rendered depth (mapper.node.workers.depth_points) and the pieces it uses:
 depth-only renders, the support mask, confidence-weighted integration, the node's keyframe
 listeners and workers, frustum bounds (geometry.frustum_points, data.source_batch)."""
 
@@ -15,12 +15,12 @@ import torch
 
 from mapper.model.field import GovNeSF
 from mapper.model.ops.geometry import frustum_points, invert_pose, project_points
+from mapper.node.backends.learned import install_learned_backend
 from mapper.node.config import ConfigError, GlobalMapConfig, WindowConfig, config_from_dict
 from mapper.node.global_map import GlobalSemanticMap
-from mapper.node.plugins.depth_points import RenderedDepthPoints, render_keyframe_depth
-from mapper.node.plugins.learned import install_learned_handlers
 from mapper.node.service import MapperNode
 from mapper.node.window import Keyframe, KeyframeWindow
+from mapper.node.workers.depth_points import RenderedDepthPoints, render_keyframe_depth
 from mapper.runtime.model_runtime import ModelRuntimeConfig
 from protocol.messages import Frame, Status, StatusRequest, decode, encode
 from tests.mapper.test_runtime import TINY, keyframe, make_runtime, orbit
@@ -147,7 +147,7 @@ def node(tmp_path: Path) -> Iterator[MapperNode]:
 def _install(node: MapperNode, model: GovNeSF) -> RenderedDepthPoints:
     runtime = make_runtime(model, min_opacity=0.0)
     runtime._text_encoder = lambda space: _Encoder()  # type: ignore[assignment]
-    points = install_learned_handlers(node, runtime)
+    points = install_learned_backend(node, runtime)
     assert isinstance(points, RenderedDepthPoints)
     return points
 
@@ -181,7 +181,7 @@ def test_queue_is_bounded_and_a_load_drops_stale_keyframes(node: MapperNode, mod
 
 def test_worker_thread_integrates_in_the_background_and_stops(node: MapperNode, model: GovNeSF) -> None:
     points = _install(node, model)
-    assert ("depth-points", points.run) in node.workers
+    assert ("depth-points", points.run) in node.ctx.workers
     stop = threading.Event()
     thread = threading.Thread(target=points.run, args=(stop,), daemon=True)
     thread.start()
@@ -208,7 +208,7 @@ def test_render_keyframe_depth_scales_K_with_the_stride(model: GovNeSF) -> None:
 def test_render_keyframe_depth_drops_the_pixels_at_occlusion_edges(model: GovNeSF) -> None:
     """``rendered_edge_rel``: the render with the pixels :func:`depth_edges` marks set to 0 (no point);
     0 keeps every pixel with enough opacity."""
-    from mapper.node.plugins.depth_points import RenderedKeyframe, depth_edges
+    from mapper.node.workers.depth_points import RenderedKeyframe, depth_edges
 
     runtime = _filled_runtime(model, min_opacity=0.0)
     kf = keyframe(9, orbit(9), depth_m=None)

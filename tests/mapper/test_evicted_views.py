@@ -66,8 +66,8 @@ def _node(tmp_path: Path, max_keyframes: int, **queries: Any) -> MapperNode:
 
 def _stream(node: MapperNode, frames: Sequence[Frame]) -> None:
     stream_keyframes(node, frames)  # test_whole_map's: every frame acked as a keyframe
-    if node.evicted_views is not None:
-        node.evicted_views.process_pending()  # the worker's job (its thread runs only in node.start())
+    if node.ctx.evicted_views is not None:
+        node.ctx.evicted_views.process_pending()  # the worker's job (its thread runs only in node.start())
 
 
 def _segment(node: MapperNode, method: str, xyz: np.ndarray) -> Segmentation:
@@ -91,8 +91,8 @@ def test_bounded_window_with_evicted_views_answers_as_an_unbounded_one(
     for node in (unbounded, bounded, plain):
         _stream(node, frames)
     assert len(bounded.state.window) == 2 and len(unbounded.state.window) == 6
-    assert plain.evicted_views is None
-    stats = bounded.status_providers["evicted_views"]()
+    assert plain.ctx.evicted_views is None
+    stats = bounded.ctx.status_providers["evicted_views"]()
     assert stats["done"] == 4 and stats["pending"] == 0 and stats["voxels"] > 0 and stats["bytes"] > 0
     xyz = bounded.state.global_map.snapshot().xyz  # the map's voxels (the two maps are the same)
     want = _segment(unbounded, method, xyz)
@@ -138,7 +138,7 @@ def test_depth_mode_keeps_one_channel_and_rgb_only_keyframes_are_not_queued(tmp_
     assert 0 < store.nbytes < both.state.global_map.evicted.nbytes  # one channel of means, not two
     rgb_only = _node(tmp_path, 2)
     _stream(rgb_only, _frames(depth=False))
-    assert rgb_only.evicted_views is not None and rgb_only.evicted_views.done == 0  # nothing to keep
+    assert rgb_only.ctx.evicted_views is not None and rgb_only.ctx.evicted_views.done == 0  # nothing to keep
     with pytest.raises(ConfigError, match="evicted_views"):
         _node(tmp_path, 2, evicted_views="yes")
 
@@ -281,7 +281,7 @@ def test_worker_thread_absorbs_what_the_window_evicts(tmp_path: Path) -> None:
     node = _node(tmp_path, 2)
     for f in _frames():
         decode(node.handle_ingest(encode(f)), direction="reply")
-    worker = node.evicted_views
+    worker = node.ctx.evicted_views
     assert worker is not None and worker.pending == 4 and len(node.state.global_map.evicted) == 0
     stop = threading.Event()
     thread = threading.Thread(target=worker.run, args=(stop,), daemon=True)
@@ -299,14 +299,14 @@ def test_worker_projects_the_maps_points_without_copying_its_features(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     node = _node(tmp_path, 2)
-    assert node.evicted_views is not None
+    assert node.ctx.evicted_views is not None
     for f in _frames():
         node.handle_ingest(encode(f))
-    assert node.evicted_views.pending > 0
+    assert node.ctx.evicted_views.pending > 0
     gmap = node.state.global_map
     calls = []
     monkeypatch.setattr(gmap, "snapshot", lambda: calls.append(1) or pytest.fail("snapshot() copied the map"))
     version = gmap.version
-    assert node.evicted_views.process_pending() > 0
+    assert node.ctx.evicted_views.process_pending() > 0
     assert calls == [] and gmap.version == version  # read only the points and keys; the map unchanged
     assert gmap.evicted.stats()["views_depth"] > 0

@@ -80,7 +80,7 @@ def _reference_map(tmp_path: Path, frames: list[bytes]) -> dict[str, np.ndarray]
 def test_acked_keyframe_is_in_the_window_at_once_and_integrated_after_a_drain(tmp_path: Path) -> None:
     node = _node(tmp_path, integrate_queue=64)
     gate = _Gate()
-    node.keyframe_listeners.append(gate)
+    node.ctx.keyframe_listeners.append(gate)
     node.start()
     try:
         frames = _frames()
@@ -92,7 +92,7 @@ def test_acked_keyframe_is_in_the_window_at_once_and_integrated_after_a_drain(tm
         assert integration["backlog"] >= len(frames) - 1  # the gate holds the integrator
         assert node.state.global_map.keyframes_integrated <= 1
         gate.open.set()
-        node.drain_integrations()
+        node.ctx.drain_integrations()
         integration = _status(node)["integration"]
         assert integration["backlog"] == 0 and integration["integrated"] == len(frames)
         assert integration["errors"] == 0 and integration["inline"] == 0
@@ -112,7 +112,7 @@ def test_acked_keyframe_is_in_the_window_at_once_and_integrated_after_a_drain(tm
 def test_backlog_is_bounded_and_a_full_queue_holds_the_ack(tmp_path: Path) -> None:
     node = _node(tmp_path, integrate_queue=2)
     gate = _Gate()
-    node.keyframe_listeners.append(gate)
+    node.ctx.keyframe_listeners.append(gate)
     node.start()
     try:
         frames = _frames()
@@ -131,7 +131,7 @@ def test_backlog_is_bounded_and_a_full_queue_holds_the_ack(tmp_path: Path) -> No
         gate.open.set()
         sender.join(WAIT_S)
         assert not sender.is_alive() and [a.status for a in acks] == ["keyframe"] * 3
-        node.drain_integrations()
+        node.ctx.drain_integrations()
         integration = _status(node)["integration"]
         assert integration["backpressure_waits"] >= 1 and integration["backpressure_s"] > 0
         assert integration["backlog"] == 0 and integration["integrated"] == 6
@@ -144,7 +144,7 @@ def test_backlog_is_bounded_and_a_full_queue_holds_the_ack(tmp_path: Path) -> No
 def test_save_contains_every_acked_keyframe(tmp_path: Path) -> None:
     node = _node(tmp_path, integrate_queue=64)
     gate = _Gate()
-    node.keyframe_listeners.append(gate)
+    node.ctx.keyframe_listeners.append(gate)
     node.start()
     frames = _frames()
     try:
@@ -190,7 +190,7 @@ def test_inline_mode_and_stop_drain(tmp_path: Path) -> None:
     # stop() finishes the queue before the final save
     node = _node(tmp_path / "b", integrate_queue=64, autosave_name="auto", save_on_exit=True)
     gate = _Gate()
-    node.keyframe_listeners.append(gate)
+    node.ctx.keyframe_listeners.append(gate)
     node.start()
     for data in frames:
         _ingest(node, data)
@@ -206,12 +206,12 @@ def test_a_failing_listener_is_counted_and_the_backlog_still_drains(tmp_path: Pa
     def broken(keyframe: Keyframe, version: int) -> None:
         raise RuntimeError("listener bug")
 
-    node.keyframe_listeners.append(broken)
+    node.ctx.keyframe_listeners.append(broken)
     node.start()
     try:
         for data in _frames()[:3]:
             _ingest(node, data)
-        node.drain_integrations()
+        node.ctx.drain_integrations()
         integration = _status(node)["integration"]
         assert integration["errors"] == 3 and integration["integrated"] == 3
         assert integration["backlog"] == 0
@@ -224,11 +224,11 @@ def test_keyframes_pending_at_a_load_stay_out_of_the_loaded_map(tmp_path: Path) 
     saved = _node(tmp_path / "saved", integrate_queue=0)
     for data in frames[6:]:
         _ingest(saved, data)
-    saved._save_to("m", reason="test")
+    saved.persistence.save_to("m", reason="test")
     expected, _ = saved.state.global_map.to_arrays()
     node = _node(tmp_path, integrate_queue=8, map_dir=str(tmp_path / "saved" / "maps"))
     gate = _Gate()
-    node.keyframe_listeners.append(gate)
+    node.ctx.keyframe_listeners.append(gate)
     node.start()
     try:
         _ingest(node, frames[0])
@@ -237,7 +237,7 @@ def test_keyframes_pending_at_a_load_stay_out_of_the_loaded_map(tmp_path: Path) 
         reply = decode(node.handle_query(encode(Load(name="m", id=3))), direction="reply")
         assert isinstance(reply, Ok), reply
         gate.open.set()
-        node.drain_integrations()
+        node.ctx.drain_integrations()
         assert gate.seen == [0]  # no listener call for a keyframe of the replaced map
         ours, _ = node.state.global_map.to_arrays()
         for key in ("global.keys", "global.xyz", "global.feat"):

@@ -1,4 +1,4 @@
-"""The in-process OV backend in the node (mapper.node.plugins.ov_features): config, text encoder registration,
+"""The in-process OV backend in the node (mapper.node.workers.ov_features): config, text encoder registration,
 features for keyframes without ov (window swap seen by the learned runtime, global map features
 without extra geometry), missing weights, frames with ov, queue bound, stale keyframes after a load.
 
@@ -17,11 +17,11 @@ import pytest
 import torch
 
 from mapper.model.field import GovNeSF
+from mapper.node.backends.learned import install_learned_backend
 from mapper.node.config import ConfigError, OvBackendConfig, apply_overrides, config_from_dict
 from mapper.node.global_map import GlobalSemanticMap
-from mapper.node.plugins.learned import install_learned_handlers
-from mapper.node.plugins.ov_features import OvFeatureWorker, install_ov_backend
 from mapper.node.service import MapperNode
+from mapper.node.workers.ov_features import OvFeatureWorker, install_ov_backend
 from mapper.ov.clip_tokenizer import ClipTokenizer
 from mapper.ov.encoders import available_spaces, get_text_encoder, unregister_text_encoder
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
@@ -149,13 +149,13 @@ def test_config_defaults_parse_and_errors(tmp_path: Path, clip_files: dict[str, 
 def test_install_refuses_a_node_pinned_to_another_space(tmp_path: Path, clip_files: dict[str, Path]) -> None:
     config = apply_overrides(_config(tmp_path, clip_files), {"ov_space": SPACE})
     node = MapperNode(config)
-    workers = list(node.workers)  # the node's own (evicted views)
+    workers = list(node.ctx.workers)  # the node's own (evicted views)
     try:
         other = OvBackendConfig(**{**config.ov_backend.__dict__, "model_name": "other"})
         with pytest.raises(ConfigError, match="'openclip:tiny-test' is pinned.*'openclip:other'"):
             install_ov_backend(node, other)
-        assert not node.keyframe_listeners and node.workers == workers
-        assert "ov_backend" not in node.status_providers
+        assert not node.ctx.keyframe_listeners and node.ctx.workers == workers
+        assert "ov_backend" not in node.ctx.status_providers
     finally:
         node.stop()
         unregister_text_encoder(SPACE)
@@ -167,7 +167,8 @@ def test_frames_without_ov_become_queryable_in_the_backend_space(make_node: Make
     worker = install_ov_backend(node)
     assert isinstance(worker, OvFeatureWorker) and worker.load_error is None and worker.backend is not None
     assert SPACE in available_spaces() and get_text_encoder(SPACE) is worker.backend
-    assert ("ov-backend", worker.run) in node.workers and worker.on_keyframe in node.keyframe_listeners
+    assert ("ov-backend", worker.run) in node.ctx.workers
+    assert worker.on_keyframe in node.ctx.keyframe_listeners
     for seq in range(3):
         ack = _ingest(node, _frame(seq))
         assert isinstance(ack, Ack) and ack.status == "keyframe"
@@ -218,7 +219,7 @@ def test_the_learned_runtime_sees_the_new_features(make_node: MakeNode) -> None:
     torch.manual_seed(0)
     runtime = ModelRuntime(ModelRuntimeConfig(device="cpu", chunk_rays=512),
                            model=GovNeSF(tiny_model_config(ov_dim=EMBED)))
-    install_learned_handlers(node, runtime)
+    install_learned_backend(node, runtime)
     worker = install_ov_backend(node)
     assert worker is not None
     for seq in range(3):
@@ -248,7 +249,7 @@ def test_missing_weights_node_starts_and_semantic_requests_name_the_path(
     node.start()  # serves everything else (inproc endpoints); the worker thread runs idle
     assert any(t.name == "mapper-ov-backend" and t.is_alive() for t in node._threads)
     ack = _ingest(node, _frame(0))
-    node.drain_integrations()  # a started node integrates just after the ack
+    node.ctx.drain_integrations()  # a started node integrates just after the ack
     assert isinstance(ack, Ack) and ack.status == "keyframe" and len(node.state.global_map) > 0
     assert worker.pending == 0 and worker.queued == 0  # nothing to compute with
     for request in (QueryPoints(texts=["chair"]), _segment("average")):

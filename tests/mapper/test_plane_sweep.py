@@ -22,8 +22,8 @@ from mapper.geometry.plane_sweep import (
     sweep_depth,
 )
 from mapper.node.config import ConfigError, config_from_dict
-from mapper.node.plugins.triangulation import SparseTriangulation, keyframe_key
 from mapper.node.service import MapperNode
+from mapper.node.workers.triangulation import SparseTriangulation, keyframe_key
 from protocol.messages import Frame, encode
 from tests.mapper.test_triangulation import PLANE_Z, H, K, W, make_texture, plane_depth, render_plane
 
@@ -253,7 +253,7 @@ def test_plugin_sweeps_rgb_only_keyframes_into_a_dense_prior_and_map_points(
     node: MapperNode, texture: np.ndarray
 ) -> None:
     sink = Sink()
-    tri = SparseTriangulation(node, runtime=sink)
+    tri = SparseTriangulation(node.ctx, runtime=sink)
     tri.install()
     node.handle_ingest(encode(plane_frame(0, texture, depth=True)))  # a partner whose depth checks
     for i in (1, 2, 3):
@@ -283,7 +283,7 @@ def test_disabled_stereo_adds_no_swept_depth(tmp_path: Path, texture: np.ndarray
     node = make_node(tmp_path, {"enabled": False})
     try:
         sink = Sink()
-        tri = SparseTriangulation(node, runtime=sink)
+        tri = SparseTriangulation(node.ctx, runtime=sink)
         tri.install()
         node.handle_ingest(encode(plane_frame(0, texture, depth=True)))
         with_depth = len(node.state.global_map.snapshot())  # the depth frame's own points
@@ -300,7 +300,7 @@ def test_a_large_keyframe_is_swept_at_the_working_width(tmp_path: Path, texture:
     node = make_node(tmp_path, {"top_k": 1, "max_width": 80})
     try:
         sink = Sink()
-        tri = SparseTriangulation(node, runtime=sink)
+        tri = SparseTriangulation(node.ctx, runtime=sink)
         tri.install()
         for i in (0, 1, 2):
             node.handle_ingest(encode(plane_frame(i, texture, depth=i == 0)))
@@ -318,7 +318,7 @@ def test_a_large_keyframe_is_swept_at_the_working_width(tmp_path: Path, texture:
 def test_swept_points_keep_within_their_budget(tmp_path: Path, texture: np.ndarray) -> None:
     node = make_node(tmp_path, {"top_k": 1, "max_points": 100})
     try:
-        tri = SparseTriangulation(node, runtime=Sink())
+        tri = SparseTriangulation(node.ctx, runtime=Sink())
         tri.install()
         for i in (0, 1, 2, 3):
             node.handle_ingest(encode(plane_frame(i, texture, depth=i == 0)))
@@ -354,7 +354,7 @@ def test_stacked_box_filter_and_top_k_equal_their_plain_definitions() -> None:
 def test_a_backlog_skips_the_sweep_but_not_the_triangulation(tmp_path: Path, texture: np.ndarray) -> None:
     node = make_node(tmp_path, {"top_k": 1, "max_backlog": 1})
     try:
-        tri = SparseTriangulation(node, runtime=Sink())
+        tri = SparseTriangulation(node.ctx, runtime=Sink())
         tri.install()
         for i in (0, 1, 2, 3):
             node.handle_ingest(encode(plane_frame(i, texture, depth=i == 0)))
@@ -383,7 +383,7 @@ def test_features_that_arrive_later_reach_the_triangulated_and_swept_points(
         "stereo": {"top_k": 1},
     }))
     try:
-        tri = SparseTriangulation(node, runtime=Sink())
+        tri = SparseTriangulation(node.ctx, runtime=Sink())
         tri.install()
         for i in (0, 1, 2, 3):
             frame = plane_frame(i, texture, depth=i == 0)
@@ -399,12 +399,12 @@ def test_features_that_arrive_later_reach_the_triangulated_and_swept_points(
                                            ov_space="test-space")
             with node.state.lock:
                 assert node.state.window.swap(kf, featured)
-            for listener in node.feature_listeners:
+            for listener in node.ctx.feature_listeners:
                 listener(featured)
         stats = tri.stats()
         assert stats["late_feature_points"] > 1000 and stats["failed"] == 0
         assert node.state.global_map.snapshot().n_with_features > 1000
-        for listener in node.feature_listeners:  # told twice: nothing is fused twice
+        for listener in node.ctx.feature_listeners:  # told twice: nothing is fused twice
             listener(featured)
         assert tri.stats()["late_feature_points"] == stats["late_feature_points"]
     finally:
@@ -420,7 +420,7 @@ def test_priors_take_the_whole_geometry_where_their_own_depth_has_holes(
         priors = {}
         for mapper in (own_only, node):
             sink = Sink()
-            tri = SparseTriangulation(mapper, runtime=sink)
+            tri = SparseTriangulation(mapper.ctx, runtime=sink)
             tri.install()
             mapper.handle_ingest(encode(plane_frame(0, texture, depth=True)))
             for i in (1, 2, 3):

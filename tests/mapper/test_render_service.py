@@ -1,4 +1,4 @@
-"""Tests for mapper.node.plugins.learned: handlers installed on an in-process node (bytes in, bytes out),
+"""Tests for mapper.node.backends.learned: handlers installed on an in-process node (bytes in, bytes out),
 govnesf vs fall-through segmentation, not_ready replies, and no model work under the state lock."""
 
 from __future__ import annotations
@@ -11,8 +11,9 @@ import pytest
 import torch
 
 from mapper.model.field import GovNeSF
+from mapper.node.backends import PointAnswer
+from mapper.node.backends.learned import install_learned_backend
 from mapper.node.config import config_from_dict
-from mapper.node.plugins.learned import install_learned_handlers
 from mapper.node.service import MapperNode
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
 from protocol.messages import (
@@ -90,30 +91,37 @@ def query(node: MapperNode, msg: Message) -> Message:
     return decode(node.handle_query(encode(msg)), direction="reply")
 
 
-def test_previous_segment_handler_serves_other_methods(node: MapperNode, model: GovNeSF) -> None:
+def test_each_method_goes_to_its_own_backend(node: MapperNode, model: GovNeSF) -> None:
+    """A backend registered for ``average`` serves that method; ``govnesf`` goes to the learned
+    backend, never to the other one."""
     calls: list[str] = []
 
-    def average(msg: Message) -> Message:
-        assert isinstance(msg, SegmentPoints)
-        calls.append(msg.method)
-        n = msg.xyz.shape[0]
-        return Segmentation(label=np.zeros(n, np.int32), score=np.full(n, 0.5, np.float32))
+    class Average:
+        ready = True
 
-    node.register_query_handler(SegmentPoints, average)
-    install_learned_handlers(node, runtime_for(model))
+        def depth_tested(self, msg: SegmentPoints) -> bool:
+            return False
+
+        def segment(self, msg: SegmentPoints, want_cos: bool) -> PointAnswer:
+            calls.append(msg.method)
+            n = msg.xyz.shape[0]
+            return PointAnswer(label=np.zeros(n, np.int32), score=np.full(n, 0.5, np.float32))
+
+    node.segment.register("average", Average())
+    install_learned_backend(node, runtime_for(model))
     for seq in range(3):
         node.handle_ingest(encode(frame(seq)))
     xyz = np.array([[0.0, 0.0, 0.5], [0.2, -0.1, 0.6], [0.0, 0.0, 40.0]], np.float32)
     reply = query(node, SegmentPoints(xyz=xyz, texts=["a", "bb"], method="average", id=7))
     assert isinstance(reply, Segmentation) and calls == ["average"] and np.all(reply.score == 0.5)
     reply = query(node, SegmentPoints(xyz=xyz, texts=["a", "bb"], method="govnesf", id=8))
-    assert isinstance(reply, Segmentation) and reply.id == 8 and calls == ["average"]  # not the baseline
+    assert isinstance(reply, Segmentation) and reply.id == 8 and calls == ["average"]  # not the other backend
     assert reply.label.shape == (3,) and reply.label[2] == -1 and set(reply.label[:2]) <= {0, 1}
     assert "total" in reply.timing_ms
 
 
 def test_render_reply_over_the_wire(node: MapperNode, model: GovNeSF) -> None:
-    install_learned_handlers(node, runtime_for(model))
+    install_learned_backend(node, runtime_for(model))
     for seq in range(3):
         node.handle_ingest(encode(frame(seq)))
     request = Render(
@@ -140,7 +148,7 @@ def test_render_reply_over_the_wire(node: MapperNode, model: GovNeSF) -> None:
 
 def test_not_ready_replies_name_what_is_missing(node: MapperNode, model: GovNeSF, tmp_path: Path) -> None:
     missing = tmp_path / "ckpt" / "cpu-small.safetensors"
-    install_learned_handlers(node, ModelRuntime(ModelRuntimeConfig(checkpoint=str(missing), device="cpu")))
+    install_learned_backend(node, ModelRuntime(ModelRuntimeConfig(checkpoint=str(missing), device="cpu")))
     node.handle_ingest(encode(frame(0)))
     pose = look_at((2.0, 0.0, 1.0), (0.0, 0.0, 0.5))
     reply = query(
@@ -157,7 +165,7 @@ def test_not_ready_replies_name_what_is_missing(node: MapperNode, model: GovNeSF
 def test_semantic_request_without_ov_is_not_ready_but_colour_renders(
     node: MapperNode, model: GovNeSF
 ) -> None:
-    install_learned_handlers(node, runtime_for(model))
+    install_learned_backend(node, runtime_for(model))
     empty = query(node, SegmentPoints(xyz=np.zeros((2, 3), np.float32), texts=["a"]))
     assert isinstance(empty, Error) and empty.code == "not_ready" and "no keyframes" in empty.message
     for seq in range(2):
@@ -174,7 +182,7 @@ def test_semantic_request_without_ov_is_not_ready_but_colour_renders(
 
 def test_callbacks_do_no_model_work_under_the_state_lock(node: MapperNode, model: GovNeSF) -> None:
     runtime = runtime_for(model)
-    install_learned_handlers(node, runtime)
+    install_learned_backend(node, runtime)
     for seq in range(6):
         node.handle_ingest(encode(frame(seq)))
     assert len(runtime) == 0 and runtime.pending == 4  # window of 4: recorded, nothing encoded yet
@@ -205,16 +213,16 @@ def test_render_takes_the_global_maps_surface_where_it_has_one(
         ModelRuntimeConfig(device="cpu", surface_from_map=mode.split("-")[0]), model=model,
         text_encoder=lambda space: FakeEncoder(),
     )  # fmt: skip
-    install_learned_handlers(node, runtime)
+    install_learned_backend(node, runtime)
     for seq in range(3):
         node.handle_ingest(encode(frame(seq)))
-    node.drain_integrations()
+    node.ctx.drain_integrations()
     if mode == "auto-rgb-only":  # auto: the window's keyframes mostly without depth -> march
         for seq in range(3, 8):
             rgb_only = frame(seq)
             rgb_only.depth_m = None
             node.handle_ingest(encode(rgb_only))
-        node.drain_integrations()
+        node.ctx.drain_integrations()
     K, pose = np.array([10.0, 10.0, 6.0, 4.5]), look_at((2.2, 0.4, 1.1), (0.0, 0.0, 0.5))
     snap = node.state.global_map.snapshot()
     assert len(snap) > 0
@@ -237,12 +245,12 @@ def _rgb_only_node(node: MapperNode, model: GovNeSF, **overrides: object) -> Mod
 
     runtime = ModelRuntime(replace(ModelRuntimeConfig(device="cpu"), **overrides), model=model,
                            text_encoder=lambda space: FakeEncoder())  # fmt: skip
-    install_learned_handlers(node, runtime)
+    install_learned_backend(node, runtime)
     for seq in range(4):  # RGB-only keyframes: the map's surfaces are not measured ones
         rgb_only = frame(seq)
         rgb_only.depth_m = None
         node.handle_ingest(encode(rgb_only))
-    node.drain_integrations()
+    node.ctx.drain_integrations()
     return runtime
 
 
@@ -256,7 +264,7 @@ def test_rgb_only_render_takes_the_surfaces_of_the_measured_geometry(
     yy, zz = np.meshgrid(np.linspace(-1, 1, 60), np.linspace(0, 1.2, 40), indexing="ij")
     wall = np.column_stack([yy.ravel(), zz.ravel()])
     points = np.column_stack([np.full(len(wall), -0.3), wall])  # a plane x = -0.3 m, seen from +x
-    node.surface_points.append(lambda: points)  # what the triangulation plugin provides
+    node.ctx.surface_points.append(lambda: points)  # what the triangulation plugin provides
     K, pose = np.array([10.0, 10.0, 6.0, 4.5]), look_at((2.2, 0.0, 0.6), (0.0, 0.0, 0.6))
     footprint = runtime.config.surface_geometry_footprint * node.state.global_map.snapshot().voxel_size_m
     expected = surface_depth(points, footprint, K, pose, 12, 9, runtime.config)
@@ -282,7 +290,7 @@ def test_rgb_only_render_takes_the_plane_of_the_geometry_across_a_gap(
     yy, zz = np.meshgrid(np.linspace(-1, 1, 60), np.linspace(0, 1.2, 40), indexing="ij")
     wall = np.column_stack([np.full(yy.size, -0.3), yy.ravel(), zz.ravel()])
     points = wall[(wall[:, 2] < 0.3) | (wall[:, 2] > 0.9)]
-    node.surface_points.append(lambda: points)
+    node.ctx.surface_points.append(lambda: points)
     K, pose = np.array([40.0, 40.0, 24.0, 18.0]), look_at((2.2, 0.0, 0.6), (0.0, 0.0, 0.6))
     footprint = runtime.config.surface_geometry_footprint * node.state.global_map.snapshot().voxel_size_m
     splat = surface_depth(points, footprint, K, pose, 48, 36, runtime.config)
@@ -314,18 +322,18 @@ def test_rgb_only_render_fills_from_the_map_where_the_geometry_has_no_surface(
     config = replace(ModelRuntimeConfig(device="cpu"), surface_planes=False, surface_map_fill=fill,
                      surface_nearest_fill_px=0.0)
     runtime = ModelRuntime(config, model=model, text_encoder=lambda space: FakeEncoder())
-    install_learned_handlers(node, runtime)
+    install_learned_backend(node, runtime)
     for seq in range(3):  # with depth: the global map gets surface points
         node.handle_ingest(encode(frame(seq)))
-    node.drain_integrations()
+    node.ctx.drain_integrations()
     for seq in range(3, 8):  # then mostly RGB-only: renders take the measured geometry
         rgb_only = frame(seq)
         rgb_only.depth_m = None
         node.handle_ingest(encode(rgb_only))
-    node.drain_integrations()
+    node.ctx.drain_integrations()
     snap = node.state.global_map.snapshot()
     points = snap.xyz[snap.xyz[:, 1] > 0.0]  # the geometry covers part of what the map covers
-    node.surface_points.append(lambda: points)
+    node.ctx.surface_points.append(lambda: points)
     K, pose = np.array([10.0, 10.0, 6.0, 4.5]), look_at((2.2, 0.4, 1.1), (0.0, 0.0, 0.5))
     footprint = config.surface_geometry_footprint * snap.voxel_size_m
     geometry = surface_depth(points, footprint, K, pose, 12, 9, config)
@@ -357,7 +365,7 @@ def test_rgb_only_render_fills_the_rest_from_the_nearest_surface(
     config = runtime.config
     yy, zz = np.meshgrid(np.linspace(-1, 1, 60), np.linspace(0, 0.5, 20), indexing="ij")
     points = np.column_stack([np.full(yy.size, -0.3), yy.ravel(), zz.ravel()])  # the wall's lower part
-    node.surface_points.append(lambda: points)
+    node.ctx.surface_points.append(lambda: points)
     K, pose = np.array([10.0, 10.0, 6.0, 4.5]), look_at((2.2, 0.0, 0.6), (0.0, 0.0, 0.6))
     footprint = config.surface_geometry_footprint * node.state.global_map.snapshot().voxel_size_m
     splat = surface_depth(points, footprint, K, pose, 12, 9, config)

@@ -1,5 +1,5 @@
 """The learned model's volume bounds follow the room without depth: ``ModelRuntime.set_view_extent``
-(fed by mapper.node.plugins.triangulation) replaces the fixed ``model.max_range_m`` frustum of
+(fed by mapper.node.workers.triangulation) replaces the fixed ``model.max_range_m`` frustum of
 RGB-only keyframes by their observed points, within the voxel budget."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import torch
 
 from mapper.model.field import GovNeSF
 from mapper.node.config import WindowConfig
-from mapper.node.plugins.triangulation import keyframe_key
 from mapper.node.window import KeyframeWindow
+from mapper.node.workers.triangulation import keyframe_key
 from mapper.runtime.model_runtime import ModelRuntime
 from tests.mapper.test_runtime import TINY, keyframe, make_runtime, orbit
 

@@ -144,23 +144,26 @@ def test_compiled_sampling_refuses_bad_indices_and_shapes() -> None:
 
 
 def test_node_warms_the_point_kernels(tmp_path: Path) -> None:
-    """A node serving a CPU model warms the point answers' kernels at start (node.kernel_modules),
+    """A node serving a CPU model warms the point answers' kernels at start (node.ctx.kernel_modules),
     each a module with a ``warm_up``."""
     import importlib
 
+    from mapper.node.backends.learned import install_learned_backend
     from mapper.node.config import config_from_dict
-    from mapper.node.plugins.learned import install_learned_handlers
     from mapper.node.service import MapperNode
     from tests.mapper.test_runtime import make_runtime
 
     cfg = config_from_dict({"map_dir": str(tmp_path), "autosave_name": "", "save_on_exit": False})
     node = MapperNode(cfg)
     try:
-        assert node.kernel_modules == ["mapper.node.query_kernels"]
-        install_learned_handlers(node, make_runtime(GovNeSF(TINY).eval(), source_views=3))
-        assert node.kernel_modules[1:] == ["mapper.model.ops.sample_kernel", "mapper.model.ops.fusion_kernel",
-                                           "mapper.model.ops.answer_kernel"]
-        for module in node.kernel_modules:
+        assert node.ctx.kernel_modules == ["mapper.node.query_kernels"]
+        install_learned_backend(node, make_runtime(GovNeSF(TINY).eval(), source_views=3))
+        assert node.ctx.kernel_modules[1:] == [
+            "mapper.model.ops.sample_kernel",
+            "mapper.model.ops.fusion_kernel",
+            "mapper.model.ops.answer_kernel",
+        ]
+        for module in node.ctx.kernel_modules:
             assert callable(importlib.import_module(module).warm_up)
     finally:
         node.stop()

@@ -1,5 +1,5 @@
 """Sparse geometry from posed RGB (mapper.geometry.triangulation) and its node plugin
-(mapper.node.plugins.triangulation): exact two-view answers, degenerate cases (pure rotation,
+(mapper.node.workers.triangulation): exact two-view answers, degenerate cases (pure rotation,
 parallel rays, points behind a camera), a rendered textured plane, the plugin's queue, budget,
 global-map points and view ranges, and the runtime's bounds that follow those ranges."""
 
@@ -31,9 +31,9 @@ from mapper.geometry.triangulation import (
 )
 from mapper.node.config import ConfigError, config_from_dict
 from mapper.node.global_map import GlobalSemanticMap
-from mapper.node.plugins import triangulation as triangulation_plugin
-from mapper.node.plugins.triangulation import SparseTriangulation, keyframe_key
 from mapper.node.service import MapperNode
+from mapper.node.workers import triangulation as triangulation_plugin
+from mapper.node.workers.triangulation import SparseTriangulation, keyframe_key
 from protocol.messages import Frame, Load, Ok, Save, Status, StatusRequest, decode, encode
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -264,7 +264,7 @@ def test_orb_detector_also_triangulates_the_plane(texture: np.ndarray) -> None:
 
 def test_geometry_module_loads_without_torch() -> None:
     code = ("import sys, mapper.geometry.triangulation, mapper.geometry.plane_sweep, "
-            "mapper.node.plugins.triangulation\n"
+            "mapper.node.workers.triangulation\n"
             "print('torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60,
                          check=False)
@@ -311,9 +311,10 @@ def test_plugin_triangulates_rgb_only_keyframes_off_the_ack_path(
     node: MapperNode, texture: np.ndarray
 ) -> None:
     sink = ExtentSink()
-    tri = SparseTriangulation(node, runtime=sink)
+    tri = SparseTriangulation(node.ctx, runtime=sink)
     tri.install()
-    assert "triangulation" in node.status_providers and any(n == "triangulation" for n, _ in node.workers)
+    assert "triangulation" in node.ctx.status_providers
+    assert any(n == "triangulation" for n, _ in node.ctx.workers)
     node.handle_ingest(encode(plane_frame(0, texture, depth=True)))  # with depth: a candidate only
     for i in (1, 2, 3):
         node.handle_ingest(encode(plane_frame(i, texture)))
@@ -355,7 +356,7 @@ def test_plugin_triangulates_rgb_only_keyframes_off_the_ack_path(
 
 
 def test_plugin_queue_is_bounded(node: MapperNode, texture: np.ndarray) -> None:
-    tri = SparseTriangulation(node, config=TriangulationConfig(max_pending=2))
+    tri = SparseTriangulation(node.ctx, config=TriangulationConfig(max_pending=2))
     tri.install()
     for i in range(4):
         node.handle_ingest(encode(plane_frame(i, texture)))
@@ -364,7 +365,7 @@ def test_plugin_queue_is_bounded(node: MapperNode, texture: np.ndarray) -> None:
 
 
 def test_plugin_point_budget_drops_the_oldest_keyframes_points(node: MapperNode, texture: np.ndarray) -> None:
-    tri = SparseTriangulation(node, config=TriangulationConfig(max_points=30, min_views=2))
+    tri = SparseTriangulation(node.ctx, config=TriangulationConfig(max_points=30, min_views=2))
     tri.install()
     node.handle_ingest(encode(plane_frame(0, texture, depth=True)))
     for i in (1, 2, 3):
@@ -378,7 +379,7 @@ def test_plugin_point_budget_drops_the_oldest_keyframes_points(node: MapperNode,
 
 
 def test_disabled_triangulation_queues_nothing(node: MapperNode, texture: np.ndarray) -> None:
-    tri = SparseTriangulation(node, config=TriangulationConfig(enabled=False))
+    tri = SparseTriangulation(node.ctx, config=TriangulationConfig(enabled=False))
     tri.install()
     node.handle_ingest(encode(plane_frame(1, texture)))
     assert tri.pending == 0 and tri.process_pending() == 0
@@ -386,7 +387,7 @@ def test_disabled_triangulation_queues_nothing(node: MapperNode, texture: np.nda
 
 def test_keyframes_without_enough_points_get_the_frustum_to_the_rooms_depth(node: MapperNode) -> None:
     sink = ExtentSink()
-    tri = SparseTriangulation(node, runtime=sink)
+    tri = SparseTriangulation(node.ctx, runtime=sink)
     a, b, c = (view(pose(np.eye(3), (x, 0.0, 0.0))) for x in (0.0, 0.3, 0.6))
     tri._set_extent(("cam0", 0, 0), a, SparsePoints.empty())  # nothing known yet: waits
     assert sink.extents == {}
@@ -407,7 +408,7 @@ def test_keyframes_without_enough_points_get_the_frustum_to_the_rooms_depth(node
 def test_a_new_global_map_clears_the_candidates_and_the_sparse_map(
     node: MapperNode, texture: np.ndarray
 ) -> None:
-    tri = SparseTriangulation(node)
+    tri = SparseTriangulation(node.ctx)
     tri.install()
     for i in (0, 1, 2):
         node.handle_ingest(encode(plane_frame(i, texture)))
@@ -429,7 +430,7 @@ def _query(node: MapperNode, msg: Save | Load | StatusRequest) -> Status | Ok:
 def test_a_map_load_drops_the_replaced_maps_candidates_and_points_at_once(
     node: MapperNode, texture: np.ndarray
 ) -> None:
-    tri = SparseTriangulation(node)
+    tri = SparseTriangulation(node.ctx)
     tri.install()
     node.handle_ingest(encode(plane_frame(0, texture, depth=True)))
     for i in (1, 2):
@@ -459,7 +460,7 @@ def test_a_map_load_drops_the_replaced_maps_candidates_and_points_at_once(
 def test_a_load_during_a_triangulation_keeps_nothing_of_it(
     node: MapperNode, texture: np.ndarray, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    tri = SparseTriangulation(node)
+    tri = SparseTriangulation(node.ctx)
     tri.install()
     node.handle_ingest(encode(plane_frame(0, texture, depth=True)))
     node.handle_ingest(encode(plane_frame(1, texture)))
@@ -484,7 +485,7 @@ def test_a_load_during_a_triangulation_keeps_nothing_of_it(
 def test_pending_counts_the_batch_in_progress(node: MapperNode, texture: np.ndarray) -> None:
     # the worker drains the queue into a batch: until each keyframe of it is done, it is pending
     # (a client that waits for pending == 0 must not see 0 while the batch is being worked on)
-    tri = SparseTriangulation(node, config=TriangulationConfig(max_pending=8))
+    tri = SparseTriangulation(node.ctx, config=TriangulationConfig(max_pending=8))
     tri.install()
     for i in range(4):
         node.handle_ingest(encode(plane_frame(i, texture)))
@@ -502,7 +503,7 @@ def test_pending_counts_the_batch_in_progress(node: MapperNode, texture: np.ndar
 
 
 def test_a_stopping_node_leaves_the_rest_of_the_batch(node: MapperNode, texture: np.ndarray) -> None:
-    tri = SparseTriangulation(node, config=TriangulationConfig(max_pending=8))
+    tri = SparseTriangulation(node.ctx, config=TriangulationConfig(max_pending=8))
     tri.install()
     for i in range(3):
         node.handle_ingest(encode(plane_frame(i, texture)))
@@ -514,9 +515,9 @@ def test_a_stopping_node_leaves_the_rest_of_the_batch(node: MapperNode, texture:
 
 
 def test_serve_plugins_follow_the_config(tmp_path: Path) -> None:
-    """install_serve_plugins installs what the config asks for, as `govnesf serve` does."""
-    from mapper.node.plugins.serve import install_serve_plugins
-    from mapper.node.plugins.triangulation import SparseTriangulation
+    """install_serve_stages installs what the config asks for, as `govnesf serve` does."""
+    from mapper.node.serve import install_serve_stages
+    from mapper.node.workers.triangulation import SparseTriangulation
 
     def build(**extra: object) -> MapperNode:
         return MapperNode(config_from_dict({
@@ -526,14 +527,14 @@ def test_serve_plugins_follow_the_config(tmp_path: Path) -> None:
 
     on = build()
     try:
-        plugins = install_serve_plugins(on)
+        plugins = install_serve_stages(on)
         assert plugins.runtime is None and plugins.rendered_depth is None and plugins.ov_backend is None
         assert isinstance(plugins.triangulation, SparseTriangulation)  # enabled by default
     finally:
         on.stop()
     off = build(triangulation={"enabled": False})
     try:
-        assert install_serve_plugins(off).triangulation is None
+        assert install_serve_stages(off).triangulation is None
     finally:
         off.stop()
 

@@ -16,10 +16,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from mapper.node.backends.learned import LearnedBackend
 from mapper.node.config import GlobalMapConfig, config_from_dict
 from mapper.node.global_map import GlobalMapSnapshot, GlobalSemanticMap
-from mapper.node.map_features import PreEvictionFeatures
-from mapper.node.plugins.learned import make_render_handler, make_segment_handler
 from mapper.node.queries import (
     SOURCE_MAP,
     SOURCE_NONE,
@@ -29,6 +28,7 @@ from mapper.node.queries import (
     render_from_map,
 )
 from mapper.node.service import MapperNode
+from mapper.node.workers.map_features import PreEvictionFeatures
 from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
 from mapper.runtime.model_runtime import ModelRuntimeConfig, RenderFrame
 from protocol.messages import (
@@ -145,6 +145,14 @@ def test_empty_map_and_window_still_answer_not_ready(tmp_path: Path) -> None:
     assert isinstance(reply, Error) and reply.code == "not_ready"
 
 
+def _learned(node: MapperNode, runtime: Any) -> MapperNode:
+    """``node`` with ``runtime`` as its learned backend (``govnesf`` and ``render``)."""
+    backend = LearnedBackend(runtime)
+    node.segment.register("govnesf", backend)
+    node.render.backend = backend
+    return node
+
+
 class StubRuntime:
     """Stands in for ModelRuntime: the window "sees" only points with x > 1 (B's wall) and renders
     a surface 2 m ahead whose pixels it leaves unlabelled (or no surface with ``depth=0``)."""
@@ -185,7 +193,7 @@ class StubRuntime:
 def test_govnesf_segment_falls_back_to_the_map(tmp_path: Path) -> None:
     node = _node(tmp_path)
     _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
-    handler = make_segment_handler(StubRuntime(), None, node)  # type: ignore[arg-type]
+    handler = _learned(node, StubRuntime()).segment.handle
     msg = SegmentPoints(xyz=np.array([ON_A, ON_B, FAR], np.float32), texts=["c0", "c1", "c2", "c3"])
     reply = handler(msg)
     assert isinstance(reply, Segmentation)
@@ -198,7 +206,7 @@ def test_render_labels_the_pixels_the_window_leaves_from_the_map(tmp_path: Path,
     node = _node(tmp_path, map_when_more_confident=False, map_blend=0.0)  # window first
     _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
     runtime = StubRuntime(depth)
-    handler = make_render_handler(runtime, node)  # type: ignore[arg-type]
+    handler = _learned(node, runtime).render.handle
     msg = Render(width=W, height=H, K=K, world_from_cam=np.eye(4), outputs=["label", "score"],
                  texts=["c0", "c1", "c2", "c3"], id=3)  # fmt: skip
     reply = handler(msg)
@@ -223,7 +231,7 @@ def test_render_takes_the_more_confident_map_where_the_surface_is_known(tmp_path
     node = _node(tmp_path)
     _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
     runtime = StubRuntime(depth)
-    handler = make_render_handler(runtime, node)  # type: ignore[arg-type]
+    handler = _learned(node, runtime).render.handle
     msg = Render(width=W, height=H, K=K, world_from_cam=np.eye(4), outputs=["label"],
                  texts=["c0", "c1", "c2", "c3"], id=3)  # fmt: skip
     reply = handler(msg)
@@ -241,7 +249,7 @@ def test_render_takes_the_more_confident_map_where_the_surface_is_known(tmp_path
 def test_render_with_map_radius_zero_is_window_only(tmp_path: Path) -> None:
     node = _node(tmp_path, map_radius_voxels=0.0)
     _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])
-    handler = make_render_handler(StubRuntime(0.0), node)  # type: ignore[arg-type]
+    handler = _learned(node, StubRuntime(0.0)).render.handle
     reply = handler(Render(width=W, height=H, K=K, world_from_cam=np.eye(4), outputs=["label"],
                            texts=["c0", "c1", "c2", "c3"]))  # fmt: skip
     assert isinstance(reply, RenderResult) and reply.source is not None and reply.label is not None
@@ -307,7 +315,7 @@ def test_learned_features_reach_the_map_before_the_keyframe_leaves(tmp_path: Pat
         valid[0] = False  # one voxel the model cannot answer keeps its fused feature
         return feats, valid
 
-    worker = PreEvictionFeatures(node, learned)
+    worker = PreEvictionFeatures(node.ctx, learned)
     worker.install()
     _stream(node, [_frame(0, np.eye(4), 0)])  # the window (1) is full: A leaves next, queued now
     assert worker.stats()["pending"] == 1 and not worker.idle()
@@ -543,7 +551,7 @@ def test_node_blends_window_and_map_as_configured(tmp_path: Path, blend: float) 
         assert reply.label.tolist() == [3] and reply.source.tolist() == [SOURCE_MAP]
     else:
         assert reply.label.tolist() == [1] and reply.source.tolist() == [SOURCE_WINDOW]
-    handler = make_segment_handler(StubRuntime(), None, node)  # type: ignore[arg-type]
+    handler = _learned(node, StubRuntime()).segment.handle
     got = handler(SegmentPoints(xyz=np.array([ON_B], np.float32), texts=["c0", "c1", "c2", "c3"]))
     assert isinstance(got, Segmentation) and got.source is not None
     # the stub's window says 1 at 0.9; the map point says mostly 3
@@ -554,14 +562,14 @@ def test_map_blend_follows_the_window_depth(tmp_path: Path) -> None:
     """``queries.map_blend`` while at least half of the window's keyframes carry input depth,
     ``map_blend_without_depth`` otherwise (an RGB-only robot's map holds estimated surfaces)."""
     node = _node(tmp_path, map_blend=0.6, map_blend_without_depth=0.2)
-    assert node.map_blend() == 0.2  # empty window: nothing measured
+    assert node.ctx.map_blend() == 0.2  # empty window: nothing measured
     _stream(node, [_frame(0, np.eye(4), 0)])
-    assert node.map_blend() == 0.6
+    assert node.ctx.map_blend() == 0.6
     rgb_only = _frame(1, LOOK_X, 1)
     rgb_only.depth_m = None
     _stream(node, [rgb_only])  # the window (one keyframe) now has no depth
-    assert node.map_blend() == 0.2
-    assert node.map_blend(depth_tested=True) == 0.0  # a depth-tested answer: the more-confident rule
+    assert node.ctx.map_blend() == 0.2
+    assert node.ctx.map_blend(depth_tested=True) == 0.0  # a depth-tested answer: the more-confident rule
 
 
 def test_depth_tested_answers_keep_the_more_confident_rule(tmp_path: Path) -> None:

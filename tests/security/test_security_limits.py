@@ -12,8 +12,9 @@ import pytest
 import zmq
 
 from clients.client import MapperClient
+from mapper.node.answers.status import rss_bytes as _rss_bytes
 from mapper.node.config import config_from_dict
-from mapper.node.service import MapperNode, _rss_bytes
+from mapper.node.service import MapperNode
 from protocol.messages import Status, StatusRequest, decode, encode
 from tests.node_helpers import in_process_node
 
@@ -104,11 +105,11 @@ def test_events_queue_is_bounded_oldest_dropped_and_counted(tmp_path: Path) -> N
     )
     node = MapperNode(config)
     for version in range(1, 11):
-        node._publish(version, version)
+        node.ctx.publish(version, version)
     status = decode(node.handle_query(encode(StatusRequest())), direction="reply")
     assert isinstance(status, Status)
     assert status.extra["events_dropped"] == 7
-    kept = [node._events.pop() for _ in range(4)]
+    kept = [node.ctx.events.pop() for _ in range(4)]
     assert [e.map_version for e in kept if e is not None] == [8, 9, 10] and kept[-1] is None
 
 
@@ -118,22 +119,22 @@ def test_queries_are_paced_only_while_frames_arrive(tmp_path: Path, monkeypatch:
     )
     node = MapperNode(config)
     pauses: list[float] = []
-    monkeypatch.setattr(node._stop, "wait", lambda timeout: pauses.append(timeout))
-    node._pace_queries(started=-0.04, now=0.0)  # no frame ever: no pause
+    monkeypatch.setattr(node.ctx.stop, "wait", lambda timeout: pauses.append(timeout))
+    node.ctx.pace(started=-0.04, now=0.0)  # no frame ever: no pause
     assert pauses == []
     node.handle_ingest(GARBAGE)  # a message on the ingest endpoint (even a bad one) marks it active
-    now = node._ingest_last + 0.1
-    node._pace_queries(started=now - 0.04, now=now)  # 40 ms of work at share 0.25 -> 120 ms pause
+    now = node.ctx.ingest_last + 0.1
+    node.ctx.pace(started=now - 0.04, now=now)  # 40 ms of work at share 0.25 -> 120 ms pause
     assert pauses == [pytest.approx(0.12)]
-    node._pace_queries(started=now - 1.0, now=now)  # 1 s of work -> capped at query_pause_max_s
+    node.ctx.pace(started=now - 1.0, now=now)  # 1 s of work -> capped at query_pause_max_s
     assert pauses[-1] == 0.5
-    idle = node._ingest_last + config.limits.ingest_active_s + 0.01  # no frame for a while
-    node._pace_queries(started=idle - 0.04, now=idle)
+    idle = node.ctx.ingest_last + config.limits.ingest_active_s + 0.01  # no frame for a while
+    node.ctx.pace(started=idle - 0.04, now=idle)
     assert len(pauses) == 2
     unpaced = MapperNode(
         config_from_dict({"map_dir": str(tmp_path / "maps"), "limits": {"query_share": 1.0}})
     )
     unpaced.handle_ingest(GARBAGE)
-    monkeypatch.setattr(unpaced._stop, "wait", lambda timeout: pauses.append(timeout))
-    unpaced._pace_queries(started=unpaced._ingest_last - 0.04, now=unpaced._ingest_last)
+    monkeypatch.setattr(unpaced.ctx.stop, "wait", lambda timeout: pauses.append(timeout))
+    unpaced.ctx.pace(started=unpaced.ctx.ingest_last - 0.04, now=unpaced.ctx.ingest_last)
     assert len(pauses) == 2

@@ -19,7 +19,7 @@ map before it is lost:
   feature yet, so a voxel takes the blend of the window its first observers were in.
 
 The core stays torch-free: the callback is supplied by the learned plugin
-(``mapper.node.plugins.learned``: ``ModelRuntime.point_features``). A keyframe whose turn came
+(``mapper.node.backends.learned``: ``ModelRuntime.point_features``). A keyframe whose turn came
 after it had already left the window (the worker lagged) is still processed, with the views left,
 and counted as ``late``. The node's ``map_version`` does not change (no geometry changes); query
 snapshots see the new features (the map's internal version changes).
@@ -39,12 +39,12 @@ from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker
 from mapper.node.window import Keyframe
 
 if TYPE_CHECKING:
+    from mapper.node.context import NodeContext
     from mapper.node.global_map import GlobalSemanticMap
-    from mapper.node.service import MapperNode
 
 __all__ = ["FeatureFn", "PreEvictionFeatures"]
 
-log = logging.getLogger("mapper.node.map_features")
+log = logging.getLogger("mapper.node.workers.map_features")
 
 FeatureFn = Callable[[np.ndarray], "tuple[np.ndarray, np.ndarray] | None"]
 """``features(xyz (M, 3) float32) -> (features (M, D) float32, valid (M,) bool)``, or None when
@@ -54,11 +54,11 @@ the model cannot answer now (not ready: nothing is written)."""
 class PreEvictionFeatures:
     """See the module docstring. ``install()`` hooks it into the node (before ``node.start()``)."""
 
-    def __init__(self, node: MapperNode, features: FeatureFn) -> None:
-        self.node = node
+    def __init__(self, ctx: NodeContext, features: FeatureFn) -> None:
+        self.ctx = ctx
         self.features = features
         self.queue: KeyframeQueue[tuple[Keyframe, GlobalSemanticMap]] = KeyframeQueue(
-            node.config.global_map.learned_features_max_pending
+            ctx.config.global_map.learned_features_max_pending
         )
         self._queued: set[int] = set()
         """``id()`` of the keyframes queued and still in the window (each is queued once)."""
@@ -76,7 +76,7 @@ class PreEvictionFeatures:
 
     def install(self) -> None:
         """Register the keyframe listener, the eviction bookkeeping, the worker and ``status``."""
-        node = self.node
+        node = self.ctx
         node.keyframe_listeners.append(self.on_keyframe)
         with node.state.lock:
             node.state.window.on_evict.append(self._on_evict)
@@ -87,12 +87,12 @@ class PreEvictionFeatures:
 
     def on_keyframe(self, keyframe: Keyframe, map_version: int) -> None:
         """After a new keyframe: queue the window's oldest when the window is full (it leaves next)."""
-        state = self.node.state
+        state = self.ctx.state
         with state.lock:
             keyframes = state.window.keyframes
-            if len(keyframes) < self.node.config.window.max_keyframes or id(keyframes[0]) in self._queued:
+            if len(keyframes) < self.ctx.config.window.max_keyframes or id(keyframes[0]) in self._queued:
                 return
-            due = [k for k in keyframes[: self.node.config.global_map.learned_features_batch]
+            due = [k for k in keyframes[: self.ctx.config.global_map.learned_features_batch]
                    if id(k) not in self._queued]  # fmt: skip
             self._queued.update(id(k) for k in due)
             gmap = state.global_map
@@ -141,7 +141,7 @@ class PreEvictionFeatures:
 
     def _process(self, items: list[tuple[Keyframe, GlobalSemanticMap]]) -> None:
         started = time.perf_counter()
-        state = self.node.state
+        state = self.ctx.state
         with state.lock:
             gmap = state.global_map
             in_window = {id(k) for k in state.window.keyframes}

@@ -17,7 +17,7 @@ Multi-view consistency (``rendered_consistency``, :func:`consistency_mask`): an 
 alone keeps floaters (a density field fit to few views puts confident surfaces where there are
 none). So a rendered pixel is kept only where it agrees with the geometry from other views: with
 the **triangulated points** and the kept **plane-sweep depths** as points
-(:mod:`mapper.node.plugins.triangulation`, ``geometry_points``) that project within
+(:mod:`mapper.node.workers.triangulation`, ``geometry_points``) that project within
 ``rendered_consistency_radius_px`` of it (their depth in this camera within
 ``max(rendered_consistency_sigmas * sigma, rendered_consistency_voxels * voxel_size_m)`` of the
 rendered depth, at least one of them), or, where no triangulated point projects near it, with the
@@ -27,7 +27,7 @@ away) that sees it (``rendered_view_agreement``: by default only while the node 
 depths): the pixel's 3D point reprojected there lies within
 ``rendered_consistency_voxels * voxel_size_m`` of that keyframe's rendered depth. Points behind a
 camera or outside its image are no evidence either way. The triangulated points come from the
-node's installed :class:`~mapper.node.plugins.triangulation.SparseTriangulation` (found at
+node's installed :class:`~mapper.node.workers.triangulation.SparseTriangulation` (found at
 render time, so either plugin may be installed first) or from :attr:`RenderedDepthPoints.sparse_source`.
 
 Scheduling: the node calls :meth:`RenderedDepthPoints.on_keyframe` on the keyframe-listener thread
@@ -69,8 +69,8 @@ from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker, wi
 from mapper.runtime.model_runtime import ModelRuntime, RuntimeNotReady
 
 if TYPE_CHECKING:
+    from mapper.node.context import NodeContext
     from mapper.node.global_map import GlobalSemanticMap
-    from mapper.node.service import MapperNode
 
 __all__ = [
     "RenderedDepthPoints",
@@ -80,7 +80,7 @@ __all__ = [
     "view_agreement",
 ]
 
-log = logging.getLogger("mapper.node.plugins.depth_points")
+log = logging.getLogger("mapper.node.workers.depth_points")
 
 @dataclass(frozen=True)
 class RenderedKeyframe:
@@ -310,11 +310,11 @@ class RenderedDepthPoints:
     """
 
     def __init__(
-        self, node: MapperNode, runtime: ModelRuntime, config: GlobalMapConfig | None = None
+        self, ctx: NodeContext, runtime: ModelRuntime, config: GlobalMapConfig | None = None
     ) -> None:
-        self.node = node
+        self.ctx = ctx
         self.runtime = runtime
-        self.config = config or node.config.global_map
+        self.config = config or ctx.config.global_map
         self._lock = threading.Lock()
         self._queue: KeyframeQueue[tuple[Any, GlobalSemanticMap]] = KeyframeQueue(
             self.config.rendered_max_pending
@@ -339,15 +339,15 @@ class RenderedDepthPoints:
     def install(self) -> None:
         """Listen to the node's new keyframes, report in its status (``"rendered_depth"``) and run
         the worker thread with the node (started by ``node.start()``)."""
-        self.node.keyframe_listeners.append(self.on_keyframe)
-        self.node.workers.append(("depth-points", self.run))
-        self.node.status_providers["rendered_depth"] = self.stats
+        self.ctx.keyframe_listeners.append(self.on_keyframe)
+        self.ctx.workers.append(("depth-points", self.run))
+        self.ctx.status_providers["rendered_depth"] = self.stats
 
     def on_keyframe(self, keyframe: Any, map_version: int) -> None:
         """Queue ``keyframe`` if it has no input depth (keyframe-listener thread; O(1), never raises)."""
         if keyframe.depth_m is not None or not self.config.rendered_depth:
             return
-        self._queue.put((keyframe, self.node.state.global_map))
+        self._queue.put((keyframe, self.ctx.state.global_map))
 
     # -- work -----------------------------------------------------------------------------------
 
@@ -403,12 +403,12 @@ class RenderedDepthPoints:
     def _render(self, keyframe: Any, target: GlobalSemanticMap) -> tuple[RenderedKeyframe, float] | None:
         """The keyframe's rendered depth (unfiltered) and the seconds it took; None when stale or
         failed (counted)."""
-        if target is not self.node.state.global_map:
+        if target is not self.ctx.state.global_map:
             self.stale += 1  # a map load replaced the map this keyframe belonged to
             return None
         started = time.perf_counter()
         if keyframe.ov is None:
-            keyframe = with_current_features(self.node, keyframe)
+            keyframe = with_current_features(self.ctx, keyframe)
         try:
             rendered = render_keyframe_depth(self.runtime, keyframe, self.config)
         except (RuntimeNotReady, ValueError, RuntimeError) as exc:
@@ -429,7 +429,7 @@ class RenderedDepthPoints:
 
     def _triangulation(self) -> Any:
         """The node's installed triangulation plugin (the owner of its ``status`` provider), or None."""
-        return getattr(self.node.status_providers.get("triangulation"), "__self__", None)
+        return getattr(self.ctx.status_providers.get("triangulation"), "__self__", None)
 
     def _sparse_points(self) -> tuple[np.ndarray, np.ndarray]:
         """The triangulated points (empty when no triangulation plugin is installed)."""
@@ -459,7 +459,7 @@ class RenderedDepthPoints:
     def _integrate_one(self, keyframe: Any, target: GlobalSemanticMap,
                        render: tuple[RenderedKeyframe, float],
                        others: list[tuple[RenderedKeyframe, float]]) -> int:
-        if target is not self.node.state.global_map:
+        if target is not self.ctx.state.global_map:
             self.stale += 1  # a map load during the batch
             return 0
         rendered, render_s = render

@@ -85,12 +85,13 @@ from mapper.geometry.triangulation import (
 from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker, with_current_features
 
 if TYPE_CHECKING:
+    from mapper.node.context import NodeContext
     from mapper.node.global_map import GlobalSemanticMap
     from mapper.node.service import MapperNode
 
 __all__ = ["SparseTriangulation", "TriangulatedKeyframe", "install_triangulation", "keyframe_key"]
 
-log = logging.getLogger("mapper.node.plugins.triangulation")
+log = logging.getLogger("mapper.node.workers.triangulation")
 
 KeyframeKey = tuple[str, int, int]
 T = TypeVar("T")
@@ -259,14 +260,14 @@ class SparseTriangulation:
 
     def __init__(
         self,
-        node: MapperNode,
+        ctx: NodeContext,
         config: TriangulationConfig | None = None,
         runtime: ExtentSink | None = None,
         stereo: StereoConfig | None = None,
     ) -> None:
-        self.node = node
-        self.config = config or node.config.triangulation
-        self.stereo = stereo or node.config.stereo
+        self.ctx = ctx
+        self.config = config or ctx.config.triangulation
+        self.stereo = stereo or ctx.config.stereo
         self.runtime = runtime
         self.extractor = FeatureExtractor(self.config)
         self._lock = threading.Lock()  # guards the sparse map, the candidates and the map they belong to
@@ -321,18 +322,18 @@ class SparseTriangulation:
     def install(self) -> None:
         """Listen to the node's new keyframes and map loads, report in its status
         (``"triangulation"``) and run the worker with the node (started by ``node.start()``)."""
-        self.node.keyframe_listeners.append(self.on_keyframe)
-        self.node.load_listeners.append(self.on_map_loaded)
-        self.node.feature_listeners.append(self.on_features)
-        self.node.surface_points.append(lambda: self.geometry_points()[0])
-        self.node.workers.append(("triangulation", self.run))
-        self.node.status_providers["triangulation"] = self.stats
+        self.ctx.keyframe_listeners.append(self.on_keyframe)
+        self.ctx.load_listeners.append(self.on_map_loaded)
+        self.ctx.feature_listeners.append(self.on_features)
+        self.ctx.surface_points.append(lambda: self.geometry_points()[0])
+        self.ctx.workers.append(("triangulation", self.run))
+        self.ctx.status_providers["triangulation"] = self.stats
 
     def on_keyframe(self, keyframe: Any, map_version: int) -> None:
         """Queue every keyframe (keyframe-listener thread; O(1), never raises): those without depth are
         triangulated, those with depth only become partner candidates."""
         if self.config.enabled:
-            self._queue.put((keyframe, int(map_version), self.node.state.global_map))
+            self._queue.put((keyframe, int(map_version), self.ctx.state.global_map))
 
     def on_map_loaded(self, global_map: GlobalSemanticMap, map_version: int) -> None:
         """A load replaced the map (the loading thread; quick, never raises): forget the replaced
@@ -426,7 +427,7 @@ class SparseTriangulation:
                 self._store_swept(keyframe_key(keyframe), image, swept[0], swept[1])
             if self.runtime is not None and self.config.bounds:
                 self._set_extent(keyframe_key(keyframe), view, points)
-        current = with_current_features(self.node, keyframe)  # its OV features, if they came meanwhile
+        current = with_current_features(self.ctx, keyframe)  # its OV features, if they came meanwhile
         swept_frame = None if swept is None else swept_keyframe(current, swept[0], swept[1], self.stereo)
         self._set_depth_prior(keyframe, points, swept_frame, image)
         self._integrate(current, points, target)
@@ -497,7 +498,7 @@ class SparseTriangulation:
                    else np.asarray(prior, np.float32))
             with self._lock:
                 self._own_priors[keyframe_key(keyframe)] = (own, view)
-                while len(self._own_priors) > max(1, self.node.config.window.max_keyframes):
+                while len(self._own_priors) > max(1, self.ctx.config.window.max_keyframes):
                     self._own_priors.popitem(last=False)
             geometry = self.geometry_points()[0]
             prior = self._with_geometry(own, view, geometry)
@@ -510,7 +511,7 @@ class SparseTriangulation:
         ``model.surface_geometry_footprint`` map voxels, as ``render`` splats it)."""
         from mapper.node.queries import surface_depth  # SciPy; only with stereo.prior_geometry
 
-        cfg = self.node.config
+        cfg = self.ctx.config
         footprint_m = cfg.model.surface_geometry_footprint * cfg.global_map.voxel_size_m
         z = surface_depth(geometry, footprint_m, view.K, view.world_from_cam, view.width, view.height,
                           cfg.model)
@@ -606,7 +607,7 @@ class SparseTriangulation:
     def _integrate(self, keyframe: Any, points: SparsePoints, target: GlobalSemanticMap) -> None:
         if self.config.global_map_weight <= 0.0 or not len(points):
             return
-        if target is not self.node.state.global_map:
+        if target is not self.ctx.state.global_map:
             self.stale += 1  # a map load replaced the map this keyframe belonged to
             return
         self._fuse(keyframe, sparse_depth_keyframe(keyframe, points, self.config), target, swept=False)
@@ -626,7 +627,7 @@ class SparseTriangulation:
             self.stereo_map_points += stats.points
         else:
             self.integrated_points += stats.points
-        if depth.ov is None and self.node.config.ov_backend.kind:  # only a backend brings features later
+        if depth.ov is None and self.ctx.config.ov_backend.kind:  # only a backend brings features later
             self._remember_featureless(keyframe, depth, target)
 
     def _remember_featureless(
@@ -636,9 +637,9 @@ class SparseTriangulation:
         with self._lock:
             entry = self._featureless.setdefault(key, (target, []))
             entry[1].append(depth)
-            while len(self._featureless) > max(1, self.node.config.ov_backend.max_pending):
+            while len(self._featureless) > max(1, self.ctx.config.ov_backend.max_pending):
                 self._featureless.popitem(last=False)  # the backend drops beyond this many too
-        current = with_current_features(self.node, keyframe)  # swapped in meanwhile: listener too early
+        current = with_current_features(self.ctx, keyframe)  # swapped in meanwhile: listener too early
         if current.ov is not None:
             self.on_features(current)
 
@@ -650,7 +651,7 @@ class SparseTriangulation:
         if entry is None or keyframe.ov is None:
             return
         target, depths = entry
-        if target is not self.node.state.global_map:
+        if target is not self.ctx.state.global_map:
             return  # a load replaced that map
         for depth in depths:
             try:
@@ -664,7 +665,7 @@ class SparseTriangulation:
     def _integrate_swept(self, keyframe: Any, swept: TriangulatedKeyframe, target: GlobalSemanticMap) -> None:
         if self.stereo.global_map_weight <= 0.0 or not bool((swept.depth_m > 0).any()):
             return
-        if target is not self.node.state.global_map:
+        if target is not self.ctx.state.global_map:
             return  # a map load replaced the map (counted once by _integrate)
         self._fuse(keyframe, swept, target, swept=True)
 
@@ -774,6 +775,6 @@ def install_triangulation(node: MapperNode, runtime: ExtentSink | None = None) -
     None otherwise). ``runtime``: the learned-model runtime whose bounds follow the points."""
     if not node.config.triangulation.enabled:
         return None
-    tri = SparseTriangulation(node, runtime=runtime)
+    tri = SparseTriangulation(node.ctx, runtime=runtime)
     tri.install()
     return tri

@@ -7,7 +7,7 @@ weights (:class:`mapper.ov.clip.ClipDenseBackend`, MaskCLIP dense features) and 
 queries in the same space, ``openclip:<model_name>``.
 
 Wiring (:func:`install_ov_backend`, called once after the node is built and after
-:func:`mapper.node.plugins.learned.install_learned_handlers`):
+:func:`mapper.node.backends.learned.install_learned_backend`):
 
 * the backend is loaded from ``weights_path`` / ``bpe_path`` (never downloaded). When it loads,
   its text encoder is registered for its space (:func:`mapper.ov.encoders.register_text_encoder`), so
@@ -38,7 +38,7 @@ Bounds and failures: beyond ``max_pending`` queued keyframes the oldest is dropp
 keyframes queued before a map load are dropped (``stale``); a keyframe that left the window and has
 no depth is skipped (nothing would use its features). A failed encode or integrate is logged (rate
 limited) and counted in ``failed``; the worker never dies. Keyframes without input depth get their
-features into the window; the global-map points that :mod:`mapper.node.plugins.depth_points` adds for them
+features into the window; the global-map points that :mod:`mapper.node.workers.depth_points` adds for them
 from rendered depth carry those features when the rendered-depth worker runs after the swap (it
 looks up the window's current copy of the keyframe it queued), and the node's ``feature_listeners``
 are told of the featured keyframe (the triangulation plugin then fuses the features into the
@@ -69,13 +69,14 @@ from protocol.errors import ProtocolError
 from protocol.messages import Message, QueryPoints, Render, SegmentPoints
 
 if TYPE_CHECKING:
+    from mapper.node.context import NodeContext, QueryHandler
     from mapper.node.global_map import GlobalSemanticMap
-    from mapper.node.service import MapperNode, QueryHandler
+    from mapper.node.service import MapperNode
     from mapper.node.window import Keyframe, KeyframeWindow
 
 __all__ = ["DenseOvBackend", "OvFeatureWorker", "install_ov_backend", "load_backend"]
 
-log = logging.getLogger("mapper.node.plugins.ov_features")
+log = logging.getLogger("mapper.node.workers.ov_features")
 
 _ERROR_LOG_INTERVAL_S = 10.0
 """Failures and skips are logged as warnings at most this often per kind."""
@@ -122,8 +123,8 @@ def _is_semantic(msg: Message) -> bool:
     return isinstance(msg, Render) and bool(msg.texts)
 
 
-def _check_pinned(node: MapperNode, space: str) -> None:
-    pinned = node.config.ov_space
+def _check_pinned(ctx: NodeContext | MapperNode, space: str) -> None:
+    pinned = ctx.config.ov_space
     if pinned is not None and pinned != space:
         raise ConfigError(
             f"ov_space = {pinned!r} is pinned, but the in-process OV backend produces {space!r}"
@@ -151,14 +152,14 @@ class OvFeatureWorker:
 
     def __init__(
         self,
-        node: MapperNode,
+        ctx: NodeContext,
         backend: DenseOvBackend | None,
         config: OvBackendConfig | None = None,
         load_error: str | None = None,
     ) -> None:
-        self.node = node
+        self.ctx = ctx
         self.backend = backend
-        self.config = config or node.config.ov_backend
+        self.config = config or ctx.config.ov_backend
         self.space = backend.space if backend is not None else self.config.space
         self.load_error = load_error
         self._lock = threading.Lock()
@@ -186,22 +187,25 @@ class OvFeatureWorker:
 
     def install(self) -> None:
         """Register with the node: the text encoder of the backend's space (when loaded), the
-        keyframe listener, the worker thread (started by ``node.start()``), ``status["ov_backend"]``,
-        and the ``not_ready`` notes of semantic requests. Call after the learned handlers are
-        installed (it wraps the query handlers present now)."""
-        _check_pinned(self.node, self.space)
+        keyframe listener, the worker thread (started by ``node.start()``) and ``status["ov_backend"]``
+        (:meth:`add_notes` adds the ``not_ready`` notes of semantic requests)."""
+        _check_pinned(self.ctx, self.space)
         if self.backend is not None:
             from mapper.ov.encoders import register_text_encoder
 
             backend = self.backend
             register_text_encoder(self.space, lambda: backend)
-        self.node.keyframe_listeners.append(self.on_keyframe)
-        self.node.workers.append(("ov-backend", self.run))
-        self.node.status_providers["ov_backend"] = self.stats
+        self.ctx.keyframe_listeners.append(self.on_keyframe)
+        self.ctx.workers.append(("ov-backend", self.run))
+        self.ctx.status_providers["ov_backend"] = self.stats
+
+    def add_notes(self, node: MapperNode) -> None:
+        """Append the backend's state to the ``not_ready`` answers of ``node``'s semantic requests
+        (it wraps the query handlers present now: call after the learned backend is installed)."""
         for message_type in (QueryPoints, SegmentPoints, Render):
-            handler = self.node.query_handlers.get(message_type)
+            handler = node.query_handlers.get(message_type)
             if handler is not None:
-                self.node.register_query_handler(message_type, self._with_note(handler))
+                node.register_query_handler(message_type, self._with_note(handler))
 
     def _with_note(self, handler: QueryHandler) -> QueryHandler:
         """``handler``, with the backend's state appended to the ``not_ready`` answers of semantic
@@ -216,8 +220,7 @@ class OvFeatureWorker:
                     raise
                 raise ProtocolError("not_ready", f"{exc.message}; {note}") from None
 
-        if getattr(handler, "not_ready", False):
-            wrapped.not_ready = True  # type: ignore[attr-defined]
+        wrapped.__wrapped__ = handler  # type: ignore[attr-defined]  # status follows it (is_not_ready)
         return wrapped
 
     def note(self) -> str | None:
@@ -230,8 +233,8 @@ class OvFeatureWorker:
                 f"the in-process OV backend ({self.space}) is computing features for {waiting} "
                 "keyframe(s); retry shortly"
             )
-        with self.node.state.lock:
-            space = self.node.state.ov_space
+        with self.ctx.state.lock:
+            space = self.ctx.state.ov_space
         if space is not None and space != self.space:
             return (
                 f"the in-process OV backend produces {self.space!r} features, but the map's ov_space "
@@ -247,7 +250,7 @@ class OvFeatureWorker:
             return
         if self.backend is None:
             return
-        self._queue.put((keyframe, self.node.state.global_map))
+        self._queue.put((keyframe, self.ctx.state.global_map))
 
     # -- work -----------------------------------------------------------------------------------
 
@@ -299,7 +302,7 @@ class OvFeatureWorker:
     def _space_conflict(self) -> str | None:
         """Why features of the backend cannot join the current map (state lock held), or None."""
         assert self.backend is not None
-        state = self.node.state
+        state = self.ctx.state
         if state.ov_space is not None and state.ov_space != self.space:
             return f"the map's ov_space is {state.ov_space!r}, the backend produces {self.space!r}"
         if state.ov_dim is not None and state.ov_dim != self.backend.dim:
@@ -308,7 +311,7 @@ class OvFeatureWorker:
 
     def _process_one(self, keyframe: Keyframe, target: GlobalSemanticMap) -> int:
         assert self.backend is not None
-        state = self.node.state
+        state = self.ctx.state
         with state.lock:
             if state.global_map is not target:
                 self.stale += 1  # a map load replaced the map this keyframe belonged to
@@ -346,7 +349,7 @@ class OvFeatureWorker:
                     state.ov_dim = self.backend.dim
                     state.map_version += 1
                     # "map_updated" like any map change (the node's own notice queue)
-                    self.node._publish(state.map_version, len(state.window))
+                    self.ctx.publish(state.map_version, len(state.window))
             version = state.map_version
         if conflict is not None:  # a frame of another space claimed the map while we encoded
             self.skipped_space += 1
@@ -356,7 +359,7 @@ class OvFeatureWorker:
             self.skipped_evicted += 1  # left the window while it was encoded
             return 0
         if swapped and keyframe.depth_m is None:
-            for listener in self.node.feature_listeners:  # points other plugins added without features
+            for listener in self.ctx.feature_listeners:  # points other plugins added without features
                 try:
                     listener(featured)
                 except Exception as exc:
@@ -425,7 +428,7 @@ def install_ov_backend(node: MapperNode, config: OvBackendConfig | None = None) 
     Returns the worker, or None when ``kind`` is "" (no backend). A backend that cannot be loaded
     is logged as an error and still installed (status and ``not_ready`` answers say why). Raises
     :class:`ConfigError` when the node's ``ov_space`` is pinned to another space. Call once, after
-    :func:`mapper.node.plugins.learned.install_learned_handlers` and before ``node.start()``."""
+    :func:`mapper.node.backends.learned.install_learned_backend` and before ``node.start()``."""
     config = config or node.config.ov_backend
     if not config.kind:
         return None
@@ -437,6 +440,7 @@ def install_ov_backend(node: MapperNode, config: OvBackendConfig | None = None) 
         assert backend is not None
         log.info("ov backend: %s (%d-d) loaded from %s on %s", backend.space, backend.dim,
                  config.weights_path, getattr(backend, "device", "?"))
-    worker = OvFeatureWorker(node, backend, config, load_error=error)
+    worker = OvFeatureWorker(node.ctx, backend, config, load_error=error)
     worker.install()
+    worker.add_notes(node)
     return worker

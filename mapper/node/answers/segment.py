@@ -1,0 +1,130 @@
+"""``segment_points``: label the requested points, by the method the request names.
+
+The method picks a backend (:mod:`mapper.node.backends`): ``average`` / ``average_depth``
+(:class:`mapper.node.backends.average.AveragingBackend`) are always there; ``govnesf`` answers
+``not_ready`` until the learned model registers its backend. Whatever the backend, the points it
+does not answer are then answered from the global map's snapshot, and where both answer the two
+are blended (``queries.map_blend``) or the more confident wins (:func:`mapper.node.queries.fill_from_map`),
+here, once, for every backend; the reply's ``source`` says per point which answered.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from mapper.node.backends import PointAnswer, SegmentBackend
+from mapper.node.backends.average import AveragingBackend
+from mapper.node.context import NodeContext
+from mapper.node.global_map import GlobalMapSnapshot
+from protocol.errors import ProtocolError
+from protocol.messages import Message, Segmentation, SegmentPoints
+
+__all__ = ["SegmentAnswers", "answer_from_map"]
+
+
+class _LearnedNotLoaded:
+    """``govnesf`` before the learned model registered its backend: ``not_ready``."""
+
+    ready = False
+
+    def depth_tested(self, msg: SegmentPoints) -> bool:
+        return bool(msg.use_depth)
+
+    def segment(self, msg: SegmentPoints, want_cos: bool) -> PointAnswer:
+        raise ProtocolError(
+            "not_ready",
+            "segment_points method 'govnesf' (learned blending): the learned model is not loaded on this "
+            "node yet; use method 'average' or 'average_depth'",
+        )
+
+
+def answer_from_map(
+    ctx: NodeContext,
+    xyz: np.ndarray,  # (N, 3) float32 world metres
+    text_emb: np.ndarray,  # (T, D) float32 unit rows
+    label: np.ndarray,  # (N,) int32 the window's labels
+    score: np.ndarray,  # (N,) float32 the window's scores
+    window_seen: np.ndarray,  # (N,) bool: the window answered the point
+    snap: GlobalMapSnapshot | None = None,  # the snapshot to use (default: the current one)
+    window_cos: np.ndarray | None = None,  # (N, T) the window's cosines (for queries.map_blend)
+    depth_tested: bool = False,  # the window's answer already passed a depth test
+    nearest: np.ndarray | None = None,  # (N,) int64 the snapshot's nearest rows, if looked up already
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fill the points the window did not answer from the global map's snapshot (nearest point
+    with a feature within ``queries.map_radius_voxels`` voxels) and, with ``window_cos``, blend
+    the two where both answer (``queries.map_blend``): (label, score, source (N,) uint8), see
+    :func:`mapper.node.queries.fill_from_map`."""
+    from mapper.node.queries import fill_from_map
+
+    if snap is None:
+        snap = ctx.state.global_map.snapshot()
+    return fill_from_map(snap, xyz, text_emb, label, score, window_seen, ctx.map_radius_m,
+                         more_confident=ctx.config.queries.map_when_more_confident,
+                         window_cos=window_cos, blend=ctx.map_blend(depth_tested=depth_tested),
+                         nearest=nearest)
+
+
+class SegmentAnswers:
+    """The ``segment_points`` handler and its backends by method name."""
+
+    def __init__(self, ctx: NodeContext) -> None:
+        self.ctx = ctx
+        self.backends: dict[str, SegmentBackend] = {
+            "govnesf": _LearnedNotLoaded(),
+            "average": AveragingBackend(ctx, use_depth=False),
+            "average_depth": AveragingBackend(ctx, use_depth=True),
+        }
+        """Method name -> backend (the learned model registers ``govnesf``)."""
+
+    def register(self, method: str, backend: SegmentBackend) -> None:
+        """Serve ``segment_points`` requests naming ``method`` with ``backend`` (replacing any)."""
+        self.backends[method] = backend
+
+    def ready_methods(self) -> list[str]:
+        """The methods that can answer (``status``: ``segment_methods``)."""
+        return sorted(m for m, b in self.backends.items() if b.ready)
+
+    def handle(self, msg: Message) -> Message:
+        """The reply to one ``segment_points`` (module docstring)."""
+        assert isinstance(msg, SegmentPoints)
+        backend = self.backends.get(msg.method)
+        if backend is None:
+            raise ProtocolError(
+                "bad_request", f"method: {msg.method!r} unknown; served: {', '.join(sorted(self.backends))}"
+            )
+        ctx = self.ctx
+        started = time.perf_counter()
+        depth_tested = backend.depth_tested(msg)
+        want_cos = ctx.map_blend(depth_tested=depth_tested) > 0 and ctx.map_radius_m > 0
+        window = backend.segment(msg, want_cos)
+        t_map = time.perf_counter()
+        seen = window.answered()
+        emb = window.text_emb if window.text_emb is not None else self._text_emb(msg)
+        if emb is None:  # no text encoder for the map's space: the backend's answer alone
+            label, score, source = window.label, window.score, seen.astype(np.uint8)  # 1 window, 0 none
+        else:
+            label, score, source = answer_from_map(
+                ctx, np.asarray(msg.xyz, np.float32), emb, window.label, window.score, seen,
+                window.snapshot, window_cos=window.cos, depth_tested=depth_tested, nearest=window.nearest,
+            )
+        if window.map_only is not None:
+            from mapper.node.queries import SOURCE_MAP, SOURCE_WINDOW
+
+            # only keyframes that left the window saw these points
+            source[window.map_only & (source == SOURCE_WINDOW)] = SOURCE_MAP
+        timing = dict(window.timing_ms)
+        done = time.perf_counter()
+        timing["map"] = (done - t_map) * 1e3
+        timing["from_map"] = float(np.count_nonzero(source == 2))
+        timing["handler"] = (done - started) * 1e3
+        return Segmentation(label=label, score=score, timing_ms=timing, id=msg.id, source=source)
+
+    def _text_emb(self, msg: SegmentPoints) -> np.ndarray | None:
+        """(T, D) unit text embeddings in the map's space, or None when the node has no encoder."""
+        try:
+            return np.asarray(self.ctx.text_encoder(f"segment_points ({msg.method})").encode(list(msg.texts)),
+                              np.float32)
+        except ProtocolError:
+            return None

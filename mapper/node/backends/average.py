@@ -1,0 +1,191 @@
+"""``segment_points`` methods ``average`` and ``average_depth``: OpenScene-2D averaging.
+
+The OV features of the window's keyframes where they see a point (10 px border; ``average_depth``:
+only where the point passes the depth test against the keyframe's input depth, or, for keyframes
+without depth, against the request's own points splatted as occluders: ``queries.point_occlusion``),
+together with the views of keyframes that left the window at the point's nearest map voxel
+(``queries.evicted_views``, :mod:`mapper.node.evicted_views`). Torch-free: the averaging runs in a
+compiled kernel (:mod:`mapper.model.ops.average_kernel`). The global map's answer beyond the window
+is applied by :mod:`mapper.node.answers.segment`, as for every backend.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from mapper.node.backends import PointAnswer
+from mapper.node.context import NodeContext
+from mapper.node.evicted_views import EvictedViewStore
+from mapper.node.global_map import GlobalMapSnapshot
+from mapper.node.window import Keyframe
+from protocol.errors import ProtocolError
+from protocol.messages import SegmentPoints
+
+__all__ = ["AveragingBackend"]
+
+
+class AveragingBackend:
+    """``average`` (``use_depth=False``) or ``average_depth`` (``use_depth=True``)."""
+
+    ready = True
+
+    def __init__(self, ctx: NodeContext, use_depth: bool) -> None:
+        self.ctx = ctx
+        self.use_depth = use_depth
+        self.method = "average_depth" if use_depth else "average"
+
+    def depth_tested(self, msg: SegmentPoints) -> bool:
+        return self.use_depth
+
+    def segment(self, msg: SegmentPoints, want_cos: bool) -> PointAnswer:
+        """The averaging's answer with the points in Z-order of map voxels where they do not come
+        spatially coherent (``queries.spatial_sort``, :func:`mapper.node.queries.spatial_order`),
+        returned in the request's order. (The learned model's path groups its points by view set
+        and cell already: a shuffled request costs it about as much as a coherent one.)"""
+        if not self.ctx.config.queries.spatial_sort:
+            return self._segment_ordered(msg)
+        from mapper.node.queries import spatial_order
+
+        started = time.perf_counter()
+        xyz = np.asarray(msg.xyz, np.float32)
+        order = spatial_order(xyz, self.ctx.config.global_map.voxel_size_m)
+        if order is None:
+            return self._segment_ordered(msg)
+        sorted_ms = 1e3 * (time.perf_counter() - started)
+        in_order = copy.copy(msg)  # a permutation of points validated at the boundary: not checked again
+        in_order.xyz = xyz[order]
+        answer = self._segment_ordered(in_order)
+        for name in ("label", "score", "seen", "cos", "nearest", "map_only"):  # back to the request's order
+            arr = getattr(answer, name)
+            if arr is not None:
+                back = np.empty_like(arr)
+                back[order] = arr
+                setattr(answer, name, back)
+        answer.timing_ms["spatial_sort"] = sorted_ms
+        return answer
+
+    def _occluder_depths(self, xyz: np.ndarray, keyframes: Sequence[Keyframe]) -> dict[int, np.ndarray]:
+        """``queries.point_occlusion``: for each of ``keyframes`` without input depth (by index), its
+        (H, W) z-buffer of the request's points ``xyz`` (N, 3), the depth ``average_depth`` tests
+        against there (all zeros for a request without points). Empty when the setting is off or no
+        keyframe lacks depth."""
+        need = [i for i, k in enumerate(keyframes) if k.depth_m is None]
+        if not self.ctx.config.queries.point_occlusion or not need:
+            return {}
+        from mapper.geometry.splat import request_occluder_depths
+
+        out = {}
+        for size in {(keyframes[i].width, keyframes[i].height) for i in need}:  # one launch a size
+            same = [i for i in need if (keyframes[i].width, keyframes[i].height) == size]
+            z = request_occluder_depths(
+                xyz, np.stack([np.asarray(keyframes[i].K, np.float64) for i in same]),
+                np.stack([np.asarray(keyframes[i].world_from_cam, np.float64) for i in same]),
+                size[0], size[1], self.ctx.config.model.point_occlusion_footprint, threads=0)
+            out.update({i: z[j] for j, i in enumerate(same)})
+        return out
+
+    def _segment_ordered(self, msg: SegmentPoints) -> PointAnswer:
+        """The averaging over the window's keyframes where they see a point, together with the
+        views of keyframes that left the window at its nearest map voxel (:meth:`_evicted_prior`)."""
+        from mapper.node.queries import best_text, segment_average_cosines
+
+        ctx, use_depth, method = self.ctx, self.use_depth, self.method
+        started = time.perf_counter()
+        with ctx.state.lock:
+            keyframes = ctx.state.window.keyframes
+        with_ov = [k for k in keyframes if k.ov is not None]
+        xyz = np.asarray(msg.xyz, np.float32)
+        occluders = self._occluder_depths(xyz, with_ov) if use_depth else {}
+        views = [
+            (k.ov, k.K, k.world_from_cam, (k.width, k.height),
+             k.depth_m if k.depth_m is not None else occluders.get(i))
+            for i, k in enumerate(with_ov)
+            if k.ov is not None and (not use_depth or k.depth_m is not None or i in occluders)
+        ]
+        gmap = ctx.state.global_map  # its snapshot and evicted views together (a load swaps the map)
+        map_store = gmap.evicted
+        map_snap = gmap.snapshot()  # one snapshot for the check and the fill
+        map_has_features = map_snap.n_with_features > 0
+        if not with_ov and not map_has_features:
+            raise ProtocolError(
+                "not_ready",
+                f"segment_points method {method!r}: none of the {len(keyframes)} keyframes in the window "
+                "carries ov features and the global map has none; send frames with ov",
+            )
+        if not views and not map_has_features:
+            raise ProtocolError(
+                "not_ready",
+                f"segment_points method 'average_depth' needs keyframes with both depth and ov: the "
+                f"window has {len(with_ov)} keyframes with ov, none with depth; send depth or use "
+                "method 'average'",
+            )
+        encoder = ctx.text_encoder(f"segment_points ({method})")
+        with ctx.state.lock:
+            dim = ctx.state.ov_dim
+        if dim is not None and dim != encoder.dim:
+            raise ProtocolError(
+                "not_ready",
+                f"segment_points: the map's features have dimension {dim}, the text encoder of "
+                f"{encoder.space!r} produces {encoder.dim}",
+            )
+        t_views = time.perf_counter()
+        text_emb = encoder.encode(list(msg.texts))
+        t_text = time.perf_counter()
+        nearest = map_snap.nearest_with_feature(xyz, ctx.map_radius_m) if map_has_features else None
+        t_near = time.perf_counter()
+        prior = self._evicted_prior(map_store, map_snap, nearest, "depth" if use_depth else "all", text_emb)
+        t_prior = time.perf_counter()
+        if views or prior is not None:
+            cos, n_views = segment_average_cosines(xyz, views, text_emb, use_depth=use_depth, prior=prior)
+        else:
+            cos = np.zeros((xyz.shape[0], text_emb.shape[0]), np.float32)
+            n_views = np.zeros(xyz.shape[0], np.int64)
+        evicted_only = (n_views == 0) & (prior[1] >= 0) if prior is not None else np.zeros(xyz.shape[0], bool)
+        seen = (n_views > 0) | evicted_only
+        label, score = best_text(cos, seen)
+        t_avg = time.perf_counter()
+        timing = {
+            "views": 1e3 * (t_views - started),
+            "encode_text": 1e3 * (t_text - t_views),
+            "nearest": 1e3 * (t_near - t_text),
+            "evicted": 1e3 * (t_prior - t_near),
+            "average": 1e3 * (t_avg - t_prior),
+            "total": 1e3 * (t_avg - started),
+            "n_views": float(len(views)),
+            "from_evicted": float(np.count_nonzero(prior[2] > 0)) if prior is not None else 0.0,
+        }
+        return PointAnswer(label=label, score=score, timing_ms=timing, seen=seen, cos=cos, text_emb=text_emb,
+                           snapshot=map_snap, nearest=nearest, map_only=evicted_only)
+
+    def _evicted_prior(
+        self,
+        store: EvictedViewStore,
+        snap: GlobalMapSnapshot,
+        nearest: np.ndarray | None,  # (N,) int64 nearest map rows with a feature (-1: none)
+        channel: str,
+        text_emb: np.ndarray,  # (T, D)
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The views of keyframes that left the window at each point's nearest map voxel, as the
+        averaging's ``prior`` (means (P, D) float32, row (N,) int64 (-1: none), views (N,) float32),
+        or None when there are none (``queries.evicted_views`` off, nothing evicted yet, no map
+        voxel near, another feature dimension)."""
+        worker = self.ctx.evicted_views
+        if worker is None or nearest is None or snap.keys is None or len(store) == 0:
+            return None
+        if channel == "all" and not worker.both:
+            return None
+        if store.dim != text_emb.shape[1]:
+            return None
+        keys = np.full(nearest.shape[0], -1, np.int64)
+        hit = nearest >= 0
+        keys[hit] = snap.keys[nearest[hit]]
+        table, row, weight = store.prior(keys, channel)
+        row[~hit] = -1
+        weight[~hit] = 0.0
+        if not (row >= 0).any():
+            return None
+        return table, row, weight

@@ -1,0 +1,145 @@
+"""The learned backend ``govnesf``: ``segment_points`` and ``render`` from the GOV-NeSF model.
+
+``install_learned_backend(node, runtime)`` attaches the runtime
+(:class:`mapper.runtime.model_runtime.ModelRuntime`) to the node's keyframe window and registers
+:class:`LearnedBackend` as the node's ``govnesf`` segment method and its render backend. What comes
+after the backend's answer (the global map's answer beyond the window, surfaces for renders) is
+the node's, the same for every backend (:mod:`mapper.node.answers`). With
+``global_map.learned_features``, the map voxels a keyframe saw take the model's blended features
+just before it leaves the window (:mod:`mapper.node.workers.map_features`, fed by
+``ModelRuntime.point_features``); with ``global_map.rendered_depth``, keyframes without input depth
+add map points from the model's rendered depth (:mod:`mapper.node.workers.depth_points`).
+
+The heavy work never holds the node's state lock: the window callbacks only record changes, and the
+runtime computes on its own state under its own lock. Errors: a missing checkpoint, an empty window
+or missing OV features answer ``not_ready`` with the runtime's message (naming the checkpoint path
+when that is what is missing); a request the runtime refuses (too many pixels or points) answers
+``bad_request``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from mapper.node.backends import PointAnswer
+from mapper.node.workers.depth_points import RenderedDepthPoints
+from mapper.node.workers.map_features import PreEvictionFeatures
+from mapper.runtime.model_runtime import ModelRuntime, RuntimeNotReady
+from protocol.errors import ProtocolError
+from protocol.messages import SegmentPoints
+
+if TYPE_CHECKING:
+    from mapper.node.context import NodeContext
+    from mapper.node.service import MapperNode
+
+__all__ = ["LearnedBackend", "install_learned_backend", "install_pre_eviction_features"]
+
+log = logging.getLogger("mapper.node.backends.learned")
+
+
+class LearnedBackend:
+    """``govnesf`` over a :class:`ModelRuntime` (or anything with its ``segment``,
+    ``segment_cosines``, ``render``, ``config`` and ``load_error``)."""
+
+    def __init__(self, runtime: Any) -> None:
+        self.runtime = runtime
+
+    @property
+    def ready(self) -> bool:
+        return not getattr(self.runtime, "load_error", None)
+
+    @property
+    def config(self) -> Any:
+        return self.runtime.config
+
+    def depth_tested(self, msg: SegmentPoints) -> bool:
+        return bool(msg.use_depth)
+
+    def segment(self, msg: SegmentPoints, want_cos: bool) -> PointAnswer:
+        """The model's blend at the points; every text's cosines with ``want_cos`` (for the blend
+        with the map's)."""
+        started = time.perf_counter()
+        cos = None
+        try:
+            if want_cos:
+                label, score, cos, timing = self.runtime.segment_cosines(
+                    msg.xyz, msg.texts, use_depth=msg.use_depth
+                )
+            else:
+                label, score, timing = self.runtime.segment(msg.xyz, msg.texts, use_depth=msg.use_depth)
+        except RuntimeNotReady as exc:
+            raise ProtocolError("not_ready", f"segment_points (govnesf): {exc}") from None
+        except ValueError as exc:
+            raise ProtocolError("bad_request", f"segment_points: {exc}") from None
+        timing = dict(timing)
+        timing["backend"] = (time.perf_counter() - started) * 1e3
+        return PointAnswer(label=label, score=score, timing_ms=timing, cos=cos)
+
+    def render(
+        self, K: np.ndarray, world_from_cam: np.ndarray, width: int, height: int, outputs: Sequence[str],
+        texts: Sequence[str], surface_depth_m: np.ndarray | None = None,
+    ) -> Any:
+        """The model's render (:meth:`ModelRuntime.render`), its refusals as wire errors."""
+        try:
+            return self.runtime.render(K, world_from_cam, width, height, outputs, texts,
+                                       surface_depth_m=surface_depth_m)
+        except RuntimeNotReady as exc:
+            raise ProtocolError("not_ready", f"render: {exc}") from None
+        except ValueError as exc:
+            raise ProtocolError("bad_request", f"render: {exc}") from None
+
+
+def install_learned_backend(node: MapperNode, runtime: ModelRuntime) -> RenderedDepthPoints | None:
+    """Attach ``runtime`` to ``node``'s window and serve ``render`` and ``segment_points`` (govnesf).
+
+    With a loaded model and ``global_map.rendered_depth`` (the default), keyframes without input
+    depth also add global-map points from the model's rendered depth
+    (:class:`mapper.node.workers.depth_points.RenderedDepthPoints`, returned; None otherwise).
+    Its worker thread runs from ``node.start()``.
+
+    Call once, after the node is constructed (before ``start()`` for the workers); a map loaded
+    earlier is picked up (the runtime records the keyframes already in the window).
+    """
+    ctx = node.ctx
+    with ctx.state.lock:
+        runtime.attach(ctx.state.window)
+    backend = LearnedBackend(runtime)
+    if runtime.load_error:
+        # status' "serving" and "segment_methods" leave out a backend that is not ready
+        log.warning("learned backend installed without a model: %s", runtime.load_error)
+    node.segment.register("govnesf", backend)
+    node.render.backend = backend
+    ctx.memory_providers.append(runtime.memory_bytes)
+    ctx.status_providers["model"] = runtime.stats
+    if not runtime.load_error and runtime.device.type == "cpu":
+        # the point answers' compiled kernels, warmed by node.start()
+        ctx.kernel_modules += ["mapper.model.ops.sample_kernel", "mapper.model.ops.fusion_kernel",
+                               "mapper.model.ops.answer_kernel"]
+    if not runtime.load_error and ctx.config.global_map.learned_features:
+        install_pre_eviction_features(ctx, runtime)
+    if runtime.load_error or not ctx.config.global_map.rendered_depth:
+        return None
+    points = RenderedDepthPoints(ctx, runtime)
+    points.install()
+    return points
+
+
+def install_pre_eviction_features(ctx: NodeContext, runtime: ModelRuntime) -> PreEvictionFeatures:
+    """Write the model's blended features into the global map before keyframes leave the window
+    (:mod:`mapper.node.workers.map_features`); returns the installed worker (its thread runs from
+    ``node.start()``; :meth:`PreEvictionFeatures.process_pending` runs it in place)."""
+
+    def features(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        try:
+            return runtime.point_features(xyz)
+        except RuntimeNotReady:
+            return None
+
+    worker = PreEvictionFeatures(ctx, features)
+    worker.install()
+    return worker

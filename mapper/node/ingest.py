@@ -1,0 +1,139 @@
+"""The ingest path: one decoded ``frame`` -> the keyframe window, the integrator, an ``ack``.
+
+:func:`ingest_frame` runs on the ingest thread. Under the state lock it validates the frame against
+the map (OV space and feature dimension), then recognises a resent frame (same seq, stamp, camera,
+pose and K as a keyframe already in the window: acked ``accepted`` as a duplicate, not added twice),
+then lets :meth:`mapper.node.window.KeyframeWindow.consider` decide keyframe or not. A resent frame
+counts as a duplicate only after it passed the same validation as a new one. Outside the lock the
+new keyframe goes to the integrator (:mod:`mapper.node.integration`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from mapper.node.context import NodeContext
+from mapper.node.integration import IntegrateJob
+from mapper.node.window import Keyframe, fit_image, fit_intrinsics
+from protocol.errors import ProtocolError
+from protocol.messages import Ack, AckStatus, Frame
+
+__all__ = ["ingest_frame"]
+
+log = logging.getLogger("mapper.node.service")
+
+
+def _reject(ctx: NodeContext, frame: Frame, reason: str) -> Ack:
+    """A rejected ack (called with the state lock held)."""
+    ctx.state.ack_counts["rejected"] += 1
+    ctx.warn_limited("ingest:rejected", "frame seq %d rejected: %s", frame.seq, reason)
+    return Ack(seq=frame.seq, status="rejected", map_version=ctx.state.map_version, reason=reason,
+               id=frame.id)
+
+
+def _check_against_map(ctx: NodeContext, frame: Frame) -> Ack | None:
+    """The frame's OV features against the map's (state lock held): raises ``ov_space_mismatch``,
+    returns a rejected ack for another feature dimension, None when the frame fits."""
+    state = ctx.state
+    if frame.ov is None:
+        return None
+    if state.ov_space is not None and frame.ov_space != state.ov_space:
+        raise ProtocolError(
+            "ov_space_mismatch",
+            f"frame seq {frame.seq}: ov_space {frame.ov_space!r} differs from the map's "
+            f"{state.ov_space!r}; send features of that space, or load/start a map for yours",
+        )
+    dim = int(frame.ov.shape[2])
+    if state.ov_dim is not None and dim != state.ov_dim:
+        return _reject(
+            ctx, frame,
+            f"ov feature dimension {dim} differs from the map's {state.ov_dim} for space {state.ov_space!r}",
+        )
+    return None
+
+
+def _duplicate(ctx: NodeContext, frame: Frame, kept_K: np.ndarray) -> Ack | None:
+    """An ``accepted`` ack when ``frame`` is already a keyframe of the window (a client's retry after
+    a timeout or a node restart: same seq, stamp, camera, pose and K), else None (state lock held)."""
+    state = ctx.state
+    for kept in state.window.keyframes:
+        same_id = (kept.seq, kept.stamp_ns, kept.camera) == (frame.seq, frame.stamp_ns, frame.camera)
+        same_pose = np.array_equal(kept.world_from_cam, frame.world_from_cam)
+        if same_id and same_pose and np.array_equal(kept.K, kept_K):
+            state.ack_counts["accepted"] += 1
+            ctx.frames_duplicate += 1
+            return Ack(seq=frame.seq, status="accepted", map_version=state.map_version, id=frame.id,
+                       reason=f"duplicate: frame seq {frame.seq} is already a keyframe of the map")
+    return None
+
+
+def ingest_frame(ctx: NodeContext, frame: Frame) -> Ack:
+    """Consider one validated frame for the window; returns its ack (raises ``ProtocolError`` for an
+    error reply: nothing changed)."""
+    keyframe = Keyframe(
+        seq=frame.seq,
+        stamp_ns=frame.stamp_ns,
+        camera=frame.camera,
+        K=frame.K,
+        world_from_cam=frame.world_from_cam,
+        rgb=frame.rgb,
+        depth_m=frame.depth_m,
+        ov=frame.ov,
+        ov_space=frame.ov_space,
+    )
+    state = ctx.state
+    max_side = ctx.config.window.max_image_side
+    kept_K = fit_intrinsics(frame.K, frame.width, frame.height, max_side)  # K as a keyframe keeps it
+    if 0 < max_side < max(frame.width, frame.height):
+        with state.lock:  # shrink only what will be a keyframe (the ingest thread alone adds)
+            will_keep = state.window.is_keyframe(frame.camera, frame.world_from_cam)[0]
+        if will_keep:
+            fitted = fit_image(keyframe, max_side)  # outside the lock (tens of ms at 4096 px)
+            if fitted is not keyframe:
+                keyframe = fitted
+                ctx.frames_downscaled += 1
+    with state.lock:
+        refused = _check_against_map(ctx, frame)
+        if refused is not None:
+            return refused
+        duplicate = _duplicate(ctx, frame, kept_K)
+        if duplicate is not None:
+            return duplicate
+        update = state.window.consider(keyframe)
+        status: AckStatus
+        if update.added:
+            if frame.ov is not None:
+                state.ov_space = frame.ov_space
+                state.ov_dim = int(frame.ov.shape[2])
+            state.map_version += 1
+            state.keyframes_evicted += len(update.evicted)
+            if ctx.evicted_views is not None:
+                for old in update.evicted:
+                    ctx.evicted_views.put(old, state.global_map)
+            status = "keyframe"
+            ctx.publish(state.map_version, len(state.window))
+        else:
+            status = "accepted"
+        state.ack_counts[status] += 1
+        version = state.map_version
+        job = None
+        if update.added:
+            ctx.integration.submitted += 1  # with the window add: save's drain target
+            job = IntegrateJob(state.global_map, keyframe, version, state.ov_space, time.monotonic())
+    if job is not None:
+        # outside the state lock: the integrator thread fuses it into the global map shortly after
+        # this ack (queries keep working on their snapshot meanwhile); inline when
+        # ``global_map.integrate_queue`` is 0 or the integrator is not running
+        ctx.integration.submit(job)
+    log.debug(
+        "frame seq %d (%s): %s, moved %.3f m, turned %.1f deg",
+        frame.seq,
+        frame.camera,
+        status,
+        update.translation_m,
+        update.rotation_deg,
+    )
+    return Ack(seq=frame.seq, status=status, map_version=version, id=frame.id)
