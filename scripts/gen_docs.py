@@ -1,6 +1,7 @@
 """Generate the reference pages of the documentation site from the code.
 
-- ``docs/reference/cli.md`` and ``cli-training.md``: every ``govnesf`` command and subcommand, from its argparse parser
+- ``docs/reference/cli.md`` and ``cli-training.md``: every ``govnesf`` command and subcommand, from
+  its argparse parser
   (``clients.cli.SUBCOMMANDS`` lists the commands; each parser is caught as the command parses
   its arguments, so nothing runs).
 - ``docs/reference/config.md``: every key of the node's TOML (``govnesf serve --config``) and of
