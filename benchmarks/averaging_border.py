@@ -1,4 +1,4 @@
-"""Plain averaging with NO border cut at the points `govnesf evaluate` scores (docs/EVALUATION.md).
+"""Plain averaging with NO border cut at the points `govnesf evaluate` scores (docs/how-to/evaluate.md).
 
 `mapper.model.baselines.average_features` cuts a 10 px image border (OpenScene-2D); the model blends
 every view the point projects into. This prints averaging over the same candidate views as the

@@ -23,8 +23,9 @@ method (``average``, ``average_depth``, ``govnesf``). Runs:
   model's blend each time a keyframe that saw it leaves).
 
 Every other run uses the shipped ``[queries]`` (``map_radius_voxels = 2.5``, ``map_blend = 0.75``);
-the unbounded run too, so the comparison is like for like. (The "window first" rows of
-docs/QUERIES.md, the rule before 2026-12-03, came from this script's earlier version: ``git log``.)
+the unbounded run too, so the comparison is like for like. (The "window first" rows
+of docs/concepts/window-and-map.md, the rule before 2026-12-03, came from this script's earlier
+version: ``git log``.)
 
 Also the global map's own mIoU (each ground-truth point labelled by the nearest map point's fused
 feature within the lookup radius) with and without the learned features written before eviction.

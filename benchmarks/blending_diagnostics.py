@@ -1,4 +1,4 @@
-"""Does the learned blending avoid occluded views? Evidence for docs/EVALUATION.md.
+"""Does the learned blending avoid occluded views? Evidence for docs/how-to/evaluate.md.
 
 For each held-out scene, at ground-truth points seen by > 1 view, without depth:
 

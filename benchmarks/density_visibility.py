@@ -1,4 +1,4 @@
-"""Does the model's own density know which views are occluded? Evidence for docs/EVALUATION.md.
+"""Does the model's own density know which views are occluded? Evidence for docs/how-to/evaluate.md.
 
 The learned OV weights ignore occlusion (``blending_diagnostics.py``). This asks whether the
 density field could supply it: for each evaluation point and each candidate view, the

@@ -12,7 +12,7 @@ For learned blending (GOV-NeSF) and for averaging, on held-out scenes (scripts/m
   replaced by the plain mean over the views that see each sample (the last layer of MLP_s
   zeroed: constant logits). Time: seconds per rendered frame (at ``--pixel-stride``).
 
-Timings are wall-clock on whatever machine runs this (the numbers in docs/EVALUATION.md say
+Timings are wall-clock on whatever machine runs this (the numbers in docs/how-to/evaluate.md say
 which); they are not pass/fail criteria.
 
 Usage:
@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def load_results(path: Path) -> dict:
     """A saved run: the ``--out`` JSON, or the ``--markdown`` tables (the layout this script
-    prints, also used in docs/EVALUATION.md), as ``{"3d": [...], "2d": [...]}``."""
+    prints, also used in docs/how-to/evaluate.md), as ``{"3d": [...], "2d": [...]}``."""
     text = path.read_text()
     if path.suffix == ".json":
         return json.loads(text)

@@ -7,7 +7,7 @@ dominate the runtime's CPU time:
 * ``segment``: ``segment_points`` of ``--segment-points`` points, point mode (no query direction),
   in chunks of the runtime's ``chunk_points`` (4096) with N = ``num_source_views`` slots;
 * ``render``: the appearance of a 160 x 120 render with the default ``appearance_groups = 4``
-  (92,532 evaluations measured in docs/RENDERING.md), in the chunks a 4096-ray chunk makes.
+  (92,532 evaluations measured in docs/concepts/rendering.md), in the chunks a 4096-ray chunk makes.
 
 The inputs are laid out as ``GovNeSF.sample_views_indexed`` hands them over ((C, N, P)
 storage, P fastest). Each variant runs ``--repeats`` times under ``torch.no_grad`` (how the

@@ -1,7 +1,7 @@
 """Does a temperature on the learned OV blending logits help 3D segmentation? (issue 10, DGM target)
 
 With Depth Guided Masking the learned blend scores about a point below plain averaging over the
-views that pass the depth test (docs/EVALUATION.md). Dividing FusionNet's OV blending logits by a
+views that pass the depth test (docs/how-to/evaluate.md). Dividing FusionNet's OV blending logits by a
 temperature ``t`` moves the blend from the learned weights (``t = 1``) towards a uniform average
 over the same views (``t`` large); this measures every ``t`` on the same points with and without
 DGM, next to the averaging rows over the model's candidate views (0 px border), using the

@@ -1,4 +1,4 @@
-"""Benchmarks of the global semantic map and the semantic queries (numbers for docs/QUERIES.md).
+"""Benchmarks of the global semantic map and the semantic queries (docs/concepts/window-and-map.md).
 
     python benchmarks/semantic_map.py integrate  # integrate time per 160x120 keyframe (sim frames)
     python benchmarks/semantic_map.py query      # query_points on a sim room and on a large map

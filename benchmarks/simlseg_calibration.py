@@ -7,7 +7,7 @@ image (other labels ignored). Confusion matrices are accumulated per scene; mIoU
 classes present in the scene, averaged over scenes (``mapper.training.metrics``). A near / far split by
 distance along the ray shows how quality falls with distance.
 
-Target (docs/SIMLSEG.md): single-view mIoU 45-60% on both styles (LSeg on ScanNet: 55.9).
+Target (docs/concepts/simlseg.md): single-view mIoU 45-60% on both styles (LSeg on ScanNet: 55.9).
 
 Usage:
     HF_HUB_OFFLINE=1 .venv/bin/python benchmarks/simlseg_calibration.py [--scenes 3] [--frames 24]

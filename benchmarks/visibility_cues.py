@@ -1,7 +1,7 @@
 """Can the model's own geometry tell which source views see a point? (issue 10, lever 3)
 
-Evidence for docs/TRAINING.md. Two parts, both without input depth (bounds over the frames'
-depth points, as the "no depth" rows of docs/EVALUATION.md):
+Evidence for docs/how-to/train.md. Two parts, both without input depth (bounds over the frames'
+depth points, as the "no depth" rows of docs/how-to/evaluate.md):
 
 ``ray``: for each evaluation point and each stream frame it projects into, features of the
 segment from the point towards that camera: the volume feature and log(1 + density) at

@@ -14,7 +14,7 @@ Bounds (``--bounds``):
 * ``frusta``: over the N frames' frusta up to 4 m (no depth anywhere).
 
 No input depth reaches the network in any case; bounds ``own`` and ``fixed`` use the frames'
-depth points for the box only, as the "no depth" rows of docs/EVALUATION.md do.
+depth points for the box only, as the "no depth" rows of docs/how-to/evaluate.md do.
 
 A scene without ground truth (a real RGB-D recording, ``scripts/make_real_data.sh``: no ``gt/``
 folder) is read with the training loader at the model's working size, its own depth as the truth.

@@ -6,7 +6,7 @@ late reply of the dead socket) and the requests in flight are sent again, up to 
 times, after which a :class:`TimeoutError` says which endpoint did not answer. A frame sent
 twice this way is handled twice by the node (the second copy is usually just ``accepted``).
 
-With CurveZMQ (a node served with ``--curve-dir``; docs/SECURITY.md) pass
+With CurveZMQ (a node served with ``--curve-dir``; docs/how-to/robot-network.md) pass
 ``curve=load_client_keys(DIR, NAME)`` (or ``--curve-dir DIR --client NAME`` on every CLI command,
 :func:`add_curve_arguments`): every socket is then a CURVE client of the node. A client the node
 does not allow gets no reply at all, so it sees a :class:`TimeoutError`.
@@ -201,7 +201,8 @@ class _Channel:
 def add_curve_arguments(parser: argparse.ArgumentParser) -> None:
     """The connection options every CLI command shares for a node served with CurveZMQ:
     ``--curve-dir DIR --client NAME`` (read back with :func:`curve_from_args`)."""
-    group = parser.add_argument_group("CurveZMQ (a node served with --curve-dir; docs/SECURITY.md)")
+    group = parser.add_argument_group(
+        "CurveZMQ (a node served with --curve-dir; docs/how-to/robot-network.md)")
     group.add_argument(
         "--curve-dir", metavar="DIR", default=None,
         help="curve directory holding server.key and clients/NAME.key_secret (from `govnesf keys`)",

@@ -25,7 +25,7 @@ Steps, each printed as it happens:
    "find the chair" must again lie within 0.5 m of a real chair, ``segment_points`` mIoU (the
    four methods of step 5; the depth test takes the requested points as occluders) is printed,
    and the view of step 5 is rendered again
-   (``rgb_only/render.png``; PSNR and depth error printed; docs/RGB_ONLY.md).
+   (``rgb_only/render.png``; PSNR and depth error printed; docs/concepts/rgb-only.md).
 
 Outputs under ``out/demo/`` (override with ``--out``): ``*.ply`` / ``*.json`` per query,
 ``segmentation.json``, ``scene.ply`` (the ground-truth mesh), the node log and the map directory.
@@ -267,7 +267,7 @@ def _segment_points(client: MapperClient, xyz: np.ndarray, gt: np.ndarray, texts
     """Step 5, first part: ``segment_points`` with each method at the seen samples (mIoU). In step
     7 (no depth anywhere) the depth test of ``govnesf+DGM`` and ``average_depth`` takes the
     requested points as occluders (``model.point_occlusion``,
-    ``queries.point_occlusion``; docs/RGB_ONLY.md)."""
+    ``queries.point_occlusion``; docs/concepts/rgb-only.md)."""
     methods = [("govnesf", False), ("govnesf", True), ("average_depth", False), ("average", False)]
     if "govnesf" not in extra.get("segment_methods", []):
         print("  (the node serves no learned model: govnesf rows skipped; see the node log)")

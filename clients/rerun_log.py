@@ -17,9 +17,9 @@ Usage::
     with RerunLog(connect=url) as rlog:          # live; RerunLog(path, connect=url) does both
         rlog.log_query(points, ["chair"])
 
-Entity layout (world +z up, metres; see docs/RERUN.md):
+Entity layout (world +z up, metres; see docs/how-to/rerun.md):
 
-- ``world``: view coordinates right-handed, +z up (docs/CONVENTIONS.md).
+- ``world``: view coordinates right-handed, +z up (docs/concepts/conventions.md).
 - ``world/cameras/<camera>``: ``Transform3D`` = ``world_from_cam`` (camera-to-world);
   ``.../image``: ``Pinhole`` with ``K`` and the OpenCV optical frame (RDF: x right, y down,
   z forward); ``.../image/rgb``, ``.../image/depth`` (z-depth in metres, 0 = none),

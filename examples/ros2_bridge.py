@@ -12,7 +12,7 @@ What it does:
   ``Image`` registered to it (16UC1 mm / 32FC1 m; pairs by time with
   ``message_filters.ApproximateTimeSynchronizer``) and the camera's ``CameraInfo``;
 - looks up ``world_frame -> <image header.frame_id>`` in TF at the image's stamp (the camera's
-  optical frame: x right, y down, z forward, the project's camera frame; docs/CONVENTIONS.md
+  optical frame: x right, y down, z forward, the project's camera frame; docs/concepts/conventions.md
   "ROS TF") and sends each frame to the mapper's ingest endpoint (``clients.client.MapperClient``);
 - every ``query_period_s`` asks the mapper ``query_points(queries)`` and publishes the matching
   points as ``sensor_msgs/PointCloud2`` on ``~/points`` in ``world_frame``, with float32 fields
@@ -57,7 +57,7 @@ def frame_from_ros(
     rgb = decode_colour(image, IMAGE, "image")
     depth_m = decode_depth(depth, IMAGE, "depth") if depth is not None else None
     k = np.asarray(info.k, dtype=np.float64)
-    K = np.array([k[0], k[4], k[2] + 0.5, k[5] + 0.5])  # (4,) project convention, docs/CONVENTIONS.md
+    K = np.array([k[0], k[4], k[2] + 0.5, k[5] + 0.5])  # (4,) docs/concepts/conventions.md
     stamp_ns = int(image.header.stamp.sec) * 1_000_000_000 + int(image.header.stamp.nanosec)
     return Frame(
         seq=seq, stamp_ns=stamp_ns, width=rgb.shape[1], height=rgb.shape[0], K=K,

@@ -1,8 +1,9 @@
 """Optional dependencies: import them by name and fail with the extra that installs them.
 
 ``pip install govnesf`` installs the core (protocol, client library, node, learned model, text
-queries). Everything else lives in an extra (``pyproject.toml``, docs/INSTALL.md); code that needs
-one imports it through :func:`require`, so a missing package says which extra to install::
+queries). Everything else lives in an extra (``pyproject.toml``,
+docs/getting-started/install.md); code that needs one imports it through :func:`require`, so a
+missing package says which extra to install::
 
     o3d = require("open3d", "sim", "the simulator's ray casting")
 """

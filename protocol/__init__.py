@@ -1,7 +1,7 @@
 """Wire protocol v1 of the govnesf mapper: messages, validation, (de)serialisation, recordings.
 
 The ground floor of the project: imports nothing else from it. The contract is
-docs/PROTOCOL.md; conventions (frames, units, poses) are in docs/CONVENTIONS.md.
+docs/reference/protocol.md; conventions (frames, units, poses) are in docs/concepts/conventions.md.
 """
 
 from protocol.arrays import decode_image, decode_nd, encode_image, encode_nd

@@ -4,7 +4,7 @@ CurveZMQ is ZeroMQ's built-in authenticated encryption (Curve25519 key pairs; th
 CURVE server). Keys are stored in ``zmq.auth``'s own certificate format
 (``zmq.auth.create_certificates``: a ZPL text file with ``public-key`` and, in ``.key_secret``,
 ``secret-key``), so any ZeroMQ client (pyzmq, czmq, zmqpp, JeroMQ...) can use them. Layout
-(``govnesf keys DIR`` / ``govnesf keys DIR --client NAME``; docs/SECURITY.md)::
+(``govnesf keys DIR`` / ``govnesf keys DIR --client NAME``; docs/how-to/robot-network.md)::
 
     DIR/server.key               the node's public key: every client needs a copy
     DIR/server.key_secret        the node's secret key: stays on the node (mode 0600)
@@ -108,7 +108,8 @@ def load_certificate(path: Path, what: str, *, need_secret: bool) -> tuple[bytes
     import zmq.auth
 
     if not path.is_file():
-        raise CurveKeyError(f"{what}: {path} not found (make keys with `govnesf keys DIR`; docs/SECURITY.md)")
+        raise CurveKeyError(
+            f"{what}: {path} not found (make keys with `govnesf keys DIR`; docs/how-to/robot-network.md)")
     try:
         public, secret = zmq.auth.load_certificate(str(path))
     except (OSError, ValueError) as exc:

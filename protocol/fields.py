@@ -3,7 +3,7 @@
 A message class (see protocol/messages.py) is a dataclass declared with `@message` whose
 fields are declared with `wire(kind, ...)`: the field's `Kind` (its wire type, validation and
 codec), wire name, unit, and whether it is required. `@message` turns those declarations into
-the class's field table `FIELDS` (a `WireField` per row: what docs/PROTOCOL.md lists), and
+the class's field table `FIELDS` (a `WireField` per row: what docs/reference/protocol.md lists), and
 `check_fields` / `fields_to_wire` / `fields_from_wire` do the checks at construction, the
 encoding and the validating decoding from that table alone.
 
@@ -203,7 +203,7 @@ class Kind:
 
     @property
     def doc(self) -> str:
-        """The ``type`` column of this field's row in docs/PROTOCOL.md."""
+        """The ``type`` column of this field's row in docs/reference/protocol.md."""
         return self.TYPE_DOC
 
     def check(self, name: str, value: Any, ctx: Ctx) -> Any:
@@ -575,7 +575,7 @@ class Id(Kind):
 
 @dataclass(frozen=True)
 class WireField:
-    """One row of a message's field table (docs/PROTOCOL.md shows the same rows)."""
+    """One row of a message's field table (docs/reference/protocol.md shows the same rows)."""
 
     py: str | None
     """Python attribute; None for a wire-only key (`Frame`'s `depth_scale`)."""
@@ -618,7 +618,7 @@ class WireField:
 
     @property
     def row(self) -> tuple[str, str, str, str]:
-        """(key, type, unit, required) as in docs/PROTOCOL.md."""
+        """(key, type, unit, required) as in docs/reference/protocol.md."""
         if self.required is True:
             required = "yes"
         elif isinstance(self.required, str):

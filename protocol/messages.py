@@ -4,9 +4,9 @@ This module is the only place that knows the wire layout. Each message type is a
 declared with `@message` whose fields are declared with `wire(...)`: the field's kind (its wire
 type, validation and codec), wire name, unit and whether it is required. From that one
 declaration (the machinery is protocol/fields.py) the class gets `FIELDS` (its field table,
-which docs/PROTOCOL.md shows row for row), `to_wire()` (-> the msgpack map), `from_wire(obj)`
+which docs/reference/protocol.md shows row for row), `to_wire()` (-> the msgpack map), `from_wire(obj)`
 (validating) and the checks run at construction. Python field names are snake_case SI
-(`world_from_cam`, `depth_m`); wire names are exactly those of docs/PROTOCOL.md
+(`world_from_cam`, `depth_m`); wire names are exactly those of docs/reference/protocol.md
 (`T_world_cam`, `depth`).
 
 Validation happens at construction (``__post_init__``), so a message built in Python and a
@@ -14,7 +14,7 @@ message decoded from the wire obey the same rules, and `ProtocolError("bad_reque
 was wrong, with the value received and the allowed range. Checks that span fields (an `ov`
 needs its `ov_space`) are each message's small `_check` hook.
 
-Example:
+Examples:
     >>> import numpy as np
     >>> msg = QueryPoints(texts=["chair"], id=7)
     >>> decode(encode(msg)) == msg
@@ -636,7 +636,7 @@ class Status(Message):
     uptime_s: float = wire(Float(lo=0.0), unit="s", doc="Seconds since the node started.")
     extra: dict[str, Any] = wire(
         Rest(), default_factory=dict, before="map_version",
-        doc="Further operator information (flat keys on the wire; see docs/PROTOCOL.md).",
+        doc="Further operator information (flat keys on the wire; see docs/reference/protocol.md).",
     )
     id: RequestId = wire(ID, default=None)
 

@@ -7,7 +7,7 @@ sends byte-for-byte what was recorded. A cut-short or corrupt tail stops the ite
 `truncated=True` and an `error` saying at which byte offset and message index; every complete
 frame before it is still yielded.
 
-Example:
+Examples:
     >>> import tempfile, pathlib
     >>> path = pathlib.Path(tempfile.mkdtemp()) / "empty.govrec"
     >>> with RecordingWriter(path, meta={"scene": "demo"}) as rec:

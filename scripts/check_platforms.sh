@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Prove the platform claim of the core install (docs/INSTALL.md): `pip download --only-binary=:all:`
+# Prove the platform claim of the core install (docs/getting-started/install.md): `pip download --only-binary=:all:`
 # of the core's dependency set (pyproject.toml [project.dependencies], exact pins, and whatever
 # they pull in) for a platform that is not this machine's, into a temporary folder that is deleted
 # afterwards. A platform passes when every package of the set has a binary wheel for it.

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Every measurement docs/EVALUATION.md and docs/TRAINING.md quote for one checkpoint, in one go.
+# Every measurement docs/how-to/evaluate.md and docs/how-to/train.md quote for one checkpoint, in one go.
 #
 # Usage: scripts/evaluate_checkpoint.sh CHECKPOINT OUT_DIR [PARTS...]
 #   CHECKPOINT  e.g. checkpoints/cpu-small.json

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Generate the held-out evaluation scenes for `govnesf evaluate` (docs/EVALUATION.md).
+# Generate the held-out evaluation scenes for `govnesf evaluate` (docs/how-to/evaluate.md).
 #
 # Usage: scripts/make_eval_data.sh [DATA_DIR] [N_SCENES] [FRAMES]
 #   DATA_DIR  output root (default: data/eval); writes DATA_DIR/<style>_sNNNN for both styles:
@@ -8,7 +8,7 @@
 #   FRAMES    frames per scene (default 80)
 # Seeds 2000+ are used by neither training (0 .. N_TRAIN-1) nor validation (1000-1002), see
 # scripts/make_train_data.sh. Each scene is a `govnesf sim record` export with depth and
-# SimLSeg features (docs/SIM.md), plus gt/novel_ov.npy: SimLSeg run on the ground-truth image
+# SimLSeg features (docs/how-to/simulator.md), plus gt/novel_ov.npy: SimLSeg run on the ground-truth image
 # of each novel view (scripts/novel_view_ov.py), the "2D model at the novel view" reference.
 # Complete scenes are skipped, so the script can be re-run after an interruption.
 # Env: STYLES (default "apartment studio"), SEED0 (default 2000), WIDTH/HEIGHT (160x120),

@@ -5,7 +5,7 @@
 #   writes DATA_DIR/real/icl_livingroom1/frames.govrec (colour, depth and poses; no ov maps, no
 #   labels) from ../shared/data/icl_livingroom1 (ICL-NUIM "living room 1", Open3D layout, 211
 #   frames; CC BY 3.0, credit the ICL-NUIM authors). Then train with
-#     extra_train_dirs = ["DATA_DIR/real"], extra_train_weight = 0.25   (docs/TRAINING.md)
+#     extra_train_dirs = ["DATA_DIR/real"], extra_train_weight = 0.25   (docs/how-to/train.md)
 # `govnesf import` has no resize option, so the recording keeps the camera's 640 x 480 (colour
 # stored as lossless PNG); training resizes it to the training scenes' size when it loads it
 # (`load_scene(image_wh=...)`: colour by area, depth nearest, intrinsics scaled).

@@ -3,7 +3,7 @@
 #
 # Usage: scripts/make_train_data.sh [DATA_DIR] [N_TRAIN] [FRAMES]
 #   DATA_DIR  output root (default: data); writes DATA_DIR/train/apartment_sNNNN and
-#             DATA_DIR/val/apartment_sNNNN (each a `govnesf sim record` export, see docs/SIM.md)
+#             DATA_DIR/val/apartment_sNNNN (each a `govnesf sim record` export, see docs/how-to/simulator.md)
 #   N_TRAIN   number of training scenes (default 24; seeds 0 .. N_TRAIN-1)
 #   FRAMES    frames per scene (default 80)
 # Validation uses seeds 1000-1002 (never training seeds). Existing complete scenes are skipped,

@@ -25,7 +25,7 @@ if [ ! -f "$STAMP" ] || [ pyproject.toml -nt "$STAMP" ] || [ setup.py -nt "$STAM
         || [ constraints.txt -nt "$STAMP" ] || [ govnesf/__init__.py -nt "$STAMP" ]; then
     echo "[setup] installing pinned packages into $VENV (about a minute on a cold machine)"
     start=$(date +%s)
-    # every extra (docs/INSTALL.md): the demo needs [sim], the tests cover [rerun], [import], [clip]
+    # every extra (docs/getting-started/install.md): the demo needs [sim], the tests cover [rerun], [import], [clip]
     "$VENV/bin/python" -m pip install -q --disable-pip-version-check -c constraints.txt -e '.[all,dev]'
     echo "[setup] installed in $(( $(date +%s) - start )) s"
     touch "$STAMP"

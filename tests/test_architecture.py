@@ -1,4 +1,4 @@
-"""The layout's rules, checked from the source (docs/ARCHITECTURE.md, "Layout and import rules").
+"""The layout's rules, checked from the source (docs/concepts/architecture.md, "Layout and import rules").
 
 * no import cycle anywhere in protocol/, mapper/, clients/ (imports inside functions count: a
   cycle closed lazily is still a cycle);
@@ -139,7 +139,7 @@ def test_graph_sees_lazy_and_relative_imports(tmp_path: Path) -> None:
 
 def test_no_import_cycles() -> None:
     cycles = find_cycles(import_graph())
-    assert not cycles, "import cycles (break them; docs/ARCHITECTURE.md): " + "; ".join(
+    assert not cycles, "import cycles (break them; docs/concepts/architecture.md): " + "; ".join(
         " <-> ".join(c) for c in cycles
     )
 

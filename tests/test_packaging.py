@@ -180,7 +180,8 @@ def test_version_in_one_place() -> None:
     assert PYPROJECT["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "govnesf.__version__"}
     assert __version__.count(".") == 2 and all(p.isdigit() for p in __version__.split("."))
     changelog = (ROOT / "CHANGELOG.md").read_text()
-    assert f"## {__version__}" in changelog, "CHANGELOG.md has no section for the current version"
+    assert f"## [{__version__}]" in changelog, "CHANGELOG.md has no section for the current version"
+    assert changelog.index("## [Unreleased]") < changelog.index(f"## [{__version__}]")  # Keep a Changelog
     proc = subprocess.run(
         [sys.executable, "-m", "clients.cli", "--version"],
         cwd=ROOT, capture_output=True, text=True, timeout=30, env={**_clean_env(), "PYTHONPATH": str(ROOT)},

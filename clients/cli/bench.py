@@ -1,6 +1,6 @@
 """``govnesf bench``: start a real node (subprocess) and measure it; write JSON + Markdown.
 
-What is measured (docs/BENCHMARKS.md explains each number and the targets):
+What is measured (docs/results.md explains each number and the targets):
 
 * machine: CPU model, cores, RAM, Python, torch / numpy / pyzmq versions;
 * ``startup_s``: process spawn to the first ``status`` reply;

@@ -1,4 +1,4 @@
-"""``govnesf keys``: make CurveZMQ key files for a node and its clients (docs/SECURITY.md).
+"""``govnesf keys``: make CurveZMQ key files for a node and its clients (docs/how-to/robot-network.md).
 
 ::
 

@@ -7,7 +7,7 @@ Exit codes: 0 success, 1 the node did not answer (or an ``--out`` file could not
 (text, centroid, score, points), writes the matching points as a binary PLY (float32 xyz, a float32
 ``score`` property, coloured by score with the viridis colormap, dark = low, yellow = high; an empty
 answer gives a valid PLY with 0 points; ``clients/ply.py``) and the objects as JSON; ``--rerun F.rrd``
-logs both for the Rerun viewer (``clients/rerun_log.py``, docs/RERUN.md).
+logs both for the Rerun viewer (``clients/rerun_log.py``, docs/how-to/rerun.md).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Dataset importers: convert ScanNet, Replica (NICE-SLAM layout), TUM RGB-D, 7-Scenes, Open3D
 logs, ROS 2 bags and the simulator's export into ``.govrec`` recordings (``govnesf import``; see
-``docs/IMPORT.md``).
+``docs/how-to/import.md``).
 
 Example::
 

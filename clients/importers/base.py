@@ -1,7 +1,7 @@
 """Common ground for the dataset importers: the frame record, the reader interface, small helpers.
 
 Every reader turns one dataset layout into a stream of :class:`ImportedFrame` records in the
-project's conventions (see ``docs/IMPORT.md``):
+project's conventions (see ``docs/how-to/import.md``):
 
 - camera frame OpenCV optical (+x right, +y down, +z forward), poses ``world_from_cam``
   (camera-to-world, metres), world frame as the dataset defines it (not re-aligned);

@@ -19,7 +19,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser = argparse.ArgumentParser(
         prog="govnesf import",
-        description="Convert a dataset folder to a .govrec recording (see docs/IMPORT.md).",
+        description="Convert a dataset folder to a .govrec recording (see docs/how-to/import.md).",
         epilog=f"formats:\n{formats}",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--overwrite", action="store_true", help="replace FILE.govrec if it exists")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    ros = parser.add_argument_group("rosbag options (FORMAT rosbag only; docs/IMPORT.md)")
+    ros = parser.add_argument_group("rosbag options (FORMAT rosbag only; docs/how-to/import.md)")
     for flag, meta, text in ROSBAG_FLAGS:
         ros.add_argument(flag, metavar=meta, default=None, help=text)
     ros.add_argument("--max-dt", type=float, default=None, metavar="S",

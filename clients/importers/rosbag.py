@@ -23,7 +23,7 @@ all times. Images without a partner are skipped and counted.
 
 ROS quaternions are (x, y, z, w) (scalar last), as ``scipy.spatial.transform.Rotation.from_quat``
 takes them; a TF ``parent -> child`` transform is ``parent_from_child`` in our naming. See
-``docs/CONVENTIONS.md`` ("ROS TF") and ``docs/IMPORT.md``.
+``docs/concepts/conventions.md`` ("ROS TF") and ``docs/how-to/import.md``.
 """
 
 from __future__ import annotations

@@ -121,4 +121,5 @@ class SevenScenesReader(DatasetReader):
     def warnings(self) -> list[str]:
         if not self.options.load_depth:
             return []
-        return ["7-Scenes colour and depth are not registered; they are paired as is (see docs/IMPORT.md)"]
+        return ["7-Scenes colour and depth are not registered; they are paired as is "
+                "(see docs/how-to/import.md)"]

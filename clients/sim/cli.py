@@ -5,7 +5,7 @@
     govnesf sim stream --seed 0 --style apartment --frames 300 [--depth] [--no-ov]
                        --ingest tcp://127.0.0.1:5555 --rate 10
 
-See docs/SIM.md for the export layout.
+See docs/how-to/simulator.md for the export layout.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Record the simulated robot: a `.govrec` stream plus ground truth for evaluation.
 
-Layout written by `record(config, out_dir)` (see docs/SIM.md)::
+Layout written by `record(config, out_dir)` (see docs/how-to/simulator.md)::
 
     DIR/frames.govrec          frames: rgb, optional depth, optional SimLSeg `ov` (minilm-l6-v2)
     DIR/scene.ply              the mesh, each face coloured by its label (palette in gt/)

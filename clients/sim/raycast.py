@@ -1,6 +1,6 @@
 """Ray-cast renderer for procedural scenes (Open3D `RaycastingScene`, or a pure-torch fallback).
 
-Two ray-casting backends give the same hits up to float32 ties (`SceneRenderer`, docs/SIM.md):
+Two ray-casting backends give the same hits up to float32 ties (`SceneRenderer`, docs/how-to/simulator.md):
 Open3D's `RaycastingScene` (CPU, the default where it is installed) and `TorchRaycaster`
 (Moller-Trumbore in float32 on CUDA when available, else on the CPU), which lets the simulator
 run where open3d has no wheel. `GOVNESF_SIM_RAYCAST` = `open3d` | `torch` picks one (unset: auto).

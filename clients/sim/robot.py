@@ -4,7 +4,7 @@ The robot drives a smooth loop through the free floor near the walls (just in fr
 furniture that stands against them) and looks ACROSS the room: towards a target that wanders
 around the room's middle, at furniture height, so views see occluders at several depths. This is
 where plain multi-view averaging of open-vocabulary features fails and learned blending can win
-(see docs/SIM.md).
+(see docs/how-to/simulator.md).
 
 How a loop is made:
 1. Rasterise the footprints of every obstacle (all instances except rugs, plus structural blocks)

@@ -13,7 +13,7 @@ pixel's class name), corrupted the way real 2D open-vocabulary models are:
   confused more often and are noisier;
 * per-pixel noise.
 
-Everything is deterministic given ``(seed, frame_index)``. ``docs/SIMLSEG.md`` has the
+Everything is deterministic given ``(seed, frame_index)``. ``docs/concepts/simlseg.md`` has the
 calibration (single-view 2D mIoU, near/far split) against the ground truth.
 
 Example:
@@ -47,7 +47,7 @@ class TextEncoderLike(Protocol):
 
 @dataclass(frozen=True)
 class SimLSegConfig:
-    """Corruption model of the simulator. Defaults are calibrated (docs/SIMLSEG.md) so that the
+    """Corruption model of the simulator. Defaults are calibrated (docs/concepts/simlseg.md) so that the
     single-view 2D mIoU over the 20 ScanNet classes lies in 45-60% (LSeg on ScanNet: 55.9)."""
 
     stride: int = 4

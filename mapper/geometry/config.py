@@ -297,7 +297,7 @@ class StereoConfig:
     as ``render`` splats them: ``mapper.node.queries.surface_depth``) shows at the keyframe's pose.
     The priors of the latest ``window.max_keyframes`` keyframes are filled again when the number of
     geometry points moved by more than ``prior_geometry_refresh`` since they last were. Measured:
-    +0.05 to +3.1 mIoU for ``govnesf`` + DGM on four RGB-only rooms (docs/RGB_ONLY.md)."""
+    +0.05 to +3.1 mIoU for ``govnesf`` + DGM on four RGB-only rooms (docs/concepts/rgb-only.md)."""
 
     prior_geometry_refresh: float = 0.1
     """See ``prior_geometry`` (relative change of the geometry's point count). 0..10."""

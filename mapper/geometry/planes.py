@@ -8,7 +8,7 @@ that its points support (a grid of cells on the plane, closed over small gaps), 
 never extends past the evidence for it. :func:`plane_depth` is the z-depth a camera sees on the
 nearest supported plane: the node's ``render`` can take it where no measured point covers a pixel.
 
-Pure numpy + OpenCV (no torch, no node state). Conventions (docs/CONVENTIONS.md): ``K = [fx, fy,
+Pure numpy + OpenCV (no torch, no node state). Conventions (docs/concepts/conventions.md): ``K = [fx, fy,
 cx, cy]``, ``world_from_cam`` camera-to-world in the OpenCV optical frame, rays through pixel
 centres (+0.5), z-depth along the optical axis.
 

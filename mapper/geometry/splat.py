@@ -6,7 +6,7 @@ global map's, or an RGB-only window's triangulated and plane-sweep points), and 
 use :func:`splat_points` for pixels the render found no surface in. :func:`fill_holes` closes
 small gaps between point footprints.
 
-Conventions (docs/CONVENTIONS.md): ``K = [fx, fy, cx, cy]`` for a ``width x height`` image,
+Conventions (docs/concepts/conventions.md): ``K = [fx, fy, cx, cy]`` for a ``width x height`` image,
 ``world_from_cam`` camera-to-world in the OpenCV optical frame, z-depth along the optical axis.
 """
 

@@ -6,7 +6,7 @@ known poses is triangulated; this module does it for one new keyframe against a 
 
 1. :meth:`FeatureExtractor.detect`: SIFT (default) or ORB keypoints and descriptors on the
    grayscale image (optionally upscaled, ``detect_upscale``). Keypoint positions follow
-   docs/CONVENTIONS.md: pixel (i, j) has its centre at ``(i + 0.5, j + 0.5)``; OpenCV puts pixel
+   docs/concepts/conventions.md: pixel (i, j) has its centre at ``(i + 0.5, j + 0.5)``; OpenCV puts pixel
    centres at integers, so ``uv = (pt + 0.5) / detect_upscale``.
 2. :func:`select_partners`: earlier views whose frustum overlaps the new one (the fraction of a
    pixel grid of the new view, placed at three probe depths, that projects into the candidate in

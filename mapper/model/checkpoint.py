@@ -14,7 +14,7 @@ Every file is written to a temporary file in the same folder and moved into plac
 (``os.replace``); the JSON is written last and names the SHA-256 of the weights it belongs to, so a
 reader never pairs a JSON with half-written or mismatched weights.
 
-Example:
+Examples:
     >>> from mapper.model.checkpoint import load_model
     >>> model, meta = load_model("checkpoints/cpu-small.json")  # run from the repository root
     >>> meta["preset"], meta["mode"]

@@ -92,7 +92,7 @@ def blend(weights: Tensor, values: Tensor) -> Tensor:
       faster than ``einsum`` on that layout for 4096 x 8 x 384 on the CPU (2.1 vs 80 ms);
     * otherwise, and whenever autograd records (training), a batched matrix product (``einsum``;
       no (P, N, C) temporary). Training keeps this one path so that a training run is
-      bit-for-bit what it was when the committed checkpoints were made (docs/TRAINING.md).
+      bit-for-bit what it was when the committed checkpoints were made (docs/how-to/train.md).
     """
     w = weights.to(values.dtype)
     recording = torch.is_grad_enabled() and (w.requires_grad or values.requires_grad)

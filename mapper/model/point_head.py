@@ -2,7 +2,7 @@
 
 ``segment_points`` (and the model's features written into the global map) only need the
 FusionNet's OV weights over each point's source views; on two CPU cores that network is most of
-the query's time (docs/BENCHMARKS.md). A point head is a FusionNet of the same architecture and
+the query's time (docs/results.md). A point head is a FusionNet of the same architecture and
 inputs, narrower, trained to give the teacher's OV weights (``mapper.training.point_head``,
 ``govnesf distill-point-head``); the runtime uses it in place of the teacher's for point answers
 when ``model.point_head`` names one. Renders keep the teacher (colour weights, query directions).

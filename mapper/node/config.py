@@ -164,7 +164,7 @@ class GlobalMapConfig:
     rendered_consistency_sigmas: float = 1.0
     """A triangulated point agrees with a rendered depth within this many of its 1-sigma
     uncertainties (but never less than ``rendered_consistency_voxels`` voxels). 0..100. (3 and 2
-    voxels before 2026-12-03's fifth session; 1 and 1: RGB-only map points 0.095 -> 0.073 m median
+    voxels before 2026-12-03; 1 and 1: RGB-only map points 0.095 -> 0.073 m median
     from the surface, docs/RGB_ONLY.md.)"""
 
     rendered_consistency_voxels: float = 1.0

@@ -27,7 +27,7 @@ token on its own::
 
 Positional embeddings are interpolated bicubically to the patch grid of the input, whose aspect
 ratio follows the image (``input_size`` sets the short side). Images are normalised with CLIP's
-mean/std. See ``docs/OV_BACKENDS.md`` for where to get weights and the BPE file.
+mean/std. See ``docs/how-to/clip-weights.md`` for where to get weights and the BPE file.
 
 Nothing here downloads anything.
 """
@@ -380,7 +380,7 @@ def read_state_dict(path: str | Path) -> dict[str, Tensor]:
     if not p.is_file():
         raise FileNotFoundError(
             f"CLIP weights {str(p)!r} not found; point weights_path at a local state dict "
-            "(.pt or .safetensors, see docs/OV_BACKENDS.md)"
+            "(.pt or .safetensors, see docs/how-to/clip-weights.md)"
         )
     if p.suffix == ".safetensors":
         from safetensors.torch import load_file
@@ -392,7 +392,7 @@ def read_state_dict(path: str | Path) -> dict[str, Tensor]:
                 f"{str(p)!r} is a TorchScript archive (OpenAI's original CLIP .pt), which is not supported; "
                 'convert it once to a plain state dict: python -c "import torch; '
                 f"m = torch.jit.load('{p.name}', map_location='cpu'); "
-                "torch.save(m.state_dict(), 'clip_state_dict.pt')\" (see docs/OV_BACKENDS.md)"
+                "torch.save(m.state_dict(), 'clip_state_dict.pt')\" (see docs/how-to/clip-weights.md)"
             )
         try:
             obj = torch.load(str(p), map_location="cpu", weights_only=True)

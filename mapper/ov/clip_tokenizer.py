@@ -126,7 +126,7 @@ class ClipTokenizer:
         if not path.is_file():
             raise FileNotFoundError(
                 f"CLIP BPE merges file {str(path)!r} not found; point bpe_path at a local copy of "
-                "bpe_simple_vocab_16e6.txt.gz (see docs/OV_BACKENDS.md)"
+                "bpe_simple_vocab_16e6.txt.gz (see docs/how-to/clip-weights.md)"
             )
         raw = gzip.open(path).read() if path.name.endswith(".gz") else path.read_bytes()
         try:

@@ -23,7 +23,7 @@ class ClipBackendConfig:
     weights_path: str
     """Local checkpoint: a plain state dict saved with ``torch.save`` (``.pt``/``.pth``/``.bin``)
     or a ``.safetensors`` file. OpenAI's TorchScript ``.pt`` archives are not supported (convert
-    them once, see docs/OV_BACKENDS.md)."""
+    them once, see docs/how-to/clip-weights.md)."""
 
     bpe_path: str
     """Local ``bpe_simple_vocab_16e6.txt.gz`` (CLIP's BPE merges)."""

@@ -28,7 +28,7 @@ class ModelRuntimeConfig:
     (``segment_points`` with the learned model, the model's features written into the global map)
     in place of the checkpoint's FusionNet; renders keep the checkpoint's. ``"auto"``: the head
     ``NAME-point-head`` next to the checkpoint ``NAME`` when there is one distilled from these
-    weights (cpu-small ships one: labels 99.2-99.8% equal to its own network's, docs/TRAINING.md),
+    weights (cpu-small ships one: labels 99.2-99.8% equal to its own network's, docs/how-to/train.md),
     else the checkpoint's own network. ``""``: always the checkpoint's own. A path (looked up as
     ``checkpoint`` is): that head; one distilled from other weights, or one that cannot be read,
     leaves the model unserved with the reason (as a bad checkpoint does)."""
@@ -75,7 +75,7 @@ class ModelRuntimeConfig:
     """Source views per point for point answers (``segment_points``, the model's features written
     into the global map), never fewer than ``source_views``; 0 = ``source_views``. Renders keep
     ``source_views`` (more views cost per pixel). 16: the cpu-small model (trained with 8) blends
-    more views better, as averaging does (docs/EVALUATION.md). 0..256."""
+    more views better, as averaging does (docs/how-to/evaluate.md). 0..256."""
 
     view_selection: str = "nearest"
     """How the top-k views of a cell are ranked after visibility: ``"nearest"`` (camera centre
@@ -92,7 +92,7 @@ class ModelRuntimeConfig:
     masked, as a depth map would mask it. The points a robot asks about are surfaces; asked about
     densely (a map, a scan, a room's points) they hide one another as the scene does. Off: those
     keyframes use their depth prior (plane-sweep stereo and triangulation, ``[stereo]``) as before.
-    Measured on the six held-out scenes (docs/RGB_ONLY.md, "The request's points as occluders"):
+    Measured on the six held-out scenes (docs/concepts/rgb-only.md, "The request's points as occluders"):
     RGB-only ``govnesf`` + DGM 55.6 / 55.1 -> 59.3 / 56.0 3D mIoU (apartment / studio; 59.5 / 56.8
     with ``dgm_view_selection`` and ``point_occlusion_prior_veto``). At the node's own RGB-only map
     points, which lie off their surfaces more often, the test is worth less. Keyframes with input
@@ -102,7 +102,7 @@ class ModelRuntimeConfig:
     """``point_occlusion``: drop a keyframe's occluder pixel where that keyframe's own depth prior
     (plane-sweep and triangulated depths, ``[stereo]``) sees through it, i.e. the prior's surface
     lies farther than the occluding point by more than the DGM tolerance (the point is likely off
-    its surface). Off: every requested point occludes. Measured (docs/RGB_ONLY.md): at the node's
+    its surface). Off: every requested point occludes. Measured (docs/concepts/rgb-only.md): at the node's
     own RGB-only map points ``govnesf`` + DGM 48.0 / 49.1 / 48.2 / 33.0 -> 50.1 / 52.6 / 49.7 / 34.7
     (four rooms), at ground-truth points 60.6 / 65.5 / 48.2 / 51.7 -> 59.9 / 65.8 / 47.1 / 51.4 and
     held out 59.7 / 56.7 -> 59.5 / 56.8."""
@@ -111,7 +111,7 @@ class ModelRuntimeConfig:
     """``segment_points`` with ``use_depth``: choose each cell's views among those that pass the
     depth test (input depth, else the request's points as occluders or the depth prior), so that
     DGM does not mask views that were chosen in place of visible ones. Off: views are chosen by
-    whether the point projects into them, then DGM masks. Measured (docs/RGB_ONLY.md, "The
+    whether the point projects into them, then DGM masks. Measured (docs/concepts/rgb-only.md, "The
     request's points as occluders"): ``govnesf`` + DGM with depth 62.0 / 47.7 / 51.1 -> 61.8 / 47.8
     / 52.6 3D mIoU (demo room, studio seeds 9 and 11), without depth 60.6 / 47.7 / 50.5 -> 60.6 /
     48.2 / 51.7, held out without depth 59.3 / 56.0 -> 59.7 / 56.7 (apartment / studio)."""
@@ -130,7 +130,7 @@ class ModelRuntimeConfig:
     keyframe. The network was trained on volumes of its ``num_source_views`` (8) sources; over a
     whole window its density blurs (the depth of apartment_s1000's frames, median relative error
     0.049 from their 8 best sources against 0.15 from 30 and 0.19 from all 80). 0 (default) =
-    the window's volume: measured on three RGB-only streams (docs/RENDERING.md, "Render volumes
+    the window's volume: measured on three RGB-only streams (docs/concepts/rendering.md, "Render volumes
     from the overlapping keyframes"), 8 made the model's own march far better (depth 0.265 ->
     0.175, 0.565 -> 0.406, 0.328 -> 0.208) but the node's renders, which take most pixels from
     the measured geometry, lost 0.3-0.8 dB. The rendered-depth map points have their own setting,
@@ -166,7 +166,7 @@ class ModelRuntimeConfig:
     its 26 neighbours stays below this. >= 0."""
 
     carve_free_space: bool = False
-    """Off by default (measured in docs/RGB_ONLY.md: RGB-only rendered depth 0.273 -> 0.264 and
+    """Off by default (measured in docs/concepts/rgb-only.md: RGB-only rendered depth 0.273 -> 0.264 and
     0.332 -> 0.321 median relative error, but the studio's RGB-only chair 0.20 -> 1.21 m). On: with
     skipping, the occupancy grid also leaves out the space that depth priors of keyframes
     WITHOUT input depth (``set_view_depth_prior``: plane-sweep stereo and triangulated points) see
@@ -230,13 +230,14 @@ class ModelRuntimeConfig:
     plane-sweep depths, ``MapperNode.surface_points``; an RGB-only global map also holds the
     model's own rendered depth, too far off to render at); ``"on"``: the global map's points
     always; ``"off"``: march every pixel. Sharper, with far better depth, and several times
-    faster than marching the model's diffuse density (docs/RENDERING.md, "Surfaces from the
+    faster than marching the model's diffuse density (docs/concepts/rendering.md, "Surfaces from the
     map"). ``ModelRuntime.render`` used in-process without a node marches."""
 
     surface_geometry_footprint: float = 0.5
     """Footprint of each RGB-only geometry point (triangulated, plane-sweep) in the splat, in map
     voxels (``global_map.voxel_size_m``); the global map's points cover one voxel. Half a voxel
-    with ``surface_fill_px = 4`` measured best on three of four rooms (docs/RENDERING.md). 0.01..10."""
+    with ``surface_fill_px = 4`` measured best on three of four rooms (docs/concepts/rendering.md).
+    0.01..10."""
 
     surface_see_through_px: int = 3
     """A map-surface pixel with a nearer map surface (by more than ``surface_see_through_rel``) on
@@ -250,7 +251,7 @@ class ModelRuntimeConfig:
     """Islands of the splat of at most this many pixels (4-connected, neighbours' depths within
     ``surface_fill_rel``) are dropped before filling (an isolated point floating off the surfaces
     around it covers up to 25 pixels) and marched instead. 0 = keep them (default: at 40, measured
-    in docs/RENDERING.md, RGB-only renders were no better overall). 0..100000."""
+    in docs/concepts/rendering.md, RGB-only renders were no better overall). 0..100000."""
 
     surface_fill_px: int = 4
     """Holes of the map's splat (between point footprints, or left by the see-through test) up to
@@ -272,7 +273,7 @@ class ModelRuntimeConfig:
     """RGB-only renders: pixels that neither the geometry nor its planes cover take the global
     map's splatted surface where it has one (the map's triangulated, swept and agreed
     rendered-depth points, one voxel each), instead of marching the model's density. Measured on
-    five rooms with run K (docs/RGB_ONLY.md): depth error lower in three, equal in one, higher in
+    five rooms with run K (docs/concepts/rgb-only.md): depth error lower in three, equal in one, higher in
     the demo room (0.057 -> 0.069). False = march those pixels."""
 
     surface_nearest_fill_px: float = 10_000.0
@@ -280,7 +281,7 @@ class ModelRuntimeConfig:
     geometry, its planes nor the map's splat cover, within this many pixels of a pixel they do
     cover, take that nearest pixel's surface instead of the model's march
     (:func:`mapper.geometry.splat.fill_nearest`); the default reaches every pixel of any image up
-    to 10 000 px across. 0 = off (marched). Measured (docs/RGB_ONLY.md, "Nearest-surface fill"):
+    to 10 000 px across. 0 = off (marched). Measured (docs/concepts/rgb-only.md, "Nearest-surface fill"):
     rendered depth at held-out poses 0.069 / 0.082 / 0.048 / 0.134 / 0.083 -> 0.070 / 0.068 / 0.045
     / 0.099 / 0.066 median relative error in five rooms, PSNR +0.3 to +0.7 dB in four (-0.08 in
     one), and on the real ICL-NUIM sequence 5.7% -> 4.6% at 19.01 -> 19.14 dB. 0..10000."""

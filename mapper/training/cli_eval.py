@@ -1,4 +1,4 @@
-"""`govnesf evaluate`: the model against its baselines on held-out scenes (docs/EVALUATION.md).
+"""`govnesf evaluate`: the model against its baselines on held-out scenes (docs/how-to/evaluate.md).
 
     govnesf evaluate --checkpoint checkpoints/cpu-small.json --data data/eval \\
         [--distill checkpoints/distill.json] [--out results.json] [--markdown tables.md] \\

@@ -1,4 +1,4 @@
-"""``govnesf train``: train the GOV-NeSF model (see docs/TRAINING.md).
+"""``govnesf train``: train the GOV-NeSF model (see docs/how-to/train.md).
 
 Examples:
     govnesf train --config launch/train_cpu_small.toml

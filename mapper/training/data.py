@@ -1,6 +1,6 @@
 """Training data for GOV-NeSF: scenes read from `govnesf sim record` exports, sampled as ray batches.
 
-A scene directory (see docs/SIM.md) holds ``frames.govrec`` (rgb, depth, SimLSeg ov per frame)
+A scene directory (see docs/how-to/simulator.md) holds ``frames.govrec`` (rgb, depth, SimLSeg ov per frame)
 and ``gt/`` (``novel_views.npz`` with held-out views and their labels, used for validation).
 The mapper never imports the simulator: data generation is a separate step
 (``scripts/make_train_data.sh``), training only reads these files.

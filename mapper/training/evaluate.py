@@ -1,6 +1,6 @@
 """Evaluation of GOV-NeSF against its baselines on held-out simulated scenes (paper Tables 1-3).
 
-Data: directories written by ``govnesf sim record --depth`` (docs/SIM.md) plus
+Data: directories written by ``govnesf sim record --depth`` (docs/how-to/simulator.md) plus
 ``gt/novel_ov.npy`` (SimLSeg at the ground-truth novel views, ``scripts/novel_view_ov.py``);
 ``scripts/make_eval_data.sh`` makes them. The mapper never imports the simulator: everything
 here reads those files from disk.
@@ -186,7 +186,7 @@ def find_scene_dirs(paths: Sequence[str | Path]) -> list[Path]:
 
 
 def load_scene(path: str | Path) -> EvalScene:
-    """Read a ``govnesf sim record --depth`` directory (docs/SIM.md layout) for evaluation."""
+    """Read a ``govnesf sim record --depth`` directory (docs/how-to/simulator.md layout) for evaluation."""
     path = Path(path)
     gt = path / "gt"
     for need in ("points.npz", "stream.npz", "class_names.json"):
@@ -495,7 +495,7 @@ def render_view_full(model: GovNeSF, views: SourceViews, volume: Tensor, bounds:
                      **render_kwargs: Any) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """``render_view`` plus the rendered z-depth (h', w') (m) and, with ``surface_depth_m``
     ((H, W) z-depth of known surfaces at full resolution, 0 = none), rendering as the node's
-    ``render`` does at measured surfaces (docs/RENDERING.md): a pixel with a surface gets one
+    ``render`` does at measured surfaces (docs/concepts/rendering.md): a pixel with a surface gets one
     appearance evaluation at that point (depth = the surface's), the others are marched.
 
     Returns:
@@ -644,7 +644,7 @@ def upsample_features(ov: np.ndarray | Tensor, image_wh: tuple[int, int]) -> Ten
 # ---- the evaluation -----------------------------------------------------------------------------
 @dataclass
 class EvalSettings:
-    """What to evaluate and how (defaults: the protocol in docs/EVALUATION.md)."""
+    """What to evaluate and how (defaults: the protocol in docs/how-to/evaluate.md)."""
 
     max_points: int | None = 20000
     """3D: evaluate at most this many points per scene (uniform random subset, fixed seed)."""

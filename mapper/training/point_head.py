@@ -1,4 +1,4 @@
-"""Distill a point head: a narrower FusionNet that gives a checkpoint's OV weights (issue 11).
+"""Distill a point head: a narrower FusionNet that gives a checkpoint's OV weights.
 
 ``govnesf distill-point-head`` (``main`` below). Three stages, all on the CPU:
 
@@ -19,7 +19,7 @@
    (its class names as texts) with the teacher and with the student: labels equal, and both 3D
    mIoU against the true labels. Reported in the head's JSON and on stdout.
 
-Example (the committed head, ``checkpoints/cpu-small-point-head``; docs/TRAINING.md)::
+Example (the committed head, ``checkpoints/cpu-small-point-head``; docs/how-to/train.md)::
 
     scripts/make_train_data.sh data 12 80
     .venv/bin/govnesf distill-point-head --out checkpoints/cpu-small-point-head

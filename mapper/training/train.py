@@ -126,12 +126,12 @@ class TrainConfig:
     frames, N drawn uniformly from [sources, volume_sources]: the blended sources plus the next
     best-overlapping frames, as the node builds one volume over its whole window (30 keyframes)
     while each point blends a few views. The model's density blurs on volumes over more views
-    than it was trained on (docs/RENDERING.md). 0: the volume is over the blended sources."""
+    than it was trained on (docs/concepts/rendering.md). 0: the volume is over the blended sources."""
     frustum_bounds_prob: float = 0.0
     """Fraction of examples whose cost-volume bounds come from the source frusta (up to
     ``frustum_range_m``) instead of their depth points, as the node does for frames without depth.
     Without it the model learns that surfaces lie ~``margin_m`` inside the volume's faces and
-    renders depth at the far face when the bounds are frusta (docs/TRAINING.md)."""
+    renders depth at the far face when the bounds are frusta (docs/how-to/train.md)."""
     frustum_range_m: float = 4.0
     """Frustum depth of that augmentation (the node's ``model.max_range_m``)."""
     n_samples: int = 0
@@ -145,7 +145,7 @@ class TrainConfig:
     """alpha of the loss."""
     distortion_weight: float = 0.0
     """Weight of mip-NeRF 360's distortion loss on the rendering weights (0 = off, the paper's
-    loss). Pushes the density towards sharp surfaces (an experiment; docs/TRAINING.md)."""
+    loss). Pushes the density towards sharp surfaces (an experiment; docs/how-to/train.md)."""
     depth_weight: float = 0.0
     """Geometry supervision: weight of the relative L1 between each ray's rendered distance and the
     true one from the target's depth (``mapper.model.supervision.ray_depth_loss``; 0 = off, the

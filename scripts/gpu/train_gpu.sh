@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU runs of docs/TRAINING.md "Training on a GPU" (G1, G2, G3) as one command, on a machine with
+# The GPU runs of docs/how-to/train.md "Training on a GPU" (G1, G2, G3) as one command, on a machine with
 # one CUDA GPU and ~16 cores whose python3 has torch but no Open3D, no MiniLM weights and no
 # internet (prepare with scripts/gpu/prepare.sh, which writes .gpu/ and .whl/ here):
 #

@@ -107,7 +107,7 @@ def assert_camera(
     assert np.allclose(pinhole["Pinhole:image_from_camera"][row][0], col_major(
         np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])), atol=1e-4)  # fmt: skip
     assert pinhole["Pinhole:resolution"][row][0] == [width, height]
-    assert pinhole["Pinhole:camera_xyz"][row][0] == view_dirs("RDF")  # OpenCV optical: docs/CONVENTIONS.md
+    assert pinhole["Pinhole:camera_xyz"][row][0] == view_dirs("RDF")  # OpenCV optical (conventions.md)
 
 
 def context_labels(columns: dict[str, list[Any]]) -> list[str]:

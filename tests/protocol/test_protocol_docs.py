@@ -22,7 +22,7 @@ def test_docstring_examples(module: object) -> None:
 
 
 def test_protocol_doc_states_the_enforced_limits() -> None:
-    text = (DOCS / "PROTOCOL.md").read_text()
+    text = (DOCS / "reference" / "protocol.md").read_text()
     assert ORTHONORMAL_TOL == 1e-3 and "ORTHONORMAL_TOL = 1e-3" in text
     assert LAST_ROW_TOL == 1e-6 and "LAST_ROW_TOL = 1e-6" in text
     assert f"1..{MAX_IMAGE_SIDE}" in text and f"1..{MAX_TEXTS}" in text
@@ -30,7 +30,7 @@ def test_protocol_doc_states_the_enforced_limits() -> None:
 
 def test_conventions_example_pose_is_valid_and_means_what_it_says() -> None:
     world_from_cam = np.array([[0, 0, 1, 1], [-1, 0, 0, 2], [0, -1, 0, 1.5], [0, 0, 0, 1]], float)
-    assert "[ 0, -1, 0, 1.5]" in (DOCS / "CONVENTIONS.md").read_text()
+    assert "[ 0, -1, 0, 1.5]" in (DOCS / "concepts" / "conventions.md").read_text()
     encode(Frame(0, 0, 2, 2, np.ones(4), world_from_cam, np.zeros((2, 2, 3), np.uint8)))  # valid
     forward_cam = np.array([0.0, 0.0, 1.0, 0.0])  # camera +z as a direction
     down_cam = np.array([0.0, 1.0, 0.0, 0.0])

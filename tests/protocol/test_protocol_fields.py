@@ -1,4 +1,4 @@
-"""docs/PROTOCOL.md's field tables equal the code's (`Class.FIELDS`), message for message.
+"""docs/reference/protocol.md's field tables equal the code's (`Class.FIELDS`), message for message.
 
 A table whose header starts ``| key | type | unit | required |`` follows a line
 ``Fields of `Class` (... wire type `t` ...):`` (or ``Fields of `A` and `B` (...)``); a key cell
@@ -15,7 +15,7 @@ import pytest
 
 from protocol.messages import MESSAGE_TYPES, Message, ObjectCandidate, QueryPoints
 
-DOC = Path(__file__).resolve().parents[2] / "docs" / "PROTOCOL.md"
+DOC = Path(__file__).resolve().parents[2] / "docs" / "reference" / "protocol.md"
 COLUMNS = ["key", "type", "unit", "required"]
 CLASSES: tuple[type[Message], ...] = (*MESSAGE_TYPES, ObjectCandidate)
 
@@ -99,7 +99,7 @@ def test_doc_table_equals_code_table(cls: type[Message]) -> None:
     doc, caption = TABLES[cls.__name__]
     assert f"`{cls.TYPE}`" in caption, f"{caption!r} should name the wire type `{cls.TYPE}`"
     problems = differences(code_table(cls), doc)
-    assert not problems, f"docs/PROTOCOL.md vs {cls.__name__}.FIELDS:\n" + "\n".join(problems)
+    assert not problems, f"docs/reference/protocol.md vs {cls.__name__}.FIELDS:\n" + "\n".join(problems)
 
 
 def test_a_key_missing_on_either_side_is_reported() -> None:

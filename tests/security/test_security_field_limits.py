@@ -1,4 +1,4 @@
-"""Per-field limits, read from docs/PROTOCOL.md's "Size limits" table and checked at the boundary:
+"""Per-field limits, read from docs/reference/protocol.md's "Size limits" table and checked at the boundary:
 a message exactly at each documented limit decodes, one step beyond it is ``bad_request``, and
 the node answers both (no internal error)."""
 
@@ -23,7 +23,7 @@ from mapper.node.service import MapperNode  # noqa: E402
 from protocol.errors import ProtocolError  # noqa: E402
 from protocol.messages import Error, Message, decode  # noqa: E402
 
-DOC = (Path(__file__).resolve().parents[2] / "docs" / "PROTOCOL.md").read_text()
+DOC = (Path(__file__).resolve().parents[2] / "docs" / "reference" / "protocol.md").read_text()
 TABLE = DOC[DOC.index("## Size limits") :].split("\n\n")[0]
 
 
@@ -31,7 +31,7 @@ def _row(name: str) -> str:
     for line in TABLE.splitlines():
         if line.startswith(f"| {name} |"):
             return line
-    raise AssertionError(f"no {name!r} row in the Size limits table of docs/PROTOCOL.md")
+    raise AssertionError(f"no {name!r} row in the Size limits table of docs/reference/protocol.md")
 
 
 def _numbers(pattern: str, row: str) -> tuple[int, ...]:

@@ -7,7 +7,7 @@ camera, inside the image less the border, optionally the depth test and a view w
 bilinear taps of its views are summed into one D-vector, from which the normalised feature or its
 cosines with the texts are written. Nothing of size (pairs, ...) or (points, views) is
 materialised; the torch / numpy path (``baselines._chunks``) made those arrays and spent most of
-its time there (docs/BENCHMARKS.md).
+its time there (docs/results.md).
 
 The D-dimensional sums are bound by loading the taps' rows (four rows of D floats per point and
 view), so points are summed two at a time (:func:`accumulate_taps`): where both fall on the same

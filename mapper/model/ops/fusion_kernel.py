@@ -3,7 +3,7 @@
 ``FusionNet.forward_fast`` with ``query_dirs=None`` (how ``segment_points`` and the map's learned
 features weigh a point's views) runs as a chain of small torch ops over (points x views) rows; for
 a small network (the distilled point head, widths 8 / 4) those ops cost about the same whatever
-the width: each one writes and reads its whole (P*N, C) result (docs/BENCHMARKS.md, tenth
+the width: each one writes and reads its whole (P*N, C) result (docs/results.md, tenth
 session). Here every point block's intermediates stay in small per-block buffers, with the points
 of a block as the inner, contiguous, vectorised axis (the samples' own layout, P fastest):
 

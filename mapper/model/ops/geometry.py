@@ -3,7 +3,7 @@
 Pure, batched torch functions; every function follows the dtype and device of its inputs
 (float64 works end to end, which the property tests rely on).
 
-Conventions (see docs/MODEL.md):
+Conventions (see docs/concepts/method.md):
 
 * Camera frame: OpenCV optical, +x right, +y down, +z forward. World: right-handed metres.
 * Poses are 4x4 rigid transforms named ``a_from_b`` (maps points in frame b to frame a);

@@ -1,7 +1,7 @@
 """Depth Guided Masking against a request's own points, as compiled CPU kernels (numba).
 
 Two stages of ``segment_points`` with a depth test on keyframes without input depth
-(``model.point_occlusion``, ``queries.point_occlusion``; docs/RGB_ONLY.md):
+(``model.point_occlusion``, ``queries.point_occlusion``; docs/concepts/rgb-only.md):
 
 * :func:`zbuffer_views`: every view's z-buffer of the points, the depth of
   :func:`mapper.geometry.splat.splat_points` (each point in front of the camera covers a square of
