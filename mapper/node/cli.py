@@ -6,7 +6,7 @@ the installed wheel, or the built-in defaults when that file is absent), then co
     govnesf serve --config launch/node.toml --ingest tcp://127.0.0.1:6000 --map-dir /data/maps \\
         --set window.max_keyframes=20 --set autosave_name=latest
 
-On a robot's network, with CurveZMQ (keys from ``govnesf keys DIR``; docs/SECURITY.md)::
+On a robot's network, with CurveZMQ (keys from ``govnesf keys DIR``; docs/how-to/robot-network.md)::
 
     govnesf serve --config launch/node_robot.toml --curve-dir /etc/govnesf/keys
 """
@@ -49,7 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--curve-dir", metavar="DIR",
         help="serve with CurveZMQ: keys made by `govnesf keys DIR`; only clients in DIR/allowed/ get "
-        "through (docs/SECURITY.md)",
+        "through (docs/how-to/robot-network.md)",
     )
     parser.add_argument(
         "--insecure", action="store_true", default=None,

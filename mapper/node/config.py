@@ -127,7 +127,7 @@ class GlobalMapConfig:
     best overlap it, itself first (``ModelRuntime.render``'s ``volume_views``: the network's
     training regime is 8 sources, whose density is far sharper than over a whole window), with
     bounds over what they observed. 0 (default; or 1) = the window's volume. Measured with 8
-    (docs/RGB_ONLY.md): on five simulated RGB-only streams the map points' p90 distance to the
+    (docs/concepts/rgb-only.md): on five simulated RGB-only streams the map points' p90 distance to the
     surface 0.226 -> 0.182, 0.337 -> 0.234, 0.412 -> 0.313 m in three, 0.213 -> 0.229 and 0.212 ->
     0.208 in two; but on the real ICL-NUIM sequence the map got worse (median 0.027 -> 0.045 m,
     p90 0.108 -> 0.150 m), hence off. 0..256."""
@@ -140,7 +140,7 @@ class GlobalMapConfig:
     """Rendered pixels whose depth differs from one of their 4 neighbours' by more than this
     fraction of the nearer of the two add no point: at an occlusion edge the rendered depth blends
     the near and the far surface ("flying pixels"). 0 = off. 0..10. (0.1 keeps smooth surfaces up
-    to about 70 deg of incidence at the demo's 40 x 30 renders; docs/RGB_ONLY.md.)"""
+    to about 70 deg of incidence at the demo's 40 x 30 renders; docs/concepts/rgb-only.md.)"""
 
     rendered_weight: float = 0.5
     """Observation weights of rendered-depth points are multiplied by this times the opacity (input
@@ -165,7 +165,7 @@ class GlobalMapConfig:
     """A triangulated point agrees with a rendered depth within this many of its 1-sigma
     uncertainties (but never less than ``rendered_consistency_voxels`` voxels). 0..100. (3 and 2
     voxels before 2026-12-03; 1 and 1: RGB-only map points 0.095 -> 0.073 m median
-    from the surface, docs/RGB_ONLY.md.)"""
+    from the surface, docs/concepts/rgb-only.md.)"""
 
     rendered_consistency_voxels: float = 1.0
     """Depth tolerance between two keyframes' rendered depths, and the least tolerance against a
@@ -188,7 +188,7 @@ class GlobalMapConfig:
     another keyframe's rendered depth agrees: "on", "off", or "auto" (default): on unless the
     node's plane-sweep stereo (``[stereo]``) is on, since two renders of the same density share its
     errors (RGB-only map points: median 0.11 -> 0.06 m off the surface in the demo room with
-    stereo, 25% fewer points; docs/RGB_ONLY.md)."""
+    stereo, 25% fewer points; docs/concepts/rgb-only.md)."""
 
     learned_features: bool = True
     """When the node serves the learned model: just before a keyframe leaves the window, the map
@@ -201,7 +201,7 @@ class GlobalMapConfig:
     keyframe that saw it and leaves, each time an equal mix with the direction it has, so after k
     evictions the fused average keeps only about 2^-k of the say. Whole-map ``segment_points`` on
     9 recorded scenes, bounded window minus unbounded: worst scene -1.6 once against -2.7 every
-    time (``govnesf``; docs/QUERIES.md). Once also spares the model the voxels already set."""
+    time (``govnesf``; docs/concepts/window-and-map.md). Once also spares the model the voxels already set."""
 
     learned_features_batch: int = 4
     """When the window's oldest keyframe is due, it and the next oldest up to this many are done
@@ -305,7 +305,7 @@ class QueryConfig:
     object_split_max_points: int = 20_000
     """Candidates with more points than this are never split (room-scale surfaces, not groups of
     furniture: the largest merged table-and-chairs candidate measured had 1 652 points,
-    docs/QUERIES.md); the split's cost is a pass over half a candidate's points. 0 = no limit.
+    docs/concepts/window-and-map.md); the split's cost is a pass over half a candidate's points. 0 = no limit.
     0..100000000."""
 
     max_objects: int = 32
@@ -363,7 +363,7 @@ class QueryConfig:
     spatially coherent order (e.g. a shuffled or randomly sampled cloud) in Z-order of map voxels
     instead, and returns the answers in the request's order: the averaging kernel reads the OV taps
     neighbouring points share once (:func:`mapper.node.queries.spatial_order`; the same answers,
-    measured in docs/BENCHMARKS.md). False = the request's order."""
+    measured in docs/results.md). False = the request's order."""
 
     map_when_more_confident: bool = True
     """``segment_points`` also answers a point the window sees from that nearest map point when the
@@ -378,7 +378,7 @@ class QueryConfig:
     cosines ``(1 - map_blend) * window + map_blend * map`` (score = that blended cosine;
     ``source`` says map where the blend changed the window's label). The map fused every keyframe
     that ever saw the point with depth (each observation visible by construction), the window
-    blends only its own keyframes, visible or not: measured in docs/QUERIES.md. Applies to the
+    blends only its own keyframes, visible or not: measured in docs/concepts/window-and-map.md. Applies to the
     answers without a depth test (``average``, ``govnesf`` without ``use_depth``; the others, and
     ``render`` labels, keep the ``map_when_more_confident`` rule: measured, the blend did not help
     them) while at least half of the window's keyframes carry input depth (the map's points are
@@ -389,7 +389,8 @@ class QueryConfig:
     """``map_blend`` while fewer than half of the window's keyframes carry input depth (an RGB-only
     robot: the map's points come from triangulation, plane-sweep stereo and the model's rendered
     depth, and their features were sampled at those estimated surfaces). 0 (default) = the
-    ``map_when_more_confident`` rule: measured in docs/QUERIES.md, 0.75 there cost 3-4 points. 0..1."""
+    ``map_when_more_confident`` rule: measured in docs/concepts/window-and-map.md, 0.75 there cost
+    3-4 points. 0..1."""
 
     point_occlusion: bool = True
     """``average_depth`` without input depth: keyframes without depth count a point where the
@@ -409,7 +410,8 @@ class QueryConfig:
     the voxel falls in: twice the worker's time and memory); ``"off"`` (default): the window's
     views only. Off by default: in ``govnesf bench`` ``"depth"`` costs ``average_depth`` +0.03 to
     +0.04 s per 100k points (0.09-0.10 -> 0.12-0.14 s; ingest and RSS within the runs' noise), for
-    +1.0 to +2.0 mIoU of ``average_depth`` on streams 3x longer than the window (docs/QUERIES.md).
+    +1.0 to +2.0 mIoU of ``average_depth`` on streams 3x longer than the window
+    (docs/concepts/window-and-map.md).
     Costs D x 4 bytes a voxel per channel (status ``evicted_views.bytes``)."""
 
     evicted_views_max_pending: int = 64
@@ -444,7 +446,8 @@ class QueryConfig:
 
 @dataclass(frozen=True)
 class LimitsConfig:
-    """Bounds on what the node queues for its peers (TOML table ``[limits]``; docs/SECURITY.md)."""
+    """Bounds on what the node queues for its peers (TOML table ``[limits]``;
+    docs/how-to/robot-network.md)."""
 
     sndhwm: int = 100
     """ZeroMQ send high-water mark of every node socket (messages queued per peer). A peer that
@@ -517,7 +520,7 @@ class OvBackendConfig:
 
     weights_path: str = ""
     """Local CLIP ViT checkpoint (a plain state dict, ``.pt`` / ``.pth`` / ``.bin`` or
-    ``.safetensors``; docs/OV_BACKENDS.md). Required when kind = "clip". Relative to the node's
+    ``.safetensors``; docs/how-to/clip-weights.md). Required when kind = "clip". Relative to the node's
     working directory. Nothing is ever downloaded."""
 
     bpe_path: str = ""
@@ -585,7 +588,7 @@ class OvBackendConfig:
                 if not getattr(self, key):
                     raise ConfigError(
                         f"{where}: ov_backend.{key} must name a local file when ov_backend.kind = 'clip' "
-                        "(see docs/OV_BACKENDS.md; nothing is downloaded)"
+                        "(see docs/how-to/clip-weights.md; nothing is downloaded)"
                     )
         try:
             self.clip_config()
@@ -613,7 +616,7 @@ class NodeConfig:
     unless ``insecure`` (see ``curve_dir``)."""
 
     curve_dir: str | None = None
-    """CurveZMQ key directory made by ``govnesf keys DIR`` (docs/SECURITY.md): ingest, query and
+    """CurveZMQ key directory made by ``govnesf keys DIR`` (docs/how-to/robot-network.md): ingest, query and
     events are served with CURVE (authenticated, encrypted) and only clients whose public key is a
     file in ``DIR/allowed/`` get through; others get no reply. "" (None) = no CURVE."""
 
@@ -890,5 +893,6 @@ def _check_endpoint(where: str, key: str, endpoint: str, allow_remote: bool) -> 
         pass
     raise ConfigError(
         f"{where}: {key} {endpoint!r} binds a non-loopback address; "
-        "set curve_dir (authenticated, docs/SECURITY.md) or allow_remote = true to expose the node"
+        "set curve_dir (authenticated, docs/how-to/robot-network.md) or allow_remote = true to expose "
+        "the node"
     )

@@ -4,7 +4,7 @@
 samples of every window keyframe whose image it falls in; ``average_depth`` only of those whose
 depth confirms it. When a keyframe leaves the window (the window is bounded), its views stop
 counting, and a stream three times longer than the window answered 1-3 points lower than the same
-node with an unbounded window (docs/QUERIES.md). This module keeps those views' contribution:
+node with an unbounded window (docs/concepts/window-and-map.md). This module keeps those views' contribution:
 
 * :class:`EvictedViewStore` (numpy, thread-safe; the running means updated in place by one
   compiled kernel, :func:`absorb_rows`): per voxel key, the running mean of the OV samples of the

@@ -837,7 +837,7 @@ class GlobalSemanticMap:
         """Give voxels the learned model's blended feature of the points a keyframe saw, just
         before it leaves the window. A voxel with a fused feature takes the equal mix of the two
         directions, ``normalise(unit(feature) + fused unit)`` (measured better than replacing
-        the fused average: docs/QUERIES.md), and keeps its norm and feature weight, so later
+        the fused average: docs/concepts/window-and-map.md), and keeps its norm and feature weight, so later
         observations still fuse as a running weighted mean; a voxel without one takes the
         feature's direction with norm 1 and its geometric confidence as feature weight. Voxels
         pruned since are skipped, and with ``global_map.learned_features_once`` (default) voxels

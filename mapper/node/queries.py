@@ -1,5 +1,5 @@
 """Semantic queries on the map: ``query_points`` ("find the chair") and the averaging baselines of
-``segment_points``. See docs/QUERIES.md for the behaviour in words.
+``segment_points``. See docs/concepts/window-and-map.md for the behaviour in words.
 
 ``query_points`` works on an immutable :class:`mapper.node.global_map.GlobalMapSnapshot`:
 
@@ -995,7 +995,7 @@ def surface_depth(
     islands (:func:`mapper.geometry.splat.remove_speckles`); then holes up to ``config.surface_fill_px``
     pixels on each side filled where the surface around them agrees within
     ``config.surface_fill_rel`` (:func:`mapper.geometry.splat.fill_holes`). ``render``
-    evaluates the model's appearance at these surface points (docs/RENDERING.md, "Surfaces from
+    evaluates the model's appearance at these surface points (docs/concepts/rendering.md, "Surfaces from
     the map"). A high-resolution camera (:func:`mapper.geometry.splat.splat_scale` > 1) is splatted
     and filled at 1 / scale of its size and the depth upsampled (nearest), so that the footprints
     and the hole filling see the points as a 160 x 120 camera does."""

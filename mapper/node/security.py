@@ -7,7 +7,8 @@ public key is a certificate file in ``CURVE_DIR/allowed/``. A client without CUR
 key that is not allowed, never completes the handshake: it gets no reply at all (it times out).
 
 Key files are ``zmq.auth``'s own certificate format; their layout in a curve directory is
-shared with the clients and lives in :mod:`protocol.curve` (``govnesf keys DIR``, docs/SECURITY.md).
+shared with the clients and lives in :mod:`protocol.curve` (``govnesf keys DIR``,
+docs/how-to/robot-network.md).
 
 The node re-reads ``allowed/`` while running (:meth:`CurveServer.reload_if_changed`): a key
 added there is let in, a key removed is refused on its next connection.
@@ -128,7 +129,7 @@ def exposure_problem(endpoints: list[str], curve_dir: str | None, insecure: bool
     return (
         f"refusing to bind {', '.join(remote)} without authentication: anyone who can reach that "
         "address could stream frames, query, save and load maps. Serve with CurveZMQ "
-        "(`govnesf keys DIR`, then `govnesf serve --curve-dir DIR`; docs/SECURITY.md), bind "
+        "(`govnesf keys DIR`, then `govnesf serve --curve-dir DIR`; docs/how-to/robot-network.md), bind "
         "loopback only, or pass --insecure (insecure = true) to serve unauthenticated anyway"
     )
 

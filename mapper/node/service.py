@@ -38,7 +38,7 @@ Replies on a ROUTER reuse the request's envelope: every frame but the last is ro
 peers (with or without an empty delimiter) and REQ peers all get their reply. Replies to one
 connection leave in the order its requests arrived (each socket is served by one thread), except
 that a heavy request's reply may leave after those of light requests sent after it (replies
-carry the request ``id``; docs/PROTOCOL.md, Transport).
+carry the request ``id``; docs/reference/protocol.md, Transport).
 
 Robustness: every message is handled inside a catch-all; a ``ProtocolError`` becomes its wire
 error, anything else an ``internal`` error (logged with traceback), and the node keeps serving.
@@ -194,7 +194,8 @@ class MapperNode:
         elif security_mode(endpoints, None) == "insecure":
             log.warning(
                 "INSECURE: serving %s without CurveZMQ authentication (insecure = true): anyone who can "
-                "reach these addresses can stream frames, query, save and load maps (docs/SECURITY.md)",
+                "reach these addresses can stream frames, query, save and load maps "
+                "(docs/how-to/robot-network.md)",
                 ", ".join(e for e in endpoints if security_mode([e], None) == "insecure"),
             )
 

@@ -114,7 +114,7 @@ class RenderAnswers:
         points = self._surface_points(config)
         if points is None:
             return None, {}
-        # pixels with a measured surface are rendered at it (docs/RENDERING.md)
+        # pixels with a measured surface are rendered at it (docs/concepts/rendering.md)
         from mapper.node.queries import PlaneCache, map_surface_depth, surface_depth, with_planes
 
         xyz, footprint_m, surface_source = points
