@@ -26,7 +26,7 @@ CLASSES = ("chair", "table", "sofa", "bed", "floor", "wall", "lamp", "plant")
 
 def synthetic_map(n: int, voxel_size_m: float = 0.05, seed: int = 0) -> tuple[dict[str, np.ndarray], dict]:
     """(arrays, manifest) of a map with ``n`` points, in the node's map-file layout."""
-    from mapper.node.global_map import voxel_keys
+    from mapper.map.global_map import voxel_keys
     from mapper.ov.encoders import SPACE, get_text_encoder
 
     rng = np.random.default_rng(seed)

@@ -5,7 +5,7 @@ without the label cache (every row scored per query: what a new text costs), and
 previous clustering (every k-d tree point pair) and snapshot (every block renormalised).
 
 The map is ``benchmarks/bench_maps.py``'s (one point per 5 cm voxel, 384-d fp16 features of a few
-class names per 0.5 m block) restored into a :class:`mapper.node.global_map.GlobalSemanticMap`.
+class names per 0.5 m block) restored into a :class:`mapper.map.global_map.GlobalSemanticMap`.
 Prints JSON (milliseconds; p50 / p95 over ``--repeats``).
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/bench_query_points.py --points 100000
@@ -41,10 +41,10 @@ def main() -> None:
 
     from bench_maps import synthetic_map
 
+    from mapper.map.global_map import GlobalSemanticMap
+    from mapper.map.window import Keyframe
     from mapper.node import queries
     from mapper.node.config import GlobalMapConfig, QueryConfig
-    from mapper.node.global_map import GlobalSemanticMap
-    from mapper.node.window import Keyframe
     from mapper.ov.encoders import SPACE, get_text_encoder
 
     arrays, manifest = synthetic_map(args.points)

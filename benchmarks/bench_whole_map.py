@@ -65,8 +65,8 @@ def _frames(scene: Path) -> list[bytes]:
 
 
 def _count_keyframes(frames: list[bytes]) -> int:
+    from mapper.map.window import Keyframe, KeyframeWindow
     from mapper.node.config import WindowConfig
-    from mapper.node.window import Keyframe, KeyframeWindow
     from protocol.messages import Frame, decode
 
     window = KeyframeWindow(WindowConfig(max_keyframes=100_000))

@@ -9,7 +9,7 @@ at most ``--max-targets`` spread over the sequence):
 * sources: the ``--sources`` frames nearest to t's pose (camera-centre distance +
   ``--rotation-weight`` metres per radian of relative rotation) among the frames more than
   ``--gap`` frames away from t, so neither t nor its immediate neighbours are seen;
-* they enter a :class:`~mapper.node.window.KeyframeWindow` followed by a
+* they enter a :class:`~mapper.map.window.KeyframeWindow` followed by a
   :class:`~mapper.runtime.model_runtime.ModelRuntime` -- the node's pipeline: full-size frames,
   resized by the runtime to the checkpoint's working size (cpu-small: 160x120), encoded, added
   to the incremental cost volume -- as RGB + pose only (no OV features, no depth; with
@@ -63,8 +63,8 @@ sys.path.insert(0, str(REPO))
 from clients.importers import ImportedFrame, ImporterError, ReaderOptions, open_dataset  # noqa: E402
 from clients.importers.base import scale_K  # noqa: E402
 from mapper.errors import ConfigError  # noqa: E402
+from mapper.map.window import Keyframe, KeyframeWindow  # noqa: E402
 from mapper.node.config import WindowConfig  # noqa: E402
-from mapper.node.window import Keyframe, KeyframeWindow  # noqa: E402
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig  # noqa: E402
 from mapper.training.metrics import (  # noqa: E402
     DepthErrors,

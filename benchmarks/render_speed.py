@@ -43,12 +43,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from clients.sim.export import RecordConfig, SimStream  # noqa: E402
 from clients.sim.scenes import CLASS_NAMES  # noqa: E402
+from mapper.map.global_map import GlobalSemanticMap  # noqa: E402
+from mapper.map.window import Keyframe, KeyframeWindow  # noqa: E402
 from mapper.model.config import get_preset  # noqa: E402
 from mapper.model.field import GovNeSF  # noqa: E402
 from mapper.node.config import GlobalMapConfig, WindowConfig  # noqa: E402
-from mapper.node.global_map import GlobalSemanticMap  # noqa: E402
 from mapper.node.queries import map_surface_depth  # noqa: E402
-from mapper.node.window import Keyframe, KeyframeWindow  # noqa: E402
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig, RenderFrame  # noqa: E402
 from mapper.training.metrics import depth_errors  # noqa: E402
 

@@ -26,7 +26,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 def _keyframes(seed: int, frames: int, width: int, height: int, offset_m: float = 0.0) -> list:
     from clients.harness import sim_stream
-    from mapper.node.window import Keyframe
+    from mapper.map.window import Keyframe
 
     stream = sim_stream(seed, frames, width, height)
     out = []
@@ -45,8 +45,8 @@ def _ms(values: list[float]) -> str:
 
 
 def bench_integrate(args: argparse.Namespace) -> None:
+    from mapper.map.global_map import GlobalSemanticMap
     from mapper.node.config import GlobalMapConfig
-    from mapper.node.global_map import GlobalSemanticMap
 
     kfs = _keyframes(args.seed, args.frames, 160, 120)
     gmap = GlobalSemanticMap(GlobalMapConfig())
@@ -56,7 +56,7 @@ def bench_integrate(args: argparse.Namespace) -> None:
 
 
 def _large_snapshot(n: int, dim: int = 384):
-    from mapper.node.global_map import GlobalMapSnapshot
+    from mapper.map.global_map import GlobalMapSnapshot
     from mapper.ov.encoders import get_text_encoder
 
     rng = np.random.default_rng(0)
@@ -98,8 +98,8 @@ def _time_queries(snapshot, label: str, repeats: int) -> None:  # noqa: ANN001
 
 
 def bench_query(args: argparse.Namespace) -> None:
+    from mapper.map.global_map import GlobalSemanticMap
     from mapper.node.config import GlobalMapConfig
-    from mapper.node.global_map import GlobalSemanticMap
 
     gmap = GlobalSemanticMap(GlobalMapConfig())
     for kf in _keyframes(args.seed, args.frames, 160, 120):

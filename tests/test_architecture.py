@@ -23,17 +23,40 @@ HEAVY = ("torch", "open3d", "sentence_transformers", "trimesh")
 
 NODE_CORE = (
     "mapper.errors",
+    "mapper.checks",
+    "mapper.kernels.average",
+    "mapper.kernels.average_kernel",
+    "mapper.map.window",
+    "mapper.map.global_map",
+    "mapper.map.evicted_views",
+    "mapper.map.query_kernels",
     "mapper.node.config",
-    "mapper.node.window",
     "mapper.node.store",
-    "mapper.node.global_map",
     "mapper.node.queries",
     "mapper.node.keyframe_queue",
+    "mapper.node.state",
+    "mapper.node.integration",
+    "mapper.node.context",
+    "mapper.node.ingest",
+    "mapper.node.query_pool",
+    "mapper.node.answers.status",
+    "mapper.node.answers.persistence",
+    "mapper.node.answers.query_points",
+    "mapper.node.answers.segment",
+    "mapper.node.answers.render",
+    "mapper.node.backends",
+    "mapper.node.backends.average",
     "mapper.node.service",
     "mapper.runtime.config",
     "mapper.ov.config",
     "protocol",
 )
+"""The node core: imports without torch, and answers ``average`` / ``average_depth`` /
+``query_points`` in a process where importing torch fails."""
+
+MAP_LEAVES = ("mapper.map", "mapper.kernels", "mapper.checks", "mapper.errors")
+"""The map and its kernels sit below the node: they import nothing of ``mapper.node``,
+``mapper.model``, ``mapper.runtime`` or ``mapper.training``."""
 
 
 def module_files() -> dict[str, Path]:
@@ -172,3 +195,57 @@ def test_node_core_imports_without_torch() -> None:
     )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "", f"the node core imported {out.stdout.strip()}"
+
+
+def test_the_map_imports_nothing_above_it() -> None:
+    above = ("mapper.node", "mapper.model", "mapper.runtime", "mapper.training", "mapper.ov")
+    bad = sorted(
+        f"{mod} -> {dep}"
+        for mod, deps in import_graph().items()
+        if mod.startswith(MAP_LEAVES)
+        for dep in deps
+        if dep.startswith(above)
+    )
+    assert not bad, f"the map must not import the node, the model or training: {bad}"
+
+
+TORCH_FREE_ANSWERS = """
+import sys
+sys.modules["torch"] = None  # `import torch` raises ImportError from here on
+import numpy as np
+from clients.harness import DEMO_OV_DIM, DEMO_OV_SPACE, synthetic_frame
+from mapper.node.config import config_from_dict
+from mapper.node.service import MapperNode
+from mapper.ov.encoders import register_text_encoder
+from protocol.messages import Points, QueryPoints, Segmentation, SegmentPoints, decode, encode
+
+class OneHot:
+    space, dim = DEMO_OV_SPACE, DEMO_OV_DIM
+    def encode(self, texts):  # sky, dark, light: the demo features' channels; other prompts elsewhere
+        rows = {"sky": 0, "dark": 1, "light": 2}
+        return np.stack([np.eye(DEMO_OV_DIM, dtype=np.float32)[rows.get(t, 3 + len(t) % 5)] for t in texts])
+
+register_text_encoder(DEMO_OV_SPACE, OneHot)
+node = MapperNode(config_from_dict({"map_dir": sys.argv[1], "autosave_name": "", "save_on_exit": False,
+                                    "global_map": {"integrate_queue": 0}}))
+for seq in range(0, 20, 2):
+    node.handle_ingest(encode(synthetic_frame(seq, 20, 64, 48)))
+xyz = np.asarray(node.state.global_map.snapshot().xyz[:200], np.float32)
+for method in ("average", "average_depth"):
+    reply = decode(node.handle_query(encode(SegmentPoints(xyz=xyz, texts=["sky", "dark", "light"],
+                                                          method=method))), direction="reply")
+    assert isinstance(reply, Segmentation), reply
+    assert (reply.label >= 0).mean() > 0.5, (method, reply.label)
+found = decode(node.handle_query(encode(QueryPoints(texts=["dark"]))), direction="reply")
+assert isinstance(found, Points) and found.xyz.shape[0] > 0, found
+print("torch" in sys.modules and sys.modules["torch"] is not None)
+"""
+
+
+def test_node_core_answers_averaging_and_queries_without_torch(tmp_path: Path) -> None:
+    out = subprocess.run(
+        [sys.executable, "-c", TORCH_FREE_ANSWERS, str(tmp_path)], cwd=ROOT, capture_output=True, text=True,
+        timeout=300, check=False,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.strip().splitlines()[-1] == "False"

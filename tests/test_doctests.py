@@ -41,7 +41,7 @@ MODULES = modules_with_examples()
 
 def test_discovery_finds_the_known_modules() -> None:
     assert len(MODULES) >= 20
-    for name in ("protocol.messages", "mapper.model.ops.checks", "mapper.node.global_map", "clients.colors"):
+    for name in ("protocol.messages", "mapper.checks", "mapper.map.global_map", "clients.colors"):
         assert name in MODULES
 
 

@@ -14,23 +14,23 @@ pairs of a chunk, taken point-major so that each point's taps are contiguous for
 ``average_features_reference`` is the previous per-view implementation.
 
 On a CPU device both run as one compiled kernel instead
-(:mod:`mapper.model.ops.average_kernel`: the same views and taps per point, no per-pair arrays);
+(:mod:`mapper.kernels.average_kernel`: the same views and taps per point, no per-pair arrays);
 ``impl="torch"`` keeps the torch / numpy path above (what other devices use).
 """
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Iterator, Sequence
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mapper.model.ops import average_kernel as _kernel
-from mapper.model.ops.checks import check_shape
+from mapper.checks import check_shape
+from mapper.kernels import average as _average
+from mapper.kernels.average import OVView
 from mapper.model.ops.geometry import (
     DEFAULT_EPS,
     in_view,
@@ -42,21 +42,6 @@ from mapper.model.ops.geometry import (
 )
 
 __all__ = ["OVView", "average_features", "average_features_reference", "average_similarities"]
-
-
-class OVView(NamedTuple):
-    """One view for averaging (a plain tuple in this order works too)."""
-
-    ov: np.ndarray | Tensor
-    """(h, w, D) OV feature map (any resolution; it covers the whole image)."""
-    K: np.ndarray | Tensor
-    """(4,) [fx, fy, cx, cy] for the full image of size ``image_wh``."""
-    world_from_cam: np.ndarray | Tensor
-    """(4, 4) camera-to-world pose."""
-    image_wh: tuple[int, int]
-    """(W, H) of the image ``K`` refers to."""
-    depth_m: np.ndarray | Tensor | None
-    """(H', W') z-depth in metres (0 = unknown), any resolution covering the image; or None."""
 
 
 def _as_tensor(x: np.ndarray | Tensor, dtype: torch.dtype, device: torch.device) -> Tensor:
@@ -155,34 +140,6 @@ def _view_arrays(parsed: list[OVView], *, use_depth: bool, device: torch.device)
                        d_off, depth_flat)
 
 
-_TABLE_CACHE: list[tuple[tuple[Any, ...], np.ndarray]] = []
-"""The last OV table the kernel read and what it was made of (the views' ``ov`` objects, which it
-keeps alive); guarded by ``_TABLE_LOCK``."""
-_TABLE_LOCK = threading.Lock()
-
-
-def _ov_table(parsed: list[OVView], dim: int, *, cache: bool = True) -> np.ndarray:
-    """(R, D) float32: the views' OV maps, row-major, one after another (the kernel's ``table``).
-    The same views' ``ov`` objects as the last call (a window asked again) reuse that table: no
-    new 10-20 MB array per query, and the kernel reads memory it read before. ``cache`` False:
-    built for this call only, the cached one (the window's) left in place."""
-    if not cache:
-        return np.concatenate([np.asarray(v.ov.cpu().numpy() if isinstance(v.ov, Tensor) else v.ov,
-                                          np.float32).reshape(-1, dim) for v in parsed])
-    key = tuple(v.ov for v in parsed)
-    with _TABLE_LOCK:
-        if _TABLE_CACHE and len(_TABLE_CACHE[0][0]) == len(key) and all(
-            a is b for a, b in zip(_TABLE_CACHE[0][0], key, strict=True)
-        ):
-            return _TABLE_CACHE[0][1]
-    table = np.concatenate([np.asarray(v.ov.cpu().numpy() if isinstance(v.ov, Tensor) else v.ov,
-                                       np.float32).reshape(-1, dim) for v in parsed])
-    table.setflags(write=False)
-    with _TABLE_LOCK:
-        _TABLE_CACHE[:] = [(key, table)]
-    return table
-
-
 def _kernel_average(
     pts: Tensor,  # (N, 3) float32
     parsed: list[OVView],
@@ -203,21 +160,11 @@ def _kernel_average(
     kernel, and the views counted (N,). ``prior``: see :func:`average_similarities`.
     ``cache_table`` False builds the views' OV table without replacing the cached one (the
     window's, which the next query reuses)."""
-    cpu = torch.device("cpu")
-    va = _view_arrays(parsed, use_depth=use_depth, device=cpu)
-    ov_off = np.concatenate([[0], np.cumsum(va.ov_w * va.ov_h)])[:-1]  # (V,)
-    table = _ov_table(parsed, dim, cache=cache_table)  # (R, D)
-    right = (va.img_w - border_px).astype(np.float64)  # (V,) as ``width - border_px`` per view
-    bottom = (va.img_h - border_px).astype(np.float64)
-    depth_flat = np.zeros(1, np.float32) if va.depth_flat is None else va.depth_flat
-    out, count = _kernel.average_kernel(
-        pts.cpu().numpy(), va.cam_from_world.numpy(), va.K.numpy(), right, bottom, float(border_px),
-        float(DEFAULT_EPS), ov_off, va.ov_w, va.ov_h, va.ov_scale, table,
-        use_depth=use_depth and va.depth_flat is not None, has_depth=va.has_depth, depth_flat=depth_flat,
-        d_off=va.d_off, d_w=va.d_w, d_h=va.d_h, d_scale=va.d_scale, depth_tol=depth_rel_tol,
-        distance_power=distance_power, view_weights=None if vw is None else vw.cpu().numpy(),
+    out, count = _average.kernel_average(
+        pts.cpu().numpy(), parsed, use_depth=use_depth, border_px=border_px, depth_rel_tol=depth_rel_tol,
+        distance_power=distance_power, vw=None if vw is None else vw.cpu().numpy(), dim=dim,
         texts=None if texts is None else texts.cpu().numpy(), threads=torch.get_num_threads(), prior=prior,
-        raw=raw)
+        raw=raw, cache_table=cache_table)
     return torch.from_numpy(out), torch.from_numpy(count)
 
 
@@ -484,15 +431,8 @@ def _prior_only_similarities(
     texts: Tensor,  # (T, D)
 ) -> tuple[Tensor, Tensor]:
     """:func:`average_similarities` with a prior and no view: the prior rows' cosines."""
-    n = pts.shape[0]
-    table, row, weight = _kernel.check_prior(prior, int(texts.shape[1]), n)
-    sims = np.zeros((n, texts.shape[0]), np.float32)
-    use = (row >= 0) & (weight > 0)
-    if use.any():
-        feats = table[row[use]]
-        feats /= np.maximum(np.linalg.norm(feats, axis=1, keepdims=True), 1e-12)
-        sims[use] = feats @ texts.numpy().T
-    return torch.from_numpy(sims), torch.zeros(n, dtype=torch.int64)
+    sims, count = _average.prior_only_similarities(int(pts.shape[0]), prior, texts.numpy())
+    return torch.from_numpy(sims), torch.from_numpy(count)
 
 
 def _use_kernel(impl: str, device: str | torch.device, max_table_bytes: int) -> bool:

@@ -12,8 +12,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from mapper.checks import check_shape
 from mapper.model.config import EncoderConfig
-from mapper.model.ops.checks import check_shape
 
 __all__ = ["ImageEncoder"]
 

@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from mapper.checks import check_shape
 from mapper.model.config import ModelConfig
 from mapper.model.encoder2d import ImageEncoder
 from mapper.model.fusion import (
@@ -36,7 +37,6 @@ from mapper.model.fusion import (
     blend_from_maps,
     cosines_from_maps,
 )
-from mapper.model.ops.checks import check_shape
 from mapper.model.ops.cost_volume import VolumeBounds, build_cost_volume, cost_volume_features, sample_volume
 from mapper.model.ops.geometry import (
     DEFAULT_EPS,

@@ -126,7 +126,7 @@ def blend_from_maps(
     Inference only (no autograd through ``table``'s rows is needed, though it is supported).
     Equal to sampling then blending up to float rounding (tests/mapper/test_blend_from_maps.py).
     On the CPU in float32 without autograd it runs as one compiled kernel
-    (:func:`mapper.model.ops.average_kernel.blend_kernel`: the same taps, no (P, N, 4) arrays).
+    (:func:`mapper.kernels.average_kernel.blend_kernel`: the same taps, no (P, N, 4) arrays).
     """
     w, h = map_wh
     P, N = weights.shape
@@ -138,7 +138,7 @@ def blend_from_maps(
         )
     view_idx = view_idx.expand(P, N) if view_idx.dim() == 1 else view_idx
     if _blend_kernel_applies(table, uv, weights):
-        from mapper.model.ops.average_kernel import blend_kernel
+        from mapper.kernels.average_kernel import blend_kernel
 
         return torch.from_numpy(blend_kernel(table.numpy(), (w, h), view_idx.numpy(), uv.numpy(),
                                              weights.to(torch.float32).numpy(),
@@ -165,11 +165,11 @@ def cosines_from_maps(
 ) -> Tensor:  # (P, T)
     """``F.normalize(blend_from_maps(...), dim=-1) @ texts.T``: each text's cosine with each point's
     blend (0 where the blend is 0). On the CPU in float32 without autograd one compiled kernel
-    (:func:`mapper.model.ops.average_kernel.blend_kernel` with ``texts``) keeps each blend in a C-vector
+    (:func:`mapper.kernels.average_kernel.blend_kernel` with ``texts``) keeps each blend in a C-vector
     while its cosines are taken, so the (P, C) blends are never written; otherwise the two steps."""
     P, N = weights.shape
     if _blend_kernel_applies(table, uv, weights) and texts.device.type == "cpu" and not texts.requires_grad:
-        from mapper.model.ops.average_kernel import blend_kernel
+        from mapper.kernels.average_kernel import blend_kernel
 
         w, h = map_wh
         if table.shape[0] % (w * h) or uv.shape != (P, N, 2) or texts.shape[-1] != table.shape[1]:

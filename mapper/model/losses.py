@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mapper.model.ops.checks import check_shape
+from mapper.checks import check_shape
 
 __all__ = [
     "LossOutputs", "color_loss", "distortion_loss", "govnesf_loss", "ov_cosine_loss"]

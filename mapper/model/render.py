@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from mapper.model.ops.checks import check_shape
+from mapper.checks import check_shape
 from mapper.model.ops.cost_volume import VolumeBounds
 from mapper.model.ops.rendering import (
     Rays,

@@ -26,7 +26,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from mapper.model.ops.checks import check_shape
+from mapper.checks import check_shape
 from mapper.model.ops.geometry import in_view, invert_pose, project_points, sample_nearest, scale_uv
 
 __all__ = [

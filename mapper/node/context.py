@@ -22,14 +22,14 @@ from typing import Any
 
 import numpy as np
 
+from mapper.map.global_map import GlobalSemanticMap
+from mapper.map.window import Keyframe
 from mapper.node.config import NodeConfig
-from mapper.node.evicted_views import EvictedViews
-from mapper.node.global_map import GlobalSemanticMap
 from mapper.node.integration import Integrator
 from mapper.node.keyframe_queue import KeyframeQueue
 from mapper.node.state import MapState
 from mapper.node.store import MapStore
-from mapper.node.window import Keyframe
+from mapper.node.workers.evicted_views import EvictedViews
 from protocol.errors import ProtocolError
 from protocol.messages import Error, MapUpdated, Message, error_reply, peek_id
 
@@ -135,7 +135,7 @@ class NodeContext:
         self.workers: list[tuple[str, Callable[[threading.Event], None]]] = []
         """Background threads ``(name, target)`` started by the transport after the sockets are
         bound; ``target(stop_event)`` runs until the event is set and must not raise."""
-        self.kernel_modules: list[str] = ["mapper.node.query_kernels"]
+        self.kernel_modules: list[str] = ["mapper.map.query_kernels"]
         """Modules whose compiled kernels the transport warms in the background at start (each
         module's ``warm_up``: compiled, or loaded from numba's cache), so that no first query pays
         for it; backends add theirs (the learned model: its point kernels)."""
@@ -143,11 +143,11 @@ class NodeContext:
         """The keyframe integrator (:mod:`mapper.node.integration`)."""
         self.evicted_views: EvictedViews | None = None
         """The worker that keeps evicted keyframes' views for the averaging methods
-        (``queries.evicted_views``; :mod:`mapper.node.evicted_views`)."""
+        (``queries.evicted_views``; :mod:`mapper.map.evicted_views`)."""
         if config.queries.evicted_views != "off":
             self.evicted_views = EvictedViews(self)
             self.evicted_views.install()
-            self.kernel_modules.append("mapper.node.evicted_views")  # its running-mean kernel
+            self.kernel_modules.append("mapper.map.evicted_views")  # its running-mean kernel
 
     # -- the integrator -----------------------------------------------------------------------
 
@@ -261,7 +261,7 @@ class NodeContext:
             except Exception:  # a broken encoder must not take the node down; queries report it
                 log.exception("text encoder warm-up for %r failed", space)
             if first:
-                warm_kernels("mapper.model.ops.average_kernel")
+                warm_kernels("mapper.kernels.average_kernel")
                 warm_kernels("mapper.model.ops.occlusion_kernel")  # depth tests without depth
 
         threading.Thread(target=warm, name="mapper-encoder-warmup", daemon=True).start()

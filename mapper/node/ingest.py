@@ -3,7 +3,7 @@
 :func:`ingest_frame` runs on the ingest thread. Under the state lock it validates the frame against
 the map (OV space and feature dimension), then recognises a resent frame (same seq, stamp, camera,
 pose and K as a keyframe already in the window: acked ``accepted`` as a duplicate, not added twice),
-then lets :meth:`mapper.node.window.KeyframeWindow.consider` decide keyframe or not. A resent frame
+then lets :meth:`mapper.map.window.KeyframeWindow.consider` decide keyframe or not. A resent frame
 counts as a duplicate only after it passed the same validation as a new one. Outside the lock the
 new keyframe goes to the integrator (:mod:`mapper.node.integration`).
 """
@@ -15,9 +15,9 @@ import time
 
 import numpy as np
 
+from mapper.map.window import Keyframe, fit_image, fit_intrinsics
 from mapper.node.context import NodeContext
 from mapper.node.integration import IntegrateJob
-from mapper.node.window import Keyframe, fit_image, fit_intrinsics
 from protocol.errors import ProtocolError
 from protocol.messages import Ack, AckStatus, Frame
 

@@ -19,10 +19,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from mapper.map.global_map import GlobalSemanticMap
+from mapper.map.window import Keyframe
 from mapper.node.config import NodeConfig
-from mapper.node.global_map import GlobalSemanticMap
 from mapper.node.state import MapState
-from mapper.node.window import Keyframe
 
 __all__ = ["IntegrateJob", "Integrator"]
 

@@ -1,7 +1,7 @@
 """Semantic queries on the map: ``query_points`` ("find the chair") and the averaging baselines of
 ``segment_points``. See docs/concepts/window-and-map.md for the behaviour in words.
 
-``query_points`` works on an immutable :class:`mapper.node.global_map.GlobalMapSnapshot`:
+``query_points`` works on an immutable :class:`mapper.map.global_map.GlobalMapSnapshot`:
 
 1. each text is normalised (:func:`normalise_query`: "find the chair" -> "chair", "where is a
    place to sit?" -> "place to sit") and embedded with the map's ``ov_space`` text encoder;
@@ -40,6 +40,7 @@ import copy
 import functools
 import hashlib
 import re
+import sys
 import threading
 import time
 import weakref
@@ -62,8 +63,8 @@ from mapper.geometry.splat import (
     splat_scale,
     upsample_nearest,
 )
+from mapper.map.global_map import GlobalMapSnapshot
 from mapper.node.config import QueryConfig
-from mapper.node.global_map import GlobalMapSnapshot
 from mapper.ov.encoders import TextEncoder
 from mapper.runtime.config import ModelRuntimeConfig
 from protocol.errors import ProtocolError
@@ -171,9 +172,9 @@ def radius_components(pts: np.ndarray, radius_m: float) -> tuple[int, np.ndarray
     ``radius_m / sqrt(3)`` (all points of a cell are linked to each other); two cells up to two
     apart per axis are joined when some pair of their points is within the radius, tested in
     compiled code only while the cells are in different components
-    (:func:`mapper.node.query_kernels.component_cells`). The same components as linking every
+    (:func:`mapper.map.query_kernels.component_cells`). The same components as linking every
     point pair (``_pair_components``); ids in order of each component's first cell."""
-    from mapper.node.query_kernels import component_cells  # numba: compiled or loaded when first used
+    from mapper.map.query_kernels import component_cells  # numba: compiled or loaded when first used
 
     n = pts.shape[0]
     if n == 0:
@@ -414,7 +415,7 @@ class BlockLabelCache:
     snapshot shares the blocks whose rows did not change, so a query after an integrate scores only
     the changed blocks, and of a block copied from a scored one with a few rows normalised again
     (:meth:`GlobalMapSnapshot.unit_block_patches`) only those rows (every row is scored by
-    :func:`mapper.node.query_kernels.row_cosines`, whose bits do not depend on the other rows); a
+    :func:`mapper.map.query_kernels.row_cosines`, whose bits do not depend on the other rows); a
     repeated query scores nothing.
 
     Entries are keyed by the block's token (:meth:`GlobalMapSnapshot.unit_block_tokens`) and the
@@ -469,7 +470,7 @@ class BlockLabelCache:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:func:`label_from_similarities` of the snapshot's cosines with ``emb``: (label (N,)
         int64, score (N,) float32, beats_negatives (N,) bool), equal to scoring every row now."""
-        from mapper.node.query_kernels import row_cosines  # numba: compiled or loaded when first used
+        from mapper.map.query_kernels import row_cosines  # numba: compiled or loaded when first used
 
         emb = np.ascontiguousarray(emb, np.float32)
         digest = hashlib.blake2b(emb.tobytes() + n_texts.to_bytes(4, "little"), digest_size=16).digest()
@@ -765,12 +766,13 @@ def segment_average_cosines(
     """:func:`segment_average` before the choice of a text: (cosines (N, T) float32 of the averaged
     feature with each text, zero rows where nothing counts; n_views (N,) int64, the given views that
     counted). ``prior``: views no longer given, as running means per point
-    (:func:`mapper.model.baselines.average_similarities`; the node's evicted keyframes,
-    :mod:`mapper.node.evicted_views`)."""
-    from mapper.model.baselines import average_similarities  # torch-heavy; imported when first used
+    (:func:`mapper.kernels.average.average_similarities`; the node's evicted keyframes,
+    :mod:`mapper.map.evicted_views`). Numpy and the compiled kernel: no torch."""
+    from mapper.kernels.average import average_similarities
 
-    sims_t, n_views = average_similarities(xyz, list(views), text_emb, use_depth=use_depth, prior=prior)
-    return sims_t.numpy(), n_views.numpy()
+    torch = sys.modules.get("torch")  # the node's compute threads where torch is loaded, as the model's
+    threads = int(torch.get_num_threads()) if torch is not None else 0
+    return average_similarities(xyz, list(views), text_emb, use_depth=use_depth, prior=prior, threads=threads)
 
 
 COHERENT_PAIR_SHARE = 0.5
@@ -787,7 +789,7 @@ def spatial_order(
     within ``cell_m`` of each other, e.g. pixels of a depth image in raster order), else the
     permutation that sorts them along a Z-order (Morton) curve of cells of side ``cell_m``
     (stable within a cell). The answering kernels sum neighbouring points together and read the
-    OV taps they share once (:func:`mapper.model.ops.average_kernel.accumulate_taps`); each point's
+    OV taps they share once (:func:`mapper.kernels.average_kernel.accumulate_taps`); each point's
     answer does not depend on the order.
 
     >>> pts = np.array([[0.0, 0, 0], [5, 5, 5], [0.01, 0, 0], [5.01, 5, 5]], np.float32)
@@ -803,7 +805,7 @@ def spatial_order(
     step = pts[1 : 2 * (n // 2) : 2] - pts[0 : 2 * (n // 2) : 2]
     if np.mean(np.einsum("ij,ij->i", step, step) <= cell_m * cell_m) >= COHERENT_PAIR_SHARE:
         return None
-    from mapper.node.query_kernels import morton_codes  # numba: compiled or loaded when first used
+    from mapper.map.query_kernels import morton_codes  # numba: compiled or loaded when first used
 
     return np.argsort(morton_codes(pts, pts.min(axis=0), cell_m), kind="stable")
 

@@ -10,9 +10,9 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import Any
 
+from mapper.map.global_map import GlobalSemanticMap
+from mapper.map.window import Keyframe, KeyframeWindow
 from mapper.node.config import NodeConfig
-from mapper.node.global_map import GlobalSemanticMap
-from mapper.node.window import Keyframe, KeyframeWindow
 
 __all__ = ["MapSnapshot", "MapState"]
 

@@ -45,7 +45,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from mapper.model.ops.checks import check_shape
+from mapper.checks import check_shape
 from mapper.ov.clip_tokenizer import ClipTokenizer
 from mapper.ov.config import ACTIVATIONS, ClipBackendConfig
 from mapper.ov.encoders import PromptCache

@@ -426,7 +426,7 @@ class ModelRuntime:
         return self.config.samples_per_ray or self._require_model().cfg.render.n_samples
 
     def attach(self, window: Any) -> None:
-        """Follow a :class:`mapper.node.window.KeyframeWindow`: register the callbacks and record every
+        """Follow a :class:`mapper.map.window.KeyframeWindow`: register the callbacks and record every
         keyframe already in it. Call with the node's state lock held (the window is not thread-safe)."""
         window.on_add.append(self.on_add)
         window.on_evict.append(self.on_evict)
@@ -1113,7 +1113,7 @@ class ModelRuntime:
                                                      depth_m[candidates].float().numpy(), ratio,
                                                      threads=torch.get_num_threads()))  # (P, M)
         elif cpu_kernels:
-            from mapper.model.ops.average_kernel import in_view_matrix
+            from mapper.kernels.average_kernel import in_view_matrix
 
             vis = torch.from_numpy(in_view_matrix(points.numpy(), cam_from_world.numpy(), Ks.numpy(),
                                                   (width, height), DEFAULT_EPS,

@@ -47,10 +47,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from mapper.checks import check_shape
 from mapper.model.baselines import OVView, average_features
 from mapper.model.field import GovNeSF, SourceViews, render_depth_maps, render_rays
 from mapper.model.fusion import blend
-from mapper.model.ops.checks import check_shape
 from mapper.model.ops.cost_volume import VolumeBounds, sample_volume
 from mapper.model.ops.geometry import (
     camera_centers,

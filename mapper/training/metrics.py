@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from mapper.model.ops.checks import check_shape
+from mapper.checks import check_shape
 
 NUM_SCANNET_CLASSES = 20
 """Number of ScanNet benchmark classes; label ids 0..19."""

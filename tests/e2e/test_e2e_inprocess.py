@@ -11,9 +11,9 @@ import pytest
 
 from clients.client import MapperClient
 from clients.harness import free_endpoints, synthetic_frame
+from mapper.map.window import Keyframe
 from mapper.node.config import NodeConfig, config_from_dict
 from mapper.node.service import MapperNode
-from mapper.node.window import Keyframe
 from protocol.errors import RemoteError
 from protocol.messages import Message, Ok, QueryPoints, Save, encode
 from tests.node_helpers import in_process_node
@@ -206,8 +206,8 @@ def test_unreadable_autosave_is_moved_aside_and_the_node_starts_empty(tmp_path: 
 
 def test_map_without_a_global_section_gets_it_rebuilt_from_its_keyframes(tmp_path: Path) -> None:
     """Maps saved before the global map existed load with their points rebuilt from keyframes."""
+    from mapper.map.window import keyframes_to_arrays
     from mapper.node.store import MapStore
-    from mapper.node.window import keyframes_to_arrays
 
     frames = [synthetic_frame(seq, 20, W, H) for seq in (0, 5, 10)]
     keyframes = [

@@ -203,8 +203,8 @@ def test_node_never_reuses_across_a_load(tmp_path: Path) -> None:
 
 
 def test_generations_are_unique_per_process() -> None:
+    from mapper.map.global_map import GlobalSemanticMap
     from mapper.node.config import GlobalMapConfig
-    from mapper.node.global_map import GlobalSemanticMap
 
     a, b = GlobalSemanticMap(GlobalMapConfig()), GlobalSemanticMap(GlobalMapConfig())
     seen = {a.generation, b.generation}

@@ -183,7 +183,7 @@ def test_extreme_points_count_no_view(impl: str) -> None:
 def test_in_view_matrix_equals_torch_projection() -> None:
     # the view selection's (point, view) visibility: the compiled kernel against in_view of
     # project_points, with points behind the cameras, on their planes, on the image edges and far
-    from mapper.model.ops.average_kernel import in_view_matrix
+    from mapper.kernels.average_kernel import in_view_matrix
     from mapper.model.ops.geometry import DEFAULT_EPS, in_view, invert_pose, project_points
 
     pts, views = random_scene(8, n_points=5000)
@@ -203,7 +203,7 @@ def test_in_view_matrix_equals_torch_projection() -> None:
 def test_kernel_table_reused_for_the_same_views_only() -> None:
     """The kernel's OV table is kept for the same views' ``ov`` objects (a window asked again) and
     made anew for others, with the same answers as a fresh table."""
-    import mapper.model.baselines as baselines
+    import mapper.kernels.average as baselines  # the driver that keeps the table
 
     pts, views = random_scene(4)
     first, n_first = average_features(pts, views, use_depth=False, impl="kernel")

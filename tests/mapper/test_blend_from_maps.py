@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
+from mapper.map.window import KeyframeWindow
 from mapper.model.field import GovNeSF, OVMaps
 from mapper.model.fusion import blend, blend_from_maps
 from mapper.model.ops.cost_volume import sample_volume
 from mapper.model.ops.geometry import bilinear_corners, sample_bilinear
 from mapper.node.config import WindowConfig
-from mapper.node.window import KeyframeWindow
 from tests.mapper.test_runtime import TINY, keyframe, make_runtime, orbit
 
 
@@ -304,7 +304,7 @@ def test_point_cosines_equal_the_point_outputs() -> None:
 def test_contiguous_uv_copies_the_same_values() -> None:
     # the blend kernel's copy of (P, N, 2) pixel pairs: one 8-byte element per pair where the pair
     # is contiguous, numpy's copy otherwise; always C-contiguous float32 and the same values
-    from mapper.model.ops.average_kernel import _contiguous_uv
+    from mapper.kernels.average_kernel import _contiguous_uv
 
     base = np.random.default_rng(0).random((16, 301, 2)).astype(np.float32)
     base[0, 0] = [np.nan, np.inf]

@@ -1,4 +1,4 @@
-"""check_shape: the one shape-check vocabulary (mapper/model/ops/checks.py)."""
+"""check_shape: the one shape-check vocabulary (mapper/checks.py)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from mapper.model.ops import checks
-from mapper.model.ops.checks import ShapeError, check_shape, format_spec
+from mapper.checks import ShapeError, check_shape, format_spec
+from mapper import checks
 
 ARRAYS = [pytest.param(np.zeros, id="numpy"), pytest.param(torch.zeros, id="torch")]
 

@@ -126,11 +126,11 @@ def test_missing_and_broken_files(tmp_path: Path) -> None:
 def test_docstring_examples_of_config_window_store() -> None:
     import doctest
 
+    import mapper.map.window
     import mapper.node.config
     import mapper.node.store
-    import mapper.node.window
 
-    for module in (mapper.node.config, mapper.node.window, mapper.node.store):
+    for module in (mapper.node.config, mapper.map.window, mapper.node.store):
         result = doctest.testmod(module)
         assert result.attempted > 0 and result.failed == 0, module.__name__
 

@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 import torch
 
+from mapper.map.global_map import GlobalSemanticMap
+from mapper.map.window import Keyframe, KeyframeWindow
 from mapper.model.field import GovNeSF
 from mapper.model.ops.geometry import frustum_points, invert_pose, project_points
 from mapper.node.backends.learned import install_learned_backend
 from mapper.node.config import ConfigError, GlobalMapConfig, WindowConfig, config_from_dict
-from mapper.node.global_map import GlobalSemanticMap
 from mapper.node.service import MapperNode
-from mapper.node.window import Keyframe, KeyframeWindow
 from mapper.node.workers.depth_points import RenderedDepthPoints, render_keyframe_depth
 from mapper.runtime.model_runtime import ModelRuntimeConfig
 from protocol.messages import Frame, Status, StatusRequest, decode, encode

@@ -1,5 +1,5 @@
 """The views of keyframes that left the window, kept per global-map voxel for ``average`` and
-``average_depth`` (:mod:`mapper.node.evicted_views`): the store's running means, its persistence
+``average_depth`` (:mod:`mapper.map.evicted_views`): the store's running means, its persistence
 and bad input; and a node with a window of 2 keyframes answering as the same node with an unbounded
 window (the point of the feature), with and without the depth test, before and after save / load.
 
@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from mapper.map.evicted_views import EvictedViewStore, absorb_rows
 from mapper.node.config import ConfigError, config_from_dict
-from mapper.node.evicted_views import EvictedViewStore, absorb_rows
 from mapper.node.queries import SOURCE_MAP, SOURCE_WINDOW
 from mapper.node.service import MapperNode
 from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
@@ -257,8 +257,8 @@ def test_absorb_rows_kernel_against_float64_and_bad_input() -> None:
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_in_image_keeps_every_point_the_averaging_counts(seed: int) -> None:
+    from mapper.map.evicted_views import in_image
     from mapper.model.baselines import OVView, view_samples
-    from mapper.node.evicted_views import in_image
 
     rng = np.random.default_rng(seed)
     xyz = (rng.random((20000, 3)) * [8, 6, 8] - [4, 3, 2]).astype(np.float32)  # some behind the camera

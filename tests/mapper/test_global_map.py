@@ -9,9 +9,9 @@ import threading
 import numpy as np
 import pytest
 
+from mapper.map.global_map import GlobalSemanticMap, voxel_keys, weighted_mean_fusion
+from mapper.map.window import Keyframe
 from mapper.node.config import GlobalMapConfig
-from mapper.node.global_map import GlobalSemanticMap, voxel_keys, weighted_mean_fusion
-from mapper.node.window import Keyframe
 
 W, H = 32, 24
 K = np.array([30.0, 28.0, 16.0, 12.0])

@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 
 from clients.harness import synthetic_frame
+from mapper.map.window import Keyframe
 from mapper.node.service import MapperNode
 from mapper.node.store import MapStore
-from mapper.node.window import Keyframe
 from protocol.messages import Ack, Load, Ok, Save, Status, StatusRequest, decode, encode
 from tests.node_helpers import in_process_node
 

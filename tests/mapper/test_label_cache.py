@@ -9,11 +9,11 @@ import zlib
 import numpy as np
 import pytest
 
-from mapper.node import global_map
+from mapper.map.global_map import GlobalSemanticMap
+from mapper.map.window import Keyframe
+from mapper.map import global_map
 from mapper.node.config import GlobalMapConfig, QueryConfig
-from mapper.node.global_map import GlobalSemanticMap
 from mapper.node.queries import BlockLabelCache, query_points
-from mapper.node.window import Keyframe
 from protocol.messages import Points
 
 W, H, D = 32, 24, 8
@@ -185,7 +185,7 @@ def test_a_few_changed_rows_are_rescored_alone(
 
 
 def test_row_cosines_are_the_same_bits_for_any_rows() -> None:
-    from mapper.node.query_kernels import row_cosines
+    from mapper.map.query_kernels import row_cosines
 
     rng = np.random.default_rng(1)
     feat = rng.standard_normal((1000, 384)).astype(np.float32)
@@ -207,8 +207,8 @@ def test_kernels_launched_from_many_threads_at_once() -> None:
     computed alone."""
     import threading
 
+    from mapper.map.query_kernels import row_cosines
     from mapper.node.queries import _pair_components, radius_components
-    from mapper.node.query_kernels import row_cosines
 
     rng = np.random.default_rng(2)
     feat = rng.standard_normal((5000, 64)).astype(np.float32)

@@ -1,12 +1,12 @@
 """The grid index behind the whole-map answers' nearest map point
-(``mapper.node.query_kernels.NearestGrid``) against a k-d tree query with ``distance_upper_bound``."""
+(``mapper.map.query_kernels.NearestGrid``) against a k-d tree query with ``distance_upper_bound``."""
 
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from mapper.node import query_kernels
-from mapper.node.query_kernels import NearestGrid
+from mapper.map.query_kernels import NearestGrid
+from mapper.map import query_kernels
 
 
 def _tree_nearest(pts: np.ndarray, queries: np.ndarray, radius: float) -> np.ndarray:

@@ -10,7 +10,7 @@ import torch
 
 from clients.harness import look_at
 from mapper.geometry.splat import MAX_REACH_PX, occluder_depths, splat_points
-from mapper.model.ops.average_kernel import in_view_matrix
+from mapper.kernels.average_kernel import in_view_matrix
 from mapper.model.ops.geometry import in_view, invert_pose, project_points
 from mapper.model.ops.occlusion_kernel import depth_test_matrix, zbuffer_views
 

@@ -26,12 +26,12 @@ import pytest
 import torch
 from torch import Tensor
 
+from mapper.map.window import Keyframe, KeyframeWindow
 from mapper.model.field import GovNeSF, RenderOutputs, SourceViews, render_depth_maps, render_rays
 from mapper.model.ops.geometry import pixel_rays
 from mapper.model.ops.rendering import Rays, clip_to_box
 from mapper.model.render import occupancy_mask
 from mapper.node.config import WindowConfig
-from mapper.node.window import Keyframe, KeyframeWindow
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig, _Prepared
 from tests.model_helpers import look_at, tiny_model_config
 

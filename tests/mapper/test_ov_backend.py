@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import torch
 
+from mapper.map.global_map import GlobalSemanticMap
 from mapper.model.field import GovNeSF
 from mapper.node.backends.learned import install_learned_backend
 from mapper.node.config import ConfigError, OvBackendConfig, apply_overrides, config_from_dict
-from mapper.node.global_map import GlobalSemanticMap
 from mapper.node.service import MapperNode
 from mapper.node.workers.ov_features import OvFeatureWorker, install_ov_backend
 from mapper.ov.clip_tokenizer import ClipTokenizer

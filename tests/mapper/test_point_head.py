@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import torch
 
+from mapper.map.window import KeyframeWindow
 from mapper.model.checkpoint import load_metadata, save_checkpoint
 from mapper.model.config import FusionConfig
 from mapper.model.field import GovNeSF
 from mapper.model.fusion import FusionNet
 from mapper.model.point_head import head_paths, load_point_head, save_point_head
 from mapper.node.config import WindowConfig
-from mapper.node.window import KeyframeWindow
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
 from mapper.training.point_head import Captured, DistillConfig, distill_loss, main, student_config, train_head
 from tests.mapper.test_runtime import TINY, FakeEncoder, keyframe, orbit

@@ -9,8 +9,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from mapper.map.global_map import GlobalMapSnapshot
 from mapper.node.config import QueryConfig
-from mapper.node.global_map import GlobalMapSnapshot
 from mapper.node.queries import (
     DEFAULT_NEGATIVES,
     cluster_points,

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
+from mapper.map.window import KeyframeWindow
 from mapper.model.field import GovNeSF
 from mapper.node.config import WindowConfig
-from mapper.node.window import KeyframeWindow
 from mapper.node.workers.triangulation import keyframe_key
 from mapper.runtime.model_runtime import ModelRuntime
 from tests.mapper.test_runtime import TINY, keyframe, make_runtime, orbit

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
+from mapper.map.window import Keyframe, KeyframeWindow
 from mapper.model.field import GovNeSF
 from mapper.model.ops.cost_volume import bounds_from_points, build_cost_volume, cost_volume_features
 from mapper.node.config import ConfigError, WindowConfig
-from mapper.node.window import Keyframe, KeyframeWindow
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig, RuntimeNotReady
 from tests.model_helpers import look_at, tiny_model_config
 

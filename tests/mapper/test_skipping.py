@@ -24,11 +24,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch import Tensor
 
+from mapper.map.window import Keyframe, KeyframeWindow
 from mapper.model.ops.cost_volume import VolumeBounds
 from mapper.model.ops.rendering import Rays
 from mapper.model.render import AppearanceFn, MarchOutputs, march_rays, occupancy_mask, weight_groups
 from mapper.node.config import WindowConfig
-from mapper.node.window import Keyframe, KeyframeWindow
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
 from tests.model_helpers import look_at, tiny_model_config
 

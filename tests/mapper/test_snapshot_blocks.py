@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapper.node import global_map
+from mapper.map.global_map import GlobalSemanticMap
+from mapper.map.window import Keyframe
+from mapper.map import global_map
 from mapper.node.config import GlobalMapConfig
-from mapper.node.global_map import GlobalSemanticMap
-from mapper.node.window import Keyframe
 
 W, H = 32, 24
 K = np.array([30.0, 28.0, 16.0, 12.0])

@@ -11,9 +11,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from mapper.map.query_kernels import morton_codes
 from mapper.node.config import config_from_dict
 from mapper.node.queries import spatial_order
-from mapper.node.query_kernels import morton_codes
 from mapper.node.service import MapperNode
 from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
 from protocol.messages import Frame, Segmentation, SegmentPoints, decode, encode

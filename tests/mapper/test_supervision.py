@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from mapper.model.ops.checks import ShapeError
+from mapper.checks import ShapeError
 from mapper.model.ops.geometry import pixel_rays
 from mapper.model.supervision import (
     ray_depth_loss,

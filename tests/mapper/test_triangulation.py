@@ -29,8 +29,8 @@ from mapper.geometry.triangulation import (
     triangulate_keyframe,
     triangulate_pair,
 )
+from mapper.map.global_map import GlobalSemanticMap
 from mapper.node.config import ConfigError, config_from_dict
-from mapper.node.global_map import GlobalSemanticMap
 from mapper.node.service import MapperNode
 from mapper.node.workers import triangulation as triangulation_plugin
 from mapper.node.workers.triangulation import SparseTriangulation, keyframe_key

@@ -16,9 +16,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from mapper.map.global_map import GlobalMapSnapshot, GlobalSemanticMap
 from mapper.node.backends.learned import LearnedBackend
 from mapper.node.config import GlobalMapConfig, config_from_dict
-from mapper.node.global_map import GlobalMapSnapshot, GlobalSemanticMap
 from mapper.node.queries import (
     SOURCE_MAP,
     SOURCE_NONE,
@@ -341,7 +341,7 @@ def test_learned_features_reach_the_map_before_the_keyframe_leaves(tmp_path: Pat
 
 def test_set_features_refuses_a_wrong_shape_and_changes_nothing() -> None:
     gmap = GlobalSemanticMap(GlobalMapConfig())
-    from mapper.node.window import Keyframe
+    from mapper.map.window import Keyframe
 
     f = _frame(0, np.eye(4), 0)
     kf = Keyframe(seq=0, stamp_ns=0, camera="cam0", K=f.K, world_from_cam=f.world_from_cam, rgb=f.rgb,
@@ -358,7 +358,7 @@ def test_set_features_refuses_a_wrong_shape_and_changes_nothing() -> None:
 
 
 def _learned_map(once: bool) -> tuple[GlobalSemanticMap, np.ndarray]:
-    from mapper.node.window import Keyframe
+    from mapper.map.window import Keyframe
 
     gmap = GlobalSemanticMap(GlobalMapConfig(learned_features_once=once))
     f = _frame(0, np.eye(4), 0)  # fused c0 everywhere
@@ -396,7 +396,7 @@ def test_learned_features_enter_a_voxel_once_or_at_every_eviction(once: bool) ->
         expect = np.array([0.5, 0.0, 0.5, np.sqrt(0.5)]) / np.linalg.norm([0.5, 0.0, 0.5, np.sqrt(0.5)])
         np.testing.assert_allclose(after[:half], np.tile(expect, (half, 1)), atol=3e-3)
     # the worker asks the model only for the voxels still without a learned feature
-    from mapper.node.window import Keyframe
+    from mapper.map.window import Keyframe
 
     f = _frame(0, np.eye(4), 0)
     kf = Keyframe(seq=0, stamp_ns=0, camera="cam0", K=f.K, world_from_cam=f.world_from_cam, rgb=f.rgb,
@@ -469,7 +469,7 @@ def test_node_prefers_the_more_confident_map_as_configured(tmp_path: Path, more_
 
 
 def test_map_similarities_equal_a_float64_reference_across_blocks() -> None:
-    from mapper.node.global_map import UNIT_BLOCK_ROWS
+    from mapper.map.global_map import UNIT_BLOCK_ROWS
     from mapper.node.queries import _map_similarities
 
     rng = np.random.default_rng(3)
@@ -591,7 +591,7 @@ def test_nearest_with_feature_grid_and_kd_tree_agree(tmp_path: Path, monkeypatch
     # radius beyond its reach: the same rows either way, on and off the map's surfaces
     from scipy.spatial import cKDTree
 
-    from mapper.node import query_kernels
+    from mapper.map import query_kernels
 
     node = _node(tmp_path)
     _stream(node, [_frame(0, np.eye(4), 0), _frame(1, LOOK_X, 1)])

@@ -8,14 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapper.node.config import WindowConfig
-from mapper.node.window import (
+from mapper.map.window import (
     Keyframe,
     KeyframeWindow,
     keyframes_from_arrays,
     keyframes_to_arrays,
     pose_change,
 )
+from mapper.node.config import WindowConfig
 
 
 def _rot_z(deg: float) -> np.ndarray:

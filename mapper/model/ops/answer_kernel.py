@@ -3,12 +3,12 @@
 ``segment_points`` with the learned model runs three compiled kernels in turn over every (point,
 view) pair: the sampling of colour and 2D features (:mod:`mapper.model.ops.sample_kernel`), the
 FusionNet's OV weights (:mod:`mapper.model.ops.fusion_kernel`) and the blend of the OV maps with
-each text's cosine (:func:`mapper.model.ops.average_kernel.blend_kernel`). Between them the pairs'
+each text's cosine (:func:`mapper.kernels.average_kernel.blend_kernel`). Between them the pairs'
 samples (23 floats a pair: 1.6M pairs, about 150 MB, for 100k points over 16 views) are written
 to memory and read back, chunk by chunk. Here each block of points goes through all three steps
 while its samples sit in per-block buffers, using the same compiled functions
 (:func:`~mapper.model.ops.sample_kernel.sample_pair`, ``_point_block``,
-:func:`~mapper.model.ops.average_kernel.blend_range`) in the same order, so the answers are the
+:func:`~mapper.kernels.average_kernel.blend_range`) in the same order, so the answers are the
 same numbers as the three kernels' (tests/mapper/test_answer_kernel.py). A block also skips the
 trailing padding slots none of its points uses (padding is masked: it changes no answer). Without
 texts the pass writes each point's blended feature instead (the learned features the node writes
@@ -20,7 +20,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from mapper.model.ops.average_kernel import blend_range, launch
+from mapper.kernels.average_kernel import blend_range, launch
 from mapper.model.ops.fusion_kernel import _POW2, RANGE_MIN_M, PointKernelWeights, _point_block, default_block
 from mapper.model.ops.sample_kernel import PairArgs, pair_args, sample_pair
 

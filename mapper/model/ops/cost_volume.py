@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mapper.model.ops.checks import check_shape
+from mapper.checks import check_shape
 from mapper.model.ops.geometry import in_view, invert_pose, project_points, sample_bilinear, scale_uv
 
 __all__ = [

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from mapper.model.ops.average_kernel import launch
+from mapper.kernels.average_kernel import launch
 
 __all__ = [
     "RANGE_MIN_M", "PointKernelWeights", "default_block", "kernel_applies", "point_ov_weights", "warm_up",

@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mapper.model.ops.checks import check_shape
+from mapper.checks import check_shape
 
 __all__ = [
     "frustum_points",

@@ -10,7 +10,7 @@ Two stages of ``segment_points`` with a depth test on keyframes without input de
 * :func:`depth_test_matrix`: for every (point, view), whether the point projects into the view and
   passes the DGM test against a depth map (the view's depth at the point's nearest pixel agrees
   within ``ratio`` of it, or there is none), in parallel over blocks of points: the kernel of
-  :func:`mapper.model.ops.average_kernel.in_view_matrix` (which is it without depth).
+  :func:`mapper.kernels.average_kernel.in_view_matrix` (which is it without depth).
 
 Neither materialises anything of size (points, views) beyond the boolean answer. The numpy / torch
 paths they replace spent 8 ms a view on 100k points (z-buffers) and 0.35 s on 106k points x 84
@@ -22,7 +22,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from mapper.model.ops.average_kernel import depth_test_launch, launch
+from mapper.kernels.average_kernel import depth_test_launch, launch
 
 __all__ = ["depth_test_matrix", "warm_up", "zbuffer_views"]
 
@@ -99,7 +99,7 @@ def depth_test_matrix(
     threads: int,
     block: int = 256,
 ) -> np.ndarray:  # (P, M) bool
-    """In view (:func:`mapper.model.ops.average_kernel.in_view_matrix`) and passing the DGM test of
+    """In view (:func:`mapper.kernels.average_kernel.in_view_matrix`) and passing the DGM test of
     ``GovNeSF.sample_views`` against ``depth_m`` (nearest pixel; a pixel without depth passes)."""
     return depth_test_launch(pts, cam_from_world, K, image_wh, eps, depth_m, ratio, threads, block)
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from mapper.model.ops.checks import check_shape
+from mapper.checks import check_shape
 
 __all__ = [
     "MIN_SPAN_M",

@@ -9,7 +9,7 @@ go, in parallel over blocks of pairs, with the cameras read in place.
 
 Arithmetic follows the torch path in float32 (``project_points``: ``R p + t``, ``x / z * f + c``,
 the clamp to +-6e4; ``in_view``; the depth test's nearest pixel; the bilinear corners and weights
-of ``bilinear_corners`` as in :func:`mapper.model.ops.average_kernel.blend_kernel`), so the masks
+of ``bilinear_corners`` as in :func:`mapper.kernels.average_kernel.blend_kernel`), so the masks
 are the same and the samples agree to float rounding (tests/mapper/test_sample_kernel.py). One
 difference: a masked pair's colour and features are 0 here (the network never reads them: masked
 views carry no key in the attention and no weight in the blends).
@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
-from mapper.model.ops.average_kernel import corners, launch
+from mapper.kernels.average_kernel import corners, launch
 from mapper.model.ops.geometry import _UV_LIMIT as UV_LIMIT
 
 __all__ = ["PairArgs", "pair_args", "sample_pair", "sample_pairs", "warm_up"]
@@ -36,7 +36,7 @@ _UV_LIMIT = np.float32(UV_LIMIT)  # project_points' clamp of pixel coordinates
 def _taps(maps, view, u, v, out, i):  # pragma: no cover - compiled
     """out[c, i] = the bilinear sample of ``view``'s map of ``maps`` (table, w, h, sx, sy) at image
     pixel (u, v), the corners and weights of ``blend_kernel``
-    (:func:`mapper.model.ops.average_kernel.corners`)."""
+    (:func:`mapper.kernels.average_kernel.corners`)."""
     table, map_w, map_h, sx, sy = maps
     base = view * map_w * map_h
     r00, r01, r10, r11, tx, ty = corners(u * sx, v * sy, map_w, map_h)

@@ -7,11 +7,11 @@ import logging
 import os
 import time
 
+from mapper.map.global_map import GlobalSemanticMap
+from mapper.map.window import keyframes_from_arrays, keyframes_to_arrays
 from mapper.node.config import to_dict
 from mapper.node.context import NodeContext
-from mapper.node.global_map import GlobalSemanticMap
 from mapper.node.store import StoreError, StoreWriteError
-from mapper.node.window import keyframes_from_arrays, keyframes_to_arrays
 from protocol.errors import ProtocolError
 from protocol.messages import Load, Message, Ok, Save
 

@@ -14,10 +14,10 @@ import time
 
 import numpy as np
 
+from mapper.map.global_map import GlobalMapSnapshot
 from mapper.node.backends import PointAnswer, SegmentBackend
 from mapper.node.backends.average import AveragingBackend
 from mapper.node.context import NodeContext
-from mapper.node.global_map import GlobalMapSnapshot
 from protocol.errors import ProtocolError
 from protocol.messages import Message, Segmentation, SegmentPoints
 

@@ -24,7 +24,7 @@ import numpy as np
 from protocol.messages import SegmentPoints
 
 if TYPE_CHECKING:
-    from mapper.node.global_map import GlobalMapSnapshot
+    from mapper.map.global_map import GlobalMapSnapshot
 
 __all__ = ["PointAnswer", "RenderBackend", "SegmentBackend"]
 

@@ -4,8 +4,8 @@ The OV features of the window's keyframes where they see a point (10 px border; 
 only where the point passes the depth test against the keyframe's input depth, or, for keyframes
 without depth, against the request's own points splatted as occluders: ``queries.point_occlusion``),
 together with the views of keyframes that left the window at the point's nearest map voxel
-(``queries.evicted_views``, :mod:`mapper.node.evicted_views`). Torch-free: the averaging runs in a
-compiled kernel (:mod:`mapper.model.ops.average_kernel`). The global map's answer beyond the window
+(``queries.evicted_views``, :mod:`mapper.map.evicted_views`). Torch-free: the averaging runs in a
+compiled kernel (:mod:`mapper.kernels.average_kernel`). The global map's answer beyond the window
 is applied by :mod:`mapper.node.answers.segment`, as for every backend.
 """
 
@@ -17,11 +17,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from mapper.map.evicted_views import EvictedViewStore
+from mapper.map.global_map import GlobalMapSnapshot
+from mapper.map.window import Keyframe
 from mapper.node.backends import PointAnswer
 from mapper.node.context import NodeContext
-from mapper.node.evicted_views import EvictedViewStore
-from mapper.node.global_map import GlobalMapSnapshot
-from mapper.node.window import Keyframe
 from protocol.errors import ProtocolError
 from protocol.messages import SegmentPoints
 

@@ -1,7 +1,7 @@
 """Global-map points for keyframes without input depth, from the learned model's rendered depth.
 
 A robot with a plain RGB camera sends frames without ``depth_m``. The global semantic point map
-(:mod:`mapper.node.global_map`) back-projects input depth, so such keyframes would add no points. With
+(:mod:`mapper.map.global_map`) back-projects input depth, so such keyframes would add no points. With
 the learned model served, :class:`RenderedDepthPoints` fills the gap: for each such keyframe it
 renders the model's depth at the keyframe's own pose (density only, no appearance pass: the cost
 of a depth render is the 3D U-Net once per runtime version with the window's volume, or a cost
@@ -69,8 +69,8 @@ from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker, wi
 from mapper.runtime.model_runtime import ModelRuntime, RuntimeNotReady
 
 if TYPE_CHECKING:
+    from mapper.map.global_map import GlobalSemanticMap
     from mapper.node.context import NodeContext
-    from mapper.node.global_map import GlobalSemanticMap
 
 __all__ = [
     "RenderedDepthPoints",

@@ -1,6 +1,6 @@
 """Learned features into the global map, just before a keyframe leaves the window.
 
-The global map fuses every keyframe's 2D OV features by a weighted mean (``mapper.node.global_map``).
+The global map fuses every keyframe's 2D OV features by a weighted mean (``mapper.map.global_map``).
 When the node serves the learned model, the model's blended feature of a point (cross-view
 attention over the window's views) is better than that average, but it is only available while
 the views that see the point are in the window. :class:`PreEvictionFeatures` writes it into the
@@ -35,12 +35,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from mapper.map.window import Keyframe
 from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker
-from mapper.node.window import Keyframe
 
 if TYPE_CHECKING:
+    from mapper.map.global_map import GlobalSemanticMap
     from mapper.node.context import NodeContext
-    from mapper.node.global_map import GlobalSemanticMap
 
 __all__ = ["FeatureFn", "PreEvictionFeatures"]
 

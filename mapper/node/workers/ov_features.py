@@ -26,7 +26,7 @@ Wiring (:func:`install_ov_backend`, called once after the node is built and afte
      features too). The map's ``ov_space`` / ``ov_dim`` are set by the first keyframe with
      features, as for frames with ``ov``; ``map_version`` goes up by one;
   b. outside the state lock, fuses the features into the global map's voxels that the keyframe's
-     depth points fell in (:meth:`mapper.node.global_map.GlobalSemanticMap.integrate_features`): no
+     depth points fell in (:meth:`mapper.map.global_map.GlobalSemanticMap.integrate_features`): no
      geometry weight is added a second time.
 
 Space rules stay those of the node: the backend only fills frames without ``ov``. If the map's
@@ -69,10 +69,10 @@ from protocol.errors import ProtocolError
 from protocol.messages import Message, QueryPoints, Render, SegmentPoints
 
 if TYPE_CHECKING:
+    from mapper.map.global_map import GlobalSemanticMap
+    from mapper.map.window import Keyframe, KeyframeWindow
     from mapper.node.context import NodeContext, QueryHandler
-    from mapper.node.global_map import GlobalSemanticMap
     from mapper.node.service import MapperNode
-    from mapper.node.window import Keyframe, KeyframeWindow
 
 __all__ = ["DenseOvBackend", "OvFeatureWorker", "install_ov_backend", "load_backend"]
 

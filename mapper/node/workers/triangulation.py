@@ -85,8 +85,8 @@ from mapper.geometry.triangulation import (
 from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker, with_current_features
 
 if TYPE_CHECKING:
+    from mapper.map.global_map import GlobalSemanticMap
     from mapper.node.context import NodeContext
-    from mapper.node.global_map import GlobalSemanticMap
     from mapper.node.service import MapperNode
 
 __all__ = ["SparseTriangulation", "TriangulatedKeyframe", "install_triangulation", "keyframe_key"]

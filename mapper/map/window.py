@@ -14,7 +14,6 @@ evicted keyframe), and :meth:`KeyframeWindow.consider` also returns what changed
 Example::
 
     >>> import numpy as np
-    >>> from mapper.node.config import WindowConfig
     >>> window = KeyframeWindow(WindowConfig(max_keyframes=2, min_translation_m=0.1, min_rotation_deg=10))
     >>> def kf(seq, x):
     ...     world_from_cam = np.eye(4); world_from_cam[0, 3] = x
@@ -35,7 +34,38 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mapper.node.config import WindowConfig
+from mapper.checks import check_range as _check_range
+from mapper.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class WindowConfig:
+    """The bounded window of keyframes (see :mod:`mapper.map.window`)."""
+
+    max_keyframes: int = 30
+    """Most keyframes kept; adding one more evicts the oldest. 1..10000."""
+
+    min_translation_m: float = 0.10
+    """A frame becomes a keyframe when its camera centre moved at least this far (metres) from the
+    most recent keyframe of the same camera. >= 0."""
+
+    min_rotation_deg: float = 10.0
+    """... or when its viewing direction turned by at least this angle (degrees, the angle of the
+    relative rotation) from that keyframe. 0..180."""
+
+    max_image_side: int = 1280
+    """A keyframe whose image is larger is kept shrunk to this many pixels on its longer side
+    (colour by area, depth by nearest sample, K scaled with it; ``ov`` as sent): a window of 30
+    keyframes of 4096 x 4096 frames with depth would hold 3.5 GB, and the global map integrates
+    every second depth pixel. Frames up to this size are kept as sent. 0 = always as sent. 0..4096."""
+
+    def validate(self, where: str) -> None:
+        _check_range(where, "window.max_keyframes", self.max_keyframes, 1, 10_000)
+        _check_range(where, "window.max_image_side", self.max_image_side, 0, 4096)
+        if 0 < self.max_image_side < 16:
+            raise ConfigError(f"{where}: window.max_image_side = {self.max_image_side} must be 0 or >= 16")
+        _check_range(where, "window.min_translation_m", self.min_translation_m, 0.0, 1e6)
+        _check_range(where, "window.min_rotation_deg", self.min_rotation_deg, 0.0, 180.0)
 
 
 @dataclass(frozen=True, eq=False)

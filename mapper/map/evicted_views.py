@@ -12,13 +12,12 @@ node with an unbounded window (docs/concepts/window-and-map.md). This module kee
   image, less the border: ``average``) and ``depth`` (also passing the depth test:
   ``average_depth``). Float32 means and counts (queries read the means in place, no copy); saved
   with the global map as they are (maps saved with float16 means load too).
-* :class:`EvictedViews`: the node's worker (``mapper-evicted-views``). For each keyframe the window
-  evicts (``MapperNode._ingest_frame`` queues it; the ack never waits), it samples the keyframe's
-  OV map at every global-map voxel with the averaging's own selection
-  (:func:`mapper.model.baselines.view_samples`) and adds the samples to the store.
-* at query time (``MapperNode._segment_average``) a point's nearest map voxel with a feature
-  within ``queries.map_radius_voxels`` gives its prior: the voxel's mean counts as that many more
-  views in the point's average (:func:`mapper.model.baselines.average_similarities`' ``prior``).
+* :class:`mapper.node.workers.evicted_views.EvictedViews`: the node's worker (``mapper-evicted-views``)
+  that samples each evicted keyframe's OV map at every global-map voxel and adds the samples here.
+* at query time (:class:`mapper.node.backends.average.AveragingBackend`) a point's nearest map
+  voxel with a feature within ``queries.map_radius_voxels`` gives its prior: the voxel's mean
+  counts as that many more views in the point's average (the ``prior`` of
+  :func:`mapper.kernels.average.average_similarities`).
   With uniform view weights this is exactly the average over the window's views and the evicted
   ones (sampled at the voxel's fused position instead of the point).
 
@@ -28,27 +27,14 @@ eviction instead: :mod:`mapper.node.workers.map_features`).
 
 from __future__ import annotations
 
-import logging
 import threading
-import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numba
 import numpy as np
 
-from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker
-
-if TYPE_CHECKING:
-    from mapper.node.window import Keyframe
-
-# The worker takes the node (``mapper.node.service.MapperNode``) and its global maps
-# (``mapper.node.global_map.GlobalSemanticMap``) as ``Any``: the global map holds the store, so
-# naming those types here would make an import cycle (tests/test_architecture.py).
-
-__all__ = ["CHANNELS", "EvictedViewStore", "EvictedViews", "absorb_rows", "warm_up"]
-
-log = logging.getLogger("mapper.node.evicted_views")
+__all__ = ["CHANNELS", "EvictedViewStore", "absorb_rows", "in_image", "warm_up"]
 
 CHANNELS = ("all", "depth")
 """``all``: views whose image a voxel falls in (``average``); ``depth``: those whose depth also
@@ -328,7 +314,7 @@ class EvictedViewStore:
                 "views_depth": float(self._channels["depth"].count[:n].sum()),
             }
 
-    # -- persistence (with the global map: mapper.node.global_map) ------------------------------
+    # -- persistence (with the global map: mapper.map.global_map) ------------------------------
 
     def to_arrays(self, prefix: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """``({"<prefix>.<field>": array}, manifest)``: a consistent copy."""
@@ -412,131 +398,3 @@ def in_image(
     width, height = image_wh
     ok = front & (u >= margin) & (u <= width - margin) & (v >= margin) & (v <= height - margin)
     return np.flatnonzero(ok)
-
-
-class EvictedViews:
-    """The node's worker that adds evicted keyframes' views to their global map's store (module
-    docstring). ``install()`` hooks it into the node (before ``node.start()``)."""
-
-    def __init__(self, ctx: Any) -> None:  # NodeContext
-        self.ctx = ctx
-        cfg = ctx.config
-        self.queue: KeyframeQueue[tuple[Keyframe, Any]] = KeyframeQueue(  # (keyframe, its GlobalSemanticMap)
-            cfg.queries.evicted_views_max_pending
-        )
-        self.both = cfg.queries.evicted_views == "both"
-        """Also the ``all`` channel (``average``); else ``depth`` only (``average_depth``)."""
-        self.border_px = 10.0
-        """The averaging's border (``segment_average``'s default; the node's methods use it)."""
-        self.chunk = 32_768
-        """Voxels sampled at a time (the samples are (chunk, D) float32 per channel)."""
-        self._busy = threading.Lock()
-        self._in_batch = 0
-        self._limited = LimitedLog(log)
-        self.done = 0
-        self.stale = 0
-        self.deferred = 0
-        """Times the worker left queued keyframes for later because the integrator had work."""
-        self.seconds_total = 0.0
-
-    def install(self) -> None:
-        self.ctx.workers.append(("evicted-views", self.run))
-        self.ctx.status_providers["evicted_views"] = self.stats
-
-    def put(self, keyframe: Keyframe, gmap: Any) -> None:  # gmap: GlobalSemanticMap
-        """Queue a keyframe the window evicted (cheap; any thread)."""
-        if keyframe.ov is not None and (self.both or keyframe.depth_m is not None):
-            self.queue.put((keyframe, gmap))
-
-    def run(self, stop: threading.Event) -> None:
-        """Worker thread body (``node.workers``): absorbs queued keyframes one at a time while the
-        integrator has nothing waiting or this queue is half full (a keyframe's integration comes
-        first: the cores go to the stream; what waits here is picked up when the next keyframe
-        leaves or within a poll)."""
-        def on_error(exc: BaseException) -> None:
-            self._limited.warning("error", "evicted views failed: %r", exc)
-
-        def work() -> None:
-            while len(self.queue) and not stop.is_set():
-                # the integrator first, unless this queue is half full (then nothing is dropped)
-                if self.ctx.integration_backlog() > 0 and 2 * len(self.queue) < self.queue.max_len:
-                    self.deferred += 1
-                    return
-                self._process_one()
-
-        run_worker(stop, self.queue.wake, work, on_error)
-
-    def process_pending(self) -> int:
-        """Absorb every queued keyframe now (also callable directly: ``save``, benchmarks).
-        Returns how many."""
-        n = 0
-        while self._process_one():
-            n += 1
-        return n
-
-    def _process_one(self) -> bool:
-        with self._busy:
-            self._in_batch = 1  # before the pop: ``pending`` never reads 0 while one is in hand
-            item = self.queue.pop()
-            if item is None:
-                self._in_batch = 0
-                return False
-            try:
-                self._absorb(*item)
-            finally:
-                self._in_batch = 0
-            return True
-
-    @property
-    def pending(self) -> int:
-        return len(self.queue) + self._in_batch
-
-    def _absorb(self, keyframe: Keyframe, gmap: Any) -> None:  # gmap: GlobalSemanticMap
-        from mapper.model.baselines import OVView, view_samples  # torch-heavy; imported when first used
-
-        started = time.perf_counter()
-        with self.ctx.state.lock:
-            current = self.ctx.state.global_map
-        if gmap is not current:  # a map loaded since: the keyframe belongs to the old one
-            self.stale += 1
-            return
-        map_xyz, map_keys = gmap.geometry()  # points and keys only: no copy of the map's features
-        if map_xyz.shape[0] == 0 or keyframe.ov is None:
-            self.done += 1
-            return
-        view = OVView(keyframe.ov, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
-                      keyframe.depth_m)
-        rows = in_image(map_xyz, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
-                        self.border_px)
-        store = gmap.evicted
-        first = True
-        for lo in range(0, rows.shape[0], self.chunk):  # bounded memory: (chunk, D) samples at a time
-            part = rows[lo: lo + self.chunk]
-            xyz = map_xyz[part]
-            samples = {}
-            if self.both:
-                samples["all"] = view_samples(xyz, view, use_depth=False, border_px=self.border_px)
-            if keyframe.depth_m is not None:
-                samples["depth"] = view_samples(xyz, view, use_depth=True, border_px=self.border_px)
-            store.absorb(map_keys[part], samples, new_keyframe=first)
-            first = False
-        if first:
-            store.absorb(np.zeros(0, np.int64), {})  # counts the keyframe (no voxel in its image)
-        if len(store) > max(2 * map_xyz.shape[0], 4096):  # voxels the map pruned since
-            store.compact(map_keys)
-        self.done += 1
-        self.seconds_total += time.perf_counter() - started
-
-    def stats(self) -> dict[str, Any]:
-        """``status`` key ``evicted_views`` (called under the state lock: takes no node lock)."""
-        store = self.ctx.state.global_map.evicted
-        return {
-            "pending": self.pending,
-            "dropped": self.queue.dropped,
-            "done": self.done,
-            "stale": self.stale,
-            "deferred": self.deferred,
-            "ms_per_keyframe": round(1e3 * self.seconds_total / max(self.done, 1), 3),
-            "bytes": store.nbytes,
-            **store.stats(),
-        }

@@ -15,7 +15,7 @@ import itertools
 import numba
 import numpy as np
 
-from mapper.model.ops.average_kernel import _dot, launch  # numba + numpy only (no torch)
+from mapper.kernels.average_kernel import dot, launch
 
 __all__ = ["NearestGrid", "component_cells", "morton_codes", "row_cosines", "warm_up"]
 
@@ -39,7 +39,7 @@ def _row_cosines(feat, emb, rows, out, block):  # pragma: no cover - compiled
         for i in range(task * block, min(n, (task + 1) * block)):
             row = feat[rows[i]]
             for t in range(m):
-                out[i, t] = _dot(row, emb[t])
+                out[i, t] = dot(row, emb[t])
 
 
 def row_cosines(

@@ -23,16 +23,16 @@ from the wire are validated earlier, by ``protocol/``.
 >>> check_shape(np.zeros((3, 3)), "* 4 4", "world_from_cam")
 Traceback (most recent call last):
 ...
-mapper.model.ops.checks.ShapeError: world_from_cam: expected shape (..., 4, 4), got (3, 3)
+mapper.checks.ShapeError: world_from_cam: expected shape (..., 4, 4), got (3, 3)
 >>> check_shape(np.zeros((5, 4)), "N 3", "points")
 Traceback (most recent call last):
 ...
-mapper.model.ops.checks.ShapeError: points: expected shape (N, 3), got (5, 4)
+mapper.checks.ShapeError: points: expected shape (N, 3), got (5, 4)
 >>> dims = check_shape(np.zeros((5, 3)), "N 3", "points")
 >>> check_shape(np.zeros((6,)), "N", "weights", dims)
 Traceback (most recent call last):
 ...
-mapper.model.ops.checks.ShapeError: weights: expected shape (N,) with N = 5, got (6,)
+mapper.checks.ShapeError: weights: expected shape (N,) with N = 5, got (6,)
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
-__all__ = ["CHECKS_ENABLED", "ShapeError", "check_shape", "format_spec"]
+__all__ = ["CHECKS_ENABLED", "ShapeError", "check_range", "check_shape", "format_spec"]
 
 CHECKS_ENABLED = os.environ.get("GOVNESF_SHAPE_CHECKS", "1") not in ("0", "false", "off")
 """Global switch (environment ``GOVNESF_SHAPE_CHECKS=0`` turns every check off)."""
@@ -91,3 +91,12 @@ def check_shape(x: Any, spec: str, name: str, dims: dict[str, int] | None = None
             bound[token] = size
     dims.update(bound)
     return dims
+
+
+def check_range(where: str, key: str, value: float, lo: float, hi: float) -> None:
+    """A config value within ``lo..hi``, else :class:`mapper.errors.ConfigError` naming ``where``,
+    the key, the value and the range (the config dataclasses' ``validate``)."""
+    if not lo <= value <= hi:
+        from mapper.errors import ConfigError
+
+        raise ConfigError(f"{where}: {key} = {value!r} out of range {lo}..{hi}")

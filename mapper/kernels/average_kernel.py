@@ -46,7 +46,7 @@ _F1 = np.float32(1.0)
 _F2 = np.float32(2.0)
 LAUNCH_LOCK = threading.Lock()
 """Held around every parallel numba launch of the project (these kernels and
-``mapper.node.query_kernels``): one launch at a time, since each uses every thread it is given and
+``mapper.map.query_kernels``): one launch at a time, since each uses every thread it is given and
 the thread count is numba-global, and since numba's fallback threading layer (workqueue, where
 neither OpenMP nor TBB is available) aborts on concurrent launches."""
 
@@ -105,7 +105,7 @@ def accumulate_taps(acc, acc2, table, key, rows, wts, m, m2):  # pragma: no cove
 
 
 @numba.njit(fastmath=True, boundscheck=False, cache=True)
-def _dot(a, b):  # pragma: no cover - compiled
+def dot(a, b):  # pragma: no cover - compiled
     s = _F0
     for k in range(a.shape[0]):
         s += a[k] * b[k]
@@ -244,7 +244,7 @@ def _select(pts, i, cam_from_world, K, right, bottom, border, eps, use_depth, ha
 def _write(acc, raw, texts, out, i):  # pragma: no cover - compiled
     """Point i's output from its weighted sum ``acc``: the cosines with ``texts`` (T > 0), else
     the unit feature, or with ``raw`` the sum itself."""
-    norm = max(np.sqrt(_dot(acc, acc)), np.float32(1e-12))
+    norm = max(np.sqrt(dot(acc, acc)), np.float32(1e-12))
     if raw:
         norm = _F1
     if texts.shape[0] == 0:
@@ -252,7 +252,7 @@ def _write(acc, raw, texts, out, i):  # pragma: no cover - compiled
             out[i, k] = acc[k] / norm
     else:
         for t in range(texts.shape[0]):
-            out[i, t] = _dot(acc, texts[t]) / norm
+            out[i, t] = dot(acc, texts[t]) / norm
 
 
 @numba.njit(cache=True, boundscheck=False, inline="always")
@@ -321,9 +321,9 @@ def blend_range(table, map_w, map_h, view_idx, uv, weights, lo, hi, texts, out,
             if n_texts == 0:
                 out[row, :] = acc
                 continue
-            inv = _F1 / max(np.sqrt(_dot(acc, acc)), np.float32(1e-12))  # F.normalize's eps
+            inv = _F1 / max(np.sqrt(dot(acc, acc)), np.float32(1e-12))  # F.normalize's eps
             for t in range(n_texts):
-                out[row, t] = _dot(acc, texts[t]) * inv
+                out[row, t] = dot(acc, texts[t]) * inv
 
 
 @numba.njit(parallel=True, cache=True, boundscheck=False)

@@ -40,8 +40,7 @@ integrate never waits on a query.
 Example::
 
     >>> import numpy as np
-    >>> from mapper.node.config import GlobalMapConfig
-    >>> from mapper.node.window import Keyframe
+    >>> from mapper.map.window import Keyframe
     >>> gmap = GlobalSemanticMap(GlobalMapConfig(voxel_size_m=0.1, pixel_stride=4))
     >>> depth = np.full((24, 32), 2.0, np.float32)                     # a wall 2 m ahead
     >>> kf = Keyframe(seq=0, stamp_ns=0, camera="cam0", K=np.array([30.0, 30.0, 16.0, 12.0]),
@@ -69,11 +68,12 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.spatial import cKDTree
 
-from mapper.model.ops.checks import check_shape
-from mapper.node.config import GlobalMapConfig
-from mapper.node.evicted_views import EvictedViewStore
+from mapper.checks import check_range as _check_range
+from mapper.checks import check_shape
+from mapper.errors import ConfigError
+from mapper.map.evicted_views import EvictedViewStore
 
-log = logging.getLogger("mapper.node.global_map")
+log = logging.getLogger("mapper.map.global_map")
 
 __all__ = [
     "FusionRule",
@@ -85,6 +85,196 @@ __all__ = [
     "voxel_keys",
     "weighted_mean_fusion",
 ]
+
+@dataclass(frozen=True)
+class GlobalMapConfig:
+    """The global semantic point map (see :mod:`mapper.map.global_map`): voxel-hashed surface points
+    with fused OV features, kept when keyframes leave the window."""
+
+    voxel_size_m: float = 0.05
+    """Edge of a map voxel (metres); one fused point per occupied voxel. 0.005..1."""
+
+    pixel_stride: int = 2
+    """Back-project every ``pixel_stride``-th pixel of each keyframe's depth (both axes). 1..64."""
+
+    max_points: int = 250_000
+    """Most voxels kept; beyond this the lowest-priority voxels are dropped (confidence halved per
+    ``stale_half_life_keyframes`` keyframes since last seen) down to ``prune_to_fraction``. 1..1e8."""
+
+    prune_to_fraction: float = 0.9
+    """After a prune, keep this fraction of ``max_points`` (hysteresis: not every frame prunes). 0.1..1."""
+
+    stale_half_life_keyframes: float = 200.0
+    """Keyframes after which an unseen voxel's pruning priority halves. > 0."""
+
+    min_depth_m: float = 0.1
+    """Depths below this (metres) are ignored (sensor minimum range). >= 0."""
+
+    max_depth_m: float = 8.0
+    """Depths beyond this (metres) are ignored (noisy far returns). > min_depth_m."""
+
+    near_m: float = 2.0
+    """Observation weight is 1 up to this distance along the ray (metres) ..."""
+
+    falloff_m: float = 3.0
+    """... and decays as exp(-(distance - near_m) / falloff_m) beyond it (metres). > 0."""
+
+    grazing_power: float = 1.0
+    """Weight is also multiplied by |cos(ray, surface normal)| ** grazing_power (0 disables). 0..10."""
+
+    min_weight: float = 0.02
+    """Observations whose weight falls below this are not fused. 0..1."""
+
+    rendered_depth: bool = True
+    """Keyframes without input depth add points from the learned model's rendered depth at their
+    pose (when the node serves the model; :mod:`mapper.node.workers.depth_points`).
+    Off: they add no points."""
+
+    rendered_depth_stride: int = 4
+    """The depth is rendered at the keyframe's size / this (K scaled with it), every pixel used. 1..64."""
+
+    rendered_volume_views: int = 0
+    """> 1: the keyframe's depth is rendered from a cost volume over this many window keyframes that
+    best overlap it, itself first (``ModelRuntime.render``'s ``volume_views``: the network's
+    training regime is 8 sources, whose density is far sharper than over a whole window), with
+    bounds over what they observed. 0 (default; or 1) = the window's volume. Measured with 8
+    (docs/concepts/rgb-only.md): on five simulated RGB-only streams the map points' p90 distance to the
+    surface 0.226 -> 0.182, 0.337 -> 0.234, 0.412 -> 0.313 m in three, 0.213 -> 0.229 and 0.212 ->
+    0.208 in two; but on the real ICL-NUIM sequence the map got worse (median 0.027 -> 0.045 m,
+    p90 0.108 -> 0.150 m), hence off. 0..256."""
+
+    rendered_min_opacity: float = 0.9
+    """Rendered pixels whose accumulated opacity is below this add no point (the ray found no
+    clear surface). 0..1."""
+
+    rendered_edge_rel: float = 0.1
+    """Rendered pixels whose depth differs from one of their 4 neighbours' by more than this
+    fraction of the nearer of the two add no point: at an occlusion edge the rendered depth blends
+    the near and the far surface ("flying pixels"). 0 = off. 0..10. (0.1 keeps smooth surfaces up
+    to about 70 deg of incidence at the demo's 40 x 30 renders; docs/concepts/rgb-only.md.)"""
+
+    rendered_weight: float = 0.5
+    """Observation weights of rendered-depth points are multiplied by this times the opacity (input
+    depth outranks rendered depth in the fused confidence). 0..1."""
+
+    rendered_min_views: int = 4
+    """The model needs at least this many keyframes in its window before it renders depth
+    (keyframes that arrive earlier wait). 1..1000."""
+
+    rendered_max_pending: int = 256
+    """Most keyframes waiting for a rendered depth; beyond it the oldest is dropped (counted as
+    ``dropped`` in status). 1..100000."""
+
+    rendered_consistency: bool = True
+    """Multi-view consistency for rendered-depth points (:func:`mapper.node.workers.depth_points.
+    consistency_mask`): a rendered pixel is kept only where it agrees with the triangulated points
+    projecting near it (within ``rendered_consistency_radius_px``) or, where none do, with the
+    rendered depth of at least one other recent keyframe that sees it. Off: every pixel above
+    ``rendered_min_opacity`` is kept."""
+
+    rendered_consistency_sigmas: float = 1.0
+    """A triangulated point agrees with a rendered depth within this many of its 1-sigma
+    uncertainties (but never less than ``rendered_consistency_voxels`` voxels). 0..100. (3 and 2
+    voxels before 2026-12-03; 1 and 1: RGB-only map points 0.095 -> 0.073 m median
+    from the surface, docs/concepts/rgb-only.md.)"""
+
+    rendered_consistency_voxels: float = 1.0
+    """Depth tolerance between two keyframes' rendered depths, and the least tolerance against a
+    triangulated point, in ``voxel_size_m`` units. 0..100."""
+
+    rendered_consistency_radius_px: int = 2
+    """Triangulated points projecting within this many pixels (of the rendered depth's size) of a
+    pixel are its neighbours. 0..32."""
+
+    rendered_consistency_views: int = 8
+    """Recent rendered keyframes kept to compare new ones with (besides those rendered together
+    with it). 1..1000."""
+
+    rendered_consistency_min_baseline_m: float = 0.1
+    """Another keyframe counts as a second view only when its camera centre is this far away (a
+    render from nearly the same pose agrees trivially). 0..100."""
+
+    rendered_view_agreement: str = "auto"
+    """Whether a rendered pixel with no triangulated or swept point near it may be kept because
+    another keyframe's rendered depth agrees: "on", "off", or "auto" (default): on unless the
+    node's plane-sweep stereo (``[stereo]``) is on, since two renders of the same density share its
+    errors (RGB-only map points: median 0.11 -> 0.06 m off the surface in the demo room with
+    stereo, 25% fewer points; docs/concepts/rgb-only.md)."""
+
+    learned_features: bool = True
+    """When the node serves the learned model: just before a keyframe leaves the window, the map
+    voxels it saw take the model's blended features (:mod:`mapper.node.workers.map_features`), so the
+    persistent map carries what the model knows, not only plain averages. Off: plain fusion only."""
+
+    learned_features_once: bool = True
+    """A voxel takes the model's blended feature once: when the first keyframe that saw it leaves
+    the window (then the window still holds the views that first observed it). Off: again at every
+    keyframe that saw it and leaves, each time an equal mix with the direction it has, so after k
+    evictions the fused average keeps only about 2^-k of the say. Whole-map ``segment_points`` on
+    9 recorded scenes, bounded window minus unbounded: worst scene -1.6 once against -2.7 every
+    time (``govnesf``; docs/concepts/window-and-map.md). Once also spares the model the voxels already set."""
+
+    learned_features_batch: int = 4
+    """When the window's oldest keyframe is due, it and the next oldest up to this many are done
+    together (one model evaluation for their voxels: the model's cached volume is recomputed once
+    per window change, so one call per keyframe would cost that every keyframe). 1..1000."""
+
+    learned_features_max_pending: int = 64
+    """Most keyframes waiting for that; beyond it the oldest is dropped (``dropped`` in status). 1..100000."""
+
+    integrate_queue: int = 16
+    """Keyframes acked but not yet integrated into this map (the node's integrator thread fuses
+    them shortly after the ack; a keyframe is in the window as soon as it is acked). When that many
+    are waiting, the ingest thread waits for room before acking the next keyframe (backpressure,
+    counted in status ``integration.backpressure_waits``): nothing acked is dropped. ``save``
+    first integrates everything acked before it. 0 = integrate on the ingest thread before the
+    ack (the ack then waits for it). 0..100000."""
+
+    def validate(self, where: str) -> None:
+        _check_range(where, "global_map.integrate_queue", self.integrate_queue, 0, 100_000)
+        _check_range(
+            where, "global_map.learned_features_max_pending", self.learned_features_max_pending, 1, 100_000
+        )
+        _check_range(where, "global_map.learned_features_batch", self.learned_features_batch, 1, 1000)
+        _check_range(where, "global_map.rendered_depth_stride", self.rendered_depth_stride, 1, 64)
+        _check_range(where, "global_map.rendered_volume_views", self.rendered_volume_views, 0, 256)
+        if isinstance(self.rendered_volume_views, bool) or not isinstance(self.rendered_volume_views, int):
+            raise ConfigError(f"{where}: global_map.rendered_volume_views = {self.rendered_volume_views!r} "
+                              "must be an integer")
+        _check_range(where, "global_map.rendered_min_opacity", self.rendered_min_opacity, 0.0, 1.0)
+        _check_range(where, "global_map.rendered_weight", self.rendered_weight, 0.0, 1.0)
+        _check_range(where, "global_map.rendered_edge_rel", self.rendered_edge_rel, 0.0, 10.0)
+        _check_range(where, "global_map.rendered_min_views", self.rendered_min_views, 1, 1000)
+        _check_range(where, "global_map.rendered_max_pending", self.rendered_max_pending, 1, 100_000)
+        _check_range(where, "global_map.rendered_consistency_sigmas",
+                     self.rendered_consistency_sigmas, 0.0, 100.0)
+        _check_range(where, "global_map.rendered_consistency_voxels",
+                     self.rendered_consistency_voxels, 0.0, 100.0)
+        _check_range(where, "global_map.rendered_consistency_radius_px",
+                     self.rendered_consistency_radius_px, 0, 32)
+        _check_range(where, "global_map.rendered_consistency_views", self.rendered_consistency_views, 1, 1000)
+        if self.rendered_view_agreement not in ("auto", "on", "off"):
+            raise ConfigError(f"{where}: global_map.rendered_view_agreement = "
+                              f"{self.rendered_view_agreement!r}; allowed: auto, on, off")
+        _check_range(where, "global_map.rendered_consistency_min_baseline_m",
+                     self.rendered_consistency_min_baseline_m, 0.0, 100.0)
+        _check_range(where, "global_map.voxel_size_m", self.voxel_size_m, 0.005, 1.0)
+        _check_range(where, "global_map.pixel_stride", self.pixel_stride, 1, 64)
+        _check_range(where, "global_map.max_points", self.max_points, 1, 100_000_000)
+        _check_range(where, "global_map.prune_to_fraction", self.prune_to_fraction, 0.1, 1.0)
+        _check_range(where, "global_map.stale_half_life_keyframes", self.stale_half_life_keyframes, 1e-3, 1e9)
+        _check_range(where, "global_map.min_depth_m", self.min_depth_m, 0.0, 1e3)
+        _check_range(where, "global_map.max_depth_m", self.max_depth_m, 1e-3, 1e4)
+        if self.max_depth_m <= self.min_depth_m:
+            raise ConfigError(
+                f"{where}: global_map.max_depth_m = {self.max_depth_m} must exceed "
+                f"global_map.min_depth_m = {self.min_depth_m}"
+            )
+        _check_range(where, "global_map.near_m", self.near_m, 0.0, 1e3)
+        _check_range(where, "global_map.falloff_m", self.falloff_m, 1e-3, 1e3)
+        _check_range(where, "global_map.grazing_power", self.grazing_power, 0.0, 10.0)
+        _check_range(where, "global_map.min_weight", self.min_weight, 0.0, 1.0)
+
 
 _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
@@ -106,14 +296,18 @@ previous one whose fp16 rows did not change (:meth:`GlobalMapSnapshot.unit_featu
 
 
 def _unit_rows(feat: np.ndarray) -> np.ndarray:
-    """(n, D) float32 L2-normalised rows of ``feat`` (n, D) (zero rows stay zero). The fp16 ->
-    fp32 conversion and the normalisation run in torch (a core dependency, imported here, not
-    when the node core starts): about 7x faster than numpy's scalar fp16 conversion (100k x 384
-    rows: 15 vs 105 ms on the 2-core machine), equal to a float64 reference within 2e-7."""
-    import torch
-
+    """(n, D) float32 L2-normalised rows of ``feat`` (n, D) (zero rows stay zero). Where torch is
+    loaded already (the learned model's node) the fp16 -> fp32 conversion and the normalisation run
+    in torch: about 7x faster than numpy's scalar fp16 conversion (100k x 384 rows: 15 vs 105 ms on
+    the 2-core machine); elsewhere numpy (this module never imports torch). Both equal a float64
+    reference within 2e-7."""
     out = np.empty(feat.shape, np.float32)
     if out.size == 0:
+        return out
+    torch = sys.modules.get("torch")
+    if torch is None:
+        out[...] = feat
+        out /= np.maximum(np.sqrt(np.einsum("ij,ij->i", out, out))[:, None], np.float32(1e-12))
         return out
     t = torch.from_numpy(out)
     t.copy_(torch.from_numpy(np.ascontiguousarray(feat)))  # only reads the (read-only) rows
@@ -158,7 +352,7 @@ class _UnitSource:
 
 
 class KeyframeLike(Protocol):
-    """What :meth:`GlobalSemanticMap.integrate` reads from a keyframe (``mapper.node.window.Keyframe``)."""
+    """What :meth:`GlobalSemanticMap.integrate` reads from a keyframe (``mapper.map.window.Keyframe``)."""
 
     @property
     def stamp_ns(self) -> int: ...
@@ -421,9 +615,9 @@ class GlobalMapSnapshot:
 
     def similarities(self, emb: np.ndarray) -> np.ndarray:
         """(N, K) float32 cosines of the unit features with ``emb`` (K, D) float32 rows, per block
-        of :meth:`unit_feature_blocks` (:func:`mapper.node.query_kernels.row_cosines`: each row's
+        of :meth:`unit_feature_blocks` (:func:`mapper.map.query_kernels.row_cosines`: each row's
         bits independent of the other rows, so a patched block's scores can be patched)."""
-        from mapper.node.query_kernels import row_cosines  # numba: compiled or loaded when first used
+        from mapper.map.query_kernels import row_cosines  # numba: compiled or loaded when first used
 
         blocks = self.unit_feature_blocks()
         out = np.empty((len(self), emb.shape[0]), np.float32)
@@ -458,7 +652,7 @@ class GlobalMapSnapshot:
     def row_similarities(self, rows: np.ndarray, emb: np.ndarray) -> np.ndarray:
         """(n, K) float32 cosines of the unit features of ``rows`` (n,) int64 with ``emb`` (K, D):
         the same values as ``similarities(emb)[rows]``, reading only those rows."""
-        from mapper.node.query_kernels import row_cosines  # numba: compiled or loaded when first used
+        from mapper.map.query_kernels import row_cosines  # numba: compiled or loaded when first used
 
         blocks = self.unit_feature_blocks()
         out = np.zeros((rows.shape[0], emb.shape[0]), np.float32)
@@ -480,7 +674,7 @@ class GlobalMapSnapshot:
         """(N,) int64 row of the nearest map point that carries a feature within ``radius_m`` of
         each point, -1 where there is none. The index over those points is built once per snapshot
         (per map version) and shared by later calls: a grid of voxel-sized cells
-        (:class:`mapper.node.query_kernels.NearestGrid`) for radii up to its
+        (:class:`mapper.map.query_kernels.NearestGrid`) for radii up to its
         ``MAX_REACH_CELLS`` voxels, else (and where the grid would be too large: a sparse map over a
         large extent) a k-d tree. The same rows either way, except that of equidistant map points
         the grid takes the lowest row (the tree any)."""
@@ -488,7 +682,7 @@ class GlobalMapSnapshot:
         out = np.full(pts.shape[0], -1, np.int64)
         if pts.shape[0] == 0 or radius_m <= 0:
             return out
-        from mapper.node.query_kernels import NearestGrid  # numba: compiled or loaded when first used
+        from mapper.map.query_kernels import NearestGrid  # numba: compiled or loaded when first used
 
         grid = radius_m <= NearestGrid.MAX_REACH_CELLS * self.voxel_size_m
         with self._cache_lock:
@@ -534,7 +728,7 @@ class GlobalSemanticMap:
         self._version = 0
         self._generation = next(_GENERATIONS)
         self.evicted = EvictedViewStore()
-        """What keyframes that left the window saw, per voxel (:mod:`mapper.node.evicted_views`;
+        """What keyframes that left the window saw, per voxel (:mod:`mapper.map.evicted_views`;
         saved and loaded with the map, cleared with it)."""
         self._reset(dim=None)
 

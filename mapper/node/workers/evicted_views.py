@@ -1,0 +1,156 @@
+"""The node's worker that keeps the views of keyframes that left the window for the averaging
+methods (``queries.evicted_views``): for each keyframe the window evicts (queued by the ingest
+path; the ack never waits), it samples the keyframe's OV map at every global-map voxel with the
+averaging's own selection (:func:`mapper.model.baselines.view_samples`) and adds the samples to the
+global map's :class:`mapper.map.evicted_views.EvictedViewStore` (what they are and how
+``average`` / ``average_depth`` use them: :mod:`mapper.map.evicted_views`)."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from mapper.map.evicted_views import in_image
+from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker
+
+if TYPE_CHECKING:
+    from mapper.map.window import Keyframe
+
+__all__ = ["EvictedViews"]
+
+# The worker takes the node's context and its global maps (``mapper.map.global_map.GlobalSemanticMap``)
+# as ``Any``: the global map holds the store, so naming those types would make an import cycle.
+
+log = logging.getLogger("mapper.node.workers.evicted_views")
+
+
+class EvictedViews:
+    """The node's worker that adds evicted keyframes' views to their global map's store (module
+    docstring). ``install()`` hooks it into the node (before ``node.start()``)."""
+
+    def __init__(self, ctx: Any) -> None:  # NodeContext
+        self.ctx = ctx
+        cfg = ctx.config
+        self.queue: KeyframeQueue[tuple[Keyframe, Any]] = KeyframeQueue(  # (keyframe, its GlobalSemanticMap)
+            cfg.queries.evicted_views_max_pending
+        )
+        self.both = cfg.queries.evicted_views == "both"
+        """Also the ``all`` channel (``average``); else ``depth`` only (``average_depth``)."""
+        self.border_px = 10.0
+        """The averaging's border (``segment_average``'s default; the node's methods use it)."""
+        self.chunk = 32_768
+        """Voxels sampled at a time (the samples are (chunk, D) float32 per channel)."""
+        self._busy = threading.Lock()
+        self._in_batch = 0
+        self._limited = LimitedLog(log)
+        self.done = 0
+        self.stale = 0
+        self.deferred = 0
+        """Times the worker left queued keyframes for later because the integrator had work."""
+        self.seconds_total = 0.0
+
+    def install(self) -> None:
+        self.ctx.workers.append(("evicted-views", self.run))
+        self.ctx.status_providers["evicted_views"] = self.stats
+
+    def put(self, keyframe: Keyframe, gmap: Any) -> None:  # gmap: GlobalSemanticMap
+        """Queue a keyframe the window evicted (cheap; any thread)."""
+        if keyframe.ov is not None and (self.both or keyframe.depth_m is not None):
+            self.queue.put((keyframe, gmap))
+
+    def run(self, stop: threading.Event) -> None:
+        """Worker thread body (``node.workers``): absorbs queued keyframes one at a time while the
+        integrator has nothing waiting or this queue is half full (a keyframe's integration comes
+        first: the cores go to the stream; what waits here is picked up when the next keyframe
+        leaves or within a poll)."""
+        def on_error(exc: BaseException) -> None:
+            self._limited.warning("error", "evicted views failed: %r", exc)
+
+        def work() -> None:
+            while len(self.queue) and not stop.is_set():
+                # the integrator first, unless this queue is half full (then nothing is dropped)
+                if self.ctx.integration_backlog() > 0 and 2 * len(self.queue) < self.queue.max_len:
+                    self.deferred += 1
+                    return
+                self._process_one()
+
+        run_worker(stop, self.queue.wake, work, on_error)
+
+    def process_pending(self) -> int:
+        """Absorb every queued keyframe now (also callable directly: ``save``, benchmarks).
+        Returns how many."""
+        n = 0
+        while self._process_one():
+            n += 1
+        return n
+
+    def _process_one(self) -> bool:
+        with self._busy:
+            self._in_batch = 1  # before the pop: ``pending`` never reads 0 while one is in hand
+            item = self.queue.pop()
+            if item is None:
+                self._in_batch = 0
+                return False
+            try:
+                self._absorb(*item)
+            finally:
+                self._in_batch = 0
+            return True
+
+    @property
+    def pending(self) -> int:
+        return len(self.queue) + self._in_batch
+
+    def _absorb(self, keyframe: Keyframe, gmap: Any) -> None:  # gmap: GlobalSemanticMap
+        from mapper.model.baselines import OVView, view_samples  # torch-heavy; imported when first used
+
+        started = time.perf_counter()
+        with self.ctx.state.lock:
+            current = self.ctx.state.global_map
+        if gmap is not current:  # a map loaded since: the keyframe belongs to the old one
+            self.stale += 1
+            return
+        map_xyz, map_keys = gmap.geometry()  # points and keys only: no copy of the map's features
+        if map_xyz.shape[0] == 0 or keyframe.ov is None:
+            self.done += 1
+            return
+        view = OVView(keyframe.ov, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
+                      keyframe.depth_m)
+        rows = in_image(map_xyz, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
+                        self.border_px)
+        store = gmap.evicted
+        first = True
+        for lo in range(0, rows.shape[0], self.chunk):  # bounded memory: (chunk, D) samples at a time
+            part = rows[lo: lo + self.chunk]
+            xyz = map_xyz[part]
+            samples = {}
+            if self.both:
+                samples["all"] = view_samples(xyz, view, use_depth=False, border_px=self.border_px)
+            if keyframe.depth_m is not None:
+                samples["depth"] = view_samples(xyz, view, use_depth=True, border_px=self.border_px)
+            store.absorb(map_keys[part], samples, new_keyframe=first)
+            first = False
+        if first:
+            store.absorb(np.zeros(0, np.int64), {})  # counts the keyframe (no voxel in its image)
+        if len(store) > max(2 * map_xyz.shape[0], 4096):  # voxels the map pruned since
+            store.compact(map_keys)
+        self.done += 1
+        self.seconds_total += time.perf_counter() - started
+
+    def stats(self) -> dict[str, Any]:
+        """``status`` key ``evicted_views`` (called under the state lock: takes no node lock)."""
+        store = self.ctx.state.global_map.evicted
+        return {
+            "pending": self.pending,
+            "dropped": self.queue.dropped,
+            "done": self.done,
+            "stale": self.stale,
+            "deferred": self.deferred,
+            "ms_per_keyframe": round(1e3 * self.seconds_total / max(self.done, 1), 3),
+            "bytes": store.nbytes,
+            **store.stats(),
+        }
