@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from mapper.checks import ShapeError, check_shape, format_spec
 from mapper import checks
+from mapper.checks import ShapeError, check_shape, format_spec
 
 ARRAYS = [pytest.param(np.zeros, id="numpy"), pytest.param(torch.zeros, id="torch")]
 

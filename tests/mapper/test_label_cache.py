@@ -9,9 +9,9 @@ import zlib
 import numpy as np
 import pytest
 
+from mapper.map import global_map
 from mapper.map.global_map import GlobalSemanticMap
 from mapper.map.window import Keyframe
-from mapper.map import global_map
 from mapper.node.config import GlobalMapConfig, QueryConfig
 from mapper.node.queries import BlockLabelCache, query_points
 from protocol.messages import Points

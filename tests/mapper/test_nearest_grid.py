@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from mapper.map.query_kernels import NearestGrid
 from mapper.map import query_kernels
+from mapper.map.query_kernels import NearestGrid
 
 
 def _tree_nearest(pts: np.ndarray, queries: np.ndarray, radius: float) -> np.ndarray:

@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mapper.map import global_map
 from mapper.map.global_map import GlobalSemanticMap
 from mapper.map.window import Keyframe
-from mapper.map import global_map
 from mapper.node.config import GlobalMapConfig
 
 W, H = 32, 24
