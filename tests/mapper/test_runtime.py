@@ -14,6 +14,7 @@ from mapper.model.field import GovNeSF
 from mapper.model.ops.cost_volume import bounds_from_points, build_cost_volume, cost_volume_features
 from mapper.node.config import ConfigError, WindowConfig
 from mapper.node.window import Keyframe, KeyframeWindow
+from mapper.runtime import prepared
 from mapper.runtime.density import density
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig, RuntimeNotReady
 from mapper.runtime.prepared import RENDER_VOLUMES_KEPT, overlapping_views, render_prep
@@ -585,7 +586,7 @@ def test_render_volumes_leave_out_what_lies_outside_the_window_box(
     runtime = _orbit_runtime(model, 6)
     w, h = runtime.image_wh
     chosen = torch.tensor([1, 2, 3])
-    monkeypatch.setattr(runtime, "_overlapping_views", lambda *args: chosen)
+    monkeypatch.setattr(prepared, "overlapping_views", lambda *args: chosen)
     with runtime._volume.lock:
         prep = runtime._volume.prepare()
         K, pose = prep.K[1], prep.world_from_cam[1]
