@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
             keyframes = list(node.state.window.keyframes)
         own: dict[Any, np.ndarray] = {}
         for kf in keyframes:
-            prior = runtime._depth_priors.get(keyframe_key(kf))  # what the plugin set
+            prior = runtime._volume.depth_priors.get(keyframe_key(kf))  # what the plugin set
             own[keyframe_key(kf)] = (np.zeros((kf.height, kf.width), np.float32) if prior is None
                                          else prior.cpu().numpy())
         providers = node.ctx.surface_points

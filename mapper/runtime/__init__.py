@@ -1,2 +1,3 @@
-"""The learned model inside the node: ModelRuntime (model_runtime.py) and its torch-free config.
+"""The learned model inside the node: ModelRuntime (model_runtime.py), the parts it composes
+(loading, volume, entries, prepared, views, text, points, density, rendering) and its torch-free config.
 """

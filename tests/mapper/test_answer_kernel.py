@@ -13,7 +13,7 @@ from mapper.model.config import FusionConfig
 from mapper.model.fusion import FusionNet
 from mapper.model.ops import answer_kernel
 from mapper.model.ops.cost_volume import sample_volume
-from mapper.runtime import model_runtime
+from mapper.runtime import points as point_answers
 from tests.mapper.test_runtime import TEXT_EMB
 from tests.mapper.test_sample_kernel import _points, _window
 
@@ -119,7 +119,7 @@ def test_no_points_and_bad_shapes() -> None:
 def test_the_runtime_answers_the_same_either_way(chunk: int, monkeypatch: pytest.MonkeyPatch) -> None:
     """``model.fused_point_answers`` on (in one call, or in calls of 256 points) and off: the same
     labels and scores from ``segment``."""
-    monkeypatch.setattr(model_runtime, "FUSED_CHUNK_POINTS", chunk)
+    monkeypatch.setattr(point_answers, "FUSED_CHUNK_POINTS", chunk)
     model, runtime, _, _ = _window(use_depth=False)
     pts = _points(700, seed=11).numpy()
     texts = ["a chair", "b table", "c wall"]

@@ -14,6 +14,7 @@ from mapper.model.fusion import blend, blend_from_maps
 from mapper.model.ops.cost_volume import sample_volume
 from mapper.model.ops.geometry import bilinear_corners, sample_bilinear
 from mapper.node.config import WindowConfig
+from mapper.runtime.views import source_views
 from tests.mapper.test_runtime import TINY, keyframe, make_runtime, orbit
 
 
@@ -78,7 +79,7 @@ def _runtime_with_six_keyframes(model: GovNeSF):  # -> (ModelRuntime, its prepar
     runtime.attach(window)
     for i in range(6):
         window.consider(keyframe(i, orbit(i)))
-    return runtime, runtime._prepare()
+    return runtime, runtime._volume.prepare()
 
 
 def test_point_outputs_from_maps_equal_the_sampled_path() -> None:
@@ -92,9 +93,9 @@ def test_point_outputs_from_maps_equal_the_sampled_path() -> None:
     views_idx = torch.tensor([5, 1, 3])
     with torch.no_grad():
         for use_depth in (False, True):
-            full = runtime._source_views(prep, views_idx, need_ov=True, use_depth=use_depth)
+            full = source_views(runtime._loaded, prep, views_idx, need_ov=True, use_depth=use_depth)
             ref = model.query_points(full, prep.volume, prep.bounds, pts, depth_guided_masking=use_depth)
-            lean = runtime._source_views(prep, views_idx, need_ov=False, use_depth=use_depth)
+            lean = source_views(runtime._loaded, prep, views_idx, need_ov=False, use_depth=use_depth)
             samples = model.sample_views(lean, pts, use_depth)
             v, _ = sample_volume(prep.volume, prep.bounds, pts)
             out = model.point_outputs(samples, v, ov_maps=prep.ov_maps(views_idx, runtime.image_wh))
@@ -110,7 +111,7 @@ def test_point_outputs_from_maps_equal_the_sampled_path() -> None:
 
 
 def test_cell_inverse_equals_the_row_wise_unique() -> None:
-    from mapper.runtime.model_runtime import _cell_inverse
+    from mapper.runtime.views import cell_inverse
 
     gen = torch.Generator().manual_seed(3)
     for cells in (
@@ -119,13 +120,13 @@ def test_cell_inverse_equals_the_row_wise_unique() -> None:
         torch.zeros(1, 3, dtype=torch.long),
     ):
         ref = torch.unique(cells, dim=0, return_inverse=True)[1]
-        assert torch.equal(_cell_inverse(cells), ref)
+        assert torch.equal(cell_inverse(cells), ref)
 
 
 def test_cell_view_sets_equal_the_dict_of_sorted_tuples() -> None:
     """Cells grouped by their chosen views: the same groups, in the same order (first cell), as
     collecting ``tuple(sorted(chosen views))`` per cell in a dict (the loop it replaced)."""
-    from mapper.runtime.model_runtime import _cell_view_sets
+    from mapper.runtime.views import cell_view_sets
 
     gen = torch.Generator().manual_seed(5)
     # (300, 5, 3): sets repeat; (150, 62, 16): the largest bit-mask case; (150, 70, 16): rows, not masks
@@ -139,7 +140,7 @@ def test_cell_view_sets_equal_the_dict_of_sorted_tuples() -> None:
             views = tuple(sorted(int(v) for v, ok in zip(order[c], chosen[c], strict=True) if ok))
             if views:
                 groups.setdefault(views, []).append(c)
-        cell_group, keys = _cell_view_sets(order, chosen, n_views)
+        cell_group, keys = cell_view_sets(order, chosen, n_views)
         assert [tuple(k.tolist()) for k in keys] == list(groups)
         expected = torch.full((n_cells,), -1, dtype=torch.long)
         for g, cells in enumerate(groups.values()):
@@ -163,7 +164,7 @@ def test_samples_carry_each_views_distance_to_the_point() -> None:
     runtime, prep = _runtime_with_six_keyframes(model)
     rng = np.random.default_rng(3)
     pts = torch.from_numpy(rng.uniform([-0.6, -0.6, 0.1], [0.6, 0.6, 0.9], (200, 3))).float()
-    views = runtime._source_views(prep, torch.arange(6), need_ov=True, use_depth=False)
+    views = source_views(runtime._loaded, prep, torch.arange(6), need_ov=True, use_depth=False)
     whole = model.sample_views(views, pts, False)
     centres = camera_centers(views.world_from_cam)  # (6, 3)
     offsets = pts[:, None] - centres[None]  # (P, 6, 3)
@@ -286,13 +287,13 @@ def test_point_cosines_equal_the_point_outputs() -> None:
     assert prep.ov is not None
     texts = torch.nn.functional.normalize(torch.randn(4, prep.ov.shape[1]), dim=-1)
     with torch.no_grad():
-        lean = runtime._source_views(prep, views_idx, need_ov=False, use_depth=False)
+        lean = source_views(runtime._loaded, prep, views_idx, need_ov=False, use_depth=False)
         samples = model.sample_views(lean, pts, False)
         v, _ = sample_volume(prep.volume, prep.bounds, pts)
         ov_maps = prep.ov_maps(views_idx, runtime.image_wh)
         out = model.point_outputs(samples, v, ov_maps=ov_maps)
         cos, valid, num_views = model.point_cosines(samples, v, texts, ov_maps=ov_maps)
-        full = runtime._source_views(prep, views_idx, need_ov=True, use_depth=False)
+        full = source_views(runtime._loaded, prep, views_idx, need_ov=True, use_depth=False)
         sampled = model.sample_views(full, pts, False)
         cos_sampled, _, _ = model.point_cosines(sampled, v, texts)
     expected = torch.nn.functional.normalize(out.ov, dim=-1) @ texts.T

@@ -146,7 +146,7 @@ def node(tmp_path: Path) -> Iterator[MapperNode]:
 
 def _install(node: MapperNode, model: GovNeSF) -> RenderedDepthPoints:
     runtime = make_runtime(model, min_opacity=0.0)
-    runtime._text_encoder = lambda space: _Encoder()  # type: ignore[assignment]
+    runtime._loaded.text_encoder = lambda space: _Encoder()  # type: ignore[assignment]
     points = install_learned_backend(node, runtime)
     assert isinstance(points, RenderedDepthPoints)
     return points

@@ -13,6 +13,7 @@ from mapper.geometry.splat import MAX_REACH_PX, occluder_depths, splat_points
 from mapper.kernels.average_kernel import in_view_matrix
 from mapper.model.ops.geometry import in_view, invert_pose, project_points
 from mapper.model.ops.occlusion_kernel import depth_test_matrix, zbuffer_views
+from mapper.runtime.views import depth_agrees
 
 W, H = 40, 30
 
@@ -86,7 +87,8 @@ def test_the_depth_test_matrix_is_in_view_times_the_dgm_test() -> None:
 
 
 def test_the_runtimes_torch_depth_test_equals_the_kernel() -> None:
-    """``ModelRuntime._depth_agrees`` (the path off the CPU kernels, e.g. CUDA) and the kernel agree."""
+    """``mapper.runtime.views.depth_agrees`` (the path off the CPU kernels, e.g. CUDA) and the kernel
+    agree."""
     from mapper.model.field import GovNeSF
     from tests.mapper.test_runtime import TINY, make_runtime
 
@@ -97,11 +99,11 @@ def test_the_runtimes_torch_depth_test_equals_the_kernel() -> None:
     depth[rng.random(depth.shape) < 0.3] = 0.0
     torch.manual_seed(0)
     runtime = make_runtime(GovNeSF(TINY).eval())
-    ratio = runtime._require_model().cfg.render.depth_mask_ratio
+    ratio = runtime._loaded.require_model().cfg.render.depth_mask_ratio
     cam = invert_pose(torch.from_numpy(poses).float())
     Kt = torch.from_numpy(K).float()
     uv, z = project_points(torch.from_numpy(pts).unsqueeze(0).expand(len(K), -1, -1), Kt, cam)
-    agrees = runtime._depth_agrees(uv, z, torch.from_numpy(depth)).T.numpy()
+    agrees = depth_agrees(runtime._loaded, uv, z, torch.from_numpy(depth)).T.numpy()
     vis = in_view_matrix(pts, cam.numpy(), K.astype(np.float32), (W, H), 1e-6, threads=2)
     got = depth_test_matrix(pts, cam.numpy(), K.astype(np.float32), (W, H), 1e-6, depth, ratio, threads=2)
     assert ((vis & agrees) != got).mean() < 1e-3

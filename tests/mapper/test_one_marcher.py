@@ -32,7 +32,9 @@ from mapper.model.ops.geometry import pixel_rays
 from mapper.model.ops.rendering import Rays, clip_to_box
 from mapper.model.render import occupancy_mask
 from mapper.node.config import WindowConfig
-from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig, _Prepared
+from mapper.runtime.density import occupancy_grid
+from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
+from mapper.runtime.prepared import Prepared
 from tests.model_helpers import look_at, tiny_model_config
 
 D = 6
@@ -83,13 +85,13 @@ def camera_rays(K: list[float], pose: np.ndarray) -> Rays:
     return Rays(origins.reshape(-1, 3).float(), dirs.reshape(-1, 3).float())
 
 
-def all_views(prep: _Prepared) -> SourceViews:
+def all_views(prep: Prepared) -> SourceViews:
     assert prep.ov is not None
     return SourceViews(prep.rgb, prep.features, prep.ov, prep.K, prep.world_from_cam)
 
 
 def field_render(
-    rt: ModelRuntime, prep: _Prepared, rays: Rays, weight_threshold: float = 0.0
+    rt: ModelRuntime, prep: Prepared, rays: Rays, weight_threshold: float = 0.0
 ) -> RenderOutputs:
     """``render_rays`` with the node's sampling: its bins, near / far, clipped to the volume."""
     assert rt.model is not None
@@ -101,12 +103,12 @@ def field_render(
 
 
 def node_render(
-    rt: ModelRuntime, prep: _Prepared, rays: Rays, occupancy: Tensor | None = None, appearance: bool = True
+    rt: ModelRuntime, prep: Prepared, rays: Rays, occupancy: Tensor | None = None, appearance: bool = True
 ) -> tuple[tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor], dict[str, int]]:
     """The node's float outputs for the rays: rgb, ray distance, opacity, ov, covered; and its counts."""
     assert rt.model is not None
     stats = {"samples": 0, "density_evals": 0, "appearance_evals": 0, "view_groups": 0}
-    out = rt._render_rays(
+    out = rt._renderer.render_rays(
         rt.model, prep, rays.origins, rays.directions, occupancy, True, prep.has_ov, stats, appearance
     )
     return out, stats
@@ -116,7 +118,7 @@ def node_render(
 @torch.no_grad()
 def test_dense_node_render_equals_field_render_rays(runtime: ModelRuntime, camera: str) -> None:
     K, pose = CAMERAS[camera]
-    prep = runtime._prepare()
+    prep = runtime._volume.prepare()
     rays = camera_rays(K, pose)
     (rgb, ray_depth, opacity, ov, covered), stats = node_render(runtime, prep, rays)
     ref = field_render(runtime, prep, rays)
@@ -149,7 +151,7 @@ def test_dense_node_render_equals_field_render_rays(runtime: ModelRuntime, camer
 @torch.no_grad()
 def test_depth_only_node_render_equals_field_depth_and_render_depth_maps(runtime: ModelRuntime) -> None:
     assert runtime.model is not None
-    prep = runtime._prepare()
+    prep = runtime._volume.prepare()
     for K, pose in CAMERAS.values():
         rays = camera_rays(K, pose)
         (rgb, ray_depth, opacity, _, covered), stats = node_render(runtime, prep, rays, appearance=False)
@@ -169,7 +171,7 @@ def test_depth_only_node_render_equals_field_depth_and_render_depth_maps(runtime
 
 
 def _skip_bound(
-    rt: ModelRuntime, prep: _Prepared, rays: Rays, ref: RenderOutputs, occupancy: Tensor
+    rt: ModelRuntime, prep: Prepared, rays: Rays, ref: RenderOutputs, occupancy: Tensor
 ) -> Tensor:
     """(R,) tau_s: optical depth of the samples the skip leaves out (density in empty voxels).
 
@@ -188,14 +190,14 @@ def _skip_bound(
 def test_skipping_equals_field_on_the_rays_it_does_not_skip_and_is_bounded_elsewhere(
     runtime: ModelRuntime,
 ) -> None:
-    prep = runtime._prepare()
-    runtime._occupancy(prep)
+    prep = runtime._volume.prepare()
+    occupancy_grid(runtime._loaded, prep)
     assert prep.max_density is not None
     threshold = float(torch.quantile(prep.max_density.flatten(), 0.3))  # ~30 % of voxels empty
     saved = runtime.config
     runtime.config = dataclasses.replace(saved, occupancy_threshold=threshold, min_weight=0.0)
     try:
-        occupancy = runtime._occupancy(prep)
+        occupancy = occupancy_grid(runtime._loaded, prep)
         assert 0.1 < 1.0 - occupancy.float().mean().item() < 0.5
         for K, pose in CAMERAS.values():
             rays = camera_rays(K, pose)
@@ -218,11 +220,11 @@ def test_skipping_equals_field_on_the_rays_it_does_not_skip_and_is_bounded_elsew
 
 @torch.no_grad()
 def test_min_weight_pruning_equals_field_weight_threshold(runtime: ModelRuntime) -> None:
-    prep = runtime._prepare()
+    prep = runtime._volume.prepare()
     saved = runtime.config
     runtime.config = dataclasses.replace(saved, occupancy_threshold=0.0, min_weight=0.03)
     try:
-        occupancy = runtime._occupancy(prep)
+        occupancy = occupancy_grid(runtime._loaded, prep)
         assert bool(occupancy.all())  # densities are >= 0: nothing is skipped, only pruned
         K, pose = CAMERAS["inside"]
         rays = camera_rays(K, pose)

@@ -12,6 +12,7 @@ from mapper.map.window import KeyframeWindow
 from mapper.model.field import GovNeSF
 from mapper.node.config import WindowConfig
 from mapper.node.workers.triangulation import keyframe_key
+from mapper.runtime.density import density_occupancy, free_space, occupancy_grid
 from mapper.runtime.model_runtime import ModelRuntime
 from tests.mapper.test_runtime import TINY, keyframe, make_runtime, orbit
 
@@ -139,9 +140,9 @@ def test_a_sparse_depth_prior_masks_views_only_where_it_exists(model: GovNeSF) -
 
 
 def _carved(runtime: ModelRuntime) -> np.ndarray:
-    with runtime._lock:
-        prep = runtime._prepare()
-        return runtime._free_space(prep).cpu().numpy()
+    with runtime._volume.lock:
+        prep = runtime._volume.prepare()
+        return free_space(runtime._loaded, prep).cpu().numpy()
 
 
 def test_depth_priors_carve_the_free_space_in_front_of_their_surfaces(model: GovNeSF) -> None:
@@ -181,9 +182,9 @@ def test_depth_priors_carve_the_free_space_in_front_of_their_surfaces(model: Gov
     runtime.config = replace(runtime.config, carve_min_views=1000)
     assert not _carved(runtime).any()
     runtime.config = replace(runtime.config, carve_min_views=2, carve_free_space=False)
-    with runtime._lock:
-        prep = runtime._prepare()
-        assert torch.equal(runtime._occupancy(prep), runtime._density_occupancy(prep))
+    with runtime._volume.lock:
+        prep = runtime._volume.prepare()
+        assert torch.equal(occupancy_grid(runtime._loaded, prep), density_occupancy(runtime._loaded, prep))
 
 
 def test_keyframes_with_input_depth_never_carve(model: GovNeSF) -> None:

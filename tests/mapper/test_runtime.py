@@ -14,7 +14,11 @@ from mapper.map.window import Keyframe, KeyframeWindow
 from mapper.model.field import GovNeSF
 from mapper.model.ops.cost_volume import bounds_from_points, build_cost_volume, cost_volume_features
 from mapper.node.config import ConfigError, WindowConfig
+from mapper.runtime import prepared
+from mapper.runtime.density import density
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig, RuntimeNotReady
+from mapper.runtime.prepared import RENDER_VOLUMES_KEPT, overlapping_views, render_prep
+from mapper.runtime.views import view_groups
 from tests.model_helpers import look_at, tiny_model_config
 
 TINY = tiny_model_config(ov_dim=6, max_voxels=2048, n_samples=16)
@@ -85,7 +89,7 @@ def test_incremental_volume_equals_batch_build_through_adds_and_evictions(model:
     volume = runtime.cost_volume
     assert volume is not None
     assert sorted(volume.view_ids, key=id) == sorted(window.keyframes, key=id)  # exactly the window
-    entries = [runtime._entries[k] for k in volume.view_ids]
+    entries = [runtime._volume.entries[k] for k in volume.view_ids]
     mean, var, count = build_cost_volume(
         volume.bounds,
         torch.stack([e.features for e in entries]),
@@ -138,11 +142,11 @@ def test_frames_of_any_size_and_without_ov_or_depth(model: GovNeSF) -> None:
     window.consider(keyframe(2, orbit(2), wh=(33, 17), ov=None, depth_m=None))
     runtime.sync()
     assert len(runtime) == 3
-    for entry in runtime._entries.values():
+    for entry in runtime._volume.entries.values():
         assert tuple(entry.rgb.shape) == (3, 24, 32)
         assert entry.ov is None or tuple(entry.ov.shape) == (D, 6, 8)
     # K scaled with the image: the principal point stays at the image centre.
-    assert all(torch.allclose(e.K[2:], torch.tensor([16.0, 12.0])) for e in runtime._entries.values())
+    assert all(torch.allclose(e.K[2:], torch.tensor([16.0, 12.0])) for e in runtime._volume.entries.values())
     frame = runtime.render(
         [20.0, 20.0, 8.0, 6.0], look_at((2.2, 0.3, 1.0), (0, 0, 0.5)), 16, 12, ["rgb", "label"], ["a"]
     )
@@ -294,9 +298,9 @@ def test_view_groups_use_at_most_k_views_that_see_the_points(model: GovNeSF) -> 
     runtime.attach(window)
     for i in range(8):
         window.consider(keyframe(i, orbit(i)))
-    prep = runtime._prepare()
+    prep = runtime._volume.prepare()
     points = torch.rand(500, 3) - torch.tensor([0.5, 0.5, 0.0])
-    groups = runtime._view_groups(prep, points, torch.ones(len(prep), dtype=torch.bool))
+    groups = view_groups(runtime._loaded, prep, points, torch.ones(len(prep), dtype=torch.bool))
     assert groups and sum(len(idx) for idx, _ in groups) <= 500
     for idx, views in groups:
         assert 1 <= len(views) <= 2
@@ -389,8 +393,9 @@ def test_point_source_views_sets_the_views_of_point_answers_only(model: GovNeSF)
         assert runtime.source_views == 2
         label, score, _ = runtime.segment(pts, ["a", "b", "c"])
         feats, valid = runtime.point_features(pts)
-        prep = runtime._prepare()
-        groups = runtime._view_groups(prep, torch.from_numpy(pts), prep.has_ov, runtime.point_source_views)
+        prep = runtime._volume.prepare()
+        groups = view_groups(runtime._loaded, prep, torch.from_numpy(pts), prep.has_ov,
+                             runtime.point_source_views)
         answers[name] = (label, score, feats, max(v.numel() for _, v in groups))
     for a, b in zip(answers["default"][:3], answers["same"][:3], strict=True):
         np.testing.assert_array_equal(a, b)
@@ -481,13 +486,13 @@ def _orbit_runtime(model: GovNeSF, n_keyframes: int, **overrides: object) -> Mod
 
 def test_render_volume_is_the_batch_volume_of_the_views_that_overlap_the_render(model: GovNeSF) -> None:
     runtime = _orbit_runtime(model, 8)
-    with runtime._lock:
-        prep = runtime._prepare()
+    with runtime._volume.lock:
+        prep = runtime._volume.prepare()
         kf = 5
         K, pose = prep.K[kf], prep.world_from_cam[kf]
         w, h = runtime.image_wh
-        chosen = runtime._overlapping_views(prep, K, pose, w, h, 3)
-        local = runtime._render_prep(model, prep, K, pose, w, h, 3)
+        chosen = overlapping_views(runtime._loaded, prep, K, pose, w, h, 3)
+        local = render_prep(runtime._loaded, model, prep, K, pose, w, h, 3)
     # the keyframe at the render pose sees all it observed: first; then the largest shares
     from mapper.model.ops.geometry import in_view, invert_pose, project_points
 
@@ -516,13 +521,13 @@ def test_render_volume_is_the_batch_volume_of_the_views_that_overlap_the_render(
         outside = torch.tensor([[float(prep.bounds.max_corner_m[0]) - 0.01, *((lo + hi) / 2)[1:]]],
                                dtype=torch.float32)
         assert float(outside[0, 0]) > hi[0]  # inside the window's box, outside the render volume's
-        sigma_l, v_l = runtime._density(model, local, outside)
-        _, v_w = runtime._density(model, prep, outside)
+        sigma_l, v_l = density(model, local, outside)
+        _, v_w = density(model, prep, outside)
     assert float(sigma_l[0]) == 0.0 and torch.equal(v_l, v_w)
     # cached for this version and this set of views; another set is another volume
-    with runtime._lock:
-        assert runtime._render_prep(model, runtime._prepare(), K, pose, w, h, 3) is local
-        assert runtime._render_prep(model, runtime._prepare(), K, pose, w, h, 4) is not local
+    with runtime._volume.lock:
+        assert render_prep(runtime._loaded, model, runtime._volume.prepare(), K, pose, w, h, 3) is local
+        assert render_prep(runtime._loaded, model, runtime._volume.prepare(), K, pose, w, h, 4) is not local
 
 
 def test_render_volume_views_zero_or_a_small_window_render_from_the_window(model: GovNeSF) -> None:
@@ -545,10 +550,11 @@ def test_render_volume_views_zero_or_a_small_window_render_from_the_window(model
     assert runtime.render(K, pose, 20, 15, ["depth"], volume_views=1).stats["render_volume_views"] == 0
     # a view that sees none of what the keyframes observed falls back to the window's volume
     away = look_at((10.0, 0.0, 1.2), (20.0, 0.0, 1.2))  # 10 m out, looking further away
-    with runtime._lock:
-        prep = runtime._prepare()
+    with runtime._volume.lock:
+        prep = runtime._volume.prepare()
         K_t = torch.tensor(K, dtype=torch.float32)
-        assert runtime._render_prep(model, prep, K_t, torch.from_numpy(away).float(), 20, 15, 3) is prep
+        away_t = torch.from_numpy(away).float()
+        assert render_prep(runtime._loaded, model, prep, K_t, away_t, 20, 15, 3) is prep
     for bad in (-1, 257, 2.5, True):
         with pytest.raises(ValueError, match="volume_views"):
             runtime.render(K, pose, 20, 15, ["depth"], volume_views=bad)  # type: ignore[arg-type]
@@ -557,16 +563,17 @@ def test_render_volume_views_zero_or_a_small_window_render_from_the_window(model
 def test_render_volumes_are_cached_per_keyframe_set_and_the_oldest_dropped(model: GovNeSF) -> None:
     runtime = _orbit_runtime(model, 12)
     w, h = runtime.image_wh
-    with runtime._lock:
-        prep = runtime._prepare()
+    with runtime._volume.lock:
+        prep = runtime._volume.prepare()
         K = prep.K[0]
-        built = [runtime._render_prep(model, prep, K, prep.world_from_cam[i], w, h, 3) for i in range(12)]
+        built = [render_prep(runtime._loaded, model, prep, K, prep.world_from_cam[i], w, h, 3)
+                 for i in range(12)]
         keys = list(prep.render_volumes)
-        assert len(keys) == runtime._RENDER_VOLUMES_KEPT < len({id(b) for b in built})
+        assert len(keys) == RENDER_VOLUMES_KEPT < len({id(b) for b in built})
         assert all(list(k) == sorted(k) for k in keys)  # a set of keyframes, whatever the order
         # the newest are kept: rendering the last pose again is a cache hit, the first is rebuilt
-        assert runtime._render_prep(model, prep, K, prep.world_from_cam[11], w, h, 3) is built[11]
-        assert runtime._render_prep(model, prep, K, prep.world_from_cam[0], w, h, 3) is not built[0]
+        assert render_prep(runtime._loaded, model, prep, K, prep.world_from_cam[11], w, h, 3) is built[11]
+        assert render_prep(runtime._loaded, model, prep, K, prep.world_from_cam[0], w, h, 3) is not built[0]
         # a render volume shares the window's OV gather table
         assert prep.ov is not None
         maps = built[11].ov_maps(torch.tensor([0, 1]), runtime.image_wh)
@@ -579,17 +586,17 @@ def test_render_volumes_leave_out_what_lies_outside_the_window_box(
     runtime = _orbit_runtime(model, 6)
     w, h = runtime.image_wh
     chosen = torch.tensor([1, 2, 3])
-    monkeypatch.setattr(runtime, "_overlapping_views", lambda *args: chosen)
-    with runtime._lock:
-        prep = runtime._prepare()
+    monkeypatch.setattr(prepared, "overlapping_views", lambda *args: chosen)
+    with runtime._volume.lock:
+        prep = runtime._volume.prepare()
         K, pose = prep.K[1], prep.world_from_cam[1]
-        before = runtime._render_prep(model, prep, K, pose, w, h, 3)
+        before = render_prep(runtime._loaded, model, prep, K, pose, w, h, 3)
         prep.render_volumes.clear()
         # keyframe 2 also "observed" as many points 1 km away (a wild pose; far more than the 1% the
         # bounds' quantiles trim)
         wild = torch.tensor([1000.0, 0.0, 0.0]).expand(prep.extents[2].shape[0], 3)
         prep.extents[2] = torch.cat([prep.extents[2], wild])
-        after = runtime._render_prep(model, prep, K, pose, w, h, 3)
+        after = render_prep(runtime._loaded, model, prep, K, pose, w, h, 3)
     assert after is not before and after.bounds == before.bounds  # as if the wild points were not there
 
 
@@ -610,15 +617,15 @@ def test_render_volumes_follow_new_view_extents_without_depth(model: GovNeSF) ->
         window.consider(kf)
     runtime.sync()
     w, h = runtime.image_wh
-    with runtime._lock:
-        prep = runtime._prepare()
+    with runtime._volume.lock:
+        prep = runtime._volume.prepare()
         K, pose = prep.K[2], prep.world_from_cam[2]
-        before = runtime._render_prep(model, prep, K, pose, w, h, 3)
+        before = render_prep(runtime._loaded, model, prep, K, pose, w, h, 3)
     assert before is not prep and len(prep.render_volumes) == 1
     # the keyframes of that render volume observed a small cluster near the origin; the others keep
     # their frusta, so the window's box (over all of them) stays and its volume is not rebuilt
-    with runtime._lock:
-        chosen_before = runtime._overlapping_views(prep, K, pose, w, h, 3).tolist()
+    with runtime._volume.lock:
+        chosen_before = overlapping_views(runtime._loaded, prep, K, pose, w, h, 3).tolist()
     rng = np.random.default_rng(0)
     clusters = {i: rng.normal((0.0, 0.0, 0.5), 0.05, (32, 3)) for i in chosen_before}
     for i, cluster in clusters.items():
@@ -626,12 +633,12 @@ def test_render_volumes_follow_new_view_extents_without_depth(model: GovNeSF) ->
         runtime.set_view_extent((kf.camera, kf.seq, kf.stamp_ns), cluster)
     version = runtime.version
     runtime.sync()
-    with runtime._lock:
-        assert runtime.version == version and runtime._prepare() is prep  # the window's volume stayed
+    with runtime._volume.lock:
+        assert runtime.version == version and runtime._volume.prepare() is prep  # the window's volume stayed
         assert not prep.render_volumes  # its render volumes were dropped
         assert all(np.allclose(prep.extents[i].numpy(), c, atol=1e-6) for i, c in clusters.items())
-        after = runtime._render_prep(model, prep, K, pose, w, h, 3)
-        chosen = runtime._overlapping_views(prep, K, pose, w, h, 3)
+        after = render_prep(runtime._loaded, model, prep, K, pose, w, h, 3)
+        chosen = overlapping_views(runtime._loaded, prep, K, pose, w, h, 3)
     expected = bounds_from_points(
         torch.cat([prep.extents[int(i)] for i in chosen]), max_voxels=model.cfg.volume.max_voxels,
         min_voxel_size_m=model.cfg.volume.min_voxel_size_m, margin_m=runtime.config.bounds_margin_m,

@@ -12,6 +12,7 @@ import torch
 from mapper.model.field import GovNeSF, PointViewSamples
 from mapper.model.ops import sample_kernel
 from mapper.model.ops.cost_volume import sample_volume
+from mapper.runtime.views import all_views
 from tests.mapper.test_blend_from_maps import _runtime_with_six_keyframes
 from tests.mapper.test_runtime import TINY
 
@@ -28,7 +29,7 @@ def _window(*, need_ov: bool = False, use_depth: bool = False):  # -> (model, ru
     torch.manual_seed(0)
     model = GovNeSF(TINY).eval()
     runtime, prep = _runtime_with_six_keyframes(model)
-    return model, runtime, prep, runtime._all_views(prep, need_ov=need_ov, use_depth=use_depth)
+    return model, runtime, prep, all_views(runtime._loaded, prep, need_ov=need_ov, use_depth=use_depth)
 
 
 def _both(model: GovNeSF, *args, **kw) -> tuple[PointViewSamples, PointViewSamples]:

@@ -30,6 +30,7 @@ from mapper.model.ops.rendering import Rays
 from mapper.model.render import AppearanceFn, MarchOutputs, march_rays, occupancy_mask, weight_groups
 from mapper.node.config import WindowConfig
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
+from mapper.runtime.views import view_groups
 from tests.model_helpers import look_at, tiny_model_config
 
 DT = torch.float64
@@ -328,7 +329,8 @@ def test_batched_view_groups_segment_equals_one_pass_per_group(
     try:
         rt.config = dataclasses.replace(saved, batched_view_groups=False)
         ref_label, ref_score, _ = rt.segment(points, ["a", "b", "c"], use_depth=use_depth)
-        groups = rt._view_groups(rt._prepare(), torch.from_numpy(points), rt._prepare().has_ov)
+        prep = rt._volume.prepare()
+        groups = view_groups(rt._loaded, prep, torch.from_numpy(points), prep.has_ov)
         rt.config = dataclasses.replace(saved, batched_view_groups=True)
         label, score, _ = rt.segment(points, ["a", "b", "c"], use_depth=use_depth)
     finally:
