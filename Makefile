@@ -25,7 +25,7 @@ unit: setup
 test: lint typecheck unit
 
 bench: setup
-	$(PY) benchmarks/ingest_rate.py
+	$(PY) benchmarks/speed/ingest_rate.py
 
 # the installable wheel (core + extras, docs/INSTALL.md) into dist/
 wheel: setup
