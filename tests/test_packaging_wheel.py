@@ -1,4 +1,4 @@
-"""The built wheel works installed, outside the checkout (issue 14).
+"""The built wheel works installed, outside the checkout.
 
 Builds the wheel from a copy of the source tree (``pip wheel --no-deps --no-build-isolation``),
 installs it into a fresh virtual environment in a temporary folder, and from a temporary working
