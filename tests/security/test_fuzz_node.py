@@ -15,7 +15,8 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def _fuzz() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("benchmarks_fuzz", REPO / "benchmarks" / "robustness" / "fuzz.py")
+    script = REPO / "benchmarks" / "robustness" / "fuzz.py"
+    spec = importlib.util.spec_from_file_location("benchmarks_fuzz", script)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # its dataclasses look their module up
