@@ -30,7 +30,7 @@ docs: setup
 test: lint typecheck docs unit
 
 bench: setup
-	$(PY) benchmarks/ingest_rate.py
+	$(PY) benchmarks/speed/ingest_rate.py
 
 # the installable wheel (core + extras, docs/getting-started/install.md) into dist/
 wheel: setup

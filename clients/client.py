@@ -11,6 +11,11 @@ With CurveZMQ (a node served with ``--curve-dir``; docs/how-to/robot-network.md)
 :func:`add_curve_arguments`): every socket is then a CURVE client of the node. A client the node
 does not allow gets no reply at all, so it sees a :class:`TimeoutError`.
 
+:meth:`MapperClient.ping` asks for ``status`` once, with a short timeout and no retry, and raises
+:class:`NodeUnreachableError` (a :class:`TimeoutError`) naming the endpoint when nothing answers:
+the CLI commands ping first, so that a missing node is reported in seconds, and only then wait
+the long timeout of a render or a query.
+
 Frames go over one DEALER socket and may be pipelined (:meth:`MapperClient.send_frames`,
 ``window`` frames in flight). Replies are paired with requests by the echoed ``id`` (the client
 gives every :class:`Frame` and request one); raw frame bytes without an id are paired in order,
@@ -69,6 +74,18 @@ DEFAULT_INGEST = "tcp://127.0.0.1:5555"
 DEFAULT_QUERY = "tcp://127.0.0.1:5556"
 
 R = TypeVar("R", bound=Message)
+
+
+class NodeUnreachableError(TimeoutError):
+    """No node answered a ping (:meth:`MapperClient.ping`) at ``endpoint`` within ``timeout_s``."""
+
+    def __init__(self, endpoint: str, timeout_s: float, curve: bool = False) -> None:
+        self.endpoint = endpoint
+        self.timeout_s = timeout_s
+        hint = " and does it allow this client's CurveZMQ key" if curve else ""
+        super().__init__(
+            f"no node answers at {endpoint} ({timeout_s:.1f} s); is `govnesf serve` running{hint}?"
+        )
 
 
 @dataclass(frozen=True)
@@ -277,6 +294,7 @@ class MapperClient:
         self._context: zmq.Context[zmq.Socket[bytes]] = context if context is not None else zmq.Context()
         self._ingest = _Channel(self._context, ingest, curve)
         self._query = _Channel(self._context, query, curve)
+        self._curve = curve is not None
         self._ids = itertools.count(1)
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -368,9 +386,28 @@ class MapperClient:
 
     # -- queries ------------------------------------------------------------------------------
 
-    def request(self, msg: Message, *, timeout_s: float | None = None) -> Message:
+    @property
+    def query_endpoint(self) -> str:
+        """The node's query endpoint this client talks to."""
+        return self._query.endpoint
+
+    def ping(self, timeout_s: float = 2.0) -> Status:
+        """One ``status`` request, waiting at most ``timeout_s`` and never retried: is a node there?
+
+        Raises:
+            NodeUnreachableError: no reply within ``timeout_s`` (no node, a node behind other keys,
+                or a node busy for longer than that on another client's ``save`` / ``load``).
+            RemoteError: the node answered with an ``error``.
+        """
+        try:
+            return self._call(StatusRequest(), Status, timeout_s, retries=0)
+        except TimeoutError:
+            raise NodeUnreachableError(self._query.endpoint, timeout_s, self._curve) from None
+
+    def request(self, msg: Message, *, timeout_s: float | None = None, retries: int | None = None) -> Message:
         """Send one request to the query endpoint and return the reply message as received
-        (an :class:`Error` reply is returned, not raised). Requests without an ``id`` get one."""
+        (an :class:`Error` reply is returned, not raised). Requests without an ``id`` get one.
+        ``timeout_s`` / ``retries`` override the client's for this request."""
         if getattr(msg, "id", "absent") is None:
             msg = copy.copy(msg)
             msg.id = next(self._ids)  # type: ignore[attr-defined]
@@ -379,7 +416,7 @@ class MapperClient:
             [encode(msg)],
             window=1,
             timeout_s=self.timeout_s if timeout_s is None else timeout_s,
-            retries=self.retries,
+            retries=self.retries if retries is None else retries,
         )
         try:
             _, data, _ = next(results)
@@ -391,8 +428,10 @@ class MapperClient:
             raise ProtocolError("bad_request", f"reply echoes id {reply_id!r}, request had id {sent_id!r}")
         return reply
 
-    def _call(self, msg: Message, expected: type[R], timeout_s: float | None = None) -> R:
-        reply = self.request(msg, timeout_s=timeout_s)
+    def _call(
+        self, msg: Message, expected: type[R], timeout_s: float | None = None, retries: int | None = None
+    ) -> R:
+        reply = self.request(msg, timeout_s=timeout_s, retries=retries)
         if isinstance(reply, Error):
             raise RemoteError(reply.code, reply.message, reply.id)
         if not isinstance(reply, expected):

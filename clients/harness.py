@@ -1,5 +1,5 @@
 """The harness the end-to-end tests (``tests/e2e``, ``tests/clients/test_rerun_log.py``) and the
-benchmarks (``benchmarks/ingest_rate.py``, ``semantic_map.py``, ``rendered_depth_points.py``) share
+benchmarks (``benchmarks/speed/ingest_rate.py``, ``semantic_map.py``, ``rendered_depth_points.py``) share
 with the demo (``clients/demo.py``): inputs to stream into a node, a node to stream them into, and
 the ground truth to score its answers against.
 

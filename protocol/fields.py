@@ -49,7 +49,7 @@ def bad(what: str) -> ProtocolError:
 def short(value: Any) -> str:
     try:
         text = repr(value)
-    except RecursionError:  # a hostile, deeply nested value (found by benchmarks/fuzz.py)
+    except RecursionError:  # a hostile, deeply nested value (found by benchmarks/robustness/fuzz.py)
         text = f"<{type_name(value)} nested too deeply to show>"
     return text if len(text) <= 60 else text[:57] + "..."
 

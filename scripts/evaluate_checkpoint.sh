@@ -44,11 +44,11 @@ for part in "${PARTS[@]}"; do
         2d) "$PYTHON" -m mapper.training.cli_eval --checkpoint "$CKPT" --data "$DATA/eval" --novel-views 8 \
                 --pixel-stride 2 --no-3d --device cpu --quiet \
                 --out "$OUT/results_2d.json" --markdown "$OUT/tables_2d.md" ;;
-        visibility) "$PYTHON" benchmarks/density_visibility.py --checkpoint "$CKPT" --data "$DATA/eval" \
+        visibility) "$PYTHON" benchmarks/studies/density_visibility.py --checkpoint "$CKPT" --data "$DATA/eval" \
                         --max-points 5000 2>&1 | tee "$OUT/density_visibility.txt" ;;
-        rgbonly) "$PYTHON" benchmarks/rendered_depth_points.py --frames 240 --threads 1 --checkpoint "$CKPT" \
+        rgbonly) "$PYTHON" benchmarks/studies/rendered_depth_points.py --frames 240 --threads 1 --checkpoint "$CKPT" \
                      2>&1 | tee "$OUT/rendered_depth_points.txt" ;;
-        real) "$PYTHON" benchmarks/real_sequence.py --checkpoint "$CKPT" --max-targets 12 --render-scale 0.5 \
+        real) "$PYTHON" benchmarks/studies/real_sequence.py --checkpoint "$CKPT" --max-targets 12 --render-scale 0.5 \
                   --out "$OUT/real_sequence" 2>&1 | tee "$OUT/real_sequence.txt" ;;
         rgbnode) "$PYTHON" -m mapper.training.cli_eval --checkpoint "$CKPT" --data "$DATA/eval" --max-points 20000 \
                      --no-2d --no-oracle --rgb-only-node --device cpu --quiet \

@@ -12,7 +12,7 @@ import zmq
 from clients.harness import free_endpoints
 from mapper.node.config import NodeConfig, config_from_dict
 from mapper.node.service import MapperNode
-from protocol.messages import Message, Points, RenderResult, decode, encode
+from protocol.messages import Message, Points, RenderResult, Status, StatusRequest, decode, encode
 
 RequestT = TypeVar("RequestT", bound=Message)
 
@@ -43,13 +43,15 @@ def in_process_node(tmp_path: Path, **settings: Any) -> MapperNode:
 
 class ScriptedQueryEndpoint(Generic[RequestT]):
     """A query endpoint on a free TCP port that answers every request (each must be a
-    ``request_type``) with ``reply``, its ``id`` set to the request's; records the requests."""
+    ``request_type``) with ``reply``, its ``id`` set to the request's, and records the requests;
+    a ``status`` request (the CLI's ping) gets an empty map's status and is counted in ``pings``."""
 
     def __init__(self, request_type: type[RequestT], reply: Points | RenderResult) -> None:
         (self.endpoint,) = free_endpoints(1)
         self.request_type = request_type
         self.reply = reply
         self.requests: list[RequestT] = []
+        self.pings = 0
         self._ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context()
         self._sock = self._ctx.socket(zmq.ROUTER)
         self._sock.bind(self.endpoint)
@@ -63,6 +65,14 @@ class ScriptedQueryEndpoint(Generic[RequestT]):
                 continue
             parts = self._sock.recv_multipart()
             msg = decode(parts[-1], direction="request")
+            if isinstance(msg, StatusRequest):
+                self.pings += 1
+                status = Status(
+                    map_version=0, keyframes=0, frames_received=0, frames_rejected=0, ov_space=None,
+                    memory_bytes=0, uptime_s=0.0, id=msg.id,
+                )
+                self._sock.send_multipart([*parts[:-1], encode(status)])
+                continue
             assert isinstance(msg, self.request_type)
             self.requests.append(msg)
             self.reply.id = msg.id

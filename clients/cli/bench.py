@@ -17,7 +17,7 @@ What is measured (docs/results.md explains each number and the targets):
 * ``status_during_render``: ``status`` and ``query_points`` latency p50 / p95 while a 320x240
   render is in flight (``query_points``: a new question each time, computed; ``_repeat``: the same
   question, from the node's answer cache);
-* ``query_points`` on synthetic 10k / 100k / 1M-point maps (``benchmarks/bench_maps.py`` writes
+* ``query_points`` on synthetic 10k / 100k / 1M-point maps (``mapper.bench.synthetic_maps`` writes
   them into the node's map directory, the bench ``load``s them): first query after the map changed,
   cached (map unchanged, answer computed), a new text, the same question repeated (the answer
   cache), p50 / p95, and the ratio to the floor (the bare fp32 matrix product of the same size:
@@ -25,8 +25,9 @@ What is measured (docs/results.md explains each number and the targets):
 * ``rss``: the node's RSS (status) along a long stream (frames 1000 ... 5000 by default).
 
 ``--quick`` runs everything tiny (smoke test: the command runs and writes valid JSON with the
-expected keys). The bench needs the repository (it runs ``benchmarks/bench_maps.py``) and the
-node's Python (``sys.executable``).
+expected keys). The bench runs the node and the map writer (``python -m
+mapper.bench.synthetic_maps``, :data:`MAP_WRITER`) with its own Python (``sys.executable``): both
+ship in the package, so an installed ``govnesf`` runs it as a checkout does.
 
     govnesf bench --out out/bench/node            # the full run (about half an hour on 2 cores)
     govnesf bench --quick --out /tmp/bench        # smoke
@@ -69,6 +70,9 @@ NEW_QUERY_TEXTS = [f"find the {t}" for t in (
 )]  # fmt: skip
 """Questions asked once each (``query_points`` ``new_text``: the full scoring product and clustering)."""
 SEGMENT_METHODS = ("average", "average_depth", "govnesf")
+MAP_WRITER = "mapper.bench.synthetic_maps"
+"""The module (run with ``python -m``, the bench never imports ``mapper``) that writes the maps of
+the ``query_points`` phase."""
 SEGMENT_TEXTS = ["floor", "chair", "table", "wall"]
 
 
@@ -391,6 +395,19 @@ def matmul_floor_s(n: int, repeats: int) -> float:
     return float(min(times))
 
 
+def write_synthetic_maps(map_dir: Path, sizes: list[int]) -> None:
+    """``points_<N>.govmap`` for each size in ``map_dir``, by :data:`MAP_WRITER` in a child process
+    (this tree first on its path, as :class:`~clients.harness.NodeProcess` runs the node)."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), env.get("PYTHONPATH")]))
+    subprocess.run(
+        [sys.executable, "-m", MAP_WRITER, str(map_dir), *map(str, sizes)],
+        check=True,
+        env=env,
+        stdout=subprocess.DEVNULL,
+    )
+
+
 def bench_query_points(
     client: MapperClient, map_dir: Path, sizes: list[int], first_repeats: int, cached_repeats: int
 ) -> dict[str, Any]:
@@ -398,14 +415,7 @@ def bench_query_points(
     unchanged, a new question each time by its ``max_points``: computed, the per-block labels
     reused), ``new_text`` (another text each time: text encoding, the scoring product and the
     clustering), ``repeat`` (the same question again: the node's answer cache)."""
-    script = REPO_ROOT / "benchmarks" / "bench_maps.py"
-    env = dict(os.environ, PYTHONPATH=str(REPO_ROOT))
-    subprocess.run(
-        [sys.executable, str(script), str(map_dir), *map(str, sizes)],
-        check=True,
-        env=env,
-        stdout=subprocess.DEVNULL,
-    )
+    write_synthetic_maps(map_dir, sizes)
     out: dict[str, Any] = {}
     for n in sizes:
         first, cached, new_text, repeat, node_timing = [], [], [], [], {}

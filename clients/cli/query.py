@@ -3,6 +3,12 @@
 Exit codes: 0 success, 1 the node did not answer (or an ``--out`` file could not be written),
 2 invalid arguments, 3 the node answered with an error.
 
+Each command first asks the node for its status, waiting at most ``--ping-timeout`` seconds
+(default 2) with no retry: with no node at ``--query`` it fails then (exit 1, "no node answers at
+tcp://...; is `govnesf serve` running?") rather than after ``--timeout`` x (1 + ``--retries``).
+Once the node has answered, the request itself gets ``--timeout``. ``--ping-timeout 0`` skips the
+check. ``govnesf status`` prints the ping's answer.
+
 ``govnesf query "find the chair" --out chair.ply --json chair.json`` prints the object candidates
 (text, centroid, score, points), writes the matching points as a binary PLY (float32 xyz, a float32
 ``score`` property, coloured by score with the viridis colormap, dark = low, yellow = high; an empty
@@ -21,7 +27,14 @@ from typing import Any
 
 import numpy as np
 
-from clients.client import DEFAULT_QUERY, MapperClient, add_curve_arguments, curve_from_args
+from clients.cli.args import add_ping_argument, late_reply_message, ping_first
+from clients.client import (
+    DEFAULT_QUERY,
+    MapperClient,
+    NodeUnreachableError,
+    add_curve_arguments,
+    curve_from_args,
+)
 from protocol.errors import ProtocolError, RemoteError
 from protocol.messages import Message, Ok, Points, Status
 
@@ -39,19 +52,26 @@ def _parser(prog: str, description: str, with_name: bool) -> argparse.ArgumentPa
     parser.add_argument(
         "--retries", type=int, default=1, metavar="N", help="retries before giving up (default 1)"
     )
+    add_ping_argument(parser)
     add_curve_arguments(parser)
     return parser
 
 
-def _run(args: argparse.Namespace, call: Callable[[MapperClient], Message], prog: str) -> int:
+def _run(args: argparse.Namespace, call: Callable[[MapperClient, Status | None], Message], prog: str) -> int:
+    """Ping the node (``--ping-timeout``), then ``call(client, the ping's status or None)``."""
+    pinged: Status | None = None
     try:
         curve = curve_from_args(args)
         with MapperClient(
             query=args.query, timeout_s=args.timeout, retries=args.retries, curve=curve
         ) as client:
-            reply = call(client)
+            pinged = ping_first(client, args)
+            reply = call(client, pinged)
+    except NodeUnreachableError as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return 1
     except TimeoutError as exc:
-        print(f"{prog}: node unreachable: {exc}", file=sys.stderr)
+        print(f"{prog}: {late_reply_message(exc, args, pinged is not None)}", file=sys.stderr)
         return 1
     except RemoteError as exc:
         print(f"{prog}: the node refused: {exc.code}: {exc.message}", file=sys.stderr)
@@ -94,7 +114,7 @@ def status_main(argv: list[str] | None = None) -> int:
     parser = _parser("govnesf status", "Print a mapper node's status.", with_name=False)
     parser.add_argument("--json", action="store_true", help="print JSON")
     args = parser.parse_args(argv)
-    return _run(args, lambda c: c.status(), "govnesf status")
+    return _run(args, lambda c, pinged: pinged or c.status(), "govnesf status")
 
 
 def save_main(argv: list[str] | None = None) -> int:
@@ -102,13 +122,13 @@ def save_main(argv: list[str] | None = None) -> int:
     args = _parser("govnesf save", "Save the node's map in its map directory.", with_name=True).parse_args(
         argv
     )
-    return _run(args, lambda c: c.save(args.name), "govnesf save")
+    return _run(args, lambda c, _: c.save(args.name), "govnesf save")
 
 
 def load_main(argv: list[str] | None = None) -> int:
     """``govnesf load NAME [--query EP]``."""
     args = _parser("govnesf load", "Load a saved map into the node.", with_name=True).parse_args(argv)
-    return _run(args, lambda c: c.load(args.name), "govnesf load")
+    return _run(args, lambda c, _: c.load(args.name), "govnesf load")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -225,7 +245,7 @@ def query_main(argv: list[str] | None = None) -> int:
             parser.error(str(exc))
     return _run(
         args,
-        lambda c: c.query_points(
+        lambda c, _: c.query_points(
             list(args.texts), negatives=args.negatives, min_score=args.min_score, max_points=args.max_points,
             objects=not args.no_objects,
         ),

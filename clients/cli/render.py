@@ -18,7 +18,9 @@ with a legend underneath) when ``--texts`` are given. ``--separate`` also writes
 ``--rerun F.rrd`` logs the view (its camera, rgb, depth, labels) for the Rerun viewer.
 
 Exit codes: 0 success, 1 the node did not answer, 2 invalid arguments, 3 the node answered
-with an error.
+with an error. Before the render the node is asked for its status with ``--ping-timeout``
+(default 2 s, no retry): with no node at ``--query`` the command fails then, not after the
+render's ``--timeout``; ``--ping-timeout 0`` skips the check.
 """
 
 from __future__ import annotations
@@ -30,10 +32,17 @@ from pathlib import Path
 
 import numpy as np
 
-from clients.client import DEFAULT_QUERY, MapperClient, add_curve_arguments, curve_from_args
+from clients.cli.args import add_ping_argument, late_reply_message, ping_first
+from clients.client import (
+    DEFAULT_QUERY,
+    MapperClient,
+    NodeUnreachableError,
+    add_curve_arguments,
+    curve_from_args,
+)
 from clients.colors import LABEL_COLORS, colorize_depth, colorize_labels
 from protocol.errors import ProtocolError, RemoteError
-from protocol.messages import RenderResult
+from protocol.messages import RenderResult, Status
 
 __all__ = [
     "LABEL_COLORS",
@@ -153,6 +162,7 @@ def _parser() -> argparse.ArgumentParser:
         "--timeout", type=float, default=120.0, metavar="S", help="seconds to wait for the render (120)"
     )
     p.add_argument("--retries", type=int, default=0, metavar="N", help="retries before giving up (0)")
+    add_ping_argument(p)
     add_curve_arguments(p)
     return p
 
@@ -208,14 +218,19 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{prog}: {exc}", file=sys.stderr)
             return 2
     outputs = ["rgb", "depth"] + (["label", "score"] if args.texts else [])
+    pinged: Status | None = None
     try:
         curve = curve_from_args(args)
         with MapperClient(
             query=args.query, timeout_s=args.timeout, retries=args.retries, curve=curve
         ) as client:
+            pinged = ping_first(client, args)
             result = client.render(args.width, args.height, K, world_from_cam, outputs, args.texts)
+    except NodeUnreachableError as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return 1
     except TimeoutError as exc:
-        print(f"{prog}: node unreachable or the render took longer than --timeout: {exc}", file=sys.stderr)
+        print(f"{prog}: {late_reply_message(exc, args, pinged is not None)}", file=sys.stderr)
         return 1
     except RemoteError as exc:
         print(f"{prog}: the node refused: {exc.code}: {exc.message}", file=sys.stderr)

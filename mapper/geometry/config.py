@@ -284,7 +284,7 @@ class StereoConfig:
 
     sigma_rel: float = 0.03
     """1-sigma uncertainty of a kept swept depth, relative to the depth (about its measured median
-    error: benchmarks/stereo_depth.py); the rendered-depth points' consistency check
+    error: benchmarks/studies/stereo_depth.py); the rendered-depth points' consistency check
     (``global_map.rendered_consistency``) uses the swept depths as it uses triangulated points,
     with this sigma. 1e-4..1."""
 

@@ -207,7 +207,7 @@ def average_features_reference(
 ) -> tuple[Tensor, Tensor]:
     """The previous implementation of :func:`average_features` (per view and chunk: ``grid_sample``
     of the whole (D, h, w) map and ``index_add_`` of (m, D) rows), kept as the reference the
-    tests and ``benchmarks/bench_averaging.py`` compare the fast path with. Same arguments and
+    tests and ``benchmarks/speed/bench_averaging.py`` compare the fast path with. Same arguments and
     results (up to float rounding).
 
     Args:

@@ -129,7 +129,7 @@ class Scene:
 
 def held_out_positions(num_frames: int, every: int, radius: int) -> np.ndarray:
     """(F,) bool: True for the frames within ``radius`` positions of a multiple of ``every``
-    (0, every, 2 * every, ...): the held-out targets of ``benchmarks/real_sequence.py`` (every
+    (0, every, 2 * every, ...): the held-out targets of ``benchmarks/studies/real_sequence.py`` (every
     ``--every``-th frame) and their neighbours. ``every`` = 0 holds out nothing.
 
     >>> np.flatnonzero(held_out_positions(23, 10, 1)).tolist()

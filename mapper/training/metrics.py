@@ -189,7 +189,7 @@ def format_scores_table(rows: Sequence[tuple[str, SegmentationScores]],
 
 
 # ---- novel-view render metrics (rgb and depth against a real frame) ----------------------------
-# Used by benchmarks/real_sequence.py. A depth of 0 or a non-finite value means "no depth" on
+# Used by benchmarks/studies/real_sequence.py. A depth of 0 or a non-finite value means "no depth" on
 # either side (the runtime renders 0 where the opacity stays below ``min_opacity``; sensors write 0
 # where they measured nothing).
 

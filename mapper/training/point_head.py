@@ -1,4 +1,4 @@
-"""Distill a point head: a narrower FusionNet that gives a checkpoint's OV weights.
+"""Distill a point head: a narrower FusionNet that gives a checkpoint's OV weights for point answers.
 
 ``govnesf distill-point-head`` (``main`` below). Three stages, all on the CPU:
 

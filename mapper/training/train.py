@@ -206,7 +206,7 @@ class TrainConfig:
     extra_holdout_every: int = 0
     """Drop from every ``extra_train_dirs`` scene the frames within ``extra_holdout_radius``
     positions of every ``extra_holdout_every``-th frame (0 = keep all): the held-out poses that
-    ``benchmarks/real_sequence.py --every N`` renders (default 10) never train."""
+    ``benchmarks/studies/real_sequence.py --every N`` renders (default 10) never train."""
     extra_holdout_radius: int = 2
     """Neighbours on each side of a held-out frame that are dropped with it."""
     extra: dict[str, Any] = field(default_factory=dict)

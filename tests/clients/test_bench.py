@@ -67,3 +67,28 @@ def test_busy_items_count_what_the_node_still_has_queued() -> None:
     extra = {"integration": {"backlog": 2}, "model": {"pending": 3}, "map_features": {"pending": 1},
              "rendered_depth": {"pending": 0}, "other": {"pending": 9}}
     assert _busy_items(extra) == 6  # keys it does not know are not counted
+
+
+def test_map_writer_is_a_package_module_run_from_anywhere(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The query_points phase's maps come from a module of the package (``python -m``), not from a
+    script of the checkout: run from another directory, it writes maps the node's store loads."""
+    import importlib.util
+
+    from clients.cli.bench import MAP_WRITER, write_synthetic_maps
+    from clients.harness import REPO_ROOT
+    from mapper.bench.synthetic_maps import main as writer_main
+    from mapper.node.store import MapStore
+
+    spec = importlib.util.find_spec(MAP_WRITER)
+    assert spec is not None and spec.origin is not None
+    assert Path(spec.origin).is_relative_to(REPO_ROOT / "mapper")
+    monkeypatch.chdir(tmp_path)
+    write_synthetic_maps(tmp_path / "maps", [64])
+    arrays, manifest = MapStore(tmp_path / "maps").load("points_64")
+    assert manifest["global_map"]["points"] == 64 and arrays["global.xyz"].shape == (64, 3)
+    assert arrays["global.feat"].shape == (64, manifest["ov_dim"])
+    with pytest.raises(SystemExit) as exc:
+        writer_main([str(tmp_path / "maps"), "0"])
+    assert exc.value.code == 2 and "sizes must be >= 1" in capsys.readouterr().err

@@ -1,5 +1,5 @@
 """The learned point answers in one compiled pass (``mapper.model.ops.answer_kernel``) equal the
-three kernels run one after the other (issue 11)."""
+three kernels run one after the other."""
 
 from __future__ import annotations
 

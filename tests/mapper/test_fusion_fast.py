@@ -1,4 +1,4 @@
-"""FusionNet's inference pass (``forward_fast``) equals the reference pass (issue 11)."""
+"""FusionNet's inference pass (``forward_fast``) equals the reference pass."""
 
 from __future__ import annotations
 
@@ -156,7 +156,7 @@ def test_shipped_checkpoint_float32() -> None:
             _assert_same(ref, net(rgb, feat, vol, dirs, mask, q), atol=1e-5)
 
 
-# ---- the range encoding (issue 10: each view's camera-to-point distance as a blend input) --------
+# ---- the range encoding (each view's camera-to-point distance as a blend input) ------------------
 RANGED = replace(SMALL.fusion, range_encoding=True)
 
 

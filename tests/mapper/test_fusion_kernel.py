@@ -1,4 +1,4 @@
-"""The compiled point kernel (``FusionNet.point_weights``) equals the reference pass (issue 11)."""
+"""The compiled point kernel (``FusionNet.point_weights``) equals the reference pass."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""One ray marcher (issue 9, property 3): the node's renders are the field's renders.
+"""One ray marcher: the node's renders are the field's renders.
 
 ``ModelRuntime`` renders with the model's rendering core (``mapper.model.render.march_rays``),
 as ``field.render_rays`` and ``render_depth_maps`` do. These tests render the same rays with the

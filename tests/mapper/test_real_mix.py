@@ -1,4 +1,4 @@
-"""Real RGB-D scenes (colour + depth, no ov maps) in the training mix (issue 10, item 4).
+"""Real RGB-D scenes (colour + depth, no ov maps) in the training mix.
 
 ``write_tiny_rgbd`` writes what ``govnesf import`` makes of a real sequence: the wall scene of
 test_data.py with colour, depth and poses but no ov maps and no ``gt/``, optionally at another

@@ -1,4 +1,4 @@
-"""Novel-view render metrics (mapper.training.metrics, used by benchmarks/real_sequence.py) on
+"""Novel-view render metrics (mapper.training.metrics, used by benchmarks/studies/real_sequence.py) on
 exact small arrays: relative depth error with the masks of missing depth, coverage, pooling, PSNR."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """The compiled per-pair sampling of ``sample_views_indexed`` (``mapper.model.ops.sample_kernel``)
-equals the torch path (issue 11)."""
+equals the torch path."""
 
 from __future__ import annotations
 

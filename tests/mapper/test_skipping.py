@@ -1,5 +1,5 @@
-"""Leaving out what the scene does not need (issue 11, part 2): the march_rays levers against the
-dense march, as pure functions in float64 with analytic fields.
+"""Leaving out what the scene does not need: the march_rays levers against the dense march,
+as pure functions in float64 with analytic fields.
 
 * ``weight_groups``: runs of consecutive samples, about equal mass, every index in range;
 * ``appearance_groups``: exact for an appearance that is affine along the ray (any K, with and

@@ -1,4 +1,4 @@
-"""Stiff / extreme cases for projection and volume sampling (issue 4 item 3).
+"""Stiff / extreme cases for projection and volume sampling.
 
 Points behind or on a camera's plane; rays parallel to volume faces (trilinear sampling at and
 outside the bounds); fp16 / bf16 vs float64; gradcheck in float64; no NaN/Inf forward or backward.

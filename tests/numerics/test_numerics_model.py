@@ -1,4 +1,4 @@
-"""Stiff / extreme cases for the network (issue 4 item 3).
+"""Stiff / extreme cases for the network.
 
 All views masked for a point; a point at a source camera centre; the query direction equal to a
 source direction; absurdly far points; gradcheck of the field in float64; no NaN/Inf forward or

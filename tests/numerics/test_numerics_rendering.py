@@ -1,4 +1,4 @@
-"""Stiff / extreme cases for volume rendering (issue 4 item 3).
+"""Stiff / extreme cases for volume rendering.
 
 Densities 0, 1e-3, 1e6 (and overflowed, inf in fp16) and mixtures; spacings 1e-6 .. 1e3;
 fp16 / bf16 / fp32 against float64; gradcheck in float64; no NaN/Inf forward or backward.

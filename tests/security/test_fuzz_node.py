@@ -1,6 +1,6 @@
-"""The fast subset of ``benchmarks/fuzz.py``: ~1,500 hostile inputs through every decoder and both
+"""The fast subset of ``benchmarks/robustness/fuzz.py``: ~1,500 hostile inputs through every decoder and both
 request handlers, 150 of them over real sockets; no internal errors, one clear reply each, and the
-node answers afterwards. (``benchmarks/fuzz.py`` runs 100,000.)"""
+node answers afterwards. (``benchmarks/robustness/fuzz.py`` runs 100,000.)"""
 
 from __future__ import annotations
 
@@ -15,7 +15,8 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def _fuzz() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("benchmarks_fuzz", REPO / "benchmarks" / "fuzz.py")
+    script = REPO / "benchmarks" / "robustness" / "fuzz.py"
+    spec = importlib.util.spec_from_file_location("benchmarks_fuzz", script)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # its dataclasses look their module up

@@ -260,6 +260,16 @@ def test_cli_commands_take_curve_dir_and_client(
     assert '"mode": "curve"' in capsys.readouterr().out
     assert govnesf(["save", "m1", *common, "--curve-dir", keys, "--client", "robot1"]) == 0
     assert govnesf(["status", "--query", query, "--timeout", "0.5", "--retries", "0"]) == 1  # plain: no reply
+    assert f"no node answers at {query} (0.5 s); is `govnesf serve` running?" in capsys.readouterr().err
+    # the ping goes through CURVE like the request: an allowed client's query passes it and gets
+    # the node's own answer (an empty map has no features to query yet)
+    assert govnesf(["query", "chair", *common, "--curve-dir", keys, "--client", "robot1"]) == 3
+    assert "not_ready" in capsys.readouterr().err
+    # keys the node does not know: the ping gets no reply, and the message asks about the key
+    _make_keys(tmp_path / "other", "intruder")
+    other = ["--curve-dir", str(tmp_path / "other"), "--client", "intruder"]
+    assert govnesf(["query", "chair", *common, "--ping-timeout", "0.5", *other]) == 1
+    assert "does it allow this client's CurveZMQ key?" in capsys.readouterr().err
     assert govnesf(["status", *common, "--curve-dir", keys]) == 2  # --client missing
     assert "go together" in capsys.readouterr().err
     assert govnesf(["status", *common, "--curve-dir", keys, "--client", "nobody"]) == 2

@@ -360,7 +360,7 @@ def _point_kernel(
 
 def default_block(n_views: int, attention_dim: int) -> int:
     """Points per parallel task: 256 (the fastest of 32-256 for the point head, 16 views, on two
-    cores; ``benchmarks/point_head_speed.py``), fewer where the per-view buffers ((N, A, block)
+    cores; ``benchmarks/speed/point_head_speed.py``), fewer where the per-view buffers ((N, A, block)
     floats, twice) would pass about 128 KiB."""
     block = 256
     while block > 32 and 2 * n_views * attention_dim * block * 4 > 128 * 1024:
