@@ -122,9 +122,9 @@ def build_matrix(split: str, n: int = DEFAULT_SCENARIOS) -> list[Scenario]:
 
 
 def quick_matrix() -> list[Scenario]:
-    """Two tiny scenarios (24 frames at 160x120): one with depth and exact poses, one RGB-only
+    """Two tiny scenarios (16 frames at 160x120): one with depth and exact poses, one RGB-only
     with pose noise, JPEG and the harsh OV noise. For the tests and a first look."""
     return [
-        Scenario(0, 0, "apartment", "loop", 24, 160, 120, 70.0, "blur", "exact", "calibrated", True),
-        Scenario(1, 3, "sparse", "revisit", 24, 160, 120, 80.0, "jpeg", "noise_1cm", "harsh", False),
+        Scenario(0, 0, "apartment", "loop", 16, 160, 120, 70.0, "blur", "exact", "calibrated", True),
+        Scenario(1, 3, "sparse", "revisit", 16, 160, 120, 80.0, "jpeg", "noise_1cm", "harsh", False),
     ]
