@@ -28,6 +28,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "keys": ("clients.cli.keys", "main", "make CurveZMQ keys for a node and its clients"),
     "bench": ("clients.cli.bench", "main", "start a node, measure it, write JSON + Markdown"),
     "evaluate": ("mapper.training.cli_eval", "main", "evaluate the model against baselines"),
+    "matrix": ("clients.matrix.cli", "main", "score nodes on a matrix of held-out scenarios"),
     "train": ("mapper.training.cli_train", "main", "train the GOV-NeSF model"),
     "distill-point-head": ("mapper.training.point_head", "main",
                            "distill a smaller FusionNet for point answers from a checkpoint"),

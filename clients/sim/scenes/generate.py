@@ -6,10 +6,10 @@ the labelled, textured mesh as a `Scene`.
 (3, 'apartment', True)
 >>> bool((generate_scene(3, "apartment").vertices == scene.vertices).all())
 True
->>> generate_scene(3, "loft")
+>>> generate_scene(3, "loft")  # doctest: +ELLIPSIS
 Traceback (most recent call last):
 ...
-ValueError: unknown scene style 'loft'; choose one of ['apartment', 'studio']
+ValueError: unknown scene style 'loft'; choose one of ['apartment', 'corridor', ...]
 """
 
 from __future__ import annotations
@@ -48,6 +48,8 @@ def generate_scene(seed: int, style: str = "apartment") -> Scene:
         cx, cy = r.pick((0, 1)), r.pick((0, 1))
         lo = np.array([0.0 if cx == 0 else size[0] - nx, 0.0 if cy == 0 else size[1] - ny, 0.0])
         structures.append(np.stack([lo, lo + [nx, ny, size[2]]]))
+    if st.layout == "corridor":
+        structures += _corridor_walls(r, size)
     p = _Placer(r, size, structures)
 
     # door first (with a keep-out zone in front of it), then windows with curtains
@@ -154,6 +156,31 @@ def generate_scene(seed: int, style: str = "apartment") -> Scene:
         face_texture=np.concatenate(texs), face_texture_scale=np.concatenate(scales),
         face_normal=n.astype(np.float32), light=light,
         structures=[(b[0].copy(), b[1].copy()) for b in structures])
+
+
+_WALL_T_M = 0.1
+_DOORWAY_M = 1.2
+
+
+def _corridor_walls(r: _Rand, size: np.ndarray) -> list[np.ndarray]:
+    """Inner walls (full-height boxes) of rooms off a corridor: a corridor 1.4-1.7 m wide along
+    y = 0, a wall along it with one 1.2 m doorway per room, and walls between 2-3 rooms."""
+    sx, sy, sz = (float(v) for v in size)
+    cw = r.u(1.4, 1.7)
+    n_rooms = 3 if sx >= 9.0 and r.chance(0.5) else 2
+    cuts = [sx * (k + r.u(-0.06, 0.06)) / n_rooms for k in range(1, n_rooms)]
+    edges = [0.0, *cuts, sx]
+    walls: list[np.ndarray] = []
+    x0 = 0.0
+    for k in range(n_rooms):  # the corridor's wall, a doorway per room
+        lo, hi = edges[k] + _WALL_T_M, edges[k + 1] - _WALL_T_M
+        d0 = r.u(lo + 0.3, hi - 0.3 - _DOORWAY_M)
+        walls.append(np.array([[x0, cw, 0.0], [d0, cw + _WALL_T_M, sz]]))
+        x0 = d0 + _DOORWAY_M
+    walls.append(np.array([[x0, cw, 0.0], [sx, cw + _WALL_T_M, sz]]))
+    for c in cuts:  # walls between the rooms
+        walls.append(np.array([[c - _WALL_T_M / 2, cw + _WALL_T_M, 0.0], [c + _WALL_T_M / 2, sy, sz]]))
+    return walls
 
 
 def _flatten(obj: _Object, support: int, out: list[tuple[_Object, int]]) -> None:

@@ -1,12 +1,12 @@
 """Scene styles: room sizes, palettes, textures, light and furniture mix of a family of scenes.
 
 >>> sorted(STYLES)
-['apartment', 'studio']
+['apartment', 'corridor', 'living_large', 'office', 'sparse', 'studio']
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from clients.sim.scenes.appearance import Colour, Texture
 
@@ -37,6 +37,7 @@ class SceneStyle:
     light_diffuse: tuple[float, float]
     ambient: tuple[float, float]
     size_jitter: float                     # relative random scaling of furniture dimensions
+    layout: str = "room"                   # "room": one room; "corridor": rooms off a corridor
 
 
 STYLES: dict[str, SceneStyle] = {
@@ -88,4 +89,40 @@ STYLES: dict[str, SceneStyle] = {
         size_jitter=0.18,
     ),
 }
-"""Named scene styles. `apartment` is the training style; `studio` is held out (unseen)."""
+
+_APARTMENT, _STUDIO = STYLES["apartment"], STYLES["studio"]
+STYLES.update({
+    # Open-plan office: rows of desks with monitors and chairs, chairs along a wall, grey and blue.
+    "office": replace(
+        _STUDIO, name="office", room_x_m=(7.5, 9.5), room_y_m=(6.0, 7.5), ceiling_m=(2.7, 3.0),
+        notch_prob=0.0, n_zones=(2, 3), zone_weights={"desk_rows": 3.0, "office": 1.0, "dining": 0.6},
+        n_windows=(2, 3), n_clutter=(0, 2),
+        wall_colours=((0.90, 0.90, 0.88), (0.78, 0.80, 0.82), (0.85, 0.86, 0.80)),
+        wall_textures=((Texture.PLAIN, 0.40), (Texture.FABRIC, 0.08)),
+        floor_colours=(((0.40, 0.42, 0.46), (0.30, 0.32, 0.36)), ((0.55, 0.52, 0.48), (0.45, 0.42, 0.38))),
+        floor_textures=((Texture.FABRIC, 0.10), (Texture.TILES, 0.60)),
+        light_colour=(1.0, 1.0, 1.0), light_diffuse=(0.75, 0.95), ambient=(0.35, 0.45),
+    ),
+    # Two or three rooms off a corridor along one side; doorways in the corridor's wall.
+    "corridor": replace(
+        _APARTMENT, name="corridor", room_x_m=(8.0, 10.0), room_y_m=(5.4, 6.6), ceiling_m=(2.5, 2.7),
+        notch_prob=0.0, n_zones=(3, 4),
+        zone_weights={"living": 1.0, "dining": 1.0, "bedroom": 1.0, "office": 1.0, "kitchen": 0.5},
+        n_windows=(1, 2), n_clutter=(0, 1), layout="corridor",
+    ),
+    # A large living room, 8-10 m: far walls, small objects at many depths.
+    "living_large": replace(
+        _APARTMENT, name="living_large", room_x_m=(8.0, 10.0), room_y_m=(6.0, 8.0), ceiling_m=(2.6, 3.0),
+        notch_prob=0.3, n_zones=(3, 4), zone_weights={"living": 3.0, "dining": 1.5, "office": 0.8,
+                                                      "kitchen": 0.8},
+        n_windows=(2, 3), n_clutter=(3, 5),
+    ),
+    # A sparsely furnished room: one or two zones, bare walls, little clutter.
+    "sparse": replace(
+        _APARTMENT, name="sparse", room_x_m=(5.0, 7.0), room_y_m=(4.0, 6.0), ceiling_m=(2.5, 2.8),
+        notch_prob=0.0, n_zones=(1, 2), zone_weights={"dining": 1.0, "office": 1.0, "living": 0.5},
+        n_windows=(1, 1), n_clutter=(0, 1),
+    ),
+})
+"""Named scene styles. `apartment` is the training style; `studio` is held out (unseen). The
+others are held-out layouts of the scenario matrix (docs/how-to/scenario-matrix.md)."""

@@ -159,6 +159,47 @@ def _office_extras(p: _Placer) -> None:
     p.try_place(_trash_can(r))
 
 
+def _desk_row(p: _Placer) -> None:
+    """Open-plan office: a row of 2-3 desks side by side in the middle of the room, each with a
+    monitor and a chair in front of it; sometimes a second row back to back."""
+    r = p.r
+    n = int(r.rng.integers(2, 4))
+    desks = [_desk(r) for _ in range(n)]
+    widths = [float(d.aabb()[1, 0] - d.aabb()[0, 0]) for d in desks]
+    x = -0.5 * (sum(widths) + 0.02 * (n - 1))
+    members: list[_Object] = []
+    for desk, w in zip(desks, widths, strict=True):
+        cx = x + w / 2
+        members.append(desk.transformed(0, np.array([cx, 0.0, 0.0])))
+        dd = float(desk.aabb()[1, 1])
+        members.append(_facing_table(_chair(r), cx, dd, +1))
+        x += w + 0.02
+    row = _group("desks", members)
+    if r.chance(0.5):  # back to back: the same row turned around, behind the first
+        row = _group("desks", [row, row.transformed(2, np.array([0.0, -0.02, 0.0]))])
+    p.try_place(row, central=True, walkway_m=0.5, tries=60)
+
+
+def _chair_row(p: _Placer) -> None:
+    """A row of 3-5 chairs against a wall (a waiting or meeting area)."""
+    r = p.r
+    n = int(r.rng.integers(3, 6))
+    m, seat = r.wood(), r.fabric()
+    chairs = [_chair(r, m, seat) for _ in range(n)]
+    w = float(chairs[0].aabb()[1, 0] - chairs[0].aabb()[0, 0])
+    members = [c.transformed(0, np.array([(k - (n - 1) / 2) * (w + 0.08), 0.0, 0.0]))
+               for k, c in enumerate(chairs)]
+    p.try_place(_group("chairs", members), tries=60)
+
+
+def _open_office_extras(p: _Placer) -> None:
+    r = p.r
+    _chair_row(p)
+    p.try_place(_cabinet(r, r.dim(0.8), r.dim(0.45), r.dim(1.1)))
+    p.try_place(_plant(r))
+    p.try_place(_trash_can(r))
+
+
 def _nothing(p: _Placer) -> None:
     return None
 
@@ -167,6 +208,7 @@ _ZONES: dict[str, tuple[Callable[[_Placer], None], Callable[[_Placer], None]]] =
     "living": (_living_anchor, _living_extras), "dining": (_dining_anchor, _nothing),
     "bedroom": (_bedroom_anchor, _bedroom_extras), "kitchen": (_kitchen_anchor, _kitchen_extras),
     "bathroom": (_bathroom_anchor, _bathroom_extras), "office": (_office_anchor, _office_extras),
+    "desk_rows": (_desk_row, _open_office_extras),
 }
 """Zone -> (anchor placement, extras). All anchors (big groups) are placed before any extras."""
 
