@@ -460,11 +460,16 @@ class MapperClient:
         min_score: float | None = None,
         max_points: int | None = None,
         objects: bool = True,
+        settle_timeout_s: float | None = None,
         timeout_s: float | None = None,
     ) -> Points:
-        """"Find the chair": map points (and object candidates) matching ``texts``."""
+        """"Find the chair": map points (and object candidates) matching ``texts``. With
+        ``settle_timeout_s`` the node first waits (up to that long) for its background work on the
+        frames acked so far; the reply's ``settled`` says whether none was pending. Give the call a
+        ``timeout_s`` longer than that wait."""
         msg = QueryPoints(
-            texts=texts, negatives=negatives, min_score=min_score, max_points=max_points, objects=objects
+            texts=texts, negatives=negatives, min_score=min_score, max_points=max_points, objects=objects,
+            settle_timeout_s=settle_timeout_s,
         )
         return self._call(msg, Points, timeout_s)
 
@@ -475,10 +480,14 @@ class MapperClient:
         *,
         method: str = "govnesf",
         use_depth: bool = False,
+        settle_timeout_s: float | None = None,
         timeout_s: float | None = None,
     ) -> Segmentation:
-        """Label world points with one of ``texts`` (3D semantic segmentation)."""
-        msg = SegmentPoints(xyz=xyz, texts=texts, method=method, use_depth=use_depth)  # type: ignore[arg-type]
+        """Label world points with one of ``texts`` (3D semantic segmentation); ``settle_timeout_s``
+        as for :meth:`query_points`. The reply's ``fallback`` marks points the averaging answered for
+        the learned method (its geometry still pending)."""
+        msg = SegmentPoints(xyz=xyz, texts=texts, method=method, use_depth=use_depth,  # type: ignore[arg-type]
+                            settle_timeout_s=settle_timeout_s)
         return self._call(msg, Segmentation, timeout_s)
 
     def render(
@@ -490,10 +499,13 @@ class MapperClient:
         outputs: list[str],
         texts: list[str] | None = None,
         *,
+        settle_timeout_s: float | None = None,
         timeout_s: float | None = None,
     ) -> RenderResult:
-        """Render colour / depth / label / score from any pose."""
+        """Render colour / depth / label / score from any pose; ``settle_timeout_s`` as for
+        :meth:`query_points`."""
         msg = Render(
-            width=width, height=height, K=K, world_from_cam=world_from_cam, outputs=outputs, texts=texts
+            width=width, height=height, K=K, world_from_cam=world_from_cam, outputs=outputs, texts=texts,
+            settle_timeout_s=settle_timeout_s,
         )
         return self._call(msg, RenderResult, timeout_s)

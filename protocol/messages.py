@@ -458,6 +458,11 @@ class QueryPoints(Message):
     max_points: int | None = wire(Int(lo=1), default=None, doc="Return at most this many points, best first.")
     objects: bool = wire(Bool(), default=True, doc="Also group points into object candidates.")
     id: RequestId = wire(ID, default=None)
+    settle_timeout_s: float | None = wire(
+        Float(lo=0.0), unit="s", default=None,
+        doc="Answer from the settled map: wait up to this long for the node's background work on the frames "
+        "acked so far (extension; the node caps it at `queries.max_settle_wait_s`).",
+    )
 
 
 @message
@@ -490,6 +495,10 @@ class Points(Message):
     )
     timing_ms: dict[str, float] = wire(TIMING, unit="ms", default_factory=dict, doc="Wall time per stage.")
     id: RequestId = wire(ID, default=None)
+    settled: bool | None = wire(
+        Bool(), default=None,
+        doc="Whether the node had no background work pending for acked frames when it answered (extension).",
+    )
 
 
 SegmentMethod = Literal["govnesf", "average", "average_depth"]
@@ -511,6 +520,11 @@ class SegmentPoints(Message):
     )
     use_depth: bool = wire(Bool(), default=False, doc='Depth Guided Masking for ``"govnesf"``.')
     id: RequestId = wire(ID, default=None)
+    settle_timeout_s: float | None = wire(
+        Float(lo=0.0), unit="s", default=None,
+        doc="Answer from the settled map: wait up to this long for the node's background work on the frames "
+        "acked so far (extension; the node caps it at `queries.max_settle_wait_s`).",
+    )
 
 
 @message
@@ -526,6 +540,15 @@ class Segmentation(Message):
     source: np.ndarray | None = wire(
         Array("uint8", ("N",)), default=None,
         doc="Per point, what answered: 0 none, 1 window, 2 map (`ANSWER_SOURCES`; extension).",
+    )
+    settled: bool | None = wire(
+        Bool(), default=None,
+        doc="Whether the node had no background work pending for acked frames when it answered (extension).",
+    )
+    fallback: np.ndarray | None = wire(
+        Array("uint8", ("N",)), default=None,
+        doc="Per point, 1 where averaging answered for the learned method (its geometry not ready; "
+        "extension).",
     )
 
 
@@ -547,6 +570,11 @@ class Render(Message):
         doc='Label set, required when ``"label"`` or ``"score"`` is requested.',
     )
     id: RequestId = wire(ID, default=None)
+    settle_timeout_s: float | None = wire(
+        Float(lo=0.0), unit="s", default=None,
+        doc="Answer from the settled map: wait up to this long for the node's background work on the frames "
+        "acked so far (extension; the node caps it at `queries.max_settle_wait_s`).",
+    )
 
     def _check(self) -> None:
         if self.texts is None and ("label" in self.outputs or "score" in self.outputs):
@@ -583,6 +611,10 @@ class RenderResult(Message):
     source: np.ndarray | None = wire(
         Array("uint8", ("H", "W")), default=None,
         doc="Per pixel, what answered `label`: 0 none, 1 window, 2 map (extension; with `label`).",
+    )
+    settled: bool | None = wire(
+        Bool(), default=None,
+        doc="Whether the node had no background work pending for acked frames when it answered (extension).",
     )
 
     WIRE_ONLY: ClassVar[tuple[WireField, ...]] = (

@@ -180,7 +180,8 @@ def _report_points(points: Points, args: argparse.Namespace) -> int:
     print(format_objects(points, limit=args.top))
     total = points.timing_ms.get("total")
     print(f"{points.xyz.shape[0]} points matched, map version {points.map_version}"
-          + (f", {total:.1f} ms on the node" if total is not None else ""))
+          + (f", {total:.1f} ms on the node" if total is not None else "")
+          + (" (the node's background work was still pending)" if points.settled is False else ""))
     if args.out:
         try:
             written = write_points_ply(args.out, points.xyz, points.score)
@@ -227,6 +228,9 @@ def query_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", metavar="FILE.ply", help="write the matching points coloured by score")
     parser.add_argument("--json", metavar="FILE.json", help="write the object candidates as JSON")
     parser.add_argument("--top", type=int, default=10, metavar="K", help="objects to print (default 10)")
+    parser.add_argument("--settle", type=float, default=None, metavar="S",
+                        help="answer from the settled map: the node first waits up to S seconds for its "
+                             "background work on the frames acked so far (the request timeout grows by S)")
     parser.add_argument("--rerun", metavar="FILE.rrd",
                         help="also log the points (by score) and objects (boxes) for the Rerun viewer")
     from clients.rerun_log import CONNECT_HELP  # no rerun import: only the help text
@@ -236,6 +240,10 @@ def query_main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.top < 0:
         parser.error(f"--top {args.top} must be >= 0")
+    if args.settle is not None:
+        if args.settle < 0:
+            parser.error(f"--settle {args.settle} must be >= 0")
+        args.timeout += args.settle
     if args.rerun or args.rerun_connect:  # a bad path / no viewer is an error before the query is sent
         from clients.rerun_log import RerunLogError, check_rerun_outputs
 
@@ -247,7 +255,7 @@ def query_main(argv: list[str] | None = None) -> int:
         args,
         lambda c, _: c.query_points(
             list(args.texts), negatives=args.negatives, min_score=args.min_score, max_points=args.max_points,
-            objects=not args.no_objects,
+            objects=not args.no_objects, settle_timeout_s=args.settle,
         ),
         "govnesf query",
     )

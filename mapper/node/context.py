@@ -139,6 +139,10 @@ class NodeContext:
         """Modules whose compiled kernels the transport warms in the background at start (each
         module's ``warm_up``: compiled, or loaded from numba's cache), so that no first query pays
         for it; backends add theirs (the learned model: its point kernels)."""
+        self.pending_sources: dict[str, tuple[Callable[[], int], bool]] = {}
+        """Background work by name: ``(pending, geometry)``; ``pending()`` counts the keyframes queued
+        or being worked on (must be quick, no state lock); ``geometry`` marks the work an RGB-only
+        window's learned answers wait for (:meth:`geometry_pending`). Workers register here."""
         self.integration = Integrator(config, self.state, self.keyframe_listeners, self.warm_text_encoder)
         """The keyframe integrator (:mod:`mapper.node.integration`)."""
         self.evicted_views: EvictedViews | None = None
@@ -158,6 +162,42 @@ class NodeContext:
     def drain_integrations(self) -> None:
         """Return once every keyframe acked so far is integrated into the global map."""
         self.integration.drain()
+
+    def register_pending(self, name: str, pending: Callable[[], int], *, geometry: bool = False) -> None:
+        """Count ``pending()`` (keyframes a worker has queued or is working on) as background work
+        in ``status`` (``pending``, ``settled``) and in the settled wait."""
+        self.pending_sources[name] = (pending, geometry)
+
+    def pending_work(self) -> dict[str, int]:
+        """Background work on acked keyframes, by source: ``integration`` (acked, not yet in the
+        global map) and each registered worker's queued or running keyframes."""
+        out = {"integration": self.integration.backlog()}
+        for name, (pending, _geometry) in self.pending_sources.items():
+            out[name] = int(pending())
+        return out
+
+    def settled(self) -> bool:
+        """Whether no background work is pending for what was acked (every source at 0)."""
+        return not any(self.pending_work().values())
+
+    def geometry_pending(self) -> int:
+        """Keyframes whose geometry is still being made: not yet integrated, or queued for the
+        workers registered with ``geometry=True`` (triangulation and stereo, rendered depth)."""
+        return self.integration.backlog() + sum(
+            int(pending()) for pending, geometry in self.pending_sources.values() if geometry
+        )
+
+    def wait_settled(self, timeout_s: float | None) -> bool:
+        """Wait up to ``timeout_s`` (capped at ``queries.max_settle_wait_s``) for :meth:`settled`;
+        returns whether the node settled. None or 0: no wait."""
+        if not timeout_s:
+            return self.settled()
+        deadline = time.monotonic() + min(float(timeout_s), self.config.queries.max_settle_wait_s)
+        while not self.settled():
+            left = deadline - time.monotonic()
+            if left <= 0 or self.stop.wait(min(0.05, left)):
+                return self.settled()
+        return True
 
     # -- events -------------------------------------------------------------------------------
 

@@ -23,7 +23,8 @@ Threads and sockets (a ZeroMQ socket is only ever used by the thread that create
   thread, the only user of the ROUTER; so ``status`` / ``query_points`` / ``save`` / ``load``
   never wait behind a render. A ``query_points`` whose prompts hold more than
   ``queries.light_text_chars`` characters not embedded yet goes to the pool too (embedding many
-  long prompts takes seconds).
+  long prompts takes seconds), and so does a request that waits for the node to settle
+  (``settle_timeout_s``).
 - **events thread** (optional): PUB bound on ``events_endpoint``; publishes ``map_updated``
   notices handed to it through a queue by whichever thread changed the map.
 - **workers** (``ctx.workers``): the answer refresh and the installed background workers.
@@ -441,7 +442,9 @@ class MapperNode:
         decoded = self._decode_query(data)
         if isinstance(decoded, bytes):
             return decoded
-        if type(decoded) not in self.heavy_request_types and not self.query_points.prompts_are_heavy(decoded):
+        waits = bool(getattr(decoded, "settle_timeout_s", None))  # a settled answer may wait: the pool
+        light = type(decoded) not in self.heavy_request_types and not waits
+        if light and not self.query_points.prompts_are_heavy(decoded):
             return self._answer_query(decoded, data)
         return self.pool.submit(envelope, decoded, data)
 

@@ -3,7 +3,9 @@
 An answer is reused when it may be (same map version, or, while frames are arriving, a stale answer
 within ``queries.answer_max_age_s``, then recomputed by the answer-refresh thread), else computed on
 the current snapshot by :func:`mapper.node.queries.query_points`. Once the stream stops (no frame for
-``limits.ingest_active_s``) every answer is of the current map.
+``limits.ingest_active_s``) every answer is of the current map. A request with ``settle_timeout_s``
+first waits (bounded) for the node's background work and is answered from the current map; the
+reply's ``settled`` says whether none was pending.
 """
 
 from __future__ import annotations
@@ -52,17 +54,22 @@ class QueryPointsAnswers:
         assert isinstance(msg, QueryPoints)
         from mapper.node.queries import answer_key
 
+        waited = bool(msg.settle_timeout_s)
+        self.ctx.wait_settled(msg.settle_timeout_s)
         answers = self._caches()[1]
         key = answer_key(msg.texts, msg.negatives, msg.min_score, msg.max_points, msg.objects)
         gmap = self.ctx.state.global_map
         t0 = time.monotonic()
-        hit = answers.get(key, gmap.version, gmap.generation, t0, allow_stale=self.ctx.streaming(t0))
+        stale_ok = self.ctx.streaming(t0) and not waited  # a settled answer is of the current map
+        hit = answers.get(key, gmap.version, gmap.generation, t0, allow_stale=stale_ok)
         if hit is None:
-            return self._compute(key, msg)
-        answer, _age, stale = hit
-        if stale:
-            self._schedule_refresh(key, msg)
-        answer.timing_ms["total"] = 1e3 * (time.monotonic() - t0)
+            answer = self._compute(key, msg)
+        else:
+            answer, _age, stale = hit
+            if stale:
+                self._schedule_refresh(key, msg)
+            answer.timing_ms["total"] = 1e3 * (time.monotonic() - t0)
+        answer.settled = self.ctx.settled()
         return answer
 
     def prompts_are_heavy(self, msg: Message) -> bool:

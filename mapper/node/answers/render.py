@@ -55,6 +55,7 @@ class RenderAnswers:
                 "status, save and load are served",
             )
         started = time.perf_counter()
+        self.ctx.wait_settled(msg.settle_timeout_s)
         semantic = "label" in msg.outputs or "score" in msg.outputs
         outputs = list(msg.outputs)
         more_confident = self.ctx.config.queries.map_when_more_confident
@@ -87,7 +88,7 @@ class RenderAnswers:
         log.debug("render %dx%d %s: %.0f ms, %s", msg.width, msg.height, msg.outputs, timing["handler"],
                   frame.stats)
         return RenderResult(rgb=frame.rgb, depth_m=frame.depth_m, label=frame.label, score=frame.score,
-                            timing_ms=timing, id=msg.id, source=source)
+                            timing_ms=timing, id=msg.id, source=source, settled=self.ctx.settled())
 
     def _surface_points(self, config: Any) -> tuple[np.ndarray, float, str] | None:
         """The points ``render`` takes surfaces from (``model.surface_from_map``): (xyz (N, 3) world,

@@ -6,6 +6,12 @@ The method picks a backend (:mod:`mapper.node.backends`): ``average`` / ``averag
 does not answer are then answered from the global map's snapshot, and where both answer the two
 are blended (``queries.map_blend``) or the more confident wins (:func:`mapper.node.queries.fill_from_map`),
 here, once, for every backend; the reply's ``source`` says per point which answered.
+
+Do no harm: a backend that falls back to averaging (``govnesf``) is answered by ``average`` (or
+``average_depth`` with ``use_depth``) while the window's keyframes mostly lack input depth and the
+node's geometry work is pending (``queries.learned_fallback``); the reply's ``fallback`` says so
+per point. A request's ``settle_timeout_s`` first waits (bounded) for the node's background work;
+the reply's ``settled`` says whether none was pending when it answered.
 """
 
 from __future__ import annotations
@@ -96,9 +102,10 @@ class SegmentAnswers:
             )
         ctx = self.ctx
         started = time.perf_counter()
+        ctx.wait_settled(msg.settle_timeout_s)
         depth_tested = backend.depth_tested(msg)
         want_cos = ctx.map_blend(depth_tested=depth_tested) > 0 and ctx.map_radius_m > 0
-        window = backend.segment(msg, want_cos)
+        window, fell_back = self._window_answer(backend, msg, want_cos, depth_tested)
         t_map = time.perf_counter()
         seen = window.answered()
         emb = window.text_emb if window.text_emb is not None else self._text_emb(msg)
@@ -119,7 +126,30 @@ class SegmentAnswers:
         timing["map"] = (done - t_map) * 1e3
         timing["from_map"] = float(np.count_nonzero(source == 2))
         timing["handler"] = (done - started) * 1e3
-        return Segmentation(label=label, score=score, timing_ms=timing, id=msg.id, source=source)
+        fallback = None
+        if getattr(backend, "fallback_to_averaging", False):
+            fallback = np.full(label.shape[0], int(fell_back), np.uint8)
+        return Segmentation(label=label, score=score, timing_ms=timing, id=msg.id, source=source,
+                            settled=ctx.settled(), fallback=fallback)
+
+    def _window_answer(
+        self, backend: SegmentBackend, msg: SegmentPoints, want_cos: bool, depth_tested: bool
+    ) -> tuple[PointAnswer, bool]:
+        """The backend's answer, or, do no harm (``queries.learned_fallback``), the averaging's for
+        a backend that falls back to it (the learned one) while an RGB-only window's geometry is
+        pending; and whether it fell back. Averaging that cannot answer (e.g. no depth test
+        possible) leaves the answer to the backend."""
+        ctx = self.ctx
+        if (getattr(backend, "fallback_to_averaging", False) and ctx.config.queries.learned_fallback
+                and not ctx.window_has_depth() and ctx.geometry_pending() > 0):
+            averaging = self.backends["average_depth" if depth_tested else "average"]
+            try:
+                window = averaging.segment(msg, want_cos)
+            except ProtocolError:
+                return backend.segment(msg, want_cos), False
+            window.timing_ms["fallback"] = 1.0
+            return window, True
+        return backend.segment(msg, want_cos), False
 
     def _text_emb(self, msg: SegmentPoints) -> np.ndarray | None:
         """(T, D) unit text embeddings in the map's space, or None when the node has no encoder."""

@@ -1,8 +1,9 @@
 """``status``: what the node holds and how it is doing, for operators and planners.
 
 The fixed fields (map version, keyframes, frames, memory, uptime) and ``extra``: counters, the
-integrator, the query pool, the answer cache, security, the global map's statistics and whatever the
-registered ``status_providers`` report (the model, the background workers)."""
+integrator, the query pool, the answer cache, security, the global map's statistics, whatever the
+registered ``status_providers`` report (the model, the background workers), ``pending`` (background
+work on acked keyframes, by source) and ``settled`` (none pending)."""
 
 from __future__ import annotations
 
@@ -68,10 +69,12 @@ class StatusAnswers:
                 "frames_downscaled": ctx.frames_downscaled,
                 "replies_dropped": dict(ctx.replies_dropped),
                 "integration": ctx.integration.stats(),
+                "pending": ctx.pending_work(),
                 **state.global_map.stats(),
             }
             for key, provider in ctx.status_providers.items():
                 extra[key] = provider()
+            extra["settled"] = not any(extra["pending"].values())
             return Status(
                 map_version=state.map_version,
                 keyframes=len(state.window),

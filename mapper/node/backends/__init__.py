@@ -58,7 +58,9 @@ class PointAnswer:
 
 
 class SegmentBackend(Protocol):
-    """Labels points for ``segment_points`` (one or more methods)."""
+    """Labels points for ``segment_points`` (one or more methods). A backend whose class sets
+    ``fallback_to_averaging = True`` is answered by averaging while an RGB-only window's geometry is
+    pending (:mod:`mapper.node.answers.segment`)."""
 
     @property
     def ready(self) -> bool:

@@ -46,6 +46,10 @@ class LearnedBackend:
     """``govnesf`` over a :class:`ModelRuntime` (or anything with its ``segment``,
     ``segment_cosines``, ``render``, ``config`` and ``load_error``)."""
 
+    fallback_to_averaging = True
+    """While an RGB-only window's geometry is pending, averaging answers instead
+    (:mod:`mapper.node.answers.segment`, ``queries.learned_fallback``)."""
+
     def __init__(self, runtime: Any) -> None:
         self.runtime = runtime
 

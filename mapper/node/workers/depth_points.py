@@ -341,6 +341,7 @@ class RenderedDepthPoints:
         the worker thread with the node (started by ``node.start()``)."""
         self.ctx.keyframe_listeners.append(self.on_keyframe)
         self.ctx.workers.append(("depth-points", self.run))
+        self.ctx.register_pending("rendered_depth", lambda: self.pending, geometry=True)
         self.ctx.status_providers["rendered_depth"] = self.stats
 
     def on_keyframe(self, keyframe: Any, map_version: int) -> None:

@@ -55,6 +55,7 @@ class EvictedViews:
 
     def install(self) -> None:
         self.ctx.workers.append(("evicted-views", self.run))
+        self.ctx.register_pending("evicted_views", lambda: self.pending)
         self.ctx.status_providers["evicted_views"] = self.stats
 
     def put(self, keyframe: Keyframe, gmap: Any) -> None:  # gmap: GlobalSemanticMap

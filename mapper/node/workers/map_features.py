@@ -81,6 +81,7 @@ class PreEvictionFeatures:
         with node.state.lock:
             node.state.window.on_evict.append(self._on_evict)
         node.workers.append(("map-features", self.run))
+        node.register_pending("map_features", lambda: self.pending)
         node.status_providers["map_features"] = self.stats
 
     # -- keyframe-listener thread ----------------------------------------------------------

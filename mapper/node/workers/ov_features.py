@@ -197,6 +197,7 @@ class OvFeatureWorker:
             register_text_encoder(self.space, lambda: backend)
         self.ctx.keyframe_listeners.append(self.on_keyframe)
         self.ctx.workers.append(("ov-backend", self.run))
+        self.ctx.register_pending("ov_backend", lambda: self.pending)
         self.ctx.status_providers["ov_backend"] = self.stats
 
     def add_notes(self, node: MapperNode) -> None:

@@ -327,6 +327,7 @@ class SparseTriangulation:
         self.ctx.feature_listeners.append(self.on_features)
         self.ctx.surface_points.append(lambda: self.geometry_points()[0])
         self.ctx.workers.append(("triangulation", self.run))
+        self.ctx.register_pending("triangulation", lambda: self.pending, geometry=True)
         self.ctx.status_providers["triangulation"] = self.stats
 
     def on_keyframe(self, keyframe: Any, map_version: int) -> None:

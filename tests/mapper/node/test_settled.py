@@ -1,0 +1,167 @@
+"""Do no harm: the node says whether it has settled (``status``'s ``pending`` / ``settled``, the
+replies' ``settled``), waits for it when asked (``settle_timeout_s``, bounded), and answers the
+learned method with averaging while an RGB-only window's geometry is pending (the reply's
+``fallback``)."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from clients.harness import DEMO_OV_DIM, DEMO_OV_SPACE, synthetic_frame
+from mapper.node.backends.learned import LearnedBackend
+from mapper.node.service import MapperNode
+from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
+from protocol.messages import (
+    Message,
+    Points,
+    QueryPoints,
+    Segmentation,
+    SegmentPoints,
+    Status,
+    StatusRequest,
+    decode,
+    encode,
+)
+from tests.node_helpers import in_process_node
+
+TEXTS = ["sky", "dark", "light"]
+
+
+class OneHot:
+    """The demo features' channels (sky, dark, light) as text embeddings."""
+
+    space, dim = DEMO_OV_SPACE, DEMO_OV_DIM
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        rows = {"sky": 0, "dark": 1, "light": 2}
+        return np.stack([np.eye(DEMO_OV_DIM, dtype=np.float32)[rows.get(t, 3 + len(t) % 5)] for t in texts])
+
+
+class ConstantRuntime:
+    """A learned model that labels every point with text 2 at cosine 0.99 (unlike the averaging)."""
+
+    config = None
+    load_error = None
+
+    def segment(self, xyz: Any, texts: Sequence[str], *, use_depth: bool) -> tuple[Any, Any, dict]:
+        n = np.asarray(xyz).shape[0]
+        return np.full(n, 2, np.int32), np.full(n, 0.99, np.float32), {}
+
+    def segment_cosines(
+        self, xyz: Any, texts: Sequence[str], *, use_depth: bool
+    ) -> tuple[Any, Any, Any, dict]:
+        label, score, timing = self.segment(xyz, texts, use_depth=use_depth)
+        cos = np.zeros((label.shape[0], len(texts)), np.float32)
+        cos[:, 2] = 0.99
+        return label, score, cos, timing
+
+
+class Pending:
+    """A worker's pending count that a test sets."""
+
+    def __init__(self, n: int = 0) -> None:
+        self.n = n
+
+    def __call__(self) -> int:
+        return self.n
+
+
+@pytest.fixture(autouse=True)
+def _encoder() -> Iterator[None]:
+    register_text_encoder(DEMO_OV_SPACE, OneHot)
+    yield
+    unregister_text_encoder(DEMO_OV_SPACE)
+
+
+def _ask(node: MapperNode, msg: Message) -> Any:
+    return decode(node.handle_query(encode(msg)), direction="reply")
+
+
+def _streamed(tmp_path: Path, *, depth: bool) -> MapperNode:
+    node = in_process_node(tmp_path, global_map={"integrate_queue": 0})
+    for seq in range(0, 20, 2):
+        frame = synthetic_frame(seq, 20, 64, 48)
+        if not depth:
+            frame.depth_m = None
+        node.handle_ingest(encode(frame))
+    return node
+
+
+def _points(node: MapperNode) -> np.ndarray:
+    return np.asarray(node.state.global_map.snapshot().xyz[:100], np.float32)
+
+
+def test_status_reports_pending_work_and_settled(tmp_path: Path) -> None:
+    node = _streamed(tmp_path, depth=True)
+    pending = Pending(3)
+    node.ctx.register_pending("worker", pending)
+    status = _ask(node, StatusRequest())
+    assert isinstance(status, Status)
+    assert status.extra["pending"] == {"integration": 0, "worker": 3} and status.extra["settled"] is False
+    pending.n = 0
+    assert _ask(node, StatusRequest()).extra["settled"] is True
+
+
+def test_a_settle_timeout_waits_for_the_background_work(tmp_path: Path) -> None:
+    node = _streamed(tmp_path, depth=True)
+    pending = Pending(1)
+    node.ctx.register_pending("worker", pending)
+    xyz = _points(node)
+    unsettled = _ask(node, SegmentPoints(xyz=xyz, texts=TEXTS, method="average"))
+    assert isinstance(unsettled, Segmentation) and unsettled.settled is False
+    timer = threading.Timer(0.2, lambda: setattr(pending, "n", 0))
+    timer.start()
+    waited = _ask(node, SegmentPoints(xyz=xyz, texts=TEXTS, method="average", settle_timeout_s=20.0))
+    timer.join()
+    assert isinstance(waited, Segmentation) and waited.settled is True
+    found = _ask(node, QueryPoints(texts=["dark"], settle_timeout_s=5.0))
+    assert isinstance(found, Points) and found.settled is True
+
+
+def test_the_settle_wait_is_bounded(tmp_path: Path) -> None:
+    node = in_process_node(tmp_path, global_map={"integrate_queue": 0}, queries={"max_settle_wait_s": 0.1})
+    for seq in range(0, 20, 2):
+        node.handle_ingest(encode(synthetic_frame(seq, 20, 64, 48)))
+    node.ctx.register_pending("stuck", Pending(1))
+    reply = _ask(node, QueryPoints(texts=["dark"], settle_timeout_s=600.0))  # capped at 0.1 s
+    assert isinstance(reply, Points) and reply.settled is False
+
+
+@pytest.mark.parametrize("depth", [False, True], ids=["rgb-only", "depth"])
+def test_learned_falls_back_to_averaging_while_rgb_only_geometry_is_pending(
+    tmp_path: Path, depth: bool
+) -> None:
+    node = _streamed(tmp_path, depth=depth)
+    node.segment.register("govnesf", LearnedBackend(ConstantRuntime()))
+    geometry = Pending(2)
+    node.ctx.register_pending("triangulation", geometry, geometry=True)
+    xyz = _points(node)
+    average = _ask(node, SegmentPoints(xyz=xyz, texts=TEXTS, method="average"))
+    early = _ask(node, SegmentPoints(xyz=xyz, texts=TEXTS, method="govnesf"))
+    assert isinstance(early, Segmentation) and early.fallback is not None
+    if depth:  # measured geometry: the learned model answers
+        assert not early.fallback.any() and (early.label[early.source == 1] == 2).all()
+    else:  # its geometry pending: the averaging answers, and says so
+        assert early.fallback.all() and np.array_equal(early.label, average.label)
+    geometry.n = 0
+    settled = _ask(node, SegmentPoints(xyz=xyz, texts=TEXTS, method="govnesf"))
+    assert isinstance(settled, Segmentation) and settled.fallback is not None and not settled.fallback.any()
+    assert settled.settled is True and (settled.label[settled.source == 1] == 2).all()
+
+
+def test_the_fallback_can_be_turned_off(tmp_path: Path) -> None:
+    node = in_process_node(tmp_path, global_map={"integrate_queue": 0}, queries={"learned_fallback": False})
+    for seq in range(0, 20, 2):
+        frame = synthetic_frame(seq, 20, 64, 48)
+        frame.depth_m = None
+        node.handle_ingest(encode(frame))
+    node.segment.register("govnesf", LearnedBackend(ConstantRuntime()))
+    node.ctx.register_pending("triangulation", Pending(2), geometry=True)
+    reply = _ask(node, SegmentPoints(xyz=np.zeros((3, 3), np.float32), texts=TEXTS, method="govnesf"))
+    assert isinstance(reply, Segmentation) and reply.fallback is not None and not reply.fallback.any()
