@@ -249,3 +249,42 @@ def test_node_core_answers_averaging_and_queries_without_torch(tmp_path: Path) -
     )
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.strip().splitlines()[-1] == "False"
+
+
+def _layout_tree() -> set[str]:
+    """The paths the layout tree of docs/concepts/architecture.md names (``a/b.py``, ``a/``)."""
+    text = (ROOT / "docs" / "concepts" / "architecture.md").read_text()
+    block = text.split("## Layout", 1)[1].split("```", 2)[1]
+    named: set[str] = set()
+    stack: list[str] = []
+    for line in block.splitlines():
+        stripped = line.lstrip(" ")
+        token = stripped.split(" ", 1)[0]
+        if not token or not (token.endswith("/") or token.endswith(".py")):
+            continue  # a description's continuation line
+        depth = (len(line) - len(stripped)) // 2
+        stack = stack[:depth]
+        path = "/".join([*stack, token]).replace("//", "/")
+        named.add(path)
+        if token.endswith("/"):
+            stack.append(token.rstrip("/"))
+    return named
+
+
+def test_the_layout_page_lists_every_module() -> None:
+    named = _layout_tree()
+    missing: list[str] = []
+    for pkg in ("govnesf", "protocol", "mapper"):
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            rel = path.relative_to(ROOT).as_posix()
+            if path.name not in ("__init__.py", "__main__.py") and rel not in named:
+                missing.append(rel)
+    for path in sorted((ROOT / "clients").iterdir()):  # clients' subpackages may be summarised
+        rel = path.relative_to(ROOT).as_posix() + ("/" if path.is_dir() else "")
+        if path.name.startswith("__") or not (path.is_dir() or path.suffix == ".py"):
+            continue
+        if rel not in named:
+            missing.append(rel)
+    stale = sorted(p for p in named if not (ROOT / p.rstrip("/")).exists())
+    assert not missing, f"docs/concepts/architecture.md's layout omits: {missing}"
+    assert not stale, f"docs/concepts/architecture.md's layout names what does not exist: {stale}"

@@ -83,7 +83,10 @@ def pending_work(extra: dict[str, Any]) -> dict[str, int]:
     """Background work a ``status`` reply reports as not done yet (only the nonzero entries):
     keyframes acked but not in the global map (``integration.backlog``), and the ``pending``
     counts of the plugins that work after an ack (map features, triangulation, rendered depth,
-    evicted views)."""
+    evicted views). A node that reports ``pending`` by source (and ``settled``) is read from that."""
+    reported = extra.get("pending")
+    if isinstance(reported, dict):
+        return {str(k): int(v) for k, v in reported.items() if isinstance(v, int) and v > 0}
     out: dict[str, int] = {}
     integration = extra.get("integration")
     if isinstance(integration, dict) and integration.get("backlog"):
