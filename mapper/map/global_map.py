@@ -61,6 +61,7 @@ import threading
 import time
 import warnings
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -82,6 +83,7 @@ __all__ = [
     "IntegrateStats",
     "KeyframeLike",
     "Observations",
+    "observe_keyframe",
     "voxel_keys",
     "weighted_mean_fusion",
 ]
@@ -708,6 +710,275 @@ class GlobalMapSnapshot:
         return out
 
 
+def observe_keyframe(
+    config: GlobalMapConfig,
+    keyframe: KeyframeLike,
+    *,
+    pixel_stride: int | None = None,
+    confidence: np.ndarray | None = None,  # (H, W) in [0, 1], same size as the depth
+) -> Observations | str:
+    """A keyframe's weighted observations under ``config`` (pure), or the reason there are none:
+    the depth pixels on the stride grid in ``[min_depth_m, max_depth_m]``, back-projected to the
+    world, with the quality weight of the module docstring (times ``confidence``) at least
+    ``min_weight``, and the bilinear taps of the OV map at those pixels."""
+    cfg = config
+    depth = keyframe.depth_m
+    if depth is None:
+        return "no depth"
+    dims = check_shape(depth, "H W", "depth_m")
+    height, width = depth.shape
+    if confidence is not None:
+        check_shape(confidence, "H W", "confidence (the depth's H, W)", dims)
+    stride = cfg.pixel_stride if pixel_stride is None else int(pixel_stride)
+    if stride < 1:
+        raise ValueError(f"pixel_stride {stride} out of range: must be >= 1")
+    rows = np.arange(stride // 2, height, stride)
+    cols = np.arange(stride // 2, width, stride)
+    grid_j, grid_i = np.meshgrid(rows, cols, indexing="ij")  # (h', w')
+    jj: np.ndarray = grid_j.ravel()
+    ii: np.ndarray = grid_i.ravel()
+    z = depth[jj, ii].astype(np.float64)
+    ok = np.isfinite(z) & (z >= cfg.min_depth_m) & (z <= cfg.max_depth_m)
+    if not ok.any():
+        return "no valid depth in range"
+    jj, ii, z = jj[ok], ii[ok], z[ok]
+    fx, fy, cx, cy = (float(v) for v in keyframe.K)
+
+    def cam_points(j: np.ndarray, i: np.ndarray, zz: np.ndarray) -> np.ndarray:
+        # pixel centres at (i + 0.5, j + 0.5); depth is z along the optical axis
+        return np.stack([(i + 0.5 - cx) / fx * zz, (j + 0.5 - cy) / fy * zz, zz], axis=1)
+
+    p_cam = cam_points(jj, ii, z)  # (M, 3)
+    dist = np.linalg.norm(p_cam, axis=1)
+    weight = np.exp(-np.maximum(dist - cfg.near_m, 0.0) / cfg.falloff_m)
+    if cfg.grazing_power > 0:
+        weight = weight * _grazing_cos(depth, jj, ii, z, p_cam, dist, cam_points) ** cfg.grazing_power
+    if confidence is not None:
+        weight = weight * np.clip(np.nan_to_num(confidence[jj, ii].astype(np.float64), nan=0.0), 0.0, 1.0)
+    keep = weight >= cfg.min_weight
+    if not keep.any():
+        return "every observation below min_weight"
+    jj, ii, p_cam, weight = jj[keep], ii[keep], p_cam[keep], weight[keep]
+    rot = np.asarray(keyframe.world_from_cam[:3, :3], np.float64)
+    trans = np.asarray(keyframe.world_from_cam[:3, 3], np.float64)
+    p_world = p_cam @ rot.T + trans
+    cells = bilinear = ov_flat = None
+    if keyframe.ov is not None:
+        cells, bilinear, ov_flat = _ov_taps(keyframe.ov, jj, ii, height, width)
+    return Observations(p_world, weight.astype(np.float32), cells, bilinear, ov_flat)
+
+
+def _grazing_cos(
+    depth: np.ndarray,  # (H, W) z-depth
+    jj: np.ndarray,  # (M,) pixel rows
+    ii: np.ndarray,  # (M,) pixel columns
+    z: np.ndarray,  # (M,) float64 their depths
+    p_cam: np.ndarray,  # (M, 3) their camera points
+    dist: np.ndarray,  # (M,) their distances along the ray
+    cam_points: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
+) -> np.ndarray:
+    """(M,) |cos(ray, surface normal)| with the normal from the depth image's four neighbours,
+    ``_UNKNOWN_NORMAL_COS`` where a neighbour is missing or across a depth edge."""
+    height, width = depth.shape
+    il, ir = np.maximum(ii - 1, 0), np.minimum(ii + 1, width - 1)
+    ju, jd = np.maximum(jj - 1, 0), np.minimum(jj + 1, height - 1)
+    zl, zr = depth[jj, il].astype(np.float64), depth[jj, ir].astype(np.float64)
+    zu, zd = depth[ju, ii].astype(np.float64), depth[jd, ii].astype(np.float64)
+    neigh = np.nan_to_num(np.stack([zl, zr, zu, zd], axis=1), nan=0.0, posinf=0.0, neginf=0.0)
+    good = (
+        np.all(neigh > 0, axis=1)
+        & np.all(np.abs(neigh - z[:, None]) <= _NORMAL_REL_JUMP * z[:, None], axis=1)
+        & (il != ir) & (ju != jd)
+    )  # fmt: skip
+    normal = np.cross(cam_points(jj, ir, zr) - cam_points(jj, il, zl),
+                      cam_points(jd, ii, zd) - cam_points(ju, ii, zu))  # fmt: skip
+    n_norm = np.linalg.norm(normal, axis=1)
+    cos = np.abs(np.einsum("md,md->m", normal, p_cam)) / np.maximum(n_norm * dist, 1e-12)
+    return np.where(good & (n_norm > 0), np.clip(cos, 0.0, 1.0), _UNKNOWN_NORMAL_COS)
+
+
+def _ov_taps(
+    ov: np.ndarray, jj: np.ndarray, ii: np.ndarray, height: int, width: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bilinear taps of the (h, w, D) OV map at image pixels (jj, ii) of an (height, width) image:
+    cells (M, 4) int64 flat indices, their weights (M, 4) and the map as (h * w, D) float32."""
+    h_ov, w_ov, dim = ov.shape
+    # pixel centre (i + 0.5) in image pixels -> ov cells, cell centres at +0.5, edge cells
+    # replicated (as mapper.model.ops.geometry.sample_bilinear)
+    x = (ii + 0.5) * (w_ov / width) - 0.5
+    y = (jj + 0.5) * (h_ov / height) - 0.5
+    x0, y0 = np.floor(x), np.floor(y)
+    ax, ay = x - x0, y - y0
+    x0i = np.clip(x0, 0, w_ov - 1).astype(np.int64)
+    x1i = np.clip(x0 + 1, 0, w_ov - 1).astype(np.int64)
+    y0i = np.clip(y0, 0, h_ov - 1).astype(np.int64)
+    y1i = np.clip(y0 + 1, 0, h_ov - 1).astype(np.int64)
+    cells = np.stack([y0i * w_ov + x0i, y0i * w_ov + x1i, y1i * w_ov + x0i, y1i * w_ov + x1i], axis=1)
+    bilinear = np.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], axis=1)
+    return cells, bilinear, np.asarray(ov, np.float32).reshape(h_ov * w_ov, dim)
+
+
+_SAVED_AS_IS = ("keys", "xyz", "weight", "feat_norm", "feat_weight", "hits", "last_seen_ns")
+"""The per-voxel arrays a saved section holds as the map holds them (``_<name>``, first ``n`` rows);
+it holds ``age_kf`` (keyframes since last seen), ``learned`` and, with features, ``feat`` too."""
+
+
+@dataclass(frozen=True)
+class _SavedMap:
+    """A checked global-map section (:func:`_read_saved`)."""
+
+    fields: dict[str, np.ndarray]  # name -> the saved (n, ...) array (``learned`` filled in when absent)
+    keys: np.ndarray  # (n,) int64 voxel keys at the map's voxel size (re-keyed when it differs)
+    rows: np.ndarray  # ascending rows kept: one per key, the most confident where keys coincide
+    dim: int | None
+    evicted: EvictedViewStore  # the saved evicted views (empty when absent or re-keyed)
+    points_pruned: int
+
+
+def _read_saved(
+    arrays: dict[str, np.ndarray], manifest: object, voxel_size_m: float, prefix: str
+) -> _SavedMap:
+    """Check a saved section (``GlobalSemanticMap.to_arrays``) for a map of ``voxel_size_m``;
+    raises ``ValueError`` naming the field."""
+    if not isinstance(manifest, dict) or manifest.get("format") != _FORMAT:
+        raise ValueError(f"global map section: unknown format {manifest!r:.80}")
+    n = manifest.get("points")
+    dim = manifest.get("dim")
+    if not isinstance(n, int) or n < 0 or not (dim is None or (isinstance(dim, int) and dim > 0)):
+        raise ValueError("global map section: 'points' must be an int >= 0 and 'dim' an int > 0 or null")
+    spec: dict[str, tuple[str, tuple[int, ...]]] = {
+        "keys": ("int64", (n,)),
+        "xyz": ("float32", (n, 3)),
+        "weight": ("float32", (n,)),
+        "feat_norm": ("float32", (n,)),
+        "feat_weight": ("float32", (n,)),
+        "hits": ("int32", (n,)),
+        "last_seen_ns": ("int64", (n,)),
+        "age_kf": ("int64", (n,)),
+    }
+    if dim is not None:
+        spec["feat"] = ("float16", (n, dim))
+    got: dict[str, np.ndarray] = {}
+    for name, (dtype, shape) in spec.items():
+        arr = arrays.get(f"{prefix}.{name}")
+        if arr is None or arr.dtype != np.dtype(dtype) or arr.shape != shape:
+            desc = "missing" if arr is None else f"{arr.dtype} {arr.shape}"
+            raise ValueError(f"global map section: {name} must be {dtype} {shape}, got {desc}")
+    for name in spec:
+        got[name] = arrays[f"{prefix}.{name}"]
+    learned = arrays.get(f"{prefix}.learned")  # optional: maps saved before 2026-12-05 lack it
+    if learned is not None and (learned.dtype != np.uint8 or learned.shape != (n,)):
+        raise ValueError(
+            f"global map section: learned must be uint8 ({n},), got {learned.dtype} {learned.shape}"
+        )
+    got["learned"] = learned if learned is not None else np.zeros(n, np.uint8)
+    if not np.isfinite(got["xyz"]).all() or not (got["weight"] >= 0).all():
+        raise ValueError("global map section: xyz must be finite and weights >= 0")
+    if manifest.get("voxel_size_m") == voxel_size_m:
+        keys = got["keys"]  # the voxel a mean lies in can differ by float32 rounding at its faces
+        if np.unique(keys).size != n:
+            raise ValueError("global map section: keys are not unique")
+    else:
+        keys, ok = voxel_keys(got["xyz"], voxel_size_m)
+        if not ok.all():
+            raise ValueError("global map section: points outside the voxel key range")
+    evicted = EvictedViewStore()
+    ev_manifest = manifest.get("evicted_views")
+    if ev_manifest is not None and manifest.get("voxel_size_m") == voxel_size_m:
+        evicted.restore(arrays, ev_manifest, f"{prefix}.evicted")  # raises before anything changed
+        if evicted.dim is not None and dim is not None and evicted.dim != dim:
+            raise ValueError(f"evicted views section: dimension {evicted.dim}, the map's {dim}")
+    # one row per key (re-keying can merge voxels): the most confident wins
+    order = np.lexsort((-got["weight"], keys))
+    first = np.ones(n, bool)
+    first[1:] = keys[order][1:] != keys[order][:-1]
+    rows = np.sort(order[first])
+    pruned = manifest.get("points_pruned")
+    return _SavedMap(got, keys, rows, dim, evicted, pruned if isinstance(pruned, int) else 0)
+
+
+def _sorted_index(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The sorted index of (n,) row keys: (keys ascending, their rows) (stable for equal keys)."""
+    order = np.argsort(keys, kind="stable")
+    return keys[order].copy(), order.astype(np.int64)
+
+
+def _lookup(
+    sorted_keys: np.ndarray, sorted_rows: np.ndarray, keys: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Look (U,) voxel keys up in a sorted index: (their insertion positions in ``sorted_keys``,
+    their rows (0 where absent), a (U,) bool mask of those present)."""
+    pos = np.searchsorted(sorted_keys, keys)
+    inside = pos < sorted_keys.shape[0]
+    found = np.zeros(keys.shape[0], bool)
+    found[inside] = sorted_keys[pos[inside]] == keys[inside]
+    rows = np.zeros(keys.shape[0], np.int64)
+    rows[found] = sorted_rows[pos[found]]
+    return pos, rows, found
+
+
+def _geometry_sums(
+    keys: np.ndarray, p_world: np.ndarray, weight: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per voxel of (M,) observations with keys ``keys``: (its key (U,) ascending, each
+    observation's voxel (M,), sum of weights (U,), weighted sum of positions (U, 3), observations
+    (U,) int32); sums in float64."""
+    ukeys, inverse = np.unique(keys, return_inverse=True)  # sorted unique keys
+    inverse = inverse.ravel()
+    n_u = ukeys.shape[0]
+    w64 = weight.astype(np.float64)
+    sum_w = np.bincount(inverse, weights=w64, minlength=n_u)
+    sum_wxyz = np.stack(
+        [np.bincount(inverse, weights=w64 * p_world[:, axis], minlength=n_u) for axis in range(3)], axis=1
+    )
+    count = np.bincount(inverse, minlength=n_u).astype(np.int32)
+    return ukeys, inverse, sum_w, sum_wxyz, count
+
+
+def _feature_sums(
+    weight: np.ndarray,  # (M,) float32
+    cells: np.ndarray,  # (M, 4) bilinear taps into ov_flat
+    bilinear: np.ndarray,  # (M, 4) their weights
+    ov_flat: np.ndarray,  # (h * w, D) float32
+    inverse: np.ndarray,  # (M,) each observation's voxel in [0, n_u)
+    n_u: int,
+) -> np.ndarray:
+    """(U, D) float32: per voxel, the sum over its observations of weight * bilinear(ov), as a
+    (U x cells) sparse matrix times the OV cells."""
+    taps = csr_matrix(
+        ((weight[:, None] * bilinear).ravel().astype(np.float32), (np.repeat(inverse, 4), cells.ravel())),
+        shape=(n_u, ov_flat.shape[0]),
+    )
+    return np.asarray(taps @ ov_flat, np.float32)
+
+
+def _mixed_features(unit: np.ndarray, fused: np.ndarray, fresh: np.ndarray) -> np.ndarray:
+    """(U, D) float16 learned features for voxels: ``unit`` (U, D) float32 unit rows where ``fresh``
+    (no fused feature), else ``normalise(unit + fused)`` with the (U, D) fused unit features."""
+    mixed = unit
+    mixed[~fresh] += fused[~fresh].astype(np.float32)
+    mixed /= np.maximum(np.sqrt(np.einsum("ud,ud->u", mixed, mixed)), 1e-12)[:, None]
+    return mixed.astype(np.float16)
+
+
+def _prune_keep(
+    weight: np.ndarray, last_seen_kf: np.ndarray, kf_counter: int, config: GlobalMapConfig
+) -> np.ndarray:
+    """The rows (ascending) a prune keeps: the ``prune_to_fraction * max_points`` (at least 1) with
+    the highest priority ``weight * 0.5 ** (keyframes since last seen / stale_half_life_keyframes)``."""
+    keep_n = max(1, int(config.max_points * config.prune_to_fraction))
+    age = (kf_counter - last_seen_kf).astype(np.float64)
+    priority = weight * np.exp2(-age / config.stale_half_life_keyframes)
+    return np.sort(np.argpartition(-priority, keep_n - 1)[:keep_n])
+
+
+def _frozen(rows: np.ndarray, n: int) -> np.ndarray:
+    """A read-only copy of the first ``n`` rows."""
+    out = rows[:n].copy()
+    out.setflags(write=False)
+    return out
+
+
 def _query_workers() -> int:
     """Threads of a k-d tree query: torch's (the node's compute threads, OMP_NUM_THREADS) where
     torch is loaded (this module stays torch-free), else 1."""
@@ -842,84 +1113,13 @@ class GlobalSemanticMap:
         pixel_stride: int | None = None,
         confidence: np.ndarray | None = None,  # (H, W) in [0, 1], same size as the depth
     ) -> Observations | str:
-        """The keyframe's weighted observations (pure; no lock), or the reason there are none.
+        """The keyframe's weighted observations (pure; no lock), or the reason there are none
+        (:func:`observe_keyframe` with this map's config).
 
         ``pixel_stride`` overrides ``config.pixel_stride``; ``confidence`` multiplies each pixel's
         quality weight (e.g. the opacity of a rendered depth, see :mod:`mapper.node.workers.depth_points`).
         """
-        cfg = self.config
-        depth = keyframe.depth_m
-        if depth is None:
-            return "no depth"
-        dims = check_shape(depth, "H W", "depth_m")
-        height, width = depth.shape
-        if confidence is not None:
-            check_shape(confidence, "H W", "confidence (the depth's H, W)", dims)
-        stride = cfg.pixel_stride if pixel_stride is None else int(pixel_stride)
-        if stride < 1:
-            raise ValueError(f"pixel_stride {stride} out of range: must be >= 1")
-        rows = np.arange(stride // 2, height, stride)
-        cols = np.arange(stride // 2, width, stride)
-        grid_j, grid_i = np.meshgrid(rows, cols, indexing="ij")  # (h', w')
-        jj: np.ndarray = grid_j.ravel()
-        ii: np.ndarray = grid_i.ravel()
-        z = depth[jj, ii].astype(np.float64)
-        ok = np.isfinite(z) & (z >= cfg.min_depth_m) & (z <= cfg.max_depth_m)
-        if not ok.any():
-            return "no valid depth in range"
-        jj, ii, z = jj[ok], ii[ok], z[ok]
-        fx, fy, cx, cy = (float(v) for v in keyframe.K)
-
-        def cam_points(j: np.ndarray, i: np.ndarray, zz: np.ndarray) -> np.ndarray:
-            # pixel centres at (i + 0.5, j + 0.5); depth is z along the optical axis
-            return np.stack([(i + 0.5 - cx) / fx * zz, (j + 0.5 - cy) / fy * zz, zz], axis=1)
-
-        p_cam = cam_points(jj, ii, z)  # (M, 3)
-        dist = np.linalg.norm(p_cam, axis=1)
-        weight = np.exp(-np.maximum(dist - cfg.near_m, 0.0) / cfg.falloff_m)
-        if cfg.grazing_power > 0:
-            il, ir = np.maximum(ii - 1, 0), np.minimum(ii + 1, width - 1)
-            ju, jd = np.maximum(jj - 1, 0), np.minimum(jj + 1, height - 1)
-            zl, zr = depth[jj, il].astype(np.float64), depth[jj, ir].astype(np.float64)
-            zu, zd = depth[ju, ii].astype(np.float64), depth[jd, ii].astype(np.float64)
-            neigh = np.nan_to_num(np.stack([zl, zr, zu, zd], axis=1), nan=0.0, posinf=0.0, neginf=0.0)
-            good = (
-                np.all(neigh > 0, axis=1)
-                & np.all(np.abs(neigh - z[:, None]) <= _NORMAL_REL_JUMP * z[:, None], axis=1)
-                & (il != ir) & (ju != jd)
-            )  # fmt: skip
-            normal = np.cross(cam_points(jj, ir, zr) - cam_points(jj, il, zl),
-                              cam_points(jd, ii, zd) - cam_points(ju, ii, zu))  # fmt: skip
-            n_norm = np.linalg.norm(normal, axis=1)
-            cos = np.abs(np.einsum("md,md->m", normal, p_cam)) / np.maximum(n_norm * dist, 1e-12)
-            cos = np.where(good & (n_norm > 0), np.clip(cos, 0.0, 1.0), _UNKNOWN_NORMAL_COS)
-            weight = weight * cos**cfg.grazing_power
-        if confidence is not None:
-            weight = weight * np.clip(np.nan_to_num(confidence[jj, ii].astype(np.float64), nan=0.0), 0.0, 1.0)
-        keep = weight >= cfg.min_weight
-        if not keep.any():
-            return "every observation below min_weight"
-        jj, ii, p_cam, weight = jj[keep], ii[keep], p_cam[keep], weight[keep]
-        rot = np.asarray(keyframe.world_from_cam[:3, :3], np.float64)
-        trans = np.asarray(keyframe.world_from_cam[:3, 3], np.float64)
-        p_world = p_cam @ rot.T + trans
-        cells = bilinear = ov_flat = None
-        if keyframe.ov is not None:
-            h_ov, w_ov, dim = keyframe.ov.shape
-            # bilinear taps on the coarse map: pixel centre (i + 0.5) in image pixels -> ov cells,
-            # cell centres at +0.5, edge cells replicated (as mapper.model.ops.geometry.sample_bilinear)
-            x = (ii + 0.5) * (w_ov / width) - 0.5
-            y = (jj + 0.5) * (h_ov / height) - 0.5
-            x0, y0 = np.floor(x), np.floor(y)
-            ax, ay = x - x0, y - y0
-            x0i = np.clip(x0, 0, w_ov - 1).astype(np.int64)
-            x1i = np.clip(x0 + 1, 0, w_ov - 1).astype(np.int64)
-            y0i = np.clip(y0, 0, h_ov - 1).astype(np.int64)
-            y1i = np.clip(y0 + 1, 0, h_ov - 1).astype(np.int64)
-            cells = np.stack([y0i * w_ov + x0i, y0i * w_ov + x1i, y1i * w_ov + x0i, y1i * w_ov + x1i], axis=1)
-            bilinear = np.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], axis=1)
-            ov_flat = np.asarray(keyframe.ov, np.float32).reshape(h_ov * w_ov, dim)
-        return Observations(p_world, weight.astype(np.float32), cells, bilinear, ov_flat)
+        return observe_keyframe(self.config, keyframe, pixel_stride=pixel_stride, confidence=confidence)
 
     def integrate(
         self,
@@ -1014,13 +1214,7 @@ class GlobalSemanticMap:
 
     def _rows_of(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows of ``keys`` (U,) and a (U,) bool mask of those in the map (lock held)."""
-        n_sorted = self._sorted_keys.shape[0]
-        pos = np.searchsorted(self._sorted_keys, keys)
-        inside = pos < n_sorted
-        found = np.zeros(keys.shape[0], bool)
-        found[inside] = self._sorted_keys[pos[inside]] == keys[inside]
-        rows = np.zeros(keys.shape[0], np.int64)
-        rows[found] = self._sorted_rows[pos[found]]
+        _, rows, found = _lookup(self._sorted_keys, self._sorted_rows, keys)
         return rows, found
 
     def set_features(
@@ -1057,10 +1251,7 @@ class GlobalSemanticMap:
             assert self._feat is not None
             rows = rows[keep]
             fresh = self._feat_weight[rows] <= 0
-            mixed = feats[keep] / norm[keep, None]
-            mixed[~fresh] += self._feat[rows[~fresh]].astype(np.float32)
-            mixed /= np.maximum(np.sqrt(np.einsum("ud,ud->u", mixed, mixed)), 1e-12)[:, None]
-            self._feat[rows] = mixed.astype(np.float16)
+            self._feat[rows] = _mixed_features(feats[keep] / norm[keep, None], self._feat[rows], fresh)
             self._feat_stamp[rows] = self._version + 1
             self._feat_norm[rows[fresh]] = 1.0
             self._feat_weight[rows[fresh]] = np.maximum(self._weight[rows[fresh]], 1e-6)
@@ -1074,11 +1265,7 @@ class GlobalSemanticMap:
         :meth:`_fuse`. Returns (observations fused, voxels touched)."""
         assert obs.cells is not None and obs.bilinear is not None and obs.ov_flat is not None
         keys, ok = voxel_keys(obs.xyz, self.config.voxel_size_m)
-        n_sorted = self._sorted_keys.shape[0]
-        pos = np.searchsorted(self._sorted_keys, keys)
-        inside = pos < n_sorted
-        found = np.zeros(keys.shape[0], bool)
-        found[inside] = self._sorted_keys[pos[inside]] == keys[inside]
+        _, _, found = _lookup(self._sorted_keys, self._sorted_rows, keys)
         keep = ok & found
         if not keep.any():
             return 0, 0
@@ -1088,20 +1275,22 @@ class GlobalSemanticMap:
         inverse = inverse.ravel()
         n_u = ukeys.shape[0]
         sum_w = np.bincount(inverse, weights=weight.astype(np.float64), minlength=n_u)
-        taps = csr_matrix(
-            ((weight[:, None] * bilinear).ravel().astype(np.float32), (np.repeat(inverse, 4), cells.ravel())),
-            shape=(n_u, obs.ov_flat.shape[0]),
-        )
-        sum_wfeat = np.asarray(taps @ obs.ov_flat, np.float32)  # (U, D)
+        sum_wfeat = _feature_sums(weight, cells, bilinear, obs.ov_flat, inverse, n_u)
         rows = self._sorted_rows[np.searchsorted(self._sorted_keys, ukeys)]
+        # integrate_features bumps the version after this
+        self._fuse_into(rows, sum_wfeat, sum_w, self._version + 1)
+        return int(keys.shape[0]), n_u
+
+    def _fuse_into(self, rows: np.ndarray, sum_wfeat: np.ndarray, sum_w: np.ndarray, stamp: int) -> None:
+        """Fuse per-row feature sums (U, D) of weight ``sum_w`` (U,) into ``rows`` with
+        :attr:`fusion`; their features are new as of version ``stamp`` (lock held)."""
         assert self._feat is not None
         unit, norm, fw = self.fusion(
             self._feat[rows], self._feat_norm[rows], self._feat_weight[rows], sum_wfeat,
             sum_w.astype(np.float32),
         )
         self._feat[rows], self._feat_norm[rows], self._feat_weight[rows] = unit, norm, fw
-        self._feat_stamp[rows] = self._version + 1  # integrate_features bumps the version after this
-        return int(keys.shape[0]), n_u
+        self._feat_stamp[rows] = stamp
 
     def _fuse(self, obs: Observations, stamp_ns: int) -> tuple[int, int, int]:
         """Fuse observations (called with the lock held). Returns (touched, new, pruned)."""
@@ -1113,33 +1302,14 @@ class GlobalSemanticMap:
                 cells, bilinear = cells[ok], bilinear[ok]
         if keys.size == 0:
             return 0, 0, 0
-        ukeys, inverse = np.unique(keys, return_inverse=True)  # sorted unique keys
-        inverse = inverse.ravel()
+        ukeys, inverse, sum_w, sum_wxyz, count = _geometry_sums(keys, p_world, weight)
         n_u = ukeys.shape[0]
-        w64 = weight.astype(np.float64)
-        sum_w = np.bincount(inverse, weights=w64, minlength=n_u)
-        sum_wxyz = np.stack(
-            [np.bincount(inverse, weights=w64 * p_world[:, axis], minlength=n_u) for axis in range(3)], axis=1
-        )
-        count = np.bincount(inverse, minlength=n_u).astype(np.int32)
         sum_wfeat = None
         if cells is not None and bilinear is not None and obs.ov_flat is not None:
-            # sum over observations of weight * bilinear(ov) = (U x cells) sparse matrix @ ov cells
-            taps = csr_matrix(
-                ((weight[:, None] * bilinear).ravel().astype(np.float32),
-                 (np.repeat(inverse, 4), cells.ravel())),
-                shape=(n_u, obs.ov_flat.shape[0]),
-            )
-            sum_wfeat = np.asarray(taps @ obs.ov_flat, np.float32)  # (U, D)
+            sum_wfeat = _feature_sums(weight, cells, bilinear, obs.ov_flat, inverse, n_u)
 
         # look the voxels up; append the new ones and insert them into the sorted index
-        n_sorted = self._sorted_keys.shape[0]
-        pos = np.searchsorted(self._sorted_keys, ukeys)
-        found = np.zeros(n_u, bool)
-        inside = pos < n_sorted
-        found[inside] = self._sorted_keys[pos[inside]] == ukeys[inside]
-        rows = np.empty(n_u, np.int64)
-        rows[found] = self._sorted_rows[pos[found]]
+        pos, rows, found = _lookup(self._sorted_keys, self._sorted_rows, ukeys)
         n_new = int(np.count_nonzero(~found))
         if n_new:
             start = self._n
@@ -1158,14 +1328,8 @@ class GlobalSemanticMap:
         self._hits[rows] += count
         self._last_seen_ns[rows] = stamp_ns
         self._last_seen_kf[rows] = self._kf_counter
-        if sum_wfeat is not None:
-            assert self._feat is not None
-            unit, norm, fw = self.fusion(
-                self._feat[rows], self._feat_norm[rows], self._feat_weight[rows], sum_wfeat,
-                sum_w.astype(np.float32),
-            )
-            self._feat[rows], self._feat_norm[rows], self._feat_weight[rows] = unit, norm, fw
-            self._feat_stamp[rows] = self._version  # integrate bumped the version before this
+        if sum_wfeat is not None:  # integrate bumped the version before this
+            self._fuse_into(rows, sum_wfeat, sum_w, self._version)
         pruned = self._prune_if_needed()
         return n_u, n_new, pruned
 
@@ -1175,10 +1339,8 @@ class GlobalSemanticMap:
         if self._n <= cfg.max_points:
             return 0
         n = self._n
-        keep_n = max(1, int(cfg.max_points * cfg.prune_to_fraction))
-        age = (self._kf_counter - self._last_seen_kf[:n]).astype(np.float64)
-        priority = self._weight[:n] * np.exp2(-age / cfg.stale_half_life_keyframes)
-        keep = np.sort(np.argpartition(-priority, keep_n - 1)[:keep_n])
+        keep = _prune_keep(self._weight[:n], self._last_seen_kf[:n], self._kf_counter, cfg)
+        keep_n = keep.shape[0]
         self._compact(keep)
         dropped = n - keep_n
         self.points_pruned += dropped
@@ -1196,9 +1358,7 @@ class GlobalSemanticMap:
             arr[kept.shape[0]:] = 0
         self._n = int(keep.shape[0])
         self._feat_reset = max(self._feat_reset, self._version)  # rows moved (callers bumped first)
-        order = np.argsort(self._keys[: self._n], kind="stable")
-        self._sorted_keys = self._keys[: self._n][order].copy()
-        self._sorted_rows = order.astype(np.int64)
+        self._sorted_keys, self._sorted_rows = _sorted_index(self._keys[: self._n])
 
     # -- readers -----------------------------------------------------------------------------
 
@@ -1233,25 +1393,19 @@ class GlobalSemanticMap:
             if snap is not None and snap.version == self._version:
                 return snap
             n = self._n
-
-            def frozen(a: np.ndarray) -> np.ndarray:
-                out = a[:n].copy()
-                out.setflags(write=False)
-                return out
-
             snap = GlobalMapSnapshot(
                 version=self._version,
                 map_version=self._map_version,
                 voxel_size_m=self.config.voxel_size_m,
-                xyz=frozen(self._xyz),
-                feat=frozen(self._feat) if self._feat is not None else None,
-                weight=frozen(self._weight),
-                feat_weight=frozen(self._feat_weight),
-                hits=frozen(self._hits),
-                last_seen_ns=frozen(self._last_seen_ns),
-                feat_stamp=frozen(self._feat_stamp),
+                xyz=_frozen(self._xyz, n),
+                feat=_frozen(self._feat, n) if self._feat is not None else None,
+                weight=_frozen(self._weight, n),
+                feat_weight=_frozen(self._feat_weight, n),
+                hits=_frozen(self._hits, n),
+                last_seen_ns=_frozen(self._last_seen_ns, n),
+                feat_stamp=_frozen(self._feat_stamp, n),
                 feat_reset=self._feat_reset,
-                keys=frozen(self._keys),
+                keys=_frozen(self._keys, n),
                 generation=self._generation,
                 _unit_source=self._unit_source,
             )
@@ -1266,16 +1420,10 @@ class GlobalSemanticMap:
         with self._lock:
             n = self._n
             arrays: dict[str, np.ndarray] = {
-                f"{prefix}.keys": self._keys[:n].copy(),
-                f"{prefix}.xyz": self._xyz[:n].copy(),
-                f"{prefix}.weight": self._weight[:n].copy(),
-                f"{prefix}.feat_norm": self._feat_norm[:n].copy(),
-                f"{prefix}.feat_weight": self._feat_weight[:n].copy(),
-                f"{prefix}.hits": self._hits[:n].copy(),
-                f"{prefix}.last_seen_ns": self._last_seen_ns[:n].copy(),
-                f"{prefix}.age_kf": (self._kf_counter - self._last_seen_kf[:n]).astype(np.int64),
-                f"{prefix}.learned": self._learned[:n].copy(),
+                f"{prefix}.{name}": getattr(self, f"_{name}")[:n].copy() for name in _SAVED_AS_IS
             }
+            arrays[f"{prefix}.age_kf"] = (self._kf_counter - self._last_seen_kf[:n]).astype(np.int64)
+            arrays[f"{prefix}.learned"] = self._learned[:n].copy()
             if self._feat is not None:
                 arrays[f"{prefix}.feat"] = self._feat[:n].copy()
             ev_arrays, ev_manifest = self.evicted.to_arrays(f"{prefix}.evicted")
@@ -1298,84 +1446,26 @@ class GlobalSemanticMap:
         """Replace the content with a saved one (inverse of :meth:`to_arrays`). Checks every array
         and raises ``ValueError`` naming the field; the map is unchanged on error. A map saved with
         another voxel size is re-keyed (voxels that now coincide keep the most confident one)."""
-        if not isinstance(manifest, dict) or manifest.get("format") != _FORMAT:
-            raise ValueError(f"global map section: unknown format {manifest!r:.80}")
-        n = manifest.get("points")
-        dim = manifest.get("dim")
-        if not isinstance(n, int) or n < 0 or not (dim is None or (isinstance(dim, int) and dim > 0)):
-            raise ValueError("global map section: 'points' must be an int >= 0 and 'dim' an int > 0 or null")
-        spec: dict[str, tuple[str, tuple[int, ...]]] = {
-            "keys": ("int64", (n,)),
-            "xyz": ("float32", (n, 3)),
-            "weight": ("float32", (n,)),
-            "feat_norm": ("float32", (n,)),
-            "feat_weight": ("float32", (n,)),
-            "hits": ("int32", (n,)),
-            "last_seen_ns": ("int64", (n,)),
-            "age_kf": ("int64", (n,)),
-        }
-        if dim is not None:
-            spec["feat"] = ("float16", (n, dim))
-        got: dict[str, np.ndarray] = {}
-        for name, (dtype, shape) in spec.items():
-            arr = arrays.get(f"{prefix}.{name}")
-            if arr is None or arr.dtype != np.dtype(dtype) or arr.shape != shape:
-                desc = "missing" if arr is None else f"{arr.dtype} {arr.shape}"
-                raise ValueError(f"global map section: {name} must be {dtype} {shape}, got {desc}")
-        for name in spec:
-            got[name] = arrays[f"{prefix}.{name}"]
-        learned = arrays.get(f"{prefix}.learned")  # optional: maps saved before 2026-12-05 lack it
-        if learned is not None and (learned.dtype != np.uint8 or learned.shape != (n,)):
-            raise ValueError(
-                f"global map section: learned must be uint8 ({n},), got {learned.dtype} {learned.shape}"
-            )
-        got["learned"] = learned if learned is not None else np.zeros(n, np.uint8)
-        if not np.isfinite(got["xyz"]).all() or not (got["weight"] >= 0).all():
-            raise ValueError("global map section: xyz must be finite and weights >= 0")
-        if manifest.get("voxel_size_m") == self.config.voxel_size_m:
-            keys = got["keys"]  # the voxel a mean lies in can differ by float32 rounding at its faces
-            if np.unique(keys).size != n:
-                raise ValueError("global map section: keys are not unique")
-        else:
-            keys, ok = voxel_keys(got["xyz"], self.config.voxel_size_m)
-            if not ok.all():
-                raise ValueError("global map section: points outside the voxel key range")
-        evicted = EvictedViewStore()
-        ev_manifest = manifest.get("evicted_views")
-        if ev_manifest is not None and manifest.get("voxel_size_m") == self.config.voxel_size_m:
-            evicted.restore(arrays, ev_manifest, f"{prefix}.evicted")  # raises before anything changed
-            if evicted.dim is not None and dim is not None and evicted.dim != dim:
-                raise ValueError(f"evicted views section: dimension {evicted.dim}, the map's {dim}")
-        # one row per key (re-keying can merge voxels): the most confident wins
-        order = np.lexsort((-got["weight"], keys))
-        first = np.ones(n, bool)
-        first[1:] = keys[order][1:] != keys[order][:-1]
-        rows = np.sort(order[first])
+        saved = _read_saved(arrays, manifest, self.config.voxel_size_m, prefix)  # nothing changed yet
+        got, keys, rows, dim = saved.fields, saved.keys, saved.rows, saved.dim
         with self._lock:
             self._reset(dim)
             m = rows.shape[0]
             self._grow(m)
             self._n = m
-            self._keys[:m] = keys[rows]
-            self._xyz[:m] = got["xyz"][rows]
-            self._weight[:m] = got["weight"][rows]
-            self._feat_norm[:m] = got["feat_norm"][rows]
-            self._feat_weight[:m] = got["feat_weight"][rows]
-            self._hits[:m] = got["hits"][rows]
-            self._last_seen_ns[:m] = got["last_seen_ns"][rows]
+            self._keys[:m] = keys[rows]  # re-keyed for another voxel size
+            for name in _SAVED_AS_IS[1:]:
+                getattr(self, f"_{name}")[:m] = got[name][rows]
             self._last_seen_kf[:m] = -got["age_kf"][rows]
             self._learned[:m] = got["learned"][rows] != 0
             if self._feat is not None:
                 self._feat[:m] = got["feat"][rows]
-            srt = np.argsort(self._keys[:m], kind="stable")
-            self._sorted_keys = self._keys[:m][srt].copy()
-            self._sorted_rows = srt.astype(np.int64)
-            pruned = manifest.get("points_pruned")
-            self.points_pruned = pruned if isinstance(pruned, int) else 0
+            self._sorted_keys, self._sorted_rows = _sorted_index(self._keys[:m])
+            self.points_pruned = saved.points_pruned
             self._map_version = map_version
             self._version += 1
             self._generation = next(_GENERATIONS)
-            self.evicted = evicted
+            self.evicted = saved.evicted
             self._prune_if_needed()
 
     def retag(self, map_version: int) -> None:

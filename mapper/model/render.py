@@ -227,6 +227,59 @@ def march_rays(
     each (the differentiable training path); otherwise the selected samples are gathered,
     evaluated and scattered back (differentiable too).
     """
+    _check_march_options(min_weight, stop_transmittance, termination_block, appearance_groups,
+                         skip_missed, box)
+    origins, dirs = rays.origins, rays.directions
+    n_rays = len(rays)
+    t, deltas, flat, evaluate = _march_samples(
+        origins, dirs, near_m, far_m, n_samples, stratified, generator, box, skip_missed, sample_mask
+    )
+    S = t.shape[1]
+    sigma, features, density_evals = _march_density(
+        flat, deltas, density, evaluate, termination_block, stop_transmittance
+    )
+    sigma = sigma.reshape(n_rays, S)
+    weights, _ = render_weights(sigma, deltas.to(sigma.dtype))
+
+    rgb = ov = None
+    valid = torch.zeros(n_rays, S, dtype=torch.bool, device=flat.device)
+    appearance_evals = 0
+    if appearance is not None:
+        keep = evaluate
+        if min_weight > 0:
+            heavy = (weights.detach() >= min_weight).reshape(n_rays * S)
+            keep = heavy if keep is None else keep & heavy
+        if 0 < appearance_groups < S:
+            rgb, ov, valid, appearance_evals, extra = _grouped_appearance(
+                origins, dirs, t, weights, keep, density, appearance, appearance_groups
+            )
+            density_evals += extra
+        else:
+            rgb, ov, valid, appearance_evals = _sample_appearance(
+                flat, dirs, features, weights, keep, appearance
+            )
+    return MarchOutputs(
+        t=t,
+        weights=weights,
+        depth_m=expected_depth(weights, t.to(weights.dtype)),
+        opacity=weights.sum(dim=-1),
+        rgb=rgb,
+        ov=ov,
+        valid=valid,
+        density_evals=density_evals,
+        appearance_evals=appearance_evals,
+    )
+
+
+def _check_march_options(
+    min_weight: float,
+    stop_transmittance: float,
+    termination_block: int,
+    appearance_groups: int,
+    skip_missed: bool,
+    box: tuple[Tensor, Tensor] | None,
+) -> None:
+    """Raise ``ValueError`` for an option of :func:`march_rays` out of its range."""
     if min_weight < 0:
         raise ValueError(f"min_weight {min_weight} out of range: must be >= 0")
     if not 0.0 <= stop_transmittance < 1.0:
@@ -237,8 +290,24 @@ def march_rays(
         raise ValueError(f"appearance_groups {appearance_groups} out of range: must be >= 0")
     if skip_missed and box is None:
         raise ValueError("skip_missed needs a box: it skips the rays that miss the box")
-    origins, dirs = rays.origins, rays.directions
-    n_rays = len(rays)
+
+
+def _march_samples(
+    origins: Tensor,  # (R, 3)
+    dirs: Tensor,  # (R, 3) unit
+    near_m: float | Tensor,
+    far_m: float | Tensor,
+    n_samples: int,
+    stratified: bool,
+    generator: torch.Generator | None,
+    box: tuple[Tensor, Tensor] | None,
+    skip_missed: bool,
+    sample_mask: SampleMask | None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    """The samples of :func:`march_rays`: t (R, S), deltas (R, S), the points (R * S, 3) and which
+    of them to evaluate ((R * S,) bool: on a ray that crosses the box with ``skip_missed``, inside
+    ``sample_mask``), or None for every one."""
+    n_rays = origins.shape[0]
     near = torch.as_tensor(near_m, dtype=origins.dtype, device=origins.device)
     far = torch.as_tensor(far_m, dtype=origins.dtype, device=origins.device)
     crosses: Tensor | None = None
@@ -255,62 +324,60 @@ def march_rays(
     if sample_mask is not None:
         occupied = sample_mask(flat)
         evaluate = occupied if evaluate is None else evaluate & occupied
+    return t, deltas, flat, evaluate
 
-    if stop_transmittance > 0 and termination_block < S:
-        sigma, features, density_evals = _density_early_stop(
-            flat, deltas, density, evaluate, termination_block, stop_transmittance
-        )
-    elif evaluate is None:
+
+def _march_density(
+    flat: Tensor,  # (R * S, 3) sample points
+    deltas: Tensor,  # (R, S) bin lengths
+    density: DensityFn,
+    evaluate: Tensor | None,  # (R * S,) bool or None (every sample)
+    termination_block: int,
+    stop_transmittance: float,
+) -> tuple[Tensor, Tensor, int]:
+    """sigma (R * S,), features (R * S, Dv) and the number of density evaluations: with early
+    termination block by block, else every sample in one call, else the ``evaluate`` samples
+    gathered, evaluated and scattered back (the others 0)."""
+    P = flat.shape[0]
+    if stop_transmittance > 0 and termination_block < deltas.shape[1]:
+        return _density_early_stop(flat, deltas, density, evaluate, termination_block, stop_transmittance)
+    if evaluate is None:
         sigma, features = density(flat)
-        density_evals = P
-    else:
-        idx = evaluate.nonzero().squeeze(-1)
-        sig, feat = density(flat[idx])
-        sigma = sig.new_zeros(P).index_copy(0, idx, sig)
-        features = feat.new_zeros(P, feat.shape[-1]).index_copy(0, idx, feat)
-        density_evals = int(idx.numel())
-    sigma = sigma.reshape(n_rays, S)
-    weights, _ = render_weights(sigma, deltas.to(sigma.dtype))
+        return sigma, features, P
+    idx = evaluate.nonzero().squeeze(-1)
+    sig, feat = density(flat[idx])
+    sigma = sig.new_zeros(P).index_copy(0, idx, sig)
+    features = feat.new_zeros(P, feat.shape[-1]).index_copy(0, idx, feat)
+    return sigma, features, int(idx.numel())
 
-    rgb = ov = None
-    valid = torch.zeros(n_rays, S, dtype=torch.bool, device=flat.device)
-    appearance_evals = 0
-    if appearance is not None:
-        keep = evaluate
-        if min_weight > 0:
-            heavy = (weights.detach() >= min_weight).reshape(P)
-            keep = heavy if keep is None else keep & heavy
-        view_dirs = dirs[:, None, :].expand(n_rays, S, 3).reshape(P, 3)
-        if 0 < appearance_groups < S:
-            rgb, ov, valid, appearance_evals, extra = _grouped_appearance(
-                origins, dirs, t, weights, keep, density, appearance, appearance_groups
-            )
-            density_evals += extra
-        else:
-            if keep is None:
-                rgb_s, ov_s, valid_s = appearance(flat, view_dirs, features)
-                appearance_evals = P
-            else:
-                kept = keep.nonzero().squeeze(-1)
-                rgb_k, ov_k, valid_k = appearance(flat[kept], view_dirs[kept], features[kept])
-                rgb_s = rgb_k.new_zeros(P, 3).index_copy(0, kept, rgb_k)
-                ov_s = ov_k.new_zeros(P, ov_k.shape[-1]).index_copy(0, kept, ov_k)
-                valid_s = valid_k.new_zeros(P).index_copy(0, kept, valid_k)
-                appearance_evals = int(kept.numel())
-            rgb = composite(weights, rgb_s.reshape(n_rays, S, 3))
-            ov = composite(weights.detach(), ov_s.reshape(n_rays, S, -1))
-            valid = valid_s.reshape(n_rays, S)
-    return MarchOutputs(
-        t=t,
-        weights=weights,
-        depth_m=expected_depth(weights, t.to(weights.dtype)),
-        opacity=weights.sum(dim=-1),
-        rgb=rgb,
-        ov=ov,
-        valid=valid,
-        density_evals=density_evals,
-        appearance_evals=appearance_evals,
-    )
+
+def _sample_appearance(
+    flat: Tensor,  # (R * S, 3) sample points
+    dirs: Tensor,  # (R, 3) unit
+    features: Tensor,  # (R * S, Dv)
+    weights: Tensor,  # (R, S) rendering weights
+    keep: Tensor | None,  # (R * S,) bool: samples whose appearance counts, or None (all)
+    appearance: AppearanceFn,
+) -> tuple[Tensor, Tensor, Tensor, int]:
+    """rgb (R, 3), ov (R, D), valid (R, S) and the number of appearance evaluations of the
+    per-sample appearance: every sample in one call, or the ``keep`` samples gathered, evaluated
+    and scattered back (the others 0)."""
+    n_rays, S = weights.shape
+    P = n_rays * S
+    view_dirs = dirs[:, None, :].expand(n_rays, S, 3).reshape(P, 3)
+    if keep is None:
+        rgb_s, ov_s, valid_s = appearance(flat, view_dirs, features)
+        evals = P
+    else:
+        kept = keep.nonzero().squeeze(-1)
+        rgb_k, ov_k, valid_k = appearance(flat[kept], view_dirs[kept], features[kept])
+        rgb_s = rgb_k.new_zeros(P, 3).index_copy(0, kept, rgb_k)
+        ov_s = ov_k.new_zeros(P, ov_k.shape[-1]).index_copy(0, kept, ov_k)
+        valid_s = valid_k.new_zeros(P).index_copy(0, kept, valid_k)
+        evals = int(kept.numel())
+    rgb = composite(weights, rgb_s.reshape(n_rays, S, 3))
+    ov = composite(weights.detach(), ov_s.reshape(n_rays, S, -1))
+    return rgb, ov, valid_s.reshape(n_rays, S), evals
 
 
 def _grouped_appearance(

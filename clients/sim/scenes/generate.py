@@ -22,13 +22,16 @@ from clients.sim.scenes.placement import _Placer
 from clients.sim.scenes.primitives import _box, _group, _Object, _Part
 from clients.sim.scenes.rand import _Rand, _scaled
 from clients.sim.scenes.scene import Instance, Scene
-from clients.sim.scenes.styles import STYLES
+from clients.sim.scenes.styles import STYLES, SceneStyle
 from clients.sim.scenes.vocabulary import LABEL_OF
 from clients.sim.scenes.zones import _ZONES, _clutter
 
 
 def generate_scene(seed: int, style: str = "apartment") -> Scene:
     """Build one room. Fully determined by `(seed, style)`.
+
+    The steps draw from one random stream in a fixed order: the room's shape, the door and windows,
+    the functional zones and clutter, the wall decoration, then the materials and light of the mesh.
 
     Args:
         seed: any int >= 0.
@@ -40,8 +43,33 @@ def generate_scene(seed: int, style: str = "apartment") -> Scene:
         raise ValueError(f"seed {seed!r} must be an int >= 0")
     st = STYLES[style]
     r = _Rand(int(seed) * 7919 + sum(map(ord, style)), st)
-    size = np.array([r.u(*st.room_x_m), r.u(*st.room_y_m), r.u(*st.ceiling_m)])
+    size, structures = _room_shape(r, st)
+    p = _Placer(r, size, structures)
+    wall_mat = _place_openings(p, r, st, size)
+    _place_zones(p, r, st)
+    _place_decoration(p, r)
+    structure_parts = _structure_parts(r, st, size, structures, wall_mat)
+    mesh = _Mesh()
+    for part, name in structure_parts:
+        mesh.add(part, LABEL_OF[name], -1)
+    instances = _add_objects(mesh, p.placed)
+    vertices = np.concatenate(mesh.verts).astype(np.float32)
+    triangles = np.concatenate(mesh.tris).astype(np.int32)
+    light = _light(r, st, size)
+    return Scene(
+        seed=int(seed), style=style, vertices=vertices, triangles=triangles,
+        face_label=np.concatenate(mesh.labels), face_instance=np.concatenate(mesh.inst_ids),
+        instances=instances, room_min=np.zeros(3), room_max=size.astype(np.float64),
+        face_colour=np.concatenate(mesh.cols), face_colour2=np.concatenate(mesh.cols2),
+        face_texture=np.concatenate(mesh.texs), face_texture_scale=np.concatenate(mesh.scales),
+        face_normal=_face_normals(vertices, triangles), light=light,
+        structures=[(b[0].copy(), b[1].copy()) for b in structures])
 
+
+def _room_shape(r: _Rand, st: SceneStyle) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The room's size (x, y, ceiling height) and its inner full-height blocks: the corner block of
+    an L-shaped room, the walls of a corridor layout."""
+    size = np.array([r.u(*st.room_x_m), r.u(*st.room_y_m), r.u(*st.ceiling_m)])
     structures: list[np.ndarray] = []
     if r.chance(st.notch_prob):  # L-shaped room: a block fills one corner
         nx, ny = r.u(0.25, 0.4) * size[0], r.u(0.25, 0.4) * size[1]
@@ -50,9 +78,12 @@ def generate_scene(seed: int, style: str = "apartment") -> Scene:
         structures.append(np.stack([lo, lo + [nx, ny, size[2]]]))
     if st.layout == "corridor":
         structures += _corridor_walls(r, size)
-    p = _Placer(r, size, structures)
+    return size, structures
 
-    # door first (with a keep-out zone in front of it), then windows with curtains
+
+def _place_openings(p: _Placer, r: _Rand, st: SceneStyle, size: np.ndarray) -> Material:
+    """Place the door (with a keep-out zone in front of it), then the windows with curtains; returns
+    the walls' material (drawn between the two)."""
     door = _door(r)
     dw = door.aabb()[1, 0]
     p.try_place(door, reserve=np.array([[-dw - 0.1, 0.0, 0.0], [dw + 0.1, 1.1, 2.2]]), tries=80)
@@ -70,8 +101,12 @@ def generate_scene(seed: int, style: str = "apartment") -> Scene:
             members.append(_curtain_panel(r, cw, z1, curtain_mat).transformed(
                 0, np.array([ww + cw / 2 + 0.01, 0, 0])))
         p.try_place(_group("window", members), blocks_floor=True)
+    return wall_mat
 
-    # functional zones
+
+def _place_zones(p: _Placer, r: _Rand, st: SceneStyle) -> None:
+    """Pick the functional zones by the style's weights, place each zone's anchors, then each zone's
+    companions, then the clutter."""
     names = list(st.zone_weights)
     weights = np.array([st.zone_weights[n] for n in names])
     n_z = int(r.rng.integers(st.n_zones[0], st.n_zones[1] + 1))
@@ -82,13 +117,18 @@ def generate_scene(seed: int, style: str = "apartment") -> Scene:
         _ZONES[names[int(zi)]][1](p)
     _clutter(p, int(r.rng.integers(st.n_clutter[0], st.n_clutter[1] + 1)))
 
-    # decoration on the walls
+
+def _place_decoration(p: _Placer, r: _Rand) -> None:
+    """Pictures (1-3) and maybe a clock on the walls."""
     for _ in range(int(r.rng.integers(1, 4))):
         p.try_place(_picture(r), blocks_floor=False)
     if r.chance(0.5):
         p.try_place(_clock(r), blocks_floor=False)
 
-    # --- assemble the mesh ---
+
+def _structure_parts(r: _Rand, st: SceneStyle, size: np.ndarray, structures: list[np.ndarray],
+                     wall_mat: Material) -> list[tuple[_Part, str]]:
+    """Floor, ceiling, the four outer walls (0.1 m thick, outside the room) and the inner blocks."""
     floor_c, floor_c2 = r.pick(st.floor_colours)
     floor_tex, floor_scale = r.pick(st.floor_textures)
     floor_mat = Material(r.jitter(floor_c), floor_c2, floor_tex, floor_scale)
@@ -105,57 +145,69 @@ def generate_scene(seed: int, style: str = "apartment") -> Scene:
     ]
     for b in structures:
         structure_parts.append((_box(b[0], b[1], wall_mat), "wall"))
+    return structure_parts
 
-    flat: list[tuple[_Object, int]] = []
-    for obj in p.placed:
-        _flatten(obj, -1, flat)
 
-    verts, tris, labels, inst_ids, cols, cols2, texs, scales = [], [], [], [], [], [], [], []
-    n_v = 0
+class _Mesh:
+    """The scene's mesh as it is assembled: per part, its vertices and triangles (indices offset
+    past the parts before) and per-face label, instance and material columns."""
 
-    def add(part: _Part, label: int, inst: int) -> None:
-        nonlocal n_v
-        verts.append(part.vertices)
-        tris.append(part.triangles + n_v)
-        n_v += part.vertices.shape[0]
+    def __init__(self) -> None:
+        self.verts: list[np.ndarray] = []
+        self.tris: list[np.ndarray] = []
+        self.labels: list[np.ndarray] = []
+        self.inst_ids: list[np.ndarray] = []
+        self.cols: list[np.ndarray] = []
+        self.cols2: list[np.ndarray] = []
+        self.texs: list[np.ndarray] = []
+        self.scales: list[np.ndarray] = []
+        self.n_v = 0
+
+    def add(self, part: _Part, label: int, inst: int) -> None:
+        self.verts.append(part.vertices)
+        self.tris.append(part.triangles + self.n_v)
+        self.n_v += part.vertices.shape[0]
         m = part.triangles.shape[0]
-        labels.append(np.full(m, label, np.int32))
-        inst_ids.append(np.full(m, inst, np.int32))
-        cols.append(np.tile(np.asarray(part.material.colour, np.float32), (m, 1)))
-        cols2.append(np.tile(np.asarray(part.material.colour2, np.float32), (m, 1)))
-        texs.append(np.full(m, int(part.material.texture), np.int8))
-        scales.append(np.full(m, part.material.scale_m, np.float32))
+        self.labels.append(np.full(m, label, np.int32))
+        self.inst_ids.append(np.full(m, inst, np.int32))
+        self.cols.append(np.tile(np.asarray(part.material.colour, np.float32), (m, 1)))
+        self.cols2.append(np.tile(np.asarray(part.material.colour2, np.float32), (m, 1)))
+        self.texs.append(np.full(m, int(part.material.texture), np.int8))
+        self.scales.append(np.full(m, part.material.scale_m, np.float32))
 
-    for part, name in structure_parts:
-        add(part, LABEL_OF[name], -1)
+
+def _add_objects(mesh: _Mesh, placed: list[_Object]) -> list[Instance]:
+    """Add every placed object (children flattened, each object with parts one instance) to `mesh`;
+    returns the instances."""
+    flat: list[tuple[_Object, int]] = []
+    for obj in placed:
+        _flatten(obj, -1, flat)
     instances: list[Instance] = []
     for idx, (obj, support) in enumerate(flat):
         for part in obj.parts:
-            add(part, LABEL_OF[obj.class_name], idx)
+            mesh.add(part, LABEL_OF[obj.class_name], idx)
         v = np.concatenate([q.vertices for q in obj.parts])
         part_boxes = np.stack([q.aabb for q in obj.parts])
         instances.append(Instance(idx, obj.class_name, LABEL_OF[obj.class_name], v.min(0), v.max(0),
                                   _area_centroid(obj.parts), support, part_boxes))
+    return instances
 
-    vertices = np.concatenate(verts).astype(np.float32)
-    triangles = np.concatenate(tris).astype(np.int32)
+
+def _face_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Unit normals of the triangles (float32, computed in float64)."""
     tri_v = vertices.astype(np.float64)[triangles]
     n = np.cross(tri_v[:, 1] - tri_v[:, 0], tri_v[:, 2] - tri_v[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return n.astype(np.float32)
 
-    light = Light(
+
+def _light(r: _Rand, st: SceneStyle, size: np.ndarray) -> Light:
+    """The room's point light, 0.3 m under the ceiling in its middle part."""
+    sx, sy, sz = size
+    return Light(
         position=np.array([r.u(0.3, 0.7) * sx, r.u(0.3, 0.7) * sy, sz - 0.3]),
         colour=np.asarray(st.light_colour, dtype=np.float64),
         diffuse=r.u(*st.light_diffuse), ambient=r.u(*st.ambient), falloff_m=r.u(3.0, 4.5))
-
-    return Scene(
-        seed=int(seed), style=style, vertices=vertices, triangles=triangles,
-        face_label=np.concatenate(labels), face_instance=np.concatenate(inst_ids),
-        instances=instances, room_min=np.zeros(3), room_max=size.astype(np.float64),
-        face_colour=np.concatenate(cols), face_colour2=np.concatenate(cols2),
-        face_texture=np.concatenate(texs), face_texture_scale=np.concatenate(scales),
-        face_normal=n.astype(np.float32), light=light,
-        structures=[(b[0].copy(), b[1].copy()) for b in structures])
 
 
 _WALL_T_M = 0.1

@@ -138,7 +138,11 @@ def _point_block(
     nb,  # int: its points
     block,  # int: the buffers' size (>= nb)
 ):  # pragma: no cover - compiled
-    """One block of points (``_point_kernel``'s arguments; points p0 .. p0 + nb - 1)."""
+    """One block of points (``_point_kernel``'s arguments; points p0 .. p0 + nb - 1).
+
+    One long compiled kernel, exempt from the 120-line limit (tests/test_code_size.py): the whole
+    network runs here on the block's small buffers (module docstring), its layers written out in
+    one function rather than split into calls."""
     (
         rgb,  # (3, N, P) float32
         feat,  # (F, N, P) float32

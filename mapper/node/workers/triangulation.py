@@ -249,6 +249,119 @@ class _KeyframeBudget(Generic[T]):
         self.total = 0
 
 
+class _DepthPriors:
+    """The keyframes' depth priors for the runtime (``ModelRuntime.set_view_depth_prior``): a
+    keyframe's swept depth where kept, its splatted triangulated points elsewhere, the holes filled
+    along the image (``stereo.prior_fill_px``) and, with ``stereo.prior_geometry``, from the surface
+    the whole geometry shows, again as the geometry grows (:meth:`refresh`).
+
+    ``lock`` is the triangulation's: it guards :attr:`own` (the methods ending in ``_locked`` are
+    called with it held)."""
+
+    def __init__(
+        self,
+        ctx: NodeContext,
+        config: TriangulationConfig,
+        stereo: StereoConfig,
+        runtime: ExtentSink | None,
+        lock: threading.Lock,
+    ) -> None:
+        self.ctx = ctx
+        self.config = config
+        self.stereo = stereo
+        self.runtime = runtime
+        self._lock = lock
+        # each keyframe's own depth prior (the latest window.max_keyframes), to fill its holes from
+        # the whole geometry again as it grows (stereo.prior_geometry)
+        self.own: OrderedDict[KeyframeKey, tuple[np.ndarray, PosedView]] = OrderedDict()
+        self.geometry_count = 0  # geometry points when the priors were last filled
+        self.refreshes = 0
+
+    def set(
+        self, keyframe: Any, points: SparsePoints, swept: TriangulatedKeyframe | None,
+        image: _StereoImage | None, geometry_points: Callable[[], tuple[np.ndarray, np.ndarray]],
+    ) -> None:
+        """Set the keyframe's depth prior in the runtime (none without a runtime)."""
+        if self.runtime is None:
+            return
+        prior = None
+        if self.config.depth_prior_radius_px > 0 and len(points):
+            sparse = sparse_depth_keyframe(keyframe, points, self.config)
+            prior = depth_prior(sparse, self.config.depth_prior_radius_px)
+        cfg = self.stereo
+        if swept is not None and cfg.depth_prior and bool((swept.depth_m > 0).any()):
+            prior = swept.depth_m if prior is None else np.where(swept.depth_m > 0, swept.depth_m, prior)
+            if cfg.prior_fill_px > 0 and image is not None:
+                prior = self.filled(prior, image)
+        if cfg.prior_geometry:  # its holes from the whole geometry (now, and as it grows)
+            height, width = keyframe.rgb.shape[:2]
+            view = PosedView(np.asarray(keyframe.K, np.float64),
+                             np.asarray(keyframe.world_from_cam, np.float64), int(width), int(height))
+            own = (np.zeros((int(height), int(width)), np.float32) if prior is None
+                   else np.asarray(prior, np.float32))
+            with self._lock:
+                self.own[keyframe_key(keyframe)] = (own, view)
+                while len(self.own) > max(1, self.ctx.config.window.max_keyframes):
+                    self.own.popitem(last=False)
+            geometry = geometry_points()[0]
+            prior = self.with_geometry(own, view, geometry)
+        if prior is not None:
+            self.runtime.set_view_depth_prior(keyframe_key(keyframe), np.asarray(prior, np.float32))
+
+    def with_geometry(self, own: np.ndarray, view: PosedView, geometry: np.ndarray) -> np.ndarray:
+        """``own`` (h, w) prior with its holes (0) set to the surface the (N, 3) geometry shows at
+        ``view`` (``mapper.node.queries.surface_depth``, each point over
+        ``model.surface_geometry_footprint`` map voxels, as ``render`` splats it)."""
+        from mapper.node.queries import surface_depth  # SciPy; only with stereo.prior_geometry
+
+        cfg = self.ctx.config
+        footprint_m = cfg.model.surface_geometry_footprint * cfg.global_map.voxel_size_m
+        z = surface_depth(geometry, footprint_m, view.K, view.world_from_cam, view.width, view.height,
+                          cfg.model)
+        if z.shape != own.shape:
+            z = cv2.resize(z, (own.shape[1], own.shape[0]), interpolation=cv2.INTER_NEAREST)
+        return np.where(own > 0, own, z).astype(np.float32)
+
+    def refresh(self, geometry_points: Callable[[], tuple[np.ndarray, np.ndarray]], force: bool) -> int:
+        """``SparseTriangulation.refresh_priors``."""
+        if self.runtime is None or not self.stereo.prior_geometry:
+            return 0
+        geometry = geometry_points()[0]
+        last = self.geometry_count
+        if not force and abs(len(geometry) - last) <= self.stereo.prior_geometry_refresh * last:
+            return 0
+        with self._lock:
+            kept = list(self.own.items())
+        for key, (own, view) in kept:
+            self.runtime.set_view_depth_prior(key, self.with_geometry(own, view, geometry))
+        self.geometry_count = len(geometry)
+        self.refreshes += 1
+        return len(kept)
+
+    def filled(self, prior: np.ndarray, image: _StereoImage) -> np.ndarray:
+        """``prior`` (H, W) with its holes filled at the working size, back at (H, W)."""
+        cfg = self.stereo
+        gray = image.view.gray
+        small = prior
+        if prior.shape != gray.shape:
+            small = cv2.resize(prior, (gray.shape[1], gray.shape[0]), interpolation=cv2.INTER_NEAREST)
+        filled = fill_depth(gray, small, cfg.prior_fill_px, sigma_gray=cfg.prior_fill_sigma,
+                            max_spread=cfg.prior_fill_spread)
+        if filled.shape != prior.shape:
+            filled = cv2.resize(filled, (prior.shape[1], prior.shape[0]), interpolation=cv2.INTER_NEAREST)
+            filled = np.where(prior > 0, prior, filled)
+        return filled
+
+    def clear_locked(self) -> None:
+        """Forget the kept priors (a map was replaced)."""
+        self.own.clear()
+        self.geometry_count = 0
+
+    def nbytes_locked(self) -> int:
+        """Bytes of the kept priors."""
+        return sum(own.nbytes for own, _ in self.own.values())
+
+
 class SparseTriangulation:
     """Triangulates ``node``'s keyframes without depth in a background worker.
 
@@ -310,11 +423,7 @@ class SparseTriangulation:
         self.stereo_map_points = 0
         self.stereo_seconds_total = 0.0
         self.stereo_skipped_busy = 0
-        # each keyframe's own depth prior (the latest window.max_keyframes), to fill its holes from
-        # the whole geometry again as it grows (stereo.prior_geometry)
-        self._own_priors: OrderedDict[KeyframeKey, tuple[np.ndarray, PosedView]] = OrderedDict()
-        self._prior_geometry_count = 0  # geometry points when the priors were last filled
-        self.prior_refreshes = 0
+        self._priors = _DepthPriors(ctx, self.config, self.stereo, runtime, self._lock)
         self._log = LimitedLog(log)
 
     # -- wiring -------------------------------------------------------------------------------
@@ -430,7 +539,7 @@ class SparseTriangulation:
                 self._set_extent(keyframe_key(keyframe), view, points)
         current = with_current_features(self.ctx, keyframe)  # its OV features, if they came meanwhile
         swept_frame = None if swept is None else swept_keyframe(current, swept[0], swept[1], self.stereo)
-        self._set_depth_prior(keyframe, points, swept_frame, image)
+        self._priors.set(keyframe, points, swept_frame, image, self.geometry_points)
         self._integrate(current, points, target)
         if swept_frame is not None:
             self._integrate_swept(current, swept_frame, target)
@@ -474,83 +583,16 @@ class SparseTriangulation:
         self.stereo_seconds_total += time.perf_counter() - started
         return dense, keep
 
-    def _set_depth_prior(
-        self, keyframe: Any, points: SparsePoints, swept: TriangulatedKeyframe | None,
-        image: _StereoImage | None,
-    ) -> None:
-        """The keyframe's depth prior for the runtime: its swept depth where kept, the splatted
-        triangulated points elsewhere, the holes filled along the image (``stereo.prior_fill_px``)."""
-        if self.runtime is None:
-            return
-        prior = None
-        if self.config.depth_prior_radius_px > 0 and len(points):
-            sparse = sparse_depth_keyframe(keyframe, points, self.config)
-            prior = depth_prior(sparse, self.config.depth_prior_radius_px)
-        cfg = self.stereo
-        if swept is not None and cfg.depth_prior and bool((swept.depth_m > 0).any()):
-            prior = swept.depth_m if prior is None else np.where(swept.depth_m > 0, swept.depth_m, prior)
-            if cfg.prior_fill_px > 0 and image is not None:
-                prior = self._filled(prior, image)
-        if cfg.prior_geometry:  # its holes from the whole geometry (now, and as it grows)
-            height, width = keyframe.rgb.shape[:2]
-            view = PosedView(np.asarray(keyframe.K, np.float64),
-                             np.asarray(keyframe.world_from_cam, np.float64), int(width), int(height))
-            own = (np.zeros((int(height), int(width)), np.float32) if prior is None
-                   else np.asarray(prior, np.float32))
-            with self._lock:
-                self._own_priors[keyframe_key(keyframe)] = (own, view)
-                while len(self._own_priors) > max(1, self.ctx.config.window.max_keyframes):
-                    self._own_priors.popitem(last=False)
-            geometry = self.geometry_points()[0]
-            prior = self._with_geometry(own, view, geometry)
-        if prior is not None:
-            self.runtime.set_view_depth_prior(keyframe_key(keyframe), np.asarray(prior, np.float32))
-
-    def _with_geometry(self, own: np.ndarray, view: PosedView, geometry: np.ndarray) -> np.ndarray:
-        """``own`` (h, w) prior with its holes (0) set to the surface the (N, 3) geometry shows at
-        ``view`` (``mapper.node.queries.surface_depth``, each point over
-        ``model.surface_geometry_footprint`` map voxels, as ``render`` splats it)."""
-        from mapper.node.queries import surface_depth  # SciPy; only with stereo.prior_geometry
-
-        cfg = self.ctx.config
-        footprint_m = cfg.model.surface_geometry_footprint * cfg.global_map.voxel_size_m
-        z = surface_depth(geometry, footprint_m, view.K, view.world_from_cam, view.width, view.height,
-                          cfg.model)
-        if z.shape != own.shape:
-            z = cv2.resize(z, (own.shape[1], own.shape[0]), interpolation=cv2.INTER_NEAREST)
-        return np.where(own > 0, own, z).astype(np.float32)
-
     def refresh_priors(self, force: bool = False) -> int:
         """Fill the kept keyframes' own priors from the current geometry again when its point count
         moved by more than ``stereo.prior_geometry_refresh`` since the last fill (or ``force``);
         returns the priors set (worker thread, after a batch)."""
-        if self.runtime is None or not self.stereo.prior_geometry:
-            return 0
-        geometry = self.geometry_points()[0]
-        last = self._prior_geometry_count
-        if not force and abs(len(geometry) - last) <= self.stereo.prior_geometry_refresh * last:
-            return 0
-        with self._lock:
-            kept = list(self._own_priors.items())
-        for key, (own, view) in kept:
-            self.runtime.set_view_depth_prior(key, self._with_geometry(own, view, geometry))
-        self._prior_geometry_count = len(geometry)
-        self.prior_refreshes += 1
-        return len(kept)
+        return self._priors.refresh(self.geometry_points, force)
 
-    def _filled(self, prior: np.ndarray, image: _StereoImage) -> np.ndarray:
-        """``prior`` (H, W) with its holes filled at the working size, back at (H, W)."""
-        cfg = self.stereo
-        gray = image.view.gray
-        small = prior
-        if prior.shape != gray.shape:
-            small = cv2.resize(prior, (gray.shape[1], gray.shape[0]), interpolation=cv2.INTER_NEAREST)
-        filled = fill_depth(gray, small, cfg.prior_fill_px, sigma_gray=cfg.prior_fill_sigma,
-                            max_spread=cfg.prior_fill_spread)
-        if filled.shape != prior.shape:
-            filled = cv2.resize(filled, (prior.shape[1], prior.shape[0]), interpolation=cv2.INTER_NEAREST)
-            filled = np.where(prior > 0, prior, filled)
-        return filled
+    @property
+    def prior_refreshes(self) -> int:
+        """How often the kept priors were filled from the geometry again (:meth:`refresh_priors`)."""
+        return self._priors.refreshes
 
     def _add_candidate(self, generation: int, candidate: _Candidate) -> bool:
         """Append ``candidate`` unless a reset came after ``generation`` (then False)."""
@@ -570,8 +612,7 @@ class SparseTriangulation:
         self._candidates.clear()
         self._room_depths.clear()
         self._without_extent.clear()
-        self._own_priors.clear()
-        self._prior_geometry_count = 0
+        self._priors.clear_locked()
         self._map = None
 
     def _set_extent(self, key: KeyframeKey, view: PosedView, points: SparsePoints) -> None:
@@ -711,7 +752,7 @@ class SparseTriangulation:
         restores it)."""
         with self._lock:
             pts = sum(p.xyz.nbytes + p.sigma_m.nbytes * 5 + p.uv.nbytes for p in self._points.items.values())
-            pts += sum(own.nbytes for own, _ in self._own_priors.values())
+            pts += self._priors.nbytes_locked()
             candidates = list(self._candidates)
         feats = 0
         for c in candidates:
@@ -766,7 +807,7 @@ class SparseTriangulation:
                 "points": self._swept.total,
                 "skipped_busy": self.stereo_skipped_busy,
                 "mean_ms": round(1e3 * self.stereo_seconds_total / max(self.stereo_keyframes, 1), 1),
-                "prior_refreshes": self.prior_refreshes,
+                "prior_refreshes": self._priors.refreshes,
             },
         }
 
