@@ -18,7 +18,7 @@ import numpy as np
 from mapper.node.config import config_from_dict
 from mapper.node.service import MapperNode
 from protocol.messages import Error, Frame, Segmentation, SegmentPoints, decode, encode
-from tests.mapper.test_whole_map import SPACE, D, onehot_space  # noqa: F401 (the autouse fixture)
+from tests.mapper.node.answers.test_whole_map import SPACE, D, onehot_space  # noqa: F401 (the autouse fixture)
 
 W, H = 32, 24
 K = np.array([30.0, 30.0, 16.0, 12.0])
