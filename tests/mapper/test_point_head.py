@@ -21,7 +21,7 @@ from mapper.model.point_head import head_paths, load_point_head, save_point_head
 from mapper.node.config import WindowConfig
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
 from mapper.training.point_head import Captured, DistillConfig, distill_loss, main, student_config, train_head
-from tests.mapper.test_runtime import TINY, FakeEncoder, keyframe, orbit
+from tests.mapper.runtime.test_model_runtime import TINY, FakeEncoder, keyframe, orbit
 from tests.model_helpers import tiny_model_config
 
 F_DIM, V_DIM = TINY.encoder.feature_dim, TINY.volume.volume_feature_dim

@@ -1,6 +1,6 @@
 """``average_depth`` without input depth (``queries.point_occlusion``): keyframes without depth
 count a point only where the request's own points do not hide it, the averaging counterpart of
-``model.point_occlusion`` (tested in tests/mapper/test_rgb_bounds.py).
+``model.point_occlusion`` (tested in tests/mapper/runtime/test_rgb_bounds.py).
 
 A node in-process (no sockets, no model) with the fake one-hot 4-d space of test_whole_map. Two
 RGB-only keyframes look along +z from the origin and see class c0 everywhere; a third looks along

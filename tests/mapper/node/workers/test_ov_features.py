@@ -42,8 +42,8 @@ from protocol.messages import (
     decode,
     encode,
 )
+from tests.mapper.runtime.test_model_runtime import keyframe, orbit
 from tests.mapper.test_clip_backend import EMBED, T_HEADS, tiny_clip_state_dict, write_bpe
-from tests.mapper.test_runtime import keyframe, orbit
 from tests.model_helpers import tiny_model_config
 
 SPACE = "openclip:tiny-test"
