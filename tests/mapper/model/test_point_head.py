@@ -216,7 +216,7 @@ def test_runtime_loads_auto_explicit_and_refuses_a_foreign_head(tmp_path: Path) 
 
 
 def test_the_shipped_head_belongs_to_the_shipped_checkpoint() -> None:
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     meta = json.loads((root / "checkpoints" / "cpu-small-point-head.json").read_text())
     teacher = load_metadata(root / "checkpoints" / "cpu-small.json")
     assert meta["teacher_weights_sha256"] == teacher["weights_sha256"]

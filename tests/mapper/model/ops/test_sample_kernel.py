@@ -13,8 +13,8 @@ from mapper.model.field import GovNeSF, PointViewSamples
 from mapper.model.ops import sample_kernel
 from mapper.model.ops.cost_volume import sample_volume
 from mapper.runtime.views import all_views
+from tests.mapper.model.test_blend_from_maps import _runtime_with_six_keyframes
 from tests.mapper.runtime.test_model_runtime import TINY
-from tests.mapper.test_blend_from_maps import _runtime_with_six_keyframes
 
 
 def _points(n: int, seed: int) -> torch.Tensor:
