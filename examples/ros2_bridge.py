@@ -4,7 +4,7 @@
 sensor_msgs; e.g. Humble on Python 3.10) and is not run by the project's tests or CI, where ROS 2
 is absent; nothing in the project imports it. The conversions it uses (image decoding, frame
 conventions) are the ones ``govnesf import rosbag`` uses and tests
-(``clients/importers/rosbag.py``, ``tests/clients/test_importer_rosbag.py``).
+(``clients/importers/rosbag.py``, ``tests/clients/importers/test_importer_rosbag.py``).
 
 What it does:
 

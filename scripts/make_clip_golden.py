@@ -1,4 +1,4 @@
-"""Write the golden files of ``tests/mapper/test_clip_golden.py``: a tiny random CLIP and what the
+"""Write the golden files of ``tests/mapper/ov/test_clip_golden.py``: a tiny random CLIP and what the
 upstream implementation (Hugging Face ``transformers``' ``CLIPModel`` / ``CLIPTokenizer`` /
 ``CLIPImageProcessorPil``) computes with it. Run once; the outputs are committed::
 

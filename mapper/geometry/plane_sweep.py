@@ -27,7 +27,7 @@ multi-view stereo, here in numpy + OpenCV, no learning, no torch):
 Conventions (docs/concepts/conventions.md): pixel (i, j) has its centre at ``(i + 0.5, j + 0.5)``; depth is
 z-depth along the optical axis; poses are camera-to-world in the OpenCV optical frame.
 
-Example (a textured wall 2 m in front of two cameras 20 cm apart; tests/geometry/test_plane_sweep.py)::
+Example (a textured wall 2 m in front of two cameras 20 cm apart; tests/mapper/geometry/test_plane_sweep.py)::
 
     >>> import numpy as np
     >>> from mapper.geometry.config import StereoConfig

@@ -25,7 +25,7 @@ known poses is triangulated; this module does it for one new keyframe against a 
    inverse-variance weighting; ``n_views`` counts the views that agree. Points above
    ``max_sigma_m`` or with fewer than ``min_views`` views are dropped.
 
-Example (two views of known points; see tests/geometry/test_triangulation.py)::
+Example (two views of known points; see tests/mapper/geometry/test_triangulation.py)::
 
     >>> import numpy as np
     >>> from mapper.geometry.config import TriangulationConfig

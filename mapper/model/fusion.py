@@ -124,7 +124,7 @@ def blend_from_maps(
     (P, N, C) samples: one ``embedding_bag`` over the taps of the slots with a non-zero weight.
 
     Inference only (no autograd through ``table``'s rows is needed, though it is supported).
-    Equal to sampling then blending up to float rounding (tests/mapper/test_blend_from_maps.py).
+    Equal to sampling then blending up to float rounding (tests/mapper/model/test_blend_from_maps.py).
     On the CPU in float32 without autograd it runs as one compiled kernel
     (:func:`mapper.kernels.average_kernel.blend_kernel`: the same taps, no (P, N, 4) arrays).
     """
@@ -324,7 +324,7 @@ class FusionNet(nn.Module):
         Without autograd recording (``torch.no_grad`` / ``inference_mode``, how rendering and
         ``segment_points`` call it), outside autocast and with ``fast_inference`` set, this runs
         ``forward_fast``: the same function of the same parameters, equal up to float round-off
-        (tests/mapper/test_fusion_fast.py). Training (and autocast) runs ``forward_reference``.
+        (tests/mapper/model/test_fusion_inference.py). Training (and autocast) runs ``forward_reference``.
         """
         autocast = torch.is_autocast_enabled(rgb.device.type)
         args = (rgb, features, volume_features, source_dirs, mask, query_dirs, source_range)
@@ -347,7 +347,8 @@ class FusionNet(nn.Module):
         On the CPU in float32 without autograd (with ``fast_inference`` and ``point_kernel``) this
         runs the compiled kernel :func:`mapper.model.ops.fusion_kernel.point_ov_weights`: the same
         function, every intermediate in per-block buffers instead of (P*N, C) tensors (weights as
-        close to a float64 reference as the torch float32 pass's; tests/mapper/test_fusion_kernel.py).
+        close to a float64 reference as the torch float32 pass's;
+        tests/mapper/model/ops/test_fusion_kernel.py).
         """
         tensors = (rgb, features, volume_features, source_dirs)
         if (

@@ -7,7 +7,7 @@ stream and a planner's first query waited for. The model is a 6-layer BERT; this
 the same forward pass from the same files (``tokenizer.json`` through the ``tokenizers``
 package, ``model.safetensors``), so loading takes a fraction of a second. The embeddings equal
 ``SentenceTransformer(...).encode(..., normalize_embeddings=True)`` up to float round-off
-(tests/mapper/test_minilm.py compares them).
+(tests/mapper/ov/test_minilm.py compares them).
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@
 #
 #   bash scripts/gpu/train_gpu.sh OUT_DIR [TOTAL_S] [N_TRAIN]
 #
-# 1. checks: CUDA is there, tests/mapper/test_cuda.py (model and a training step on the GPU match
+# 1. checks: CUDA is there, tests/mapper/training/test_cuda.py (model and a training step on the GPU match
 #    the CPU);
 # 2. records the simulated rooms (seeds 0..N_TRAIN-1, default 48, and validation seeds 1000-1002,
 #    80 frames at 160 x 120, as scripts/make_train_data.sh) with the simulator's torch ray caster;
@@ -47,7 +47,7 @@ if [[ ${ALLOW_CPU:-0} != 1 ]] && ! "$PY" -c "import sys, torch; sys.exit(not tor
   log "no CUDA device: these runs are sized for a GPU (ALLOW_CPU=1 for a dry run on the CPU)"
   exit 2
 fi
-"$PY" -m pytest -q -p no:warnings -p no:cacheprovider tests/mapper/test_cuda.py 2>&1 | tail -40 | tee -a "$OUT/driver.log" || log "CUDA checks failed (above); training goes on"
+"$PY" -m pytest -q -p no:warnings -p no:cacheprovider tests/mapper/training/test_cuda.py 2>&1 | tail -40 | tee -a "$OUT/driver.log" || log "CUDA checks failed (above); training goes on"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader >>"$OUT/driver.log" 2>&1 || true
 
 log "2. record $N_TRAIN training rooms and 3 validation rooms ($FRAMES frames, $JOBS at a time)"

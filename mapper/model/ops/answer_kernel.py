@@ -9,7 +9,7 @@ to memory and read back, chunk by chunk. Here each block of points goes through 
 while its samples sit in per-block buffers, using the same compiled functions
 (:func:`~mapper.model.ops.sample_kernel.sample_pair`, ``_point_block``,
 :func:`~mapper.kernels.average_kernel.blend_range`) in the same order, so the answers are the
-same numbers as the three kernels' (tests/mapper/test_answer_kernel.py). A block also skips the
+same numbers as the three kernels' (tests/mapper/model/ops/test_answer_kernel.py). A block also skips the
 trailing padding slots none of its points uses (padding is masked: it changes no answer). Without
 texts the pass writes each point's blended feature instead (the learned features the node writes
 into the global map).

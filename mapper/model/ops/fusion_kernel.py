@@ -14,7 +14,7 @@ of a block as the inner, contiguous, vectorised axis (the samples' own layout, P
 
 The same function of the same parameters as ``forward_reference`` (float32, sums reassociated;
 ``exp`` evaluated by range reduction and a polynomial, within a few ulp), so the weights are as
-close to a float64 reference as the float32 torch pass's (tests/mapper/test_fusion_kernel.py;
+close to a float64 reference as the float32 torch pass's (tests/mapper/model/ops/test_fusion_kernel.py;
 about 1e-7 for the shipped point head). The first call in a process compiles the kernel or loads
 it from numba's cache (:func:`warm_up`). The samples and the network's parameters reach the kernel
 as two tuples (``inputs``, ``params``), unpacked in :func:`_point_block`.

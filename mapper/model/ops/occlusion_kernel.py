@@ -14,7 +14,7 @@ Two stages of ``segment_points`` with a depth test on keyframes without input de
 
 Neither materialises anything of size (points, views) beyond the boolean answer. The numpy / torch
 paths they replace spent 8 ms a view on 100k points (z-buffers) and 0.35 s on 106k points x 84
-views (the test); tests/mapper/test_occlusion_kernel.py checks both against them.
+views (the test); tests/mapper/model/ops/test_occlusion_kernel.py checks both against them.
 """
 
 from __future__ import annotations

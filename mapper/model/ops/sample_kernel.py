@@ -10,7 +10,7 @@ go, in parallel over blocks of pairs, with the cameras read in place.
 Arithmetic follows the torch path in float32 (``project_points``: ``R p + t``, ``x / z * f + c``,
 the clamp to +-6e4; ``in_view``; the depth test's nearest pixel; the bilinear corners and weights
 of ``bilinear_corners`` as in :func:`mapper.kernels.average_kernel.blend_kernel`), so the masks
-are the same and the samples agree to float rounding (tests/mapper/test_sample_kernel.py). One
+are the same and the samples agree to float rounding (tests/mapper/model/ops/test_sample_kernel.py). One
 difference: a masked pair's colour and features are 0 here (the network never reads them: masked
 views carry no key in the attention and no weight in the blends).
 """

@@ -1,6 +1,6 @@
 """``average_depth`` without input depth (``queries.point_occlusion``): keyframes without depth
 count a point only where the request's own points do not hide it, the averaging counterpart of
-``model.point_occlusion`` (tested in tests/mapper/test_rgb_bounds.py).
+``model.point_occlusion`` (tested in tests/mapper/runtime/test_rgb_bounds.py).
 
 A node in-process (no sockets, no model) with the fake one-hot 4-d space of test_whole_map. Two
 RGB-only keyframes look along +z from the origin and see class c0 everywhere; a third looks along
@@ -18,7 +18,7 @@ import numpy as np
 from mapper.node.config import config_from_dict
 from mapper.node.service import MapperNode
 from protocol.messages import Error, Frame, Segmentation, SegmentPoints, decode, encode
-from tests.mapper.test_whole_map import SPACE, D, onehot_space  # noqa: F401 (the autouse fixture)
+from tests.mapper.node.answers.test_whole_map import SPACE, D, onehot_space  # noqa: F401 (the autouse fixture)
 
 W, H = 32, 24
 K = np.array([30.0, 30.0, 16.0, 12.0])

@@ -21,7 +21,7 @@ from mapper.model.point_head import head_paths, load_point_head, save_point_head
 from mapper.node.config import WindowConfig
 from mapper.runtime.model_runtime import ModelRuntime, ModelRuntimeConfig
 from mapper.training.point_head import Captured, DistillConfig, distill_loss, main, student_config, train_head
-from tests.mapper.test_runtime import TINY, FakeEncoder, keyframe, orbit
+from tests.mapper.runtime.test_model_runtime import TINY, FakeEncoder, keyframe, orbit
 from tests.model_helpers import tiny_model_config
 
 F_DIM, V_DIM = TINY.encoder.feature_dim, TINY.volume.volume_feature_dim
@@ -216,7 +216,7 @@ def test_runtime_loads_auto_explicit_and_refuses_a_foreign_head(tmp_path: Path) 
 
 
 def test_the_shipped_head_belongs_to_the_shipped_checkpoint() -> None:
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     meta = json.loads((root / "checkpoints" / "cpu-small-point-head.json").read_text())
     teacher = load_metadata(root / "checkpoints" / "cpu-small.json")
     assert meta["teacher_weights_sha256"] == teacher["weights_sha256"]

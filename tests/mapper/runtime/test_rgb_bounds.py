@@ -14,7 +14,7 @@ from mapper.node.config import WindowConfig
 from mapper.node.workers.triangulation import keyframe_key
 from mapper.runtime.density import density_occupancy, free_space, occupancy_grid
 from mapper.runtime.model_runtime import ModelRuntime
-from tests.mapper.test_runtime import TINY, keyframe, make_runtime, orbit
+from tests.mapper.runtime.test_model_runtime import TINY, keyframe, make_runtime, orbit
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,7 @@
 features for keyframes without ov (window swap seen by the learned runtime, global map features
 without extra geometry), missing weights, frames with ov, queue bound, stale keyframes after a load.
 
-Uses the tiny random CLIP that tests/mapper/test_clip_backend.py builds, saved to tmp_path."""
+Uses the tiny random CLIP that tests/mapper/ov/test_clip_backend.py builds, saved to tmp_path."""
 
 from __future__ import annotations
 
@@ -42,8 +42,8 @@ from protocol.messages import (
     decode,
     encode,
 )
-from tests.mapper.test_clip_backend import EMBED, T_HEADS, tiny_clip_state_dict, write_bpe
-from tests.mapper.test_runtime import keyframe, orbit
+from tests.mapper.ov.test_clip_backend import EMBED, T_HEADS, tiny_clip_state_dict, write_bpe
+from tests.mapper.runtime.test_model_runtime import keyframe, orbit
 from tests.model_helpers import tiny_model_config
 
 SPACE = "openclip:tiny-test"

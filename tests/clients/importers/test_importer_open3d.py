@@ -15,7 +15,7 @@ import pytest
 
 from clients.importers import ImporterError, ReaderOptions, convert, open_dataset
 from clients.importers.base import world_from_dataset
-from tests.clients.test_importers import (
+from tests.clients.importers.test_importers import (
     K_DATASET,
     POSES,
     H,
@@ -31,7 +31,7 @@ from tests.clients.test_importers import (
     write_png,
 )
 
-ICL = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "icl_livingroom1"
+ICL = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "icl_livingroom1"
 ICL_K = "525,525,319.5,239.5"
 
 

@@ -162,8 +162,8 @@ def _plugin_run(tmp_path, consistency: bool, sparse=None):
     from mapper.node.config import config_from_dict
     from mapper.node.service import MapperNode
     from protocol.messages import encode
-    from tests.mapper.test_depth_points import _frame, _install
-    from tests.mapper.test_runtime import TINY
+    from tests.mapper.node.workers.test_depth_points import _frame, _install
+    from tests.mapper.runtime.test_model_runtime import TINY
 
     torch.manual_seed(0)
     model = GovNeSF(TINY).eval()

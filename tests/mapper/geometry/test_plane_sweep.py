@@ -25,7 +25,7 @@ from mapper.node.config import ConfigError, config_from_dict
 from mapper.node.service import MapperNode
 from mapper.node.workers.triangulation import SparseTriangulation, keyframe_key
 from protocol.messages import Frame, encode
-from tests.mapper.test_triangulation import PLANE_Z, H, K, W, make_texture, plane_depth, render_plane
+from tests.mapper.geometry.test_triangulation import PLANE_Z, H, K, W, make_texture, plane_depth, render_plane
 
 # the textured plane z = 3 m of the triangulation tests: same camera, texture and renderer
 

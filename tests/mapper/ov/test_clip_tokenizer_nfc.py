@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from mapper.ov.clip_tokenizer import ClipTokenizer, clean_text
-from tests.mapper.test_clip_backend import write_bpe
+from tests.mapper.ov.test_clip_backend import write_bpe
 
 DECOMPOSED = "cafe\u0301"  # 'e' + COMBINING ACUTE ACCENT
 COMPOSED = "caf\u00e9"  # 'é' as one code point

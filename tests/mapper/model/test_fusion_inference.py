@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from mapper.model.config import FusionConfig, get_preset
 from mapper.model.fusion import FusionNet, FusionOutputs
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def _net(cfg: FusionConfig, feature_dim: int, volume_dim: int, seed: int) -> FusionNet:

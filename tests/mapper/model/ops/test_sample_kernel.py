@@ -13,8 +13,8 @@ from mapper.model.field import GovNeSF, PointViewSamples
 from mapper.model.ops import sample_kernel
 from mapper.model.ops.cost_volume import sample_volume
 from mapper.runtime.views import all_views
-from tests.mapper.test_blend_from_maps import _runtime_with_six_keyframes
-from tests.mapper.test_runtime import TINY
+from tests.mapper.model.test_blend_from_maps import _runtime_with_six_keyframes
+from tests.mapper.runtime.test_model_runtime import TINY
 
 
 def _points(n: int, seed: int) -> torch.Tensor:
@@ -152,7 +152,7 @@ def test_node_warms_the_point_kernels(tmp_path: Path) -> None:
     from mapper.node.backends.learned import install_learned_backend
     from mapper.node.config import config_from_dict
     from mapper.node.service import MapperNode
-    from tests.mapper.test_runtime import make_runtime
+    from tests.mapper.runtime.test_model_runtime import make_runtime
 
     cfg = config_from_dict({"map_dir": str(tmp_path), "autosave_name": "", "save_on_exit": False})
     node = MapperNode(cfg)

@@ -295,7 +295,7 @@ def test_distill_head_sizes_reach_the_model_config() -> None:
 
 
 def test_launch_configs_load() -> None:
-    root = Path(__file__).resolve().parents[2] / "launch"
+    root = Path(__file__).resolve().parents[3] / "launch"
     names = ("train_cpu_small.toml", "train_cpu_small_geo.toml", "train_cpu_small_paper_loss.toml",
              "train_cpu_small_distill.toml", "train_cpu_small_real.toml",
              "train_cpu_small_finetune_real.toml", "train_cpu_small_finetune_los.toml", "train_paper.toml")

@@ -356,7 +356,7 @@ def test_bad_requests_are_refused_with_the_value_and_range(model: GovNeSF) -> No
 
 
 @pytest.mark.skipif(
-    not (Path(__file__).resolve().parents[2] / "checkpoints" / "cpu-small.json").exists(),
+    not (Path(__file__).resolve().parents[3] / "checkpoints" / "cpu-small.json").exists(),
     reason="no trained checkpoint in checkpoints/",
 )
 def test_default_checkpoint_loads_and_serves_a_tiny_render() -> None:

@@ -21,9 +21,9 @@ from mapper.node.queries import SOURCE_MAP, SOURCE_WINDOW
 from mapper.node.service import MapperNode
 from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
 from protocol.messages import Frame, Load, Ok, Save, Segmentation, SegmentPoints, decode, encode
-from tests.mapper.test_whole_map import SPACE as WHOLE_MAP_SPACE
-from tests.mapper.test_whole_map import D, OneHotEncoder
-from tests.mapper.test_whole_map import _stream as stream_keyframes
+from tests.mapper.node.answers.test_whole_map import SPACE as WHOLE_MAP_SPACE
+from tests.mapper.node.answers.test_whole_map import D, OneHotEncoder
+from tests.mapper.node.answers.test_whole_map import _stream as stream_keyframes
 
 SPACE = WHOLE_MAP_SPACE
 W, H = 96, 72  # the averaging leaves out a 10 px border

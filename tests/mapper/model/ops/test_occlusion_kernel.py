@@ -90,7 +90,7 @@ def test_the_runtimes_torch_depth_test_equals_the_kernel() -> None:
     """``mapper.runtime.views.depth_agrees`` (the path off the CPU kernels, e.g. CUDA) and the kernel
     agree."""
     from mapper.model.field import GovNeSF
-    from tests.mapper.test_runtime import TINY, make_runtime
+    from tests.mapper.runtime.test_model_runtime import TINY, make_runtime
 
     pts, K, poses = _scene(5)
     pts = pts.astype(np.float32)

@@ -23,7 +23,7 @@ from mapper.node.service import MapperNode
 from mapper.node.workers.depth_points import RenderedDepthPoints, render_keyframe_depth
 from mapper.runtime.model_runtime import ModelRuntimeConfig
 from protocol.messages import Frame, Status, StatusRequest, decode, encode
-from tests.mapper.test_runtime import TINY, keyframe, make_runtime, orbit
+from tests.mapper.runtime.test_model_runtime import TINY, keyframe, make_runtime, orbit
 from tests.model_helpers import look_at
 
 

@@ -13,7 +13,7 @@ from mapper.model.checkpoint import save_checkpoint
 from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
 from mapper.training import evaluate as ev
 from mapper.training.eval_node import NODE_ROWS
-from tests.mapper.test_evaluate import D, make_scene, text_embeddings, tiny_model
+from tests.mapper.training.test_evaluate import D, make_scene, text_embeddings, tiny_model
 
 SPACE = "test-onehot-8"
 

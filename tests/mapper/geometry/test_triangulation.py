@@ -36,7 +36,7 @@ from mapper.node.workers import triangulation as triangulation_plugin
 from mapper.node.workers.triangulation import SparseTriangulation, keyframe_key
 from protocol.messages import Frame, Load, Ok, Save, Status, StatusRequest, decode, encode
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 K = np.array([100.0, 100.0, 80.0, 60.0])
 W, H = 160, 120
 

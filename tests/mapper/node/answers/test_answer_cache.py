@@ -15,7 +15,7 @@ import pytest
 from mapper.node.queries import AnswerCache, answer_key
 from mapper.node.service import MapperNode
 from protocol.messages import Load, Ok, Points, QueryPoints, Save, decode, encode
-from tests.mapper.test_label_cache import HashEncoder, keyframe
+from tests.mapper.node.test_label_cache import HashEncoder, keyframe
 from tests.node_helpers import in_process_node
 
 

@@ -22,7 +22,7 @@ from safetensors.torch import load_file
 
 from mapper.ov.clip import ClipBackendConfig, ClipDenseBackend
 
-DATA = Path(__file__).resolve().parents[1] / "data"
+DATA = Path(__file__).resolve().parents[2] / "data"
 WEIGHTS = DATA / "clip_golden.safetensors"
 REF = DATA / "clip_golden_ref.safetensors"
 BPE = DATA / "clip_golden_bpe.txt.gz"

@@ -12,9 +12,9 @@ import torch
 from mapper.model.config import FusionConfig, get_preset
 from mapper.model.fusion import FusionNet
 from mapper.model.ops import fusion_kernel
-from tests.mapper.test_fusion_fast import _inputs, _net, _ranges
+from tests.mapper.model.test_fusion_inference import _inputs, _net, _ranges
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[4]
 SMALL = get_preset("cpu-small")
 HEAD = FusionConfig(hidden_dim=8, attention_dim=4, num_heads=1, ov_dim=384)  # the shipped point head's sizes
 

@@ -14,8 +14,8 @@ from mapper.model.fusion import FusionNet
 from mapper.model.ops import answer_kernel
 from mapper.model.ops.cost_volume import sample_volume
 from mapper.runtime import points as point_answers
-from tests.mapper.test_runtime import TEXT_EMB
-from tests.mapper.test_sample_kernel import _points, _window
+from tests.mapper.model.ops.test_sample_kernel import _points, _window
+from tests.mapper.runtime.test_model_runtime import TEXT_EMB
 
 
 def _problem(use_depth: bool, n_slots: int = 5, seed: int = 1):  # -> (model, runtime, prep, views, args)

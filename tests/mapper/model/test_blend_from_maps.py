@@ -15,7 +15,7 @@ from mapper.model.ops.cost_volume import sample_volume
 from mapper.model.ops.geometry import bilinear_corners, sample_bilinear
 from mapper.node.config import WindowConfig
 from mapper.runtime.views import source_views
-from tests.mapper.test_runtime import TINY, keyframe, make_runtime, orbit
+from tests.mapper.runtime.test_model_runtime import TINY, keyframe, make_runtime, orbit
 
 
 def _maps(m: int, c: int, h: int, w: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
