@@ -63,6 +63,7 @@ from mapper.geometry.splat import (
     splat_scale,
     upsample_nearest,
 )
+from mapper.map.evicted_views import EvictedViewStore
 from mapper.map.global_map import GlobalMapSnapshot
 from mapper.node.config import QueryConfig
 from mapper.ov.encoders import TextEncoder
@@ -78,6 +79,7 @@ __all__ = [
     "Cluster",
     "SOURCE_MAP",
     "SOURCE_NONE",
+    "evicted_view_cosines",
     "SOURCE_WINDOW",
     "best_text",
     "blend_with_map",
@@ -885,6 +887,7 @@ def fill_from_map(
     window_cos: np.ndarray | None = None,  # (N, T) float32 the window's cosines (rows where seen)
     blend: float = 0.0,
     nearest: np.ndarray | None = None,  # (N,) int64 snapshot.nearest_with_feature(xyz, radius_m), if known
+    map_cos: tuple[np.ndarray, np.ndarray] | None = None,  # ((N, T) float32 cosines, (N,) bool where given)
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Answer the points the window did not from the map: (label (N,) int32, score (N,) float32,
     source (N,) uint8). A point the window saw keeps the window's answer (``SOURCE_WINDOW``); an
@@ -897,7 +900,9 @@ def fill_from_map(
     that left the window saw it better than the ones in it; where both name the same text the
     window's answer stays); else the window's. A map whose feature dimension is not the texts'
     answers nothing. ``nearest``: every point's nearest map row, when the caller looked it up
-    already."""
+    already. ``map_cos``: the map's cosines for some points, used instead of their nearest map
+    row's fused feature where that row exists (:func:`evicted_view_cosines`: the views of the
+    keyframes that left the window, at the row's voxel)."""
     label = np.array(label, np.int32, copy=True)
     score = np.array(score, np.float32, copy=True)
     seen = np.asarray(window_seen, bool)
@@ -921,6 +926,10 @@ def fill_from_map(
     if hit.any():
         sims = _map_similarities(snapshot, rows[hit], text_emb)  # (n, T)
         idx = todo[hit]
+        if map_cos is not None:
+            given = np.asarray(map_cos[1], bool)[idx]
+            sims = np.array(sims, np.float32, copy=True)
+            sims[given] = np.asarray(map_cos[0], np.float32)[idx[given]]
         if blending:
             assert window_cos is not None
             both = seen[idx]
@@ -939,6 +948,43 @@ def fill_from_map(
         score[idx] = best_score[take]
         source[idx] = SOURCE_MAP
     return label, score, source
+
+
+def evicted_view_cosines(
+    store: EvictedViewStore,
+    snapshot: GlobalMapSnapshot,
+    nearest: np.ndarray,  # (N,) int64 each point's nearest map row with a feature (-1: none)
+    text_emb: np.ndarray,  # (T, D) float32 unit rows
+    min_views: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The map's answer at each point's nearest voxel from the views of the keyframes that left
+    the window (``queries.evicted_views``, :mod:`mapper.map.evicted_views`): cosines (N, T) float32
+    of the mean view sample with the texts, and (N,) bool where the voxel has at least
+    ``min_views`` such views: of the ``depth`` channel (views whose depth confirms the voxel) where
+    it has, else of ``all``. That mean is the averaging over those views at the voxel, the same
+    estimate the window makes from its own views; the fused feature instead averages only the
+    depth pixels that fell inside the voxel (at 160x120 and ``pixel_stride`` 2, a handful of
+    views). None when the store has nothing for these points."""
+    if snapshot.keys is None or len(store) == 0 or store.dim != text_emb.shape[1]:
+        return None
+    nearest = np.asarray(nearest, np.int64)
+    hit = nearest >= 0
+    if not hit.any():
+        return None
+    keys = snapshot.keys[nearest[hit]]
+    cos = np.zeros((nearest.shape[0], text_emb.shape[0]), np.float32)
+    given = np.zeros(nearest.shape[0], bool)
+    at = np.flatnonzero(hit)
+    for channel in ("depth", "all"):
+        means, counts = store.lookup(keys, channel)
+        take = (counts >= min_views) & ~given[at]
+        if not take.any():
+            continue
+        m = means[take]
+        m /= np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-12)
+        cos[at[take]] = m @ np.asarray(text_emb, np.float32).T
+        given[at[take]] = True
+    return (cos, given) if given.any() else None
 
 
 def blend_with_map(

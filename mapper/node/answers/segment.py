@@ -61,15 +61,23 @@ def answer_from_map(
     """Fill the points the window did not answer from the global map's snapshot (nearest point
     with a feature within ``queries.map_radius_voxels`` voxels) and, with ``window_cos``, blend
     the two where both answer (``queries.map_blend``): (label, score, source (N,) uint8), see
-    :func:`mapper.node.queries.fill_from_map`."""
-    from mapper.node.queries import fill_from_map
+    :func:`mapper.node.queries.fill_from_map`. Where the nearest voxel holds views of keyframes
+    that left the window (``queries.evicted_views``), the map answers with their average there
+    (:func:`mapper.node.queries.evicted_view_cosines`) instead of the voxel's fused feature."""
+    from mapper.node.queries import evicted_view_cosines, fill_from_map
 
+    gmap = ctx.state.global_map
     if snap is None:
-        snap = ctx.state.global_map.snapshot()
+        snap = gmap.snapshot()
+    map_cos = None
+    if len(gmap.evicted) and ctx.map_radius_m > 0:  # the evicted views' answer at the map's voxels
+        if nearest is None:
+            nearest = snap.nearest_with_feature(xyz, ctx.map_radius_m)
+        map_cos = evicted_view_cosines(gmap.evicted, snap, nearest, text_emb)
     return fill_from_map(snap, xyz, text_emb, label, score, window_seen, ctx.map_radius_m,
                          more_confident=ctx.config.queries.map_when_more_confident,
                          window_cos=window_cos, blend=ctx.map_blend(depth_tested=depth_tested),
-                         nearest=nearest)
+                         nearest=nearest, map_cos=map_cos)
 
 
 class SegmentAnswers:

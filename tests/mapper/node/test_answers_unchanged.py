@@ -1,5 +1,6 @@
 """Answers and renders of the node on a recorded stream equal those stored in
-``tests/data/node_answers_golden.npz``, made by the code before the node was split by request
+``tests/data/node_answers_golden.npz`` (made by the code before the node was split by request;
+made again when the map began answering from the evicted views at a voxel)
 (:mod:`tests.mapper.node.answers_golden` says how). Labels, sources and geometry exactly; scores
 within 1e-4 (the text encoder's float32 sums differ in the last bits between runs)."""
 
