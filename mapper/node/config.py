@@ -200,12 +200,14 @@ class QueryConfig:
     """Keyframes that left the window and wait for the ``evicted_views`` worker; beyond this the
     oldest waiting is dropped (counted in status ``evicted_views.dropped``). 1..100000."""
 
-    learned_fallback: bool = True
-    """Do no harm: while the window's keyframes mostly lack input depth and the node's geometry work
-    (integration, triangulation and stereo, rendered-depth points) is pending, ``segment_points``
-    with ``govnesf`` is answered by averaging (``average``, or ``average_depth`` with ``use_depth``),
-    and the reply's ``fallback`` says so per point: the learned model's volume follows that geometry,
-    and asked before it settled it answered far below averaging. False = always the learned model."""
+    learned_fallback: str = "geometry"
+    """Do no harm: when ``segment_points`` with ``govnesf`` is answered by averaging instead
+    (``average``, or ``average_depth`` with ``use_depth``; the reply's ``fallback`` says so per
+    point). ``"geometry"``: while the window's keyframes mostly lack input depth and the node's
+    geometry work (integration, triangulation and stereo, rendered-depth points) is pending: the
+    learned model's volume follows that geometry, and asked before it settled it answered far below
+    averaging. ``"pending"``: also while any other background work is pending (the learned features
+    written into the map, integration with depth). ``"off"``: always the learned model."""
 
     max_settle_wait_s: float = 30.0
     """The longest a request's ``settle_timeout_s`` may make it wait for the node's background work
@@ -236,6 +238,9 @@ class QueryConfig:
         _check_range(where, "queries.light_text_chars", self.light_text_chars, 0, 1_000_000)
         _check_range(where, "queries.max_objects", self.max_objects, 1, 10_000)
         _check_range(where, "queries.max_settle_wait_s", self.max_settle_wait_s, 0.0, 600.0)
+        if self.learned_fallback not in ("off", "geometry", "pending"):
+            raise ConfigError(f"{where}: queries.learned_fallback = {self.learned_fallback!r}: must be "
+                              "one of 'off', 'geometry', 'pending'")
 
 
 @dataclass(frozen=True)

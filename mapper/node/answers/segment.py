@@ -147,9 +147,7 @@ class SegmentAnswers:
         a backend that falls back to it (the learned one) while an RGB-only window's geometry is
         pending; and whether it fell back. Averaging that cannot answer (e.g. no depth test
         possible) leaves the answer to the backend."""
-        ctx = self.ctx
-        if (getattr(backend, "fallback_to_averaging", False) and ctx.config.queries.learned_fallback
-                and not ctx.window_has_depth() and ctx.geometry_pending() > 0):
+        if getattr(backend, "fallback_to_averaging", False) and self._learned_not_ready():
             averaging = self.backends["average_depth" if depth_tested else "average"]
             try:
                 window = averaging.segment(msg, want_cos)
@@ -158,6 +156,16 @@ class SegmentAnswers:
             window.timing_ms["fallback"] = 1.0
             return window, True
         return backend.segment(msg, want_cos), False
+
+    def _learned_not_ready(self) -> bool:
+        """``queries.learned_fallback``: "geometry": an RGB-only window's geometry work is pending;
+        "pending": that, or any background work; "off": never."""
+        mode, ctx = self.ctx.config.queries.learned_fallback, self.ctx
+        if mode == "off":
+            return False
+        if not ctx.window_has_depth() and ctx.geometry_pending() > 0:
+            return True
+        return mode == "pending" and not ctx.settled()
 
     def _text_emb(self, msg: SegmentPoints) -> np.ndarray | None:
         """(T, D) unit text embeddings in the map's space, or None when the node has no encoder."""

@@ -156,7 +156,7 @@ def test_learned_falls_back_to_averaging_while_rgb_only_geometry_is_pending(
 
 
 def test_the_fallback_can_be_turned_off(tmp_path: Path) -> None:
-    node = in_process_node(tmp_path, global_map={"integrate_queue": 0}, queries={"learned_fallback": False})
+    node = in_process_node(tmp_path, global_map={"integrate_queue": 0}, queries={"learned_fallback": "off"})
     for seq in range(0, 20, 2):
         frame = synthetic_frame(seq, 20, 64, 48)
         frame.depth_m = None
@@ -165,3 +165,19 @@ def test_the_fallback_can_be_turned_off(tmp_path: Path) -> None:
     node.ctx.register_pending("triangulation", Pending(2), geometry=True)
     reply = _ask(node, SegmentPoints(xyz=np.zeros((3, 3), np.float32), texts=TEXTS, method="govnesf"))
     assert isinstance(reply, Segmentation) and reply.fallback is not None and not reply.fallback.any()
+
+
+def test_the_pending_fallback_also_covers_windows_with_depth(tmp_path: Path) -> None:
+    node = in_process_node(tmp_path, global_map={"integrate_queue": 0},
+                           queries={"learned_fallback": "pending"})
+    for seq in range(0, 20, 2):
+        node.handle_ingest(encode(synthetic_frame(seq, 20, 64, 48)))
+    node.segment.register("govnesf", LearnedBackend(ConstantRuntime()))
+    features = Pending(1)
+    node.ctx.register_pending("map_features", features)  # not geometry: "geometry" would not fall back
+    xyz = _points(node)
+    early = _ask(node, SegmentPoints(xyz=xyz, texts=TEXTS, method="govnesf"))
+    assert isinstance(early, Segmentation) and early.fallback is not None and early.fallback.all()
+    features.n = 0
+    settled = _ask(node, SegmentPoints(xyz=xyz, texts=TEXTS, method="govnesf"))
+    assert isinstance(settled, Segmentation) and settled.fallback is not None and not settled.fallback.any()
