@@ -1,14 +1,14 @@
-"""Pose refinement against triangulated points (mapper.geometry.pose_refine): exact, robust, and left alone."""
+"""Pose refinement against triangulated points (mapper.geometry.pose_refine): exact, robust, left alone."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from mapper.errors import ConfigError
 from mapper.geometry.config import TriangulationConfig
 from mapper.geometry.pose_refine import perturbed, pose_change, refine_pose
 from mapper.geometry.triangulation import project
-from mapper.errors import ConfigError
 
 K = np.array([115.0, 115.0, 80.0, 60.0])  # 160 x 120, about 70 degrees wide
 
