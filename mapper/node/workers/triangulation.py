@@ -20,6 +20,11 @@ multi-view checks, an uncertainty per point) and uses the points three ways:
   features (a sparse depth map through the map's public ``integrate``), at
   ``global_map_weight`` times a confidence that falls with the uncertainty.
 
+With ``triangulation.refine_poses`` the keyframe's pose is first refined against the points its
+partners triangulated (:mod:`mapper.node.workers.pose_refinement`); its triangulation, sweep, map
+points and priors then use the refined pose, and later keyframes take it as a partner at that pose
+(the window, the ack and a saved map keep the pose as sent; ``status``: ``triangulation.poses``).
+
 Then **plane-sweep stereo** (``[stereo]``, :mod:`mapper.geometry.plane_sweep`): the keyframe is swept
 against the best ``stereo.max_sources`` of the same partners (at most ``stereo.max_width`` wide,
 depth range from its triangulated points); depths that a partner's own depth confirms join the
