@@ -25,6 +25,10 @@ Reported per run (``--json`` writes them all):
   points (``map_miou_*``: what a robot asks about; each scored against the nearest ground-truth
   sample within 0.1 m, the rest left in the request and not scored);
 * "find the chair": the top object's distance to the nearest real chair;
+* with ``--pose-noise T_M,R_DEG`` the frames carry poses with that per-frame error (1 sigma per
+  axis, :func:`clients.sim.sensor.noisy_poses`; the ground truth keeps the true ones): the keyframes'
+  median pose error as sent and as the triangulation worker used them (refined where
+  ``triangulation.refine_poses`` refined them), and the worker's ``poses`` status;
 * the global map's points: their distance to the true surface (median, p90);
 * with ``rgb+tri+stereo``, plane-sweep stereo (:mod:`mapper.geometry.plane_sweep`) on top of the
   triangulation: depths kept per keyframe, cost per keyframe, points added to the global map;
@@ -42,6 +46,8 @@ Usage::
     python benchmarks/studies/rgb_only.py --seed 3 --style apartment            # the demo room
     python benchmarks/studies/rgb_only.py --seed 9 --style studio               # 7.8 x 6.7 m, held-out style
     python benchmarks/studies/rgb_only.py --modes rgb+tri --frames 120          # one run, shorter
+    python benchmarks/studies/rgb_only.py --modes rgb+tri+stereo --frames 96 --pose-noise 0.02,1.0 \
+        --set triangulation.refine_poses=true                                   # odometry error, refined
 """
 
 from __future__ import annotations
@@ -62,7 +68,9 @@ from scipy.spatial import cKDTree
 from clients.harness import chair_distance, mean_iou, sim_stream
 from clients.sim.export import count_views, novel_view_poses
 from clients.sim.scenes import CLASS_NAMES, LABEL_OF
+from clients.sim.sensor import noisy_poses
 from mapper.errors import ConfigError
+from mapper.geometry.pose_refine import pose_change
 from mapper.node.config import config_from_dict
 from mapper.node.queries import map_surface_depth
 from mapper.node.serve import install_serve_stages
@@ -128,8 +136,12 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
     surface, _, _ = scene.sample_surface(args.gt_samples * 4, seed=args.seed + 1)
     gt_views = np.zeros(len(gt_xyz), np.int32)
     ack_s = worker_tri_s = worker_depth_s = 0.0
+    sent_poses = (noisy_poses(stream.poses, args.pose_noise[0], args.pose_noise[1], seed=args.seed)
+                  if args.pose_noise else None)
     for k, (frame, view) in enumerate(stream.frames()):
         count_views(gt_xyz, stream.K, stream.poses[k], view.depth_m, gt_views)
+        if sent_poses is not None:  # odometry's error: the node gets these, the ground truth stays
+            frame = dataclasses.replace(frame, world_from_cam=sent_poses[k].copy())
         data = encode(frame)
         t0 = time.perf_counter()
         node.handle_ingest(data)
@@ -160,6 +172,8 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
             "tri_median_sigma_m": float(np.median(sigma)) if len(sigma) else None,
             "tri_global_map_points": stats["global_map_points"],
         })
+        if sent_poses is not None:
+            row.update(_pose_errors(node, tri, stream.poses))
         if stereo:
             st = stats["stereo"]
             row.update({
@@ -259,6 +273,29 @@ def run(args: argparse.Namespace, mode: str) -> dict[str, Any]:
     return row
 
 
+def _pose_errors(node: MapperNode, tri: Any, truth: np.ndarray) -> dict[str, Any]:
+    """The RGB-only keyframes' pose errors against ``truth`` (by seq): as sent, and as the
+    triangulation worker used them (refined or as sent); medians in cm and degrees."""
+    refined = tri.poses.refined()
+    sent_err, used_err = [], []
+    for kf in node.state.window.keyframes:
+        if kf.depth_m is not None:
+            continue
+        key = (str(kf.camera), int(kf.seq), int(kf.stamp_ns))
+        sent_err.append(pose_change(truth[kf.seq], kf.world_from_cam))
+        used_err.append(pose_change(truth[kf.seq], refined.get(key, kf.world_from_cam)))
+    s, u = np.array(sent_err).reshape(-1, 2), np.array(used_err).reshape(-1, 2)
+    poses = tri.stats()["poses"]
+    return {
+        "pose_keyframes": len(s), "pose_refined": poses["refined"],
+        "pose_sent_median_cm": 100 * float(np.median(s[:, 0])),
+        "pose_sent_median_deg": float(np.median(s[:, 1])),
+        "pose_used_median_cm": 100 * float(np.median(u[:, 0])),
+        "pose_used_median_deg": float(np.median(u[:, 1])),
+        "pose_move_median_cm": poses["median_translation_cm"], "pose_kept": poses["kept_as_sent"],
+    }
+
+
 def parse_overrides(items: list[str]) -> list[tuple[str, str, Any]]:
     """``SECTION.KEY=VALUE`` items (TOML values: 0, 0.5, true, "text") -> (section, key, value),
     each checked against the node config; a bad one exits with a message before any work."""
@@ -303,6 +340,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--process-every", type=int, default=10, help="frames between worker passes")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json", type=Path, default=None, help="also write the rows as JSON")
+    p.add_argument("--pose-noise", default="", metavar="T_M,R_DEG",
+                   help="per-frame pose error sent to the node (1 sigma per axis), e.g. 0.02,1.0")
     p.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE",
                    help="node config overrides, e.g. stereo.prior_fill_px=16")
     args = p.parse_args(argv)
@@ -310,6 +349,9 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         raise SystemExit(f"--modes: unknown {unknown}; choose from {', '.join(MODES)}")
     args.overrides = parse_overrides(args.set)
+    args.pose_noise = tuple(float(v) for v in args.pose_noise.split(",")) if args.pose_noise else ()
+    if args.pose_noise and len(args.pose_noise) != 2:
+        raise SystemExit("--pose-noise: expected T_M,R_DEG, e.g. 0.02,1.0")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     torch.set_num_threads(args.threads)
     rows = []

@@ -8,7 +8,7 @@ docs/how-to/scenario-matrix.md).
 * :func:`apply_exposure`: an image times a gain, clipped to 8 bits;
 * :func:`perturb_poses`: the poses a robot's odometry would report: per-frame noise
   (``noise_1cm`` / ``noise_3cm``) or a slow random-walk drift (``drift``). The node receives the
-  perturbed poses; ground truth stays with the true ones.
+  perturbed poses; ground truth stays with the true ones. :func:`noisy_poses`: the same at any level.
 
 JPEG is the wire's own ``rgb_encoding="jpeg"`` (:mod:`protocol.arrays`, quality 90).
 
@@ -64,11 +64,21 @@ def perturb_poses(poses: np.ndarray, kind: str, seed: int) -> np.ndarray:
     if kind == "exact":
         return poses.copy()
     t_std, r_std = POSE_ERRORS[kind]
+    return noisy_poses(poses, t_std, r_std, seed, drift=kind == "drift")
+
+
+def noisy_poses(
+    poses: np.ndarray, t_std_m: float, r_std_deg: float, seed: int, drift: bool = False
+) -> np.ndarray:
+    """Poses (F, 4, 4) with per-frame independent errors of ``t_std_m`` metres and ``r_std_deg``
+    degrees (1 sigma per axis; the rotation about the camera centre, in the world frame), or with a
+    random walk of such steps (``drift``). :func:`perturb_poses` with a level of its own."""
+    poses = np.asarray(poses, np.float64)
     rng = np.random.default_rng([seed, 41])
     n = len(poses)
-    dt = rng.normal(0.0, t_std, (n, 3))
-    dr = rng.normal(0.0, math.radians(r_std), (n, 3))
-    if kind == "drift":  # a random walk starting at the exact first pose
+    dt = rng.normal(0.0, t_std_m, (n, 3))
+    dr = rng.normal(0.0, math.radians(r_std_deg), (n, 3))
+    if drift:  # a random walk starting at the exact first pose
         dt[0] = dr[0] = 0.0
         dt, dr = np.cumsum(dt, axis=0), np.cumsum(dr, axis=0)
     out = poses.copy()

@@ -142,6 +142,36 @@ class TriangulationConfig:
     depth where discs overlap); pixels without a point stay 0 (no masking there). 0 = no prior.
     0..16."""
 
+    refine_poses: bool = False
+    """Refine each RGB-only keyframe's pose against the points earlier keyframes triangulated
+    (:mod:`mapper.geometry.pose_refine`: robust PnP with the pose as sent as a prior) before its own
+    triangulation and stereo; later keyframes use the refined pose too. The window, the ack and the
+    saved map keep the pose as sent. Off by default: docs/concepts/rgb-only.md has the measurement."""
+
+    pose_prior_m: float = 0.02
+    """Expected odometry error of a keyframe's camera centre, per axis (metres, 1 sigma): the
+    prior's weight and, times ``pose_max_sigmas``, the largest accepted move. 1e-4..10."""
+
+    pose_prior_deg: float = 1.0
+    """Expected odometry error of a keyframe's orientation, per axis (degrees, 1 sigma). 0.01..45."""
+
+    pose_min_inliers: int = 12
+    """Fewest 2D-3D correspondences a refinement must explain (within ``pose_ransac_px``) to be
+    kept; fewer leave the pose as sent. 4..100000."""
+
+    pose_ransac_px: float = 4.0
+    """Reprojection error (pixels) within which a correspondence is an inlier. 0.1..100."""
+
+    pose_huber_px: float = 1.5
+    """Reprojection errors beyond this (pixels) weigh linearly, not quadratically. 0.01..100."""
+
+    pose_min_gain: float = 0.2
+    """The inliers' median reprojection error must drop by at least this share. 0..1."""
+
+    pose_max_sigmas: float = 3.0
+    """A refinement moving the pose more than this many prior sigmas (of the 3-axis norm) is
+    rejected. 0.1..100."""
+
     def validate(self, where: str) -> None:
         """Raise :class:`ConfigError` naming ``where``, the key, the value and the allowed range."""
 
@@ -192,6 +222,13 @@ class TriangulationConfig:
         check("bounds_min_points", self.bounds_min_points, 1, 100_000)
         check("bounds_depth_quantile", self.bounds_depth_quantile, 0.5, 1.0)
         check("depth_prior_radius_px", self.depth_prior_radius_px, 0, 16)
+        check("pose_prior_m", self.pose_prior_m, 1e-4, 10.0)
+        check("pose_prior_deg", self.pose_prior_deg, 0.01, 45.0)
+        check("pose_min_inliers", self.pose_min_inliers, 4, 100_000)
+        check("pose_ransac_px", self.pose_ransac_px, 0.1, 100.0)
+        check("pose_huber_px", self.pose_huber_px, 0.01, 100.0)
+        check("pose_min_gain", self.pose_min_gain, 0.0, 1.0)
+        check("pose_max_sigmas", self.pose_max_sigmas, 0.1, 100.0)
 
 
 @dataclass(frozen=True)

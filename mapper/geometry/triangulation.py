@@ -138,6 +138,8 @@ class SparsePoints:
     """Partner views matched."""
     matches: int = 0
     """Correspondences that passed the ratio and epipolar tests, summed over the partners."""
+    feature_index: np.ndarray | None = None
+    """(N,) int64 the points' keypoints in the keyframe's :class:`Features` (None: not known)."""
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -146,7 +148,7 @@ class SparsePoints:
     def empty(partners: int = 0, matches: int = 0) -> SparsePoints:
         z = np.zeros(0, np.float64)
         return SparsePoints(np.zeros((0, 3)), z, z, z, np.zeros(0, np.int32), np.zeros((0, 2)), z,
-                            partners, matches)
+                            partners, matches, np.zeros(0, np.int64))
 
 
 # -- camera maths --------------------------------------------------------------------------------
@@ -365,15 +367,17 @@ def select_partners(
 
 def match_pair(
     extractor: FeatureExtractor, a: PosedView, fa: Features, b: PosedView, fb: Features,
-    config: TriangulationConfig,
+    config: TriangulationConfig, pairs: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(M, 2) int64 ``(i_a, i_b)``: descriptor matches (mutual, ratio test) consistent with the
-    poses' epipolar geometry (both points within ``max_epipolar_px`` of their epipolar lines).
-    None when the camera centres coincide (no epipolar geometry)."""
+    """(M, 2) int64 ``(i_a, i_b)``: descriptor matches (mutual, ratio test; ``pairs`` when they
+    were matched already) consistent with the poses' epipolar geometry (both points within
+    ``max_epipolar_px`` of their epipolar lines). Empty when the camera centres coincide (no
+    epipolar geometry)."""
     F = fundamental_from_poses(a, b)
     if not np.any(F):
         return np.zeros((0, 2), np.int64)
-    pairs = extractor.match(fa, fb)
+    if pairs is None:
+        pairs = extractor.match(fa, fb)
     if not len(pairs):
         return pairs
     dist = _epipolar_distance(F, fa.uv[pairs[:, 0]], fb.uv[pairs[:, 1]])
@@ -436,12 +440,16 @@ def triangulate_keyframe(
     new_features: Features,
     partners: Sequence[tuple[PosedView, Features]],
     config: TriangulationConfig,
+    matched: Sequence[np.ndarray] | None = None,
 ) -> SparsePoints:
-    """Match ``new`` against each partner, triangulate, and fuse the estimates per keypoint."""
+    """Match ``new`` against each partner, triangulate, and fuse the estimates per keypoint.
+    ``matched``: the descriptor matches with each partner when they were found already
+    (:meth:`FeatureExtractor.match`; the epipolar check is still applied)."""
     rows: list[np.ndarray] = []  # per estimate: keypoint, x, y, z, sigma, parallax, reproj, partner
     matches = 0
     for p, (view, feats) in enumerate(partners):
-        pairs = match_pair(extractor, new, new_features, view, feats, config)
+        pairs = match_pair(extractor, new, new_features, view, feats, config,
+                           None if matched is None else matched[p])
         matches += len(pairs)
         if not len(pairs):
             continue
@@ -482,6 +490,7 @@ def triangulate_keyframe(
     return SparsePoints(
         xyz=xyz[keep], sigma_m=res[keep, 4], parallax_deg=res[keep, 5], reprojection_px=res[keep, 6],
         n_views=n_views[keep], uv=uv[keep], depth_m=depth[keep], partners=len(partners), matches=matches,
+        feature_index=res[keep, 0].astype(np.int64),
     )
 
 

@@ -20,6 +20,11 @@ multi-view checks, an uncertainty per point) and uses the points three ways:
   features (a sparse depth map through the map's public ``integrate``), at
   ``global_map_weight`` times a confidence that falls with the uncertainty.
 
+With ``triangulation.refine_poses`` the keyframe's pose is first refined against the points its
+partners triangulated (:mod:`mapper.node.workers.pose_refinement`); its triangulation, sweep, map
+points and priors then use the refined pose, and later keyframes take it as a partner at that pose
+(the window, the ack and a saved map keep the pose as sent; ``status``: ``triangulation.poses``).
+
 Then **plane-sweep stereo** (``[stereo]``, :mod:`mapper.geometry.plane_sweep`): the keyframe is swept
 against the best ``stereo.max_sources`` of the same partners (at most ``stereo.max_width`` wide,
 depth range from its triangulated points); depths that a partner's own depth confirms join the
@@ -83,6 +88,7 @@ from mapper.geometry.triangulation import (
     triangulate_keyframe,
 )
 from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker, with_current_features
+from mapper.node.workers.pose_refinement import KeyframePoses
 
 if TYPE_CHECKING:
     from mapper.map.global_map import GlobalSemanticMap
@@ -161,6 +167,7 @@ class _Candidate:
     rgb: np.ndarray | None  # (H, W, 3) uint8 until the features are detected
     features: Features | None = None
     stereo: _StereoImage | None = None  # its image (and depth) at the sweep's working size
+    points: tuple[np.ndarray, np.ndarray] | None = None  # its triangulated keypoints: (feature index, xyz)
 
     def detected(self, extractor: FeatureExtractor) -> Features:
         if self.features is None:
@@ -424,6 +431,7 @@ class SparseTriangulation:
         self.stereo_seconds_total = 0.0
         self.stereo_skipped_busy = 0
         self._priors = _DepthPriors(ctx, self.config, self.stereo, runtime, self._lock)
+        self.poses = KeyframePoses(self.config)  # triangulation.refine_poses
         self._log = LimitedLog(log)
 
     # -- wiring -------------------------------------------------------------------------------
@@ -511,13 +519,23 @@ class SparseTriangulation:
                     self.stale += 1  # a load meanwhile
                 return 0
             features = self.extractor.detect(np.asarray(keyframe.rgb))
+            chosen = select_partners(view, [c.view for c in candidates], self.config)
+            partners = [(candidates[i].view, candidates[i].detected(self.extractor)) for i in chosen]
+            matched = [self.extractor.match(features, f) for _, f in partners]
+            if self.config.refine_poses:  # its pose against the partners' points, before its own
+                refined = self.poses.refine(keyframe_key(keyframe), view.K, pose, features,
+                                            [candidates[i].points for i in chosen], matched)
+                if refined.accepted:
+                    keyframe = replace(keyframe, world_from_cam=refined.world_from_cam)
+                    view = replace(view, world_from_cam=refined.world_from_cam)
+                    image = stereo_image(keyframe, self.stereo) if image is not None else None
             own = _Candidate(keyframe_key(keyframe), view, None, features, stereo=image)
             if not self._add_candidate(generation, own):
                 self.stale += 1  # a load while it was detected
                 return 0
-            chosen = select_partners(view, [c.view for c in candidates], self.config)
-            partners = [(candidates[i].view, candidates[i].detected(self.extractor)) for i in chosen]
-            points = triangulate_keyframe(self.extractor, view, features, partners, self.config)
+            points = triangulate_keyframe(self.extractor, view, features, partners, self.config, matched)
+            if points.feature_index is not None:
+                own.points = (points.feature_index, points.xyz)
             swept = None
             if image is not None:
                 backlog = self.stereo.max_backlog
@@ -538,6 +556,8 @@ class SparseTriangulation:
             if self.runtime is not None and self.config.bounds:
                 self._set_extent(keyframe_key(keyframe), view, points)
         current = with_current_features(self.ctx, keyframe)  # its OV features, if they came meanwhile
+        if current is not keyframe:  # the window's copy carries the pose as sent
+            current = replace(current, world_from_cam=keyframe.world_from_cam)
         swept_frame = None if swept is None else swept_keyframe(current, swept[0], swept[1], self.stereo)
         self._priors.set(keyframe, points, swept_frame, image, self.geometry_points)
         self._integrate(current, points, target)
@@ -613,6 +633,7 @@ class SparseTriangulation:
         self._room_depths.clear()
         self._without_extent.clear()
         self._priors.clear_locked()
+        self.poses.clear()
         self._map = None
 
     def _set_extent(self, key: KeyframeKey, view: PosedView, points: SparsePoints) -> None:
@@ -809,6 +830,7 @@ class SparseTriangulation:
                 "mean_ms": round(1e3 * self.stereo_seconds_total / max(self.stereo_keyframes, 1), 1),
                 "prior_refreshes": self._priors.refreshes,
             },
+            "poses": self.poses.stats(),
         }
 
 
