@@ -473,8 +473,8 @@ def triangulate_keyframe(
         agree = group[np.linalg.norm(group[:, 1:4] - best[1:4], axis=1) <= config.agree_sigmas * combined]
         w = 1.0 / agree[:, 4] ** 2
         xyz = (agree[:, 1:4] * w[:, None]).sum(axis=0) / w.sum()
-        matched = sum(1 << int(q) for q in set(agree[:, 7].tolist()))
-        out.append([key, *xyz, 1.0 / math.sqrt(float(w.sum())), agree[:, 5].max(), best[6], matched])
+        agree_bits = sum(1 << int(q) for q in set(agree[:, 7].tolist()))
+        out.append([key, *xyz, 1.0 / math.sqrt(float(w.sum())), agree[:, 5].max(), best[6], agree_bits])
     res = np.array(out, np.float64).reshape(-1, 8)
     xyz = res[:, 1:4]
     uv = new_features.uv[res[:, 0].astype(np.int64)]
