@@ -3,7 +3,7 @@ the old place, and where "find the chair" points, with visibility carving off an
 
 The simulated room (``clients.sim``, style apartment) is streamed along the robot's path into an
 in-process node (input depth, SimLSeg ``ov``, the ``average`` node without the learned model); then
-the mesh of one chair instance is translated (to a free spot 1.8-2.6 m away, inside the room,
+the mesh of one chair instance is translated (to a free spot 2.0-2.8 m away, inside the room,
 clear of the other objects and at least 0.4 m from every camera position of the path), the
 renderer rebuilt, and the same path streamed again. Measured after each pass:
 
@@ -44,7 +44,7 @@ from protocol.messages import Frame, QueryPoints, StatusRequest, decode, encode
 SAMPLES_PER_M2 = 5000.0
 
 
-def free_offset(stream: Any, chair: Any, lo_m: float = 1.8, hi_m: float = 2.6) -> np.ndarray:
+def free_offset(stream: Any, chair: Any, lo_m: float = 2.0, hi_m: float = 2.8) -> np.ndarray:
     """A horizontal offset (3,) that moves ``chair`` to a free spot: inside the room, 10 cm clear
     of every other object's box, its box 0.4 m from every camera centre of the path."""
     scene = stream.scene

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import numba
 import numpy as np
 from scipy.ndimage import minimum_filter
 
@@ -50,7 +51,8 @@ from mapper.map.voxels import box_rows
 if TYPE_CHECKING:
     from mapper.map.global_map import GlobalMapConfig, KeyframeLike
 
-__all__ = ["carve", "frustum_box", "points_seen_through", "remove_rows", "see_through", "see_through_depths"]
+__all__ = ["carve", "frustum_box", "points_seen_through", "remove_rows", "see_through", "see_through_depths",
+           "warm_up"]
 
 EDGE_PX = 1
 """A pixel carves with the smallest depth within this many pixels of it (and not at all when one of
@@ -84,33 +86,64 @@ def frustum_box(
     return world.min(axis=0), world.max(axis=0)
 
 
+@numba.njit(boundscheck=False, cache=True, nogil=True)
+def _seen_through(xyz, rows, rot, trans, intr, safe_depth, min_depth_m, margin_m,
+                  margin_rel):  # pragma: no cover - compiled
+    """Compiled core of :func:`points_seen_through` over ``xyz[rows]``: (a mask over ``rows``, the
+    distances of the rows it marks, 0 elsewhere)."""
+    height, width = safe_depth.shape
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    mask = np.zeros(rows.shape[0], np.bool_)
+    dist = np.zeros(rows.shape[0], np.float64)
+    for k in range(rows.shape[0]):
+        r = rows[k]
+        px, py, pz = xyz[r, 0] - trans[0], xyz[r, 1] - trans[1], xyz[r, 2] - trans[2]
+        z = px * rot[0, 2] + py * rot[1, 2] + pz * rot[2, 2]  # R^T (p - t)
+        if not z >= min_depth_m:
+            continue
+        x = px * rot[0, 0] + py * rot[1, 0] + pz * rot[2, 0]
+        y = px * rot[0, 1] + py * rot[1, 1] + pz * rot[2, 1]
+        u = np.floor(fx * x / z + cx)
+        v = np.floor(fy * y / z + cy)
+        if not (u >= 0 and u < width and v >= 0 and v < height):
+            continue
+        d = safe_depth[int(v), int(u)]
+        if d > 0 and z < d - max(margin_m, margin_rel * d):
+            mask[k] = True
+            dist[k] = np.sqrt(x * x + y * y + z * z)
+    return mask, dist
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the see-through kernel on a one-point problem (float32
+    positions, as the map holds them)."""
+    _seen_through(np.zeros((1, 3), np.float32), np.zeros(1, np.int64), np.eye(3), np.zeros(3), np.ones(4),
+                  np.ones((1, 1)), 0.1, 0.1, 0.05)
+
+
 def points_seen_through(
-    xyz: np.ndarray,  # (m, 3) world metres
+    xyz: np.ndarray,  # (n, 3) world metres
     safe_depth: np.ndarray,  # (H, W) from see_through_depths
     keyframe: KeyframeLike,
     min_depth_m: float,
     margin_m: float,
     margin_rel: float,
+    rows: np.ndarray | None = None,  # (m,) int64 the rows of xyz to test; None: all
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Of the points ``xyz``, those the keyframe sees through: (their indices (k,) int64, their
-    distances from the camera (k,) float64). A point is seen through when it is at least
-    ``min_depth_m`` in front of the camera, projects into a pixel (pixel ``i`` covers ``[i, i + 1)``
-    in the protocol's pixel-centre-at-+0.5 convention) whose ``safe_depth`` is valid, and its
-    z-depth is below that depth minus ``max(margin_m, margin_rel * depth)``."""
-    height, width = safe_depth.shape
+    """Of the points ``xyz[rows]``, those the keyframe sees through: (their indices into ``rows``
+    (k,) int64, their distances from the camera (k,) float64). A point is seen through when it is
+    at least ``min_depth_m`` in front of the camera, projects into a pixel (pixel ``i`` covers
+    ``[i, i + 1)`` in the protocol's pixel-centre-at-+0.5 convention) whose ``safe_depth`` is
+    valid, and its z-depth is below that depth minus ``max(margin_m, margin_rel * depth)``. One
+    compiled pass over the rows (no (m, 3) temporaries)."""
     pose = np.asarray(keyframe.world_from_cam, np.float64)
-    cam = (np.asarray(xyz, np.float64) - pose[:3, 3]) @ pose[:3, :3]  # R^T (p - t), row-wise
-    z = cam[:, 2]
-    fx, fy, cx, cy = (float(v) for v in keyframe.K)
-    front = np.flatnonzero(z >= min_depth_m)
-    cam, z = cam[front], z[front]
-    u = np.floor(fx * cam[:, 0] / z + cx)
-    v = np.floor(fy * cam[:, 1] / z + cy)
-    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
-    idx, cam, z = front[inside], cam[inside], z[inside]
-    d = safe_depth[v[inside].astype(np.int64), u[inside].astype(np.int64)]
-    through = (d > 0) & (z < d - np.maximum(margin_m, margin_rel * d))
-    return idx[through], np.linalg.norm(cam[through], axis=1)
+    rows = np.arange(xyz.shape[0], dtype=np.int64) if rows is None else np.asarray(rows, np.int64)
+    mask, dist = _seen_through(np.asarray(xyz), rows, np.ascontiguousarray(pose[:3, :3]),
+                               np.ascontiguousarray(pose[:3, 3]), np.asarray(keyframe.K, np.float64),
+                               np.asarray(safe_depth, np.float64), float(min_depth_m), float(margin_m),
+                               float(margin_rel))
+    idx = np.flatnonzero(mask)
+    return idx, dist[idx]
 
 
 def see_through(
@@ -132,8 +165,9 @@ def see_through(
     height, width = depth.shape
     box_min, box_max = frustum_box(keyframe.K, keyframe.world_from_cam, width, height, far)
     rows = box_rows(sorted_keys, sorted_rows, box_min, box_max, config.voxel_size_m)
-    idx, dist = points_seen_through(xyz[rows], depth, keyframe, config.min_depth_m,
-                                    config.carve_margin_voxels * config.voxel_size_m, config.carve_margin_rel)
+    margin_m = config.carve_margin_voxels * config.voxel_size_m
+    idx, dist = points_seen_through(xyz, depth, keyframe, config.min_depth_m, margin_m,
+                                    config.carve_margin_rel, rows)
     quality = np.exp(-np.maximum(dist - config.near_m, 0.0) / config.falloff_m)
     return rows[idx], (1.0 - (1.0 - config.carve_decay) * quality).astype(np.float32)
 
