@@ -174,7 +174,8 @@ def ranks(ask: Any, old_box: tuple[np.ndarray, np.ndarray], new_box: tuple[np.nd
           room: tuple[cKDTree, np.ndarray, np.ndarray], pad: float = 0.3) -> dict[str, Any]:  # fmt: skip
     """"find the chair": the rank of the first object centred in each box (grown by ``pad``), and
     the top objects with the class of the room's surface nearest to their centroid."""
-    reply = ask(QueryPoints(texts=["find the chair"]))
+    # settled: an answer of the current map, not a stale one returned while frames arrive
+    reply = ask(QueryPoints(texts=["find the chair"], settle_timeout_s=5.0))
     objects = list(reply.objects)
     tree, _, label = room
     near = [CLASS_NAMES[label[tree.query(np.asarray(o.centroid))[1]]] for o in objects]

@@ -26,7 +26,11 @@ What is never carved:
   the map.
 
 Rendered and triangulated depth (keyframes without input depth) do not carve: their errors are
-not independent of the map they were made from.
+not independent of the map they were made from. Features fused later into a voxel
+(``integrate_features``) are not scaled by the see-throughs before them.
+
+Removed rows are refilled by the map's last rows (:func:`remove_rows`), whose feature stamps are
+renewed, so a snapshot renormalises only those rows' features, not every row after the first hole.
 
 >>> import numpy as np
 >>> from types import SimpleNamespace
