@@ -148,6 +148,8 @@ class NodeContext:
         self.evicted_views: EvictedViews | None = None
         """The worker that keeps evicted keyframes' views for the averaging methods
         (``queries.evicted_views``; :mod:`mapper.map.evicted_views`)."""
+        if config.global_map.carve:
+            self.kernel_modules.append("mapper.map.carving")  # the see-through test of integrates
         if config.queries.evicted_views != "off":
             self.evicted_views = EvictedViews(self)
             self.evicted_views.install()

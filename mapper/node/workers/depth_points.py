@@ -473,6 +473,7 @@ class RenderedDepthPoints:
                 pixel_stride=1,
                 confidence=rendered.confidence,
                 count_keyframe=False,
+                carve=False,  # rendered depth: its errors follow the map's (mapper.map.carving)
             )
         except (RuntimeNotReady, ValueError, RuntimeError) as exc:
             self.failed += 1

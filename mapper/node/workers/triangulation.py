@@ -682,7 +682,7 @@ class SparseTriangulation:
         until they arrive (``on_features``)."""
         try:
             stats = target.integrate(depth, map_version=None, pixel_stride=1, confidence=depth.confidence,
-                                     count_keyframe=False)
+                                     count_keyframe=False, carve=False)  # not input depth: no carving
         except (ValueError, RuntimeError) as exc:
             self._failed(keyframe, exc)
             return
