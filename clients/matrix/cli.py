@@ -29,7 +29,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--gt-samples", type=int, default=None, help="ground-truth surface samples per room")
     p.add_argument("--settle-timeout", type=float, default=120.0,
                    help="longest wait for the node to settle, s")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="node_set",
+                   help="a node setting for every node of the run (as `govnesf serve --set`), to compare "
+                        "a setting on the tuning split; repeatable")
     args = p.parse_args(argv)
+    for item in args.node_set:
+        if "=" not in item or not item.split("=", 1)[0].strip():
+            p.error(f"--set {item!r}: expected KEY=VALUE")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     scenarios = quick_matrix() if args.quick else build_matrix(args.split, args.scenarios)
     if args.only:
@@ -40,7 +46,8 @@ def main(argv: list[str] | None = None) -> int:
         scenarios = [s for s in scenarios if s.index in keep]
     gt = args.gt_samples or (1500 if args.quick else 6000)
     settings = RunSettings(gt_samples=gt, novel_views=1 if args.quick else 3,
-                           settle_timeout_s=args.settle_timeout, log_dir=args.out / "logs")
+                           settle_timeout_s=args.settle_timeout, log_dir=args.out / "logs",
+                           node_settings=tuple(args.node_set))
     args.out.mkdir(parents=True, exist_ok=True)
     settings.log_dir.mkdir(exist_ok=True)  # type: ignore[union-attr]
     lines = args.out / "scenarios.jsonl"

@@ -69,6 +69,8 @@ class RunSettings:
     request_timeout_s: float = 600.0
     node_start_timeout_s: float = 120.0
     log_dir: Path | None = None
+    node_settings: tuple[str, ...] = ()
+    """``KEY=VALUE`` node settings for every node (``govnesf serve --set``)."""
 
 
 def methods_of(scenario: Scenario) -> list[tuple[str, str, bool]]:
@@ -228,6 +230,8 @@ def _renders(client: Any, prep: Prepared, timeout_s: float) -> dict[str, Any]:
 def run_node(scenario: Scenario, prep: Prepared, which: str, settings: RunSettings) -> dict[str, Any]:
     """Stream the prepared frames into a fresh node (``which``: ``window`` or ``all``); ask; score."""
     extra = ["--set", "save_on_exit=false", "--set", "load_autosave_on_start=false"]
+    for item in settings.node_settings:
+        extra += ["--set", item]
     if which == "all":
         extra += ["--set", f"window.max_keyframes={scenario.frames + 10}"]
     with tempfile.TemporaryDirectory(prefix="govnesf-matrix-") as tmp:

@@ -44,7 +44,7 @@ renewed, so a snapshot renormalises only those rows' features, not every row aft
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numba
 import numpy as np
@@ -52,8 +52,10 @@ from scipy.ndimage import minimum_filter
 
 from mapper.map.voxels import box_rows
 
-if TYPE_CHECKING:
-    from mapper.map.global_map import GlobalMapConfig, KeyframeLike
+# The keyframe (``mapper.map.global_map.KeyframeLike``) and the config (``GlobalMapConfig``) are
+# typed ``Any`` here: global_map imports this module, and naming its types would close a cycle.
+KeyframeLike = Any
+GlobalMapConfig = Any
 
 __all__ = ["carve", "frustum_box", "points_seen_through", "remove_rows", "see_through", "see_through_depths",
            "warm_up"]

@@ -132,13 +132,14 @@ class GlobalMapConfig:
     min_weight: float = 0.02
     """Observations whose weight falls below this are not fused. 0..1."""
 
-    carve: bool = True
+    carve: bool = False
     """Visibility carving (:mod:`mapper.map.carving`): a keyframe with input depth lowers the
     confidence of the map points it sees through (projecting into its image in front of the
     measured depth by more than the margin) and removes those whose confidence falls below
     ``carve_min_weight``, so a moved object leaves its old place. Rendered and triangulated depth
-    do not carve. Off: the map only adds. (A chair moved 2 m in the simulated demo room: 299 of
-    its 315 points stayed at the old place without carving, 0 with it; docs/concepts/window-and-map.md.)"""
+    do not carve. Off (the default): the map only adds. (A chair moved 2 m in the simulated demo
+    room: 299 of its 315 points stayed at the old place without carving, 0 with it;
+    docs/concepts/window-and-map.md.)"""
 
     carve_margin_voxels: float = 2.0
     """A point is seen through only when it is in front of the measured depth by more than

@@ -84,7 +84,7 @@ def stream(gmap: GlobalSemanticMap, with_box: bool, passes: int, start: int = 0,
 
 
 def test_an_object_seen_through_goes_and_the_wall_behind_it_stays() -> None:
-    gmap = GlobalSemanticMap(GlobalMapConfig(voxel_size_m=0.05, pixel_stride=1))
+    gmap = GlobalSemanticMap(GlobalMapConfig(voxel_size_m=0.05, pixel_stride=1, carve=True))
     stamp = stream(gmap, with_box=True, passes=4)
     before = gmap.snapshot()
     box_before = int(np.count_nonzero(in_box(before.xyz)))
@@ -111,7 +111,7 @@ def test_a_static_scene_streamed_with_depth_noise_keeps_its_surface() -> None:
     """2% depth noise (8 cm at the wall), 30 passes of the same views: every voxel the surface
     holds without carving (seen by at least 5 keyframes) is still there with it, and carving
     removes only a few stray voxels off the surface."""
-    cfg = GlobalMapConfig(voxel_size_m=0.05, pixel_stride=1)
+    cfg = GlobalMapConfig(voxel_size_m=0.05, pixel_stride=1, carve=True)
     carved = GlobalSemanticMap(cfg)
     kept = GlobalSemanticMap(GlobalMapConfig(voxel_size_m=0.05, pixel_stride=1, carve=False))
     stream(carved, with_box=True, passes=30, noise=np.random.default_rng(5))
@@ -123,7 +123,7 @@ def test_a_static_scene_streamed_with_depth_noise_keeps_its_surface() -> None:
 
 
 def test_points_outside_the_frustum_or_behind_the_surface_are_untouched() -> None:
-    gmap = GlobalSemanticMap(GlobalMapConfig(voxel_size_m=0.05, pixel_stride=1))
+    gmap = GlobalSemanticMap(GlobalMapConfig(voxel_size_m=0.05, pixel_stride=1, carve=True))
     stamp = stream(gmap, with_box=True, passes=2)
     before = gmap.snapshot()
     weight_of = dict(zip(keys_of(before).tolist(), before.weight.tolist(), strict=True))
@@ -140,7 +140,7 @@ def test_points_outside_the_frustum_or_behind_the_surface_are_untouched() -> Non
 
 
 def test_the_margin_spares_points_on_the_surface_and_invalid_depth_carves_nothing() -> None:
-    gmap = GlobalSemanticMap(GlobalMapConfig(voxel_size_m=0.05, pixel_stride=1))
+    gmap = GlobalSemanticMap(GlobalMapConfig(voxel_size_m=0.05, pixel_stride=1, carve=True))
     stream(gmap, with_box=False, passes=1)
     n = len(gmap)
     for k, z in enumerate((WALL_Z + 0.15, WALL_Z + 0.19)):  # 2 voxels = 0.1 m < 5% of 4.15 .. 4.19 m
@@ -207,7 +207,7 @@ def test_snapshot_features_after_carving_equal_a_fresh_normalisation() -> None:
     """Removed rows are refilled from the end; the unit-feature blocks a snapshot reuses from the
     one before must see those rows as changed (feature stamps)."""
     rng = np.random.default_rng(2)
-    gmap = GlobalSemanticMap(GlobalMapConfig(voxel_size_m=0.05, pixel_stride=1))
+    gmap = GlobalSemanticMap(GlobalMapConfig(voxel_size_m=0.05, pixel_stride=1, carve=True))
     for k, view in enumerate(VIEWS * 2):
         kf = keyframe(view, render_depth(view, True), k)
         gmap.integrate(dataclasses.replace(kf, ov=rng.standard_normal((12, 16, 3)).astype(np.float16)))
