@@ -21,7 +21,6 @@ On a CPU device both run as one compiled kernel instead
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -97,47 +96,14 @@ def _parse_inputs(
     return pts, parsed, vw, dim
 
 
-class _ViewArrays(NamedTuple):
-    """Per-view constants of the averaging, V views."""
-
-    cam_from_world: Tensor  # (V, 4, 4) float32
-    K: Tensor  # (V, 4) float32
-    img_w: np.ndarray  # (V,) int64 image size
-    img_h: np.ndarray
-    ov_w: np.ndarray  # (V,) int64 OV map size
-    ov_h: np.ndarray
-    ov_scale: np.ndarray  # (V, 2) float32 OV map size / image size
-    has_depth: np.ndarray  # (V,) bool: a depth map that the depth test reads
-    d_w: np.ndarray  # (V,) int64 depth map size (1 without)
-    d_h: np.ndarray
-    d_scale: np.ndarray  # (V, 2) float32 depth map size / image size
-    d_off: np.ndarray  # (V,) int64 offset of each view's depth map in ``depth_flat``
-    depth_flat: np.ndarray | None  # (S,) float32 the depth maps one after another; None without
-
-
-def _view_arrays(parsed: list[OVView], *, use_depth: bool, device: torch.device) -> _ViewArrays:
-    cam_from_world = invert_pose(torch.stack([_as_tensor(v.world_from_cam, torch.float32, device)
-                                              for v in parsed]))  # (V, 4, 4)
-    Ks = torch.stack([_as_tensor(v.K, torch.float32, device) for v in parsed])  # (V, 4)
-    img_w = np.array([int(v.image_wh[0]) for v in parsed], np.int64)  # (V,)
-    img_h = np.array([int(v.image_wh[1]) for v in parsed], np.int64)
-    ov_w = np.array([int(v.ov.shape[1]) for v in parsed], np.int64)
-    ov_h = np.array([int(v.ov.shape[0]) for v in parsed], np.int64)
-    ov_scale = np.stack([np.array([w_ / w, h_ / h], np.float32)  # as the per-view np.array(..., float32)
-                         for w_, h_, w, h in zip(ov_w, ov_h, img_w, img_h, strict=True)])  # (V, 2)
-    depths = [np.asarray(v.depth_m.cpu().numpy() if isinstance(v.depth_m, Tensor) else v.depth_m, np.float32)
-              if use_depth and v.depth_m is not None else None for v in parsed]  # (H', W') each
-    has_depth = np.array([d is not None for d in depths], bool)  # (V,)
-    d_w = np.array([d.shape[1] if d is not None else 1 for d in depths], np.int64)
-    d_h = np.array([d.shape[0] if d is not None else 1 for d in depths], np.int64)
-    d_scale = np.stack([np.array([dw / w, dh / h], np.float32)
-                        for dw, dh, w, h in zip(d_w, d_h, img_w, img_h, strict=True)])  # (V, 2)
-    d_off = np.concatenate([[0], np.cumsum(d_w * d_h)])[:-1]  # (V,)
-    depth_flat = None  # the views' depth maps, flattened one after another
-    if has_depth.any():
-        depth_flat = np.concatenate([np.zeros(1, np.float32) if d is None else d.reshape(-1) for d in depths])
-    return _ViewArrays(cam_from_world, Ks, img_w, img_h, ov_w, ov_h, ov_scale, has_depth, d_w, d_h, d_scale,
-                       d_off, depth_flat)
+def _view_arrays(
+    parsed: list[OVView], *, use_depth: bool, device: torch.device
+) -> tuple[Tensor, Tensor, _average.ViewArrays]:
+    """The kernel driver's per-view constants (:func:`mapper.kernels.average.view_arrays`), and
+    its ``cam_from_world`` (V, 4, 4) and ``K`` (V, 4) as float32 tensors on ``device`` (the torch
+    path)."""
+    va = _average.view_arrays(parsed, use_depth=use_depth)
+    return torch.from_numpy(va.cam_from_world).to(device), torch.from_numpy(va.K).to(device), va
 
 
 def _kernel_average(
@@ -500,8 +466,7 @@ def _chunks(
     # in view order, as the reference sums them, without sorting.
     n_pts = pts.shape[0]
     n_views = len(parsed)
-    va = _view_arrays(parsed, use_depth=use_depth, device=device)
-    cam_from_world, Ks = va.cam_from_world, va.K
+    cam_from_world, Ks, va = _view_arrays(parsed, use_depth=use_depth, device=device)
     vw_np = None if vw is None else vw.cpu().numpy()  # (V, N) float32
     img_w, img_h, ov_w, ov_h, ov_scale = va.img_w, va.img_h, va.ov_w, va.ov_h, va.ov_scale
     has_depth, d_w, d_h, d_scale, d_off, depth_flat = (va.has_depth, va.d_w, va.d_h, va.d_scale, va.d_off,

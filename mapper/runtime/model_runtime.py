@@ -313,15 +313,8 @@ class ModelRuntime:
         *,
         use_depth: bool = False,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The learned blended OV feature at world points, with the same per-point view selection
-        as :meth:`segment` (used to write the model's features into the global map before a
-        keyframe leaves the window).
-
-        Returns:
-            features: (N, D) float32 (zero rows where not valid);
-            valid: (N,) bool, False where no keyframe with OV sees the point.
-        Raises :class:`RuntimeNotReady` without a model or without OV features in the window.
-        """
+        """(features (N, D), valid (N,)): the learned blended OV feature at world points
+        (:meth:`mapper.runtime.points.PointAnswers.point_features`)."""
         return self._points.point_features(points, use_depth=use_depth)
 
     # -- renders --------------------------------------------------------------------------------
