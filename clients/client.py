@@ -461,15 +461,18 @@ class MapperClient:
         max_points: int | None = None,
         objects: bool = True,
         settle_timeout_s: float | None = None,
+        region: tuple[np.ndarray, np.ndarray] | None = None,  # ((3,), (3,)) world box min, max (m)
         timeout_s: float | None = None,
     ) -> Points:
         """"Find the chair": map points (and object candidates) matching ``texts``. With
         ``settle_timeout_s`` the node first waits (up to that long) for its background work on the
         frames acked so far; the reply's ``settled`` says whether none was pending. Give the call a
-        ``timeout_s`` longer than that wait."""
+        ``timeout_s`` longer than that wait. ``region``: only map points inside that axis-aligned box."""
+        low = None if region is None else np.asarray(region[0], float)
+        high = None if region is None else np.asarray(region[1], float)
         msg = QueryPoints(
             texts=texts, negatives=negatives, min_score=min_score, max_points=max_points, objects=objects,
-            settle_timeout_s=settle_timeout_s,
+            settle_timeout_s=settle_timeout_s, region_min=low, region_max=high,
         )
         return self._call(msg, Points, timeout_s)
 

@@ -463,6 +463,21 @@ class QueryPoints(Message):
         doc="Answer from the settled map: wait up to this long for the node's background work on the frames "
         "acked so far (extension; the node caps it at `queries.max_settle_wait_s`).",
     )
+    region_min: np.ndarray | None = wire(
+        Vector((3,)), unit="m", default=None, required="with region_max",
+        doc="Only map points inside the axis-aligned box [region_min, region_max] (world; extension).",
+    )
+    region_max: np.ndarray | None = wire(
+        Vector((3,)), unit="m", default=None, required="with region_min", doc="The box's maximum corner.",
+    )
+
+    def _check(self) -> None:
+        if (self.region_min is None) != (self.region_max is None):
+            raise bad("region_min and region_max: give both or neither")
+        if self.region_min is not None and self.region_max is not None:
+            low, high = np.asarray(self.region_min), np.asarray(self.region_max)
+            if np.any(low > high):
+                raise bad(f"region_min {low.tolist()} exceeds region_max {high.tolist()} on an axis")
 
 
 @message

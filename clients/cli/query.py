@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -228,6 +229,9 @@ def query_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", metavar="FILE.ply", help="write the matching points coloured by score")
     parser.add_argument("--json", metavar="FILE.json", help="write the object candidates as JSON")
     parser.add_argument("--top", type=int, default=10, metavar="K", help="objects to print (default 10)")
+    parser.add_argument("--region", metavar="X0,Y0,Z0,X1,Y1,Z1", default=None,
+                        help="only map points inside this axis-aligned box (world metres: the minimum and "
+                             "maximum corners)")
     parser.add_argument("--settle", type=float, default=None, metavar="S",
                         help="answer from the settled map: the node first waits up to S seconds for its "
                              "background work on the frames acked so far (the request timeout grows by S)")
@@ -240,6 +244,17 @@ def query_main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.top < 0:
         parser.error(f"--top {args.top} must be >= 0")
+    region = None
+    if args.region is not None:
+        try:
+            box = [float(x) for x in args.region.split(",")]
+        except ValueError:
+            parser.error(f"--region {args.region!r}: expected six numbers X0,Y0,Z0,X1,Y1,Z1")
+        if len(box) != 6 or not all(math.isfinite(x) for x in box):
+            parser.error(f"--region {args.region!r}: expected six finite numbers X0,Y0,Z0,X1,Y1,Z1")
+        if any(lo > hi for lo, hi in zip(box[:3], box[3:], strict=True)):
+            parser.error(f"--region {args.region!r}: the minimum corner exceeds the maximum on an axis")
+        region = (np.array(box[:3]), np.array(box[3:]))
     if args.settle is not None:
         if args.settle < 0:
             parser.error(f"--settle {args.settle} must be >= 0")
@@ -255,7 +270,7 @@ def query_main(argv: list[str] | None = None) -> int:
         args,
         lambda c, _: c.query_points(
             list(args.texts), negatives=args.negatives, min_score=args.min_score, max_points=args.max_points,
-            objects=not args.no_objects, settle_timeout_s=args.settle,
+            objects=not args.no_objects, settle_timeout_s=args.settle, region=region,
         ),
         "govnesf query",
     )

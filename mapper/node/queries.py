@@ -518,9 +518,12 @@ class BlockLabelCache:
         return label.astype(np.int64), score, beats
 
 
-AnswerKey = tuple[tuple[str, ...], tuple[str, ...] | None, float | None, int | None, bool]
+AnswerKey = tuple[
+    tuple[str, ...], tuple[str, ...] | None, float | None, int | None, bool,
+    tuple[tuple[float, ...], tuple[float, ...]] | None,
+]
 """What makes two ``query_points`` requests the same question: texts, negatives, min_score,
-max_points, objects (:func:`answer_key`)."""
+max_points, objects, region (:func:`answer_key`)."""
 
 
 def answer_key(
@@ -529,10 +532,12 @@ def answer_key(
     min_score: float | None,
     max_points: int | None,
     objects: bool,
+    region: tuple[np.ndarray, np.ndarray] | None = None,  # ((3,), (3,)) world box, metres
 ) -> AnswerKey:
     """The :class:`AnswerCache` key of a ``query_points`` request."""
     negs = None if negatives is None else tuple(negatives)
-    return (tuple(texts), negs, min_score, max_points, bool(objects))
+    box = None if region is None else (tuple(float(x) for x in region[0]), tuple(float(x) for x in region[1]))
+    return (tuple(texts), negs, min_score, max_points, bool(objects), box)
 
 
 @dataclass(frozen=True)
@@ -647,10 +652,12 @@ def query_points(
     objects: bool,
     config: QueryConfig,
     label_cache: BlockLabelCache | None = None,
+    region: tuple[np.ndarray, np.ndarray] | None = None,  # ((3,), (3,)) world box, metres
 ) -> Points:
     """Answer a ``query_points`` request on a map snapshot (see the module docstring). With a
     ``label_cache`` the scoring reuses the per-block results of earlier queries with the same
-    texts and negatives (the same answer as scoring every row).
+    texts and negatives (the same answer as scoring every row). With ``region`` only the map points
+    inside that axis-aligned box (its faces included) match, before ``max_points`` and the objects.
 
     Raises:
         ProtocolError("not_ready"): the map has no points with OV features yet.
@@ -694,6 +701,9 @@ def query_points(
     ok = beats & snapshot.has_feature
     if min_score is not None:
         ok &= score >= min_score
+    if region is not None:
+        low, high = np.asarray(region[0], np.float64), np.asarray(region[1], np.float64)
+        ok &= np.all((snapshot.xyz >= low) & (snapshot.xyz <= high), axis=1)
     sel = np.flatnonzero(ok)
     t3 = time.perf_counter()
 

@@ -16,6 +16,8 @@ import threading
 import time
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from mapper.node.context import NodeContext
 from protocol.errors import ProtocolError
 from protocol.messages import Message, Points, QueryPoints
@@ -26,6 +28,13 @@ if TYPE_CHECKING:
 __all__ = ["QueryPointsAnswers"]
 
 log = logging.getLogger("mapper.node.service")
+
+
+def _region(msg: QueryPoints) -> tuple[np.ndarray, np.ndarray] | None:
+    """The request's box (``region_min``, ``region_max``), or None."""
+    if msg.region_min is None or msg.region_max is None:
+        return None
+    return np.asarray(msg.region_min, np.float64), np.asarray(msg.region_max, np.float64)
 
 
 class QueryPointsAnswers:
@@ -57,7 +66,7 @@ class QueryPointsAnswers:
         waited = bool(msg.settle_timeout_s)
         self.ctx.wait_settled(msg.settle_timeout_s)
         answers = self._caches()[1]
-        key = answer_key(msg.texts, msg.negatives, msg.min_score, msg.max_points, msg.objects)
+        key = answer_key(msg.texts, msg.negatives, msg.min_score, msg.max_points, msg.objects, _region(msg))
         gmap = self.ctx.state.global_map
         t0 = time.monotonic()
         stale_ok = self.ctx.streaming(t0) and not waited  # a settled answer is of the current map
@@ -133,6 +142,7 @@ class QueryPointsAnswers:
             objects=msg.objects,
             config=self.ctx.config.queries,
             label_cache=labels,
+            region=_region(msg),
         )
         answers.put(key, answer, snapshot.version, snapshot.generation, taken)
         return answer
