@@ -4,12 +4,14 @@ scripted stand-in for its query endpoint."""
 from __future__ import annotations
 
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
+import numpy as np
 import zmq
 
-from clients.harness import free_endpoints
+from clients.harness import DEMO_OV_DIM, DEMO_OV_SPACE, free_endpoints
 from mapper.node.config import NodeConfig, config_from_dict
 from mapper.node.service import MapperNode
 from protocol.messages import Message, Points, RenderResult, Status, StatusRequest, decode, encode
@@ -83,3 +85,14 @@ class ScriptedQueryEndpoint(Generic[RequestT]):
         self._thread.join(timeout=5)
         self._sock.close(linger=0)
         self._ctx.term()
+
+
+class DemoOneHotEncoder:
+    """A text encoder for the synthetic frames' feature space (``clients.harness.DEMO_OV_SPACE``):
+    ``sky``, ``dark``, ``light`` are its three channels; other prompts land on the spare ones."""
+
+    space, dim = DEMO_OV_SPACE, DEMO_OV_DIM
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        rows = {"sky": 0, "dark": 1, "light": 2}
+        return np.stack([np.eye(DEMO_OV_DIM, dtype=np.float32)[rows.get(t, 3 + len(t) % 5)] for t in texts])

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from clients.harness import DEMO_OV_DIM, DEMO_OV_SPACE, synthetic_frame
+from clients.harness import DEMO_OV_SPACE, synthetic_frame
 from mapper.node.backends.learned import LearnedBackend
 from mapper.node.service import MapperNode
 from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
@@ -28,19 +28,9 @@ from protocol.messages import (
     decode,
     encode,
 )
-from tests.node_helpers import in_process_node
+from tests.node_helpers import DemoOneHotEncoder, in_process_node
 
 TEXTS = ["sky", "dark", "light"]
-
-
-class OneHot:
-    """The demo features' channels (sky, dark, light) as text embeddings."""
-
-    space, dim = DEMO_OV_SPACE, DEMO_OV_DIM
-
-    def encode(self, texts: Sequence[str]) -> np.ndarray:
-        rows = {"sky": 0, "dark": 1, "light": 2}
-        return np.stack([np.eye(DEMO_OV_DIM, dtype=np.float32)[rows.get(t, 3 + len(t) % 5)] for t in texts])
 
 
 class ConstantRuntime:
@@ -74,7 +64,7 @@ class Pending:
 
 @pytest.fixture(autouse=True)
 def _encoder() -> Iterator[None]:
-    register_text_encoder(DEMO_OV_SPACE, OneHot)
+    register_text_encoder(DEMO_OV_SPACE, DemoOneHotEncoder)
     yield
     unregister_text_encoder(DEMO_OV_SPACE)
 

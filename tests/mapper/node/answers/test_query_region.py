@@ -3,32 +3,22 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
-from clients.harness import DEMO_OV_DIM, DEMO_OV_SPACE, synthetic_frame
+from clients.harness import DEMO_OV_SPACE, synthetic_frame
 from mapper.ov.encoders import register_text_encoder, unregister_text_encoder
 from protocol.messages import Error, Points, QueryPoints, decode, encode
-from tests.node_helpers import in_process_node
-
-
-class OneHot:
-    """The demo features' channels (sky, dark, light) as text embeddings."""
-
-    space, dim = DEMO_OV_SPACE, DEMO_OV_DIM
-
-    def encode(self, texts: Sequence[str]) -> np.ndarray:
-        rows = {"sky": 0, "dark": 1, "light": 2}
-        return np.stack([np.eye(DEMO_OV_DIM, dtype=np.float32)[rows.get(t, 3 + len(t) % 5)] for t in texts])
+from tests.node_helpers import DemoOneHotEncoder, in_process_node
 
 
 @pytest.fixture(autouse=True)
 def _encoder() -> Iterator[None]:
-    register_text_encoder(DEMO_OV_SPACE, OneHot)
+    register_text_encoder(DEMO_OV_SPACE, DemoOneHotEncoder)
     yield
     unregister_text_encoder(DEMO_OV_SPACE)
 
