@@ -33,7 +33,7 @@ from mapper.node.workers.evicted_views import EvictedViews
 from protocol.errors import ProtocolError
 from protocol.messages import Error, MapUpdated, Message, error_reply, peek_id
 
-__all__ = ["NodeContext", "QueryHandler", "is_not_ready", "mark_not_ready", "warm_kernels"]
+__all__ = ["NodeContext", "QueryHandler", "is_not_ready", "warm_kernels"]
 
 log = logging.getLogger("mapper.node.service")
 
@@ -61,19 +61,12 @@ def warm_all_kernels(modules: list[str]) -> None:
         warm_kernels(module)
 
 
-def mark_not_ready(handler: Callable[..., Any]) -> None:
-    """Mark ``handler`` as one that only answers ``not_ready``: ``status`` leaves it out of
-    ``serving`` / ``segment_methods``."""
-    handler.not_ready = True  # type: ignore[attr-defined]
-
-
 def is_not_ready(handler: Callable[..., Any]) -> bool:
-    """Whether ``handler`` only answers ``not_ready``: marked (:func:`mark_not_ready`), a method of
-    an object whose ``not_ready`` is true (e.g. :class:`mapper.node.answers.render.RenderAnswers`
-    without a backend), or a wrapper (``__wrapped__``) of such a handler."""
+    """Whether ``handler`` only answers ``not_ready``: a method of an object whose ``not_ready`` is
+    true (e.g. :class:`mapper.node.answers.render.RenderAnswers` without a backend), or a wrapper
+    (``__wrapped__``) of such a handler (``status`` leaves it out of ``serving``)."""
     while handler is not None:
-        owner = getattr(handler, "__self__", None)
-        if getattr(handler, "not_ready", False) or getattr(owner, "not_ready", False):
+        if getattr(getattr(handler, "__self__", None), "not_ready", False):
             return True
         handler = getattr(handler, "__wrapped__", None)  # type: ignore[assignment]
     return False
@@ -156,10 +149,6 @@ class NodeContext:
             self.kernel_modules.append("mapper.map.evicted_views")  # its running-mean kernel
 
     # -- the integrator -----------------------------------------------------------------------
-
-    def integration_backlog(self) -> int:
-        """Keyframes acked and not yet integrated into the global map."""
-        return self.integration.backlog()
 
     def drain_integrations(self) -> None:
         """Return once every keyframe acked so far is integrated into the global map."""

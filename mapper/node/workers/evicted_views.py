@@ -74,7 +74,7 @@ class EvictedViews:
         def work() -> None:
             while len(self.queue) and not stop.is_set():
                 # the integrator first, unless this queue is half full (then nothing is dropped)
-                if self.ctx.integration_backlog() > 0 and 2 * len(self.queue) < self.queue.max_len:
+                if self.ctx.integration.backlog() > 0 and 2 * len(self.queue) < self.queue.max_len:
                     self.deferred += 1
                     return
                 self._process_one()

@@ -22,6 +22,7 @@ import numpy as np
 
 from clients.harness import sim_stream
 from mapper.node.config import config_from_dict
+from mapper.node.serve import install_serve_stages
 from mapper.node.service import MapperNode
 from protocol.messages import QueryPoints, Render, SegmentPoints, decode, encode
 
@@ -29,17 +30,9 @@ TEXTS = ["wall", "floor", "chair", "table", "bed", "sofa", "cabinet", "door"]
 METHODS = [("govnesf", False), ("govnesf", True), ("average", False), ("average_depth", True)]
 
 
-def _install(node: MapperNode) -> None:
-    try:
-        from mapper.node.serve import install_serve_stages
-    except ImportError:  # the code before the split
-        from mapper.node.plugins.serve import install_serve_plugins as install_serve_stages  # type: ignore
-    install_serve_stages(node)
-
-
 def _settle(node: MapperNode) -> None:
     """Every background worker's queued work, in place."""
-    ctx: Any = getattr(node, "ctx", node)
+    ctx = node.ctx
     ctx.drain_integrations()
     for _ in range(3):
         for provider in list(ctx.status_providers.values()):
@@ -65,7 +58,7 @@ def build_answers(work_dir: Path) -> dict[str, np.ndarray]:
         "queries": {"evicted_views": "both", "workers": 0},
     })
     node = MapperNode(config)
-    _install(node)
+    install_serve_stages(node)
     stream = sim_stream(seed=3, frames=32, width=80, height=60, depth=True)
     xyz: list[np.ndarray] = []
     for index, (frame, view) in enumerate(stream.frames()):
