@@ -4,11 +4,13 @@
 # Usage: scripts/make_train_data.sh [DATA_DIR] [N_TRAIN] [FRAMES]
 #   DATA_DIR  output root (default: data); writes DATA_DIR/train/apartment_sNNNN and
 #             DATA_DIR/val/apartment_sNNNN (each a `govnesf sim record` export, see docs/how-to/simulator.md)
-#   N_TRAIN   number of training scenes (default 24; seeds 0 .. N_TRAIN-1)
+#   N_TRAIN   number of training scenes (default 24; seeds SEED_OFFSET .. SEED_OFFSET+N_TRAIN-1)
 #   FRAMES    frames per scene (default 80)
 # Validation uses seeds 1000-1002 (never training seeds). Existing complete scenes are skipped,
 # so the script can be re-run after an interruption. Env: STYLE (default apartment),
-# OV_STRIDE (default: SimLSeg's, 4), WIDTH/HEIGHT (default 160x120), PYTHON.
+# OV_STRIDE (default: SimLSeg's, 4), WIDTH/HEIGHT (default 160x120), PYTHON, SEED_OFFSET (default 0;
+# the multi-layout mix uses 2000 so that no training room is a room of the scenario matrix, whose
+# seeds are below 100), NO_VAL=1 (skip the validation scenes).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -19,6 +21,7 @@ STYLE="${STYLE:-apartment}"
 WIDTH="${WIDTH:-160}"
 HEIGHT="${HEIGHT:-120}"
 PYTHON="${PYTHON:-.venv/bin/python}"
+SEED_OFFSET="${SEED_OFFSET:-0}"
 VAL_SEEDS=(1000 1001 1002)
 export HF_HUB_OFFLINE=1
 
@@ -41,7 +44,9 @@ record() {  # split seed
     "${extra[@]}" --quiet --out "$out"
 }
 
-for seed in "${VAL_SEEDS[@]}"; do record val "$seed"; done
-for ((seed = 0; seed < N_TRAIN; seed++)); do record train "$seed"; done
+if [[ -z "${NO_VAL:-}" ]]; then
+  for seed in "${VAL_SEEDS[@]}"; do record val "$seed"; done
+fi
+for ((seed = SEED_OFFSET; seed < SEED_OFFSET + N_TRAIN; seed++)); do record train "$seed"; done
 du -sh "$DATA_DIR/train" "$DATA_DIR/val"
 echo "done"

@@ -77,6 +77,7 @@ _MIX_STREAM = 1
 """Extra entropy word of the random stream that decides whether an example comes from the extra
 scenes (``RaySampler.extra_weight``); separate from the example's own stream, see ``sample``."""
 _VOLUME_STREAM = 2
+_SENSOR_STREAM = 3  # sensor effects and source pose error (mapper.training.augment)
 """Extra entropy word of the random stream that draws an example's number of volume sources
 (``RaySampler.volume_sources``); separate from the example's own stream."""
 
@@ -555,6 +556,11 @@ class RaySampler:
         volume_sources: int = 0,
         point_ov_target: str = "frame",
         point_ov_rel_tol: float = 0.05,
+        sensor_prob: float = 0.0,
+        sensor_strength: float = 1.0,
+        pose_noise_prob: float = 0.0,
+        pose_noise_m: float = 0.02,
+        pose_noise_deg: float = 1.0,
     ) -> None:
         if not scenes:
             raise ValueError("RaySampler needs at least one scene")
@@ -564,6 +570,12 @@ class RaySampler:
             raise ValueError(f"point_ov_rel_tol {point_ov_rel_tol} out of range: must be >= 0")
         if volume_sources < 0:
             raise ValueError(f"volume_sources {volume_sources} out of range: must be >= 0")
+        for name, p in (("sensor_prob", sensor_prob), ("pose_noise_prob", pose_noise_prob)):
+            if not 0.0 <= p <= 1.0:
+                raise ValueError(f"{name} {p} out of range 0..1")
+        if not (0.0 <= sensor_strength <= 4.0 and pose_noise_m >= 0.0 and pose_noise_deg >= 0.0):
+            raise ValueError(f"sensor_strength {sensor_strength} (0..4), pose_noise_m {pose_noise_m} and "
+                             f"pose_noise_deg {pose_noise_deg} (>= 0) out of range")
         if rays_per_view < 1:
             raise ValueError(f"rays_per_view {rays_per_view} out of range: must be >= 1")
         if not 0.0 <= frustum_bounds_prob <= 1.0:
@@ -613,6 +625,16 @@ class RaySampler:
         "visible_mean": the mean over every frame that sees the ray's surface point
         (:func:`visible_mean_features`, depth agreement within ``point_ov_rel_tol``)."""
         self.point_ov_rel_tol = point_ov_rel_tol
+        self.sensor_prob = sensor_prob
+        """Fraction of examples whose source images get sensor effects
+        (:func:`mapper.training.augment.sensor_effects` at ``sensor_strength``)."""
+        self.sensor_strength = sensor_strength
+        self.pose_noise_prob = pose_noise_prob
+        """Fraction of examples whose source poses get a random rigid error
+        (:func:`mapper.training.augment.perturb_poses`, ``pose_noise_m`` / ``pose_noise_deg`` std per
+        axis, scaled per example by a uniform draw in [0, 1]); the target rays stay true."""
+        self.pose_noise_m = pose_noise_m
+        self.pose_noise_deg = pose_noise_deg
 
     def rng(self, step: int, item: int) -> np.random.Generator:
         return np.random.default_rng(np.random.SeedSequence([self.seed, step, item]))
@@ -692,7 +714,22 @@ class RaySampler:
         if self.photometric_prob > 0 and bool(rng.random() < self.photometric_prob):
             src_rgb, tgt_rgb = photometric_jitter(sources.rgb, target_rgb, self.photometric_strength, rng)
             sample.sources.rgb, sample.target_rgb = src_rgb, tgt_rgb
+        if self.sensor_prob > 0 or self.pose_noise_prob > 0:  # its own stream: the rest is unchanged
+            self._degrade(sample, np.random.default_rng(np.random.SeedSequence([self.seed, step, item,
+                                                                                _SENSOR_STREAM])))
         return sample
+
+    def _degrade(self, sample: TrainSample, rng: np.random.Generator) -> None:
+        """Sensor effects on the sources' colour and rigid error on their poses (as drawn)."""
+        from mapper.training.augment import perturb_poses, sensor_effects
+
+        sensor, pose = rng.random(2)
+        if sensor < self.sensor_prob:
+            sample.sources.rgb = sensor_effects(sample.sources.rgb, rng, self.sensor_strength)
+        if pose < self.pose_noise_prob:
+            scale = float(rng.random())
+            sample.sources.world_from_cam = perturb_poses(
+                sample.sources.world_from_cam, rng, scale * self.pose_noise_m, scale * self.pose_noise_deg)
 
 
 POINT_OV_TARGETS = ("frame", "visible_mean")

@@ -175,6 +175,19 @@ class TrainConfig:
     a new world (0 = off)."""
     photometric_strength: float = 0.2
     """Size of that jitter (0 <= s < 1)."""
+    sensor_prob: float = 0.0
+    """Fraction of examples whose SOURCE images get a robot camera's effects: motion blur, noise,
+    a JPEG round trip (``mapper.training.augment.sensor_effects``; the target's colour stays clean).
+    0 = off."""
+    sensor_strength: float = 1.0
+    """Size of those effects (0..4; 1: blur up to 8 px, noise std up to 0.03, JPEG quality 60-95)."""
+    pose_noise_prob: float = 0.0
+    """Fraction of examples whose source poses get odometry-like error (the target rays stay true;
+    ``mapper.training.augment.perturb_poses``). 0 = off."""
+    pose_noise_m: float = 0.02
+    """Largest std per axis of that translation error (each example draws a scale in [0, 1])."""
+    pose_noise_deg: float = 1.0
+    """Largest std per axis of that rotation error (degrees)."""
     depth_guided_masking: bool = False
     """Depth Guided Masking in every example (the rays' samples and the surface points)."""
     depth_guided_masking_prob: float = 0.0
@@ -242,6 +255,11 @@ class TrainConfig:
             (0.0 <= self.photometric_prob <= 1.0, "photometric_prob", "in [0, 1]"),
             (0.0 <= self.depth_guided_masking_prob <= 1.0, "depth_guided_masking_prob", "in [0, 1]"),
             (0.0 <= self.photometric_strength < 1.0, "photometric_strength", "in [0, 1)"),
+            (0.0 <= self.sensor_prob <= 1.0, "sensor_prob", "in [0, 1]"),
+            (0.0 <= self.sensor_strength <= 4.0, "sensor_strength", "in [0, 4]"),
+            (0.0 <= self.pose_noise_prob <= 1.0, "pose_noise_prob", "in [0, 1]"),
+            (self.pose_noise_m >= 0, "pose_noise_m", ">= 0"),
+            (self.pose_noise_deg >= 0, "pose_noise_deg", ">= 0"),
             (self.log_every >= 1, "log_every", ">= 1"),
             (self.checkpoint_every >= 1, "checkpoint_every", ">= 1"),
             (self.val_every >= 1, "val_every", ">= 1"),
@@ -731,6 +749,11 @@ def _load_data(cfg: TrainConfig, dd: _Dist, model_cfg: ModelConfig | None) -> _D
         frustum_range_m=cfg.frustum_range_m,
         photometric_prob=cfg.photometric_prob,
         photometric_strength=cfg.photometric_strength,
+        sensor_prob=cfg.sensor_prob,
+        sensor_strength=cfg.sensor_strength,
+        pose_noise_prob=cfg.pose_noise_prob,
+        pose_noise_m=cfg.pose_noise_m,
+        pose_noise_deg=cfg.pose_noise_deg,
         extra_scenes=extra_scenes,
         extra_weight=cfg.extra_train_weight,
         volume_sources=cfg.volume_sources,

@@ -1,0 +1,111 @@
+"""mapper.training.augment: sensor effects on the sources, odometry-like pose error, in the sampler."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mapper.training.augment import motion_blur_kernel, perturb_poses, sensor_effects
+from mapper.training.data import RaySampler, load_scene
+from tests.mapper.training.test_data import tiny_model_config, write_tiny_scene
+
+
+@pytest.mark.parametrize("length", [1.0, 3.0, 7.5, 12.0])
+@pytest.mark.parametrize("angle", [0.0, 0.7, math.pi / 2])
+def test_blur_kernel_is_a_normalised_line(length: float, angle: float) -> None:
+    k = motion_blur_kernel(length, angle)
+    assert k.shape[0] == k.shape[1] and k.shape[0] % 2 == 1 and k.shape[0] >= int(length)
+    assert abs(float(k.sum()) - 1.0) < 1e-6 and (k >= 0).all()
+    # a line through the centre: point-symmetric
+    np.testing.assert_allclose(k, k[::-1, ::-1], atol=1e-6)
+    with pytest.raises(ValueError, match="length_px"):
+        motion_blur_kernel(float("nan"), 0.0)
+
+
+def test_sensor_effects_keep_range_and_shape_and_are_seeded() -> None:
+    rng = np.random.default_rng(1)
+    x = torch.from_numpy(rng.random((4, 3, 24, 32), dtype=np.float32))
+    a = sensor_effects(x, np.random.default_rng(5), 1.0)
+    b = sensor_effects(x, np.random.default_rng(5), 1.0)
+    assert a.shape == x.shape and a.dtype == x.dtype
+    assert float(a.min()) >= 0.0 and float(a.max()) <= 1.0
+    assert torch.equal(a, b)  # a pure function of the generator's state
+    changed = [not torch.equal(sensor_effects(x, np.random.default_rng(s), 1.0), x) for s in range(8)]
+    assert sum(changed) >= 6  # each effect is drawn with probability 1/2: all three skipped 1 in 8
+    with pytest.raises(ValueError, match="shape"):
+        sensor_effects(x[0], rng, 1.0)
+    with pytest.raises(ValueError, match="strength"):
+        sensor_effects(x, rng, -1.0)
+
+
+def test_sensor_blur_smooths_and_keeps_the_mean() -> None:
+    x = torch.from_numpy(np.random.default_rng(2).random((1, 3, 32, 32), dtype=np.float32))
+
+    def variation(img: torch.Tensor) -> float:
+        rows = (img[..., 1:, :] - img[..., :-1, :]).abs().sum()
+        return float(rows + (img[..., 1:] - img[..., :-1]).abs().sum())
+
+    blurred = 0
+    for seed in range(64):  # the draws that blur and do nothing else
+        blur, noise, jpeg = np.random.default_rng(seed).random(3) < 0.5
+        if blur and not noise and not jpeg:
+            y = sensor_effects(x, np.random.default_rng(seed), 2.0)
+            assert variation(y) < 0.9 * variation(x)
+            assert float(y.mean()) == pytest.approx(float(x.mean()), rel=0.02)
+            blurred += 1
+    assert blurred >= 4
+
+
+def test_perturbed_poses_stay_rigid_with_the_drawn_error_size() -> None:
+    base = torch.eye(4, dtype=torch.float64).repeat(4000, 1, 1)
+    base[:, :3, 3] = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    out = perturb_poses(base, np.random.default_rng(0), 0.02, 1.0)
+    R = out[:, :3, :3]
+    eye = torch.eye(3, dtype=torch.float64).expand_as(R)
+    torch.testing.assert_close(R.transpose(1, 2) @ R, eye, atol=1e-9, rtol=0)
+    torch.testing.assert_close(torch.linalg.det(R), torch.ones(4000, dtype=torch.float64), atol=1e-9, rtol=0)
+    assert torch.equal(out[:, 3], base[:, 3])
+    shift = (out[:, :3, 3] - base[:, :3, 3]).numpy()
+    assert np.std(shift, axis=0) == pytest.approx([0.02] * 3, rel=0.08)
+    angle = np.degrees(np.arccos(np.clip((np.trace(R.numpy(), axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    # the norm of a 3-d normal vector of std 1 degree per axis: mean sqrt(8/pi) = 1.596 degrees
+    assert float(np.mean(angle)) == pytest.approx(math.sqrt(8 / math.pi), rel=0.05)
+    assert torch.equal(perturb_poses(base, np.random.default_rng(0), 0.0, 0.0), base)
+    with pytest.raises(ValueError, match="shape"):
+        perturb_poses(base[0], np.random.default_rng(0), 0.01, 0.5)
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_tiny_scene(tmp_path_factory.mktemp("data") / "train" / "tiny_s0")
+
+
+def test_sampler_degrades_sources_only_and_leaves_other_draws_unchanged(scene_dir: Path) -> None:
+    s = load_scene(scene_dir)
+    cfg = tiny_model_config()
+    clean = RaySampler([s], cfg, rays_per_view=32, seed=3)
+    noisy = RaySampler([s], cfg, rays_per_view=32, seed=3, sensor_prob=1.0, pose_noise_prob=1.0,
+                       pose_noise_m=0.05, pose_noise_deg=2.0)
+    off = RaySampler([s], cfg, rays_per_view=32, seed=3, sensor_prob=0.0, pose_noise_prob=0.0)
+    for step in range(4):
+        a, b, c = clean.sample(step, 0), noisy.sample(step, 0), off.sample(step, 0)
+        # the target rays, their supervision and the sources chosen are those of the clean sampler
+        assert torch.equal(a.origins, b.origins) and torch.equal(a.directions, b.directions)
+        assert torch.equal(a.target_rgb, b.target_rgb) and a.target == b.target
+        assert np.array_equal(a.sources.indices, b.sources.indices)
+        assert torch.equal(a.sources.world_from_cam, c.sources.world_from_cam)
+        assert torch.equal(a.sources.rgb, c.sources.rgb)
+        again = noisy.sample(step, 0)
+        assert torch.equal(b.sources.world_from_cam, again.sources.world_from_cam)
+        assert torch.equal(b.sources.rgb, again.sources.rgb)
+    moved = [not torch.equal(clean.sample(k, 0).sources.world_from_cam,
+                             noisy.sample(k, 0).sources.world_from_cam) for k in range(4)]
+    assert all(moved)
+    with pytest.raises(ValueError, match="sensor_prob"):
+        RaySampler([s], cfg, rays_per_view=8, sensor_prob=1.5)
+    with pytest.raises(ValueError, match="pose_noise_m"):
+        RaySampler([s], cfg, rays_per_view=8, pose_noise_m=-0.1)
