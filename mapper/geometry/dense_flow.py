@@ -139,7 +139,9 @@ def _at_size(view: FlowView, shape: tuple[int, int]) -> FlowView:
     return replace(view, K=k, gray=gray)
 
 
-def select_flow_partners(new: PosedView, candidates: Sequence[PosedView], config: DenseFlowConfig) -> list[int]:
+def select_flow_partners(
+    new: PosedView, candidates: Sequence[PosedView], config: DenseFlowConfig
+) -> list[int]:
     """Indices of up to ``max_partners`` candidates, best first (overlap x baseline, see above)."""
     tri = TriangulationConfig(max_partners=config.max_partners, min_baseline_m=config.min_baseline_m,
                               min_overlap=config.min_overlap, target_parallax_deg=config.target_parallax_deg,
@@ -152,7 +154,7 @@ def dis_flow(a: np.ndarray, b: np.ndarray, preset: str) -> np.ndarray:
     ``a`` moves to ``(c, r) + flow[r, c]`` in ``b``."""
     if a.shape != b.shape or a.ndim != 2:
         raise ValueError(f"images must be (h, w) of one shape, got {a.shape} and {b.shape}")
-    dis = cv2.DISOpticalFlow_create(_PRESETS[preset])
+    dis = cv2.DISOpticalFlow_create(_PRESETS[preset])  # type: ignore[attr-defined]
     return np.asarray(dis.calc(a, b, None), np.float32)
 
 

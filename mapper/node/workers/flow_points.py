@@ -60,7 +60,9 @@ log = logging.getLogger("mapper.node.workers.flow_points")
 KeyframeKey = tuple[str, int, int]
 
 
-def flow_keyframe(keyframe: Any, view: FlowView, dense: FlowDepth, config: DenseFlowConfig) -> TriangulatedKeyframe:
+def flow_keyframe(
+    keyframe: Any, view: FlowView, dense: FlowDepth, config: DenseFlowConfig
+) -> TriangulatedKeyframe:
     """``dense`` (at ``view``'s working size) as a depth map of ``keyframe`` (full size): each point at
     the full-size pixel under its working-size pixel's centre, confidence ``global_map_weight`` times
     ``1 - sigma / (max_sigma_rel * depth)`` (at least 0.1)."""
@@ -96,11 +98,13 @@ class DenseFlowPoints:
         self.config = config or ctx.config.dense_flow
         self._lock = threading.Lock()  # the candidates, the kept points, the map they belong to
         self._work_lock = threading.Lock()
-        self._queue: KeyframeQueue[tuple[Any, int, GlobalSemanticMap]] = KeyframeQueue(self.config.max_pending)
+        self._queue: KeyframeQueue[tuple[Any, int, GlobalSemanticMap]] = KeyframeQueue(
+            self.config.max_pending)
         self._candidates: deque[_Candidate] = deque(maxlen=self.config.candidate_keyframes)
         self._points: _KeyframeBudget[tuple[np.ndarray, np.ndarray]] = _KeyframeBudget(
             self.config.max_points, lambda xyz_sigma: len(xyz_sigma[1]))
-        self._featureless: OrderedDict[KeyframeKey, tuple[GlobalSemanticMap, TriangulatedKeyframe]] = OrderedDict()
+        self._featureless: OrderedDict[KeyframeKey, tuple[GlobalSemanticMap, TriangulatedKeyframe]] = (
+            OrderedDict())
         self._map: GlobalSemanticMap | None = None
         self._loaded_version = -1
         self._generation = 0
