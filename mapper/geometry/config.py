@@ -1,5 +1,5 @@
-"""Settings of sparse triangulation and dense plane-sweep stereo from posed RGB (TOML tables
-``[triangulation]`` and ``[stereo]``; no torch).
+"""Settings of sparse triangulation, dense plane-sweep stereo and dense optical-flow points from posed
+RGB (TOML tables ``[triangulation]``, ``[stereo]`` and ``[dense_flow]``; no torch).
 
 :class:`TriangulationConfig` is one field of :class:`mapper.node.config.NodeConfig`; the pure
 geometry (:mod:`mapper.geometry.triangulation`) and the node plugin
@@ -391,3 +391,135 @@ class StereoConfig:
         check("sigma_rel", self.sigma_rel, 1e-4, 1.0)
         check("max_points", self.max_points, 0, 100_000_000)
         check("max_backlog", self.max_backlog, 0, 100_000)
+
+
+FLOW_PRESETS = ("ultrafast", "fast", "medium")
+
+
+@dataclass(frozen=True)
+class DenseFlowConfig:
+    """Dense points from posed RGB by optical flow (:mod:`mapper.geometry.dense_flow`; TOML table
+    ``[dense_flow]``): each RGB-only keyframe's pixels matched into one or two partner keyframes
+    with OpenCV's DIS flow, checked forward-backward, triangulated with the known poses.
+
+    The reprojection, parallax and depth-uncertainty tests follow from the expected errors
+    (``flow_sigma_px``, ``pose_sigma_m``, ``pose_sigma_deg``), not from fixed pixel thresholds."""
+
+    enabled: bool = False
+    """Run the worker on every keyframe without depth (``mapper-dense-flow``; the ack never waits
+    for it). Off by default: docs/concepts/rgb-only.md has the measurement."""
+
+    preset: str = "medium"
+    """DIS flow preset: "ultrafast", "fast" or "medium" (OpenCV's; finer and slower in that order)."""
+
+    max_partners: int = 2
+    """Earlier keyframes each keyframe is matched against (best by overlap and baseline). 1..8."""
+
+    candidate_keyframes: int = 32
+    """The recent keyframes (their small grayscale images) partners are chosen from. 1..10000."""
+
+    min_overlap: float = 0.5
+    """A partner must see at least this share of the keyframe's probe grid (dense flow needs the
+    same surfaces in both images). 0..1."""
+
+    min_baseline_m: float = 0.05
+    """A partner's camera centre must be at least this far away (metres). > 0."""
+
+    target_parallax_deg: float = 8.0
+    """Partners are ranked by overlap times min(1, parallax at 2.35 m / this angle). 0.1..90."""
+
+    max_width: int = 320
+    """Wider keyframes are matched downscaled to this width (flow cost grows with the pixels). 16..4096."""
+
+    stride_px: int = 2
+    """Every this many pixels (at the working size, both directions) is triangulated. 1..16."""
+
+    flow_sigma_px: float = 0.5
+    """Expected flow error (pixels, 1 sigma). 0.01..100."""
+
+    fb_sigmas: float = 3.0
+    """Forward-backward check: the round trip must come back within this many times
+    sqrt(2) ``flow_sigma_px``. 0.1..100."""
+
+    min_texture: float = 0.01
+    """Pixels whose 5 x 5 patch's intensity standard deviation (0..1 scale) is below this are not
+    matched (flow there is interpolated, not measured). 0..1."""
+
+    pose_sigma_m: float = 0.005
+    """Expected error of a keyframe's camera centre per axis (metres, 1 sigma); two keyframes'
+    relative pose carries sqrt(2) times it. 0..10."""
+
+    pose_sigma_deg: float = 0.2
+    """Expected error of a keyframe's orientation per axis (degrees, 1 sigma). 0..45."""
+
+    reprojection_sigmas: float = 3.0
+    """A point must reproject within this many expected ray errors (``f * sigma_ray``) in both
+    views. 0.1..100."""
+
+    max_sigma_rel: float = 0.08
+    """A point's 1-sigma depth uncertainty (``range * sigma_ray / sin(parallax)``) must be at most this
+    share of its depth: with the expected errors above this sets the parallax a point needs. 1e-4..1."""
+
+    min_parallax_deg: float = 1.0
+    """Rays must meet at least at this angle, whatever the expected errors. 0.01..90."""
+
+    min_depth_m: float = 0.1
+    """Cheirality: at least this far in front of both cameras (metres). > 0."""
+
+    max_depth_m: float = 12.0
+    """Points farther from the keyframe (z-depth, metres) are dropped. > min_depth_m."""
+
+    agree_sigmas: float = 3.0
+    """With two partners, their estimates of a pixel must agree within this many combined sigmas
+    (else the pixel is dropped); agreeing ones are fused by inverse variance. 0.1..100."""
+
+    min_views: int = 2
+    """Views a point must be triangulated in, the keyframe included (3 = both partners agree). 2..9."""
+
+    global_map_weight: float = 0.3
+    """Points join the global map with the keyframe's OV features at this weight times a certainty
+    (1 - sigma / (max_sigma_rel * depth), at least 0.1); 0 = not added. 0..1."""
+
+    max_points: int = 400_000
+    """Points kept (for the rendered-depth check and renders); the oldest keyframes' go first. 0..10^8."""
+
+    max_pending: int = 64
+    """Keyframes waiting for the worker; beyond it the oldest is dropped (``dropped``). 1..100000."""
+
+    def validate(self, where: str) -> None:
+        """Raise :class:`ConfigError` naming ``where``, the key, the value and the allowed range."""
+
+        def check(key: str, value: float, lo: float, hi: float) -> None:
+            if not lo <= value <= hi:
+                raise ConfigError(f"{where}: dense_flow.{key} = {value!r} out of range {lo}..{hi}")
+
+        if self.preset not in FLOW_PRESETS:
+            raise ConfigError(f"{where}: dense_flow.preset = {self.preset!r} is not one of {FLOW_PRESETS}")
+        check("max_partners", self.max_partners, 1, 8)
+        check("candidate_keyframes", self.candidate_keyframes, 1, 10_000)
+        check("min_overlap", self.min_overlap, 0.0, 1.0)
+        check("min_baseline_m", self.min_baseline_m, 1e-6, 1e3)
+        check("target_parallax_deg", self.target_parallax_deg, 0.1, 90.0)
+        check("max_width", self.max_width, 16, 4096)
+        check("stride_px", self.stride_px, 1, 16)
+        check("flow_sigma_px", self.flow_sigma_px, 0.01, 100.0)
+        check("fb_sigmas", self.fb_sigmas, 0.1, 100.0)
+        check("min_texture", self.min_texture, 0.0, 1.0)
+        check("pose_sigma_m", self.pose_sigma_m, 0.0, 10.0)
+        check("pose_sigma_deg", self.pose_sigma_deg, 0.0, 45.0)
+        check("reprojection_sigmas", self.reprojection_sigmas, 0.1, 100.0)
+        check("max_sigma_rel", self.max_sigma_rel, 1e-4, 1.0)
+        check("min_parallax_deg", self.min_parallax_deg, 0.01, 90.0)
+        check("min_depth_m", self.min_depth_m, 1e-3, 1e3)
+        check("max_depth_m", self.max_depth_m, 1e-2, 1e4)
+        if self.max_depth_m <= self.min_depth_m:
+            raise ConfigError(f"{where}: dense_flow.max_depth_m = {self.max_depth_m} must exceed "
+                              f"dense_flow.min_depth_m = {self.min_depth_m}")
+        check("agree_sigmas", self.agree_sigmas, 0.1, 100.0)
+        check("min_views", self.min_views, 2, 9)
+        if self.min_views > self.max_partners + 1:
+            raise ConfigError(f"{where}: dense_flow.min_views = {self.min_views} needs max_partners >= "
+                              f"{self.min_views - 1}, got {self.max_partners}")
+        check("global_map_weight", self.global_map_weight, 0.0, 1.0)
+        check("max_points", self.max_points, 0, 100_000_000)
+        check("max_pending", self.max_pending, 1, 100_000)

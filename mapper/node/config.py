@@ -35,7 +35,7 @@ from typing import Any
 from govnesf._compat import tomllib
 from govnesf.resources import find_data_file
 from mapper.errors import ConfigError
-from mapper.geometry.config import StereoConfig, TriangulationConfig
+from mapper.geometry.config import DenseFlowConfig, StereoConfig, TriangulationConfig
 from mapper.map.global_map import GlobalMapConfig
 from mapper.map.window import WindowConfig
 from mapper.node.store import validate_map_name
@@ -487,6 +487,11 @@ class NodeConfig:
     :mod:`mapper.geometry.plane_sweep`, run by the triangulation worker after a keyframe's points):
     global-map points and the depth prior for RGB-only robots."""
 
+    dense_flow: DenseFlowConfig = field(default_factory=DenseFlowConfig)
+    """Dense points by optical flow for keyframes without depth (TOML table ``[dense_flow]``;
+    :mod:`mapper.geometry.dense_flow`, worker :mod:`mapper.node.workers.flow_points`): global-map
+    points for RGB-only robots. Off by default."""
+
     limits: LimitsConfig = field(default_factory=LimitsConfig)
     """Socket high-water marks and queue bounds (TOML table ``[limits]``)."""
 
@@ -521,6 +526,7 @@ class NodeConfig:
         self.ov_backend.validate(where)
         self.triangulation.validate(where)
         self.stereo.validate(where)
+        self.dense_flow.validate(where)
         self.limits.validate(where)
         if self.ov_backend.kind and self.ov_space is not None and self.ov_space != self.ov_backend.space:
             raise ConfigError(

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from mapper.node.service import MapperNode
     from mapper.node.workers.depth_points import RenderedDepthPoints
+    from mapper.node.workers.flow_points import DenseFlowPoints
     from mapper.node.workers.ov_features import OvFeatureWorker
     from mapper.node.workers.triangulation import SparseTriangulation
     from mapper.runtime.model_runtime import ModelRuntime
@@ -30,15 +31,18 @@ class ServeStages:
     """Sparse triangulation and stereo of RGB-only keyframes (``triangulation.enabled``)."""
     ov_backend: OvFeatureWorker | None
     """In-process OV features (``ov_backend.kind``)."""
+    dense_flow: DenseFlowPoints | None = None
+    """Dense optical-flow points of RGB-only keyframes (``dense_flow.enabled``)."""
 
 
 def install_serve_stages(node: MapperNode) -> ServeStages:
     """Install on ``node``, from its config, what ``govnesf serve`` runs: the learned backend
     (``serve_model``; a model that fails to load is installed anyway and reported by ``status``),
-    triangulation (``triangulation.enabled``; its bounds feed a ready model), then the OV backend
+    triangulation (``triangulation.enabled``; its bounds feed a ready model), dense-flow points
+    (``dense_flow.enabled``), then the OV backend
     (``ov_backend.kind``; after the learned backend, it adds its notes to the ``not_ready`` answers)."""
     config = node.config
-    runtime = rendered = tri = ov = None
+    runtime = rendered = tri = ov = flow = None
     if config.serve_model:
         from mapper.node.backends.learned import install_learned_backend
         from mapper.runtime.model_runtime import ModelRuntime
@@ -49,8 +53,12 @@ def install_serve_stages(node: MapperNode) -> ServeStages:
         from mapper.node.workers.triangulation import install_triangulation
 
         tri = install_triangulation(node, runtime if runtime is not None and runtime.ready else None)
+    if config.dense_flow.enabled:
+        from mapper.node.workers.flow_points import install_dense_flow
+
+        flow = install_dense_flow(node)
     if config.ov_backend.kind:
         from mapper.node.workers.ov_features import install_ov_backend
 
         ov = install_ov_backend(node)
-    return ServeStages(runtime, rendered, tri, ov)
+    return ServeStages(runtime, rendered, tri, ov, flow)

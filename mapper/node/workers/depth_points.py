@@ -28,7 +28,8 @@ depths): the pixel's 3D point reprojected there lies within
 ``rendered_consistency_voxels * voxel_size_m`` of that keyframe's rendered depth. Points behind a
 camera or outside its image are no evidence either way. The triangulated points come from the
 node's installed :class:`~mapper.node.workers.triangulation.SparseTriangulation` (found at
-render time, so either plugin may be installed first) or from :attr:`RenderedDepthPoints.sparse_source`.
+render time, so either plugin may be installed first) or from :attr:`RenderedDepthPoints.sparse_source`;
+the dense optical-flow points (:mod:`mapper.node.workers.flow_points`) join them when installed.
 
 Scheduling: the node calls :meth:`RenderedDepthPoints.on_keyframe` on the keyframe-listener thread
 (integrator; the ingest thread when integration is inline) after a keyframe entered the window
@@ -433,15 +434,20 @@ class RenderedDepthPoints:
         return getattr(self.ctx.status_providers.get("triangulation"), "__self__", None)
 
     def _sparse_points(self) -> tuple[np.ndarray, np.ndarray]:
-        """The triangulated points (empty when no triangulation plugin is installed)."""
+        """The triangulated points and swept depths, and the dense-flow points
+        (:mod:`mapper.node.workers.flow_points`) when that worker is installed (empty without either)."""
         source = self.sparse_source
         if source is None:
             owner = self._triangulation()
             # triangulated points and plane-sweep depths when the plugin has them
             source = getattr(owner, "geometry_points", None) or getattr(owner, "points", None)
-        if source is None:
-            return np.zeros((0, 3)), np.zeros(0)
-        return source()
+        xyz, sigma = (np.zeros((0, 3)), np.zeros(0)) if source is None else source()
+        flow = getattr(self.ctx.status_providers.get("dense_flow"), "__self__", None)
+        if self.sparse_source is None and flow is not None:  # dense optical-flow points too
+            flow_xyz, flow_sigma = flow.geometry_points()
+            if len(flow_sigma):
+                xyz, sigma = np.concatenate([xyz, flow_xyz]), np.concatenate([sigma, flow_sigma])
+        return xyz, sigma
 
     def _filtered(self, rendered: RenderedKeyframe, others: list[RenderedKeyframe],
                   target: GlobalSemanticMap) -> RenderedKeyframe:
