@@ -126,11 +126,16 @@ def ask(client: Any, room: Room) -> dict[str, dict[str, float]]:
 
 
 def map_status(client: Any) -> dict[str, Any]:
-    """What the map holds: window keyframes, global points, map version, keyframes evicted."""
+    """What the map holds (window keyframes, global points, map version, keyframes evicted) and what
+    the learned-features and triangulation workers did."""
     status = client.status(timeout_s=60.0)
     return {"keyframes": status.keyframes, "map_version": status.map_version,
             "global_points": status.extra.get("global_points"),
-            "keyframes_evicted": status.extra.get("keyframes_evicted")}
+            "keyframes_evicted": status.extra.get("keyframes_evicted"),
+            **{f"{worker}.{k}": status.extra[worker].get(k)
+               for worker, keys in (("map_features", ("done", "late", "dropped", "voxels_set")),
+                                    ("triangulation", ("keyframes", "points", "stale", "restored")))
+               if isinstance(status.extra.get(worker), dict) for k in keys}}
 
 
 def stream(client: Any, frames: list[Frame]) -> None:
@@ -188,7 +193,7 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
             for subset in ("all", "first_half_only"):
                 one = [r["one_go"]["miou"][name][subset] for r in sel]
                 cont = [r["continued"]["miou"][name][subset] for r in sel]
-                diff = [c - o for c, o in zip(cont, one)]
+                diff = [c - o for c, o in zip(cont, one, strict=True)]
                 part[f"{name}/{subset}"] = {
                     "one_go_median": round(statistics.median(one), 1),
                     "continued_median": round(statistics.median(cont), 1),
