@@ -4,7 +4,9 @@ Per room (a simulated ``clients.sim`` room, the robot's ``loop`` path, SimLSeg `
 depth and without), the frames are rendered once and streamed over loopback into ``govnesf serve``
 processes (:class:`clients.harness.NodeProcess`, the shipped settings):
 
-* ``one_go``: every frame into one node;
+* ``one_go``: every frame into one node, which settles and is asked at the half too (the
+  continued run pauses there: without that pause in both, the comparison would measure the
+  background work that a stream faster than it leaves undone, not the restart);
 * ``continued``: the first half into a node, which is asked once settled, then ``save``\\ s the map
   and is killed; a new node on the same map directory ``load``\\ s it and the second half follows.
 
@@ -17,7 +19,7 @@ before any frame of the second half (``after_load``), against the first node's a
 save (``before_save``): what a restart loses by itself.
 
 Run (seeds with ``seed % 3 == 0`` are held out: choose on the others, report those):
-``python benchmarks/studies/continue_map.py --seeds 1,2,4`` (about 3 min per room and depth
+``python benchmarks/studies/continue_map.py --seeds 1,2,4`` (2-4 min per room and depth
 setting on 2 cores), ``--quick`` (one room, 60 frames, depth only: a first look),
 ``--seeds 3,6,9`` for the held-out report.
 """
@@ -147,9 +149,13 @@ def run_one_go(room: Room, work: Path, settle_s: float, log: Path | None) -> dic
     with NodeProcess(work / "maps", log_path=log, extra_args=NODE_ARGS, events=False) as node:
         node.wait_ready(180.0)
         with node.client(timeout_s=600.0) as client:
-            stream(client, room.frames)
-            settled = settle(client, settle_s)
-            return {"settled": settled, "miou": ask(client, room), "status": map_status(client)}
+            half = len(room.frames) // 2
+            stream(client, room.frames[:half])
+            out: dict[str, Any] = {"settled_at_half": settle(client, settle_s)}
+            out["at_half"] = ask(client, room)  # as the continued run asks before its save
+            stream(client, room.frames[half:])
+            out["settled"] = settle(client, settle_s)
+            return {**out, "miou": ask(client, room), "status": map_status(client)}
 
 
 def run_continued(room: Room, work: Path, settle_s: float, log: Path | None) -> dict[str, Any]:
