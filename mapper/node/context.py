@@ -119,12 +119,13 @@ class NodeContext:
         triangulated points and the kept plane-sweep depths of RGB-only keyframes: ``render``
         (``model.surface_from_map = "auto"``) renders at their surfaces when the window's
         keyframes mostly lack input depth. Called on the query thread; must not raise."""
-        self.load_listeners: list[Callable[[GlobalSemanticMap, int], None]] = []
+        self.load_listeners: list[Callable[[GlobalSemanticMap, int, tuple[Keyframe, ...]], None]] = []
         """Called on the thread that loaded a map (``load`` or the autosave at start), outside the
         state lock, right after the loaded map replaced the window and the global map, with the new
-        global map and its map version: whatever belongs to the replaced map can go now (keyframes
-        acked before the load carry a map version up to the replaced map's, below this one). Must be
-        quick and must not raise."""
+        global map, its map version and the loaded window's keyframes (oldest first): whatever
+        belongs to the replaced map can go now (keyframes acked before the load carry a map version
+        up to the replaced map's, below this one), and what a worker derives from the window can be
+        made again from the loaded keyframes (queue the work). Must be quick and must not raise."""
         self.workers: list[tuple[str, Callable[[threading.Event], None]]] = []
         """Background threads ``(name, target)`` started by the transport after the sockets are
         bound; ``target(stop_event)`` runs until the event is set and must not raise."""

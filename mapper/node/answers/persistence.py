@@ -174,7 +174,8 @@ class Persistence:
                 state.map_version = saved_version
             else:
                 state.map_version += 1
-            version, count = state.map_version, len(state.window)
+            version, loaded = state.map_version, state.window.keyframes
+            count = len(loaded)
             fresh.retag(version)
             state.global_map = fresh  # a frame being integrated into the old map right now is dropped
             ctx.publish(version, count)
@@ -182,7 +183,7 @@ class Persistence:
         # features (what the first query_points would compute) are made here, off the query path.
         fresh.snapshot().unit_feature_blocks()
         for listener in ctx.load_listeners:
-            listener(fresh, version)
+            listener(fresh, version, loaded)
         points = len(state.global_map)
         log.info("loaded map %r: %d keyframes, %d global points, now map version %d", name, count, points,
                  version)

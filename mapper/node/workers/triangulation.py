@@ -41,7 +41,11 @@ queues it (O(1)); the worker (``mapper-triangulation``) detects, matches and tri
 features of the last ``candidate_keyframes`` keyframes (with or without depth) stay in memory as
 partner candidates; a map load clears them and the sparse map at once (``node.load_listeners``:
 nothing of the replaced map is held or reported after the load returns), and keyframes acked before
-the load that the worker meets later are skipped (counted in ``stale``). Beyond ``max_pending``
+the load that the worker meets later are skipped (counted in ``stale``). The loaded window's
+keyframes are then queued again (``restored``): the worker makes their candidates, sparse points,
+volume extents, swept depths and depth priors as it did before the save, without fusing their
+points into the global map a second time (the loaded map holds them), so a map loaded after a
+restart continues with the geometry the live node had. Beyond ``max_pending``
 waiting keyframes the oldest is dropped and counted. Errors never reach the listener thread: they
 are logged (rate limited) and counted in ``failed``.
 
@@ -60,7 +64,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
@@ -392,9 +396,9 @@ class SparseTriangulation:
         self.extractor = FeatureExtractor(self.config)
         self._lock = threading.Lock()  # guards the sparse map, the candidates and the map they belong to
         self._work_lock = threading.Lock()  # one process_pending at a time
-        self._queue: KeyframeQueue[tuple[Any, int, GlobalSemanticMap]] = KeyframeQueue(
+        self._queue: KeyframeQueue[tuple[Any, int, GlobalSemanticMap, bool]] = KeyframeQueue(
             self.config.max_pending
-        )  # (keyframe, its map version, the node's map when it was queued)
+        )  # (keyframe, its map version, the node's map when it was queued, restored by a load)
         self._candidates: deque[_Candidate] = deque(maxlen=self.config.candidate_keyframes)
         self._points: _KeyframeBudget[SparsePoints] = _KeyframeBudget(self.config.max_points, len)
         self._swept: _KeyframeBudget[tuple[np.ndarray, np.ndarray]] = _KeyframeBudget(  # (xyz, sigma)
@@ -422,6 +426,7 @@ class SparseTriangulation:
         self.integrated_points = 0
         self.partners_total = 0
         self.stale = 0
+        self.restored = 0  # keyframes of a loaded window worked on again (their points not fused)
         self.failed = 0
         self.seconds: deque[float] = deque(maxlen=1000)
         self.seconds_total = 0.0
@@ -451,16 +456,22 @@ class SparseTriangulation:
         """Queue every keyframe (keyframe-listener thread; O(1), never raises): those without depth are
         triangulated, those with depth only become partner candidates."""
         if self.config.enabled:
-            self._queue.put((keyframe, int(map_version), self.ctx.state.global_map))
+            self._queue.put((keyframe, int(map_version), self.ctx.state.global_map, False))
 
-    def on_map_loaded(self, global_map: GlobalSemanticMap, map_version: int) -> None:
+    def on_map_loaded(
+        self, global_map: GlobalSemanticMap, map_version: int, keyframes: Sequence[Any] = ()
+    ) -> None:
         """A load replaced the map (the loading thread; quick, never raises): forget the replaced
-        map's candidates, points and room depth now, and skip the keyframes queued for it (those
-        with a map version up to ``map_version``) when the worker meets them."""
+        map's candidates, points and room depth now, skip the keyframes queued for it (those with a
+        map version up to ``map_version``) when the worker meets them, and queue the loaded
+        window's ``keyframes`` (oldest first) to be worked on again without fusing their points."""
         with self._lock:
             self._loaded_version = max(self._loaded_version, int(map_version))
             self._reset_locked()
             self._map = global_map
+        if self.config.enabled:
+            for keyframe in keyframes:
+                self._queue.put((keyframe, int(map_version), global_map, True))
 
     # -- work -----------------------------------------------------------------------------------
 
@@ -478,12 +489,12 @@ class SparseTriangulation:
             batch = self._queue.drain()
             self._in_batch = len(batch)
             done = 0
-            for n, (kf, version, target) in enumerate(batch):
+            for n, (kf, version, target, restored) in enumerate(batch):
                 if self._stop.is_set():  # the node is stopping: the rest of the batch is not worked on
                     self.left_at_stop += len(batch) - n
                     break
                 try:
-                    done += self._process_one(kf, version, target)
+                    done += self._process_one(kf, version, target, restored)
                 finally:
                     self._in_batch -= 1
             if done:
@@ -496,10 +507,13 @@ class SparseTriangulation:
             self._in_batch = 0
             self._work_lock.release()
 
-    def _process_one(self, keyframe: Any, map_version: int, target: GlobalSemanticMap) -> int:
+    def _process_one(self, keyframe: Any, map_version: int, target: GlobalSemanticMap,
+                     restored: bool = False) -> int:
+        """``restored``: a keyframe of the window a load brought (its points are in the map)."""
         started = time.perf_counter()
         with self._lock:
-            if map_version <= self._loaded_version:  # acked before a load: its map was replaced
+            # acked before a load (or restored by an earlier one): its map was replaced
+            if map_version < self._loaded_version or (map_version == self._loaded_version and not restored):
                 self.stale += 1
                 return 0
             if target is not self._map:  # the first keyframe, or a map swapped in without a load
@@ -560,9 +574,11 @@ class SparseTriangulation:
             current = replace(current, world_from_cam=keyframe.world_from_cam)
         swept_frame = None if swept is None else swept_keyframe(current, swept[0], swept[1], self.stereo)
         self._priors.set(keyframe, points, swept_frame, image, self.geometry_points)
-        self._integrate(current, points, target)
-        if swept_frame is not None:
-            self._integrate_swept(current, swept_frame, target)
+        self.restored += int(restored)
+        if not restored:
+            self._integrate(current, points, target)
+            if swept_frame is not None:
+                self._integrate_swept(current, swept_frame, target)
         seconds = time.perf_counter() - started
         self.processed += 1
         self.points_total += len(points)
@@ -816,6 +832,7 @@ class SparseTriangulation:
             "mean_ms": round(1e3 * self.seconds_total / max(self.processed, 1), 1),
             "p90_ms": round(1e3 * recent[int(0.9 * (len(recent) - 1))], 1) if recent else 0.0,
             "stale": self.stale,
+            "restored": self.restored,
             "failed": self.failed,
             "left_at_stop": self.left_at_stop,
             "late_feature_points": self.late_feature_points,

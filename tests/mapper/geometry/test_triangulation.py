@@ -432,12 +432,13 @@ def _query(node: MapperNode, msg: Save | Load | StatusRequest) -> Status | Ok:
 def test_a_map_load_drops_the_replaced_maps_candidates_and_points_at_once(
     node: MapperNode, texture: np.ndarray
 ) -> None:
-    tri = SparseTriangulation(node.ctx)
+    tri = SparseTriangulation(node.ctx, config=TriangulationConfig(max_pending=8))
     tri.install()
     node.handle_ingest(encode(plane_frame(0, texture, depth=True)))
     for i in (1, 2):
         node.handle_ingest(encode(plane_frame(i, texture)))
     assert tri.process_pending() == 2 and len(tri.points()[0]) > 0
+    before = {i: tri.keyframe_points(plane_frame(i, texture)) for i in (1, 2)}
     saved = _query(node, StatusRequest())
     assert isinstance(saved, Status) and isinstance(_query(node, Save(name="m")), Ok)
     node.handle_ingest(encode(plane_frame(3, texture)))  # acked before the load, still queued
@@ -450,13 +451,21 @@ def test_a_map_load_drops_the_replaced_maps_candidates_and_points_at_once(
     loaded = _query(node, StatusRequest())
     assert isinstance(loaded, Status) and loaded.memory_bytes == saved.memory_bytes
     points_after_load = len(node.state.global_map)
-    # the keyframe queued for the replaced map: skipped, neither a candidate nor points in the new map
-    assert tri.process_pending() == 0 and tri.stats()["stale"] == 1 and len(tri._candidates) == 0
+    # the keyframe queued for the replaced map: skipped; the loaded window's keyframes are worked on
+    # again: the same candidates and sparse points as before the save, nothing fused twice
+    assert tri.pending == 4 and tri.process_pending() == 2
+    stats = tri.stats()
+    assert stats["stale"] == 1 and stats["restored"] == 2 and len(tri._candidates) == 3
+    for i in (1, 2):
+        again, was = tri.keyframe_points(plane_frame(i, texture)), before[i]
+        assert again is not None and was is not None and len(again) == len(was)
+        np.testing.assert_array_equal(again.xyz, was.xyz)
+    assert len(tri.points()[0]) > 0
     assert len(node.state.global_map) == points_after_load
-    # keyframes acked after the load are the new map's candidates
+    # keyframes acked after the load are the new map's candidates, triangulated with the loaded ones
     node.handle_ingest(encode(plane_frame(3, texture)))
-    assert tri.process_pending() == 1 and len(tri._candidates) == 1
-    assert tri._map is node.state.global_map
+    assert tri.process_pending() == 1 and len(tri._candidates) == 4
+    assert tri._map is node.state.global_map and len(node.state.global_map) > points_after_load
 
 
 def test_a_load_during_a_triangulation_keeps_nothing_of_it(
@@ -494,9 +503,9 @@ def test_pending_counts_the_batch_in_progress(node: MapperNode, texture: np.ndar
     seen: list[int] = []
     original = tri._process_one
 
-    def spy(keyframe: Any, version: int, target: GlobalSemanticMap) -> int:
+    def spy(keyframe: Any, version: int, target: GlobalSemanticMap, restored: bool = False) -> int:
         seen.append(tri.pending)
-        return original(keyframe, version, target)
+        return original(keyframe, version, target, restored)
 
     tri._process_one = spy  # type: ignore[method-assign]
     assert tri.pending == 4
