@@ -182,19 +182,25 @@ class QueryConfig:
     model's ``model.point_occlusion`` does for ``govnesf`` with ``use_depth``. Off: only keyframes
     with input depth count for ``average_depth``."""
 
-    evicted_views: str = "off"
-    """Keep what keyframes that left the window saw, for the averaging methods
-    (:mod:`mapper.map.evicted_views`): when a keyframe leaves, a worker adds its OV sample at every
-    global-map voxel it counts for to a running mean per voxel, and the averaging then counts a
-    point's nearest map voxel's mean (within ``map_radius_voxels``) as that many more views, i.e.
-    as a window that never evicted. ``"depth"``: for ``average_depth`` only (the views whose depth
-    confirms the voxel; keyframes with input depth); ``"both"``: also for ``average`` (every view
-    the voxel falls in: twice the worker's time and memory); ``"off"`` (default): the window's
-    views only. Off by default: in ``govnesf bench`` ``"depth"`` costs ``average_depth`` +0.03 to
-    +0.04 s per 100k points (0.09-0.10 -> 0.12-0.14 s; ingest and RSS within the runs' noise), for
-    +1.0 to +2.0 mIoU of ``average_depth`` on streams 3x longer than the window
-    (docs/concepts/window-and-map.md).
-    Costs D x 4 bytes a voxel per channel (status ``evicted_views.bytes``)."""
+    evicted_views: str = "both"
+    """Keep what keyframes that left the window saw (:mod:`mapper.map.evicted_views`): when a
+    keyframe leaves, a worker adds its OV sample at every global-map voxel it counts for to a
+    running mean per voxel; the averaging then counts a point's nearest map voxel's mean (within
+    ``map_radius_voxels``) as that many more views, i.e. as a window that never evicted, and the
+    map answers from that mean at its voxels (for ``govnesf`` mixed with the voxel's learned
+    feature, ``evicted_views_learned_weight``). ``"both"`` (default): two channels, the views
+    whose depth confirms the voxel (``average_depth``; keyframes with input depth) and every view
+    the voxel falls in (``average``); ``"depth"``: the first only (half the worker's time and
+    memory); ``"off"``: the window's views only. Measured on the scenario matrix's tuning split
+    (docs/concepts/window-and-map.md): +0.7 to +11 mIoU once settled on five of the six streams
+    with depth, one room's ``average`` -1.6. Costs D x 4 bytes a voxel per channel (status
+    ``evicted_views.bytes``; 384-d, "both": 3 KB a voxel) and 0.2-0.3 s of a worker a keyframe."""
+
+    evicted_views_learned_weight: float = 0.5
+    """For ``govnesf`` (not answered by averaging), the map's answer at a voxel that holds evicted
+    views: ``(1 - w)`` x the voxel's own feature (where the model's blend was written before its
+    keyframes left: ``global_map.learned_features``) + ``w`` x the evicted views' mean; the
+    averaging methods take the evicted views' mean alone. 0..1."""
 
     evicted_views_max_pending: int = 64
     """Keyframes that left the window and wait for the ``evicted_views`` worker; beyond this the
@@ -217,6 +223,8 @@ class QueryConfig:
         if self.evicted_views not in ("off", "depth", "both"):
             raise ConfigError(f"{where}: queries.evicted_views = {self.evicted_views!r}: must be one of "
                               "'off', 'depth', 'both'")
+        _check_range(where, "queries.evicted_views_learned_weight", self.evicted_views_learned_weight,
+                     0.0, 1.0)
         _check_range(where, "queries.evicted_views_max_pending", self.evicted_views_max_pending, 1, 100_000)
         _check_range(where, "queries.workers", self.workers, 0, 64)
         _check_range(where, "queries.queue_length", self.queue_length, 1, 10_000)

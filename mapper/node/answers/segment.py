@@ -57,13 +57,16 @@ def answer_from_map(
     window_cos: np.ndarray | None = None,  # (N, T) the window's cosines (for queries.map_blend)
     depth_tested: bool = False,  # the window's answer already passed a depth test
     nearest: np.ndarray | None = None,  # (N,) int64 the snapshot's nearest rows, if looked up already
+    learned: bool = False,  # the window's answer is the learned model's (not averaging's)
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fill the points the window did not answer from the global map's snapshot (nearest point
     with a feature within ``queries.map_radius_voxels`` voxels) and, with ``window_cos``, blend
     the two where both answer (``queries.map_blend``): (label, score, source (N,) uint8), see
     :func:`mapper.node.queries.fill_from_map`. Where the nearest voxel holds views of keyframes
     that left the window (``queries.evicted_views``), the map answers with their average there
-    (:func:`mapper.node.queries.evicted_view_cosines`) instead of the voxel's fused feature."""
+    (:func:`mapper.node.queries.evicted_view_cosines`) instead of the voxel's fused feature; for
+    the ``learned`` model's answers, mixed with the voxel's own feature (which holds the model's
+    blend), ``queries.evicted_views_learned_weight``."""
     from mapper.node.queries import evicted_view_cosines, fill_from_map
 
     gmap = ctx.state.global_map
@@ -77,7 +80,8 @@ def answer_from_map(
     return fill_from_map(snap, xyz, text_emb, label, score, window_seen, ctx.map_radius_m,
                          more_confident=ctx.config.queries.map_when_more_confident,
                          window_cos=window_cos, blend=ctx.map_blend(depth_tested=depth_tested),
-                         nearest=nearest, map_cos=map_cos)
+                         nearest=nearest, map_cos=map_cos,
+                         map_cos_weight=ctx.config.queries.evicted_views_learned_weight if learned else 1.0)
 
 
 class SegmentAnswers:
@@ -123,6 +127,7 @@ class SegmentAnswers:
             label, score, source = answer_from_map(
                 ctx, np.asarray(msg.xyz, np.float32), emb, window.label, window.score, seen,
                 window.snapshot, window_cos=window.cos, depth_tested=depth_tested, nearest=window.nearest,
+                learned=bool(getattr(backend, "fallback_to_averaging", False)) and not fell_back,
             )
         if window.map_only is not None:
             from mapper.node.queries import SOURCE_MAP, SOURCE_WINDOW

@@ -139,12 +139,19 @@ class DenseFlowPoints:
         if self.config.enabled:
             self._queue.put((keyframe, int(map_version), self.ctx.state.global_map))
 
-    def on_map_loaded(self, global_map: GlobalSemanticMap, map_version: int) -> None:
-        """A load replaced the map: forget the old map's candidates and points."""
+    def on_map_loaded(self, global_map: GlobalSemanticMap, map_version: int,
+                      keyframes: tuple[Any, ...] = ()) -> None:
+        """A load replaced the map: forget the old map's candidates and points; the loaded window's
+        keyframes become the partner candidates of the keyframes that follow (their points are in
+        the loaded map already)."""
+        views = [(keyframe_key(k), flow_view(k.rgb, k.K, k.world_from_cam, self.config.max_width))
+                 for k in keyframes[-self.config.candidate_keyframes:]] if self.config.enabled else []
         with self._lock:
             self._loaded_version = max(self._loaded_version, int(map_version))
             self._reset_locked()
             self._map = global_map
+            for key, view in views:
+                self._candidates.append(_Candidate(key, view))
 
     def _reset_locked(self) -> None:
         self._generation += 1

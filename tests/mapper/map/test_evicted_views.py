@@ -135,7 +135,7 @@ def test_evicted_views_survive_save_and_load(tmp_path: Path, mode: str) -> None:
 def test_depth_mode_keeps_one_channel_and_rgb_only_keyframes_are_not_queued(tmp_path: Path) -> None:
     node = _node(tmp_path, 2)  # "depth"
     assert node.config.queries.evicted_views == "depth"
-    assert config_from_dict({}).queries.evicted_views == "off"  # the default: opt-in
+    assert config_from_dict({}).queries.evicted_views == "both"  # the default
     _stream(node, _frames())
     store = node.state.global_map.evicted
     assert store.stats()["views_depth"] > 0 and store.stats()["views_all"] == 0
@@ -360,3 +360,29 @@ def test_the_map_answers_with_the_evicted_views_where_its_voxel_has_them() -> No
     label, _, source = fill_from_map(snap, far, emb, none[:1], np.zeros(1, np.float32), unseen[:1], 0.125,
                                      map_cos=(np.ones((1, len(TEXTS)), np.float32), np.ones(1, bool)))
     assert label.tolist() == [-1] and source.tolist() == [SOURCE_NONE]
+
+
+def test_the_learned_answer_mixes_the_voxel_feature_with_the_evicted_views() -> None:
+    """``map_cos_weight`` < 1 (``queries.evicted_views_learned_weight`` for ``govnesf``): the map's
+    cosines are ``(1 - w)`` x the voxel's own + ``w`` x the evicted views' mean, exactly."""
+    from mapper.map.global_map import GlobalMapConfig, GlobalSemanticMap
+    from mapper.node.queries import fill_from_map
+
+    frame = _frames(1)[0]
+    frame.ov = np.zeros_like(frame.ov)
+    frame.ov[..., 0] = 1.0  # the voxels' own feature: c0
+    gmap = GlobalSemanticMap(GlobalMapConfig(pixel_stride=4))
+    gmap.integrate(frame, 1)
+    snap = gmap.snapshot()
+    emb = OneHotEncoder().encode(TEXTS)
+    xyz = snap.xyz[:2].astype(np.float32)
+    nearest = snap.nearest_with_feature(xyz, 0.125)
+    evicted = np.zeros((2, len(TEXTS)), np.float32)
+    evicted[:, 1] = 1.0  # the evicted views say c1
+    unseen, none = np.zeros(2, bool), np.full(2, -1, np.int32)
+    for w, want_label, want_score in ((1.0, 1, 1.0), (0.3, 0, 0.7), (0.7, 1, 0.7), (0.0, 0, 1.0)):
+        label, score, _ = fill_from_map(snap, xyz, emb, none, np.zeros(2, np.float32), unseen, 0.125,
+                                        nearest=nearest, map_cos=(evicted, np.ones(2, bool)),
+                                        map_cos_weight=w)
+        assert label.tolist() == [want_label] * 2, w
+        np.testing.assert_allclose(score, want_score, atol=2e-3)

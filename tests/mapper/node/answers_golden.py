@@ -7,8 +7,10 @@ leave it) into an in-process node built as ``govnesf serve`` builds it (the ship
 checkpoint, triangulation, the learned features written into the map, evicted views kept for the
 averaging), runs the background workers in place after every frame (deterministic), then asks
 ``segment_points`` with every method, a ``render`` and a ``query_points`` and writes the answers.
-The stored file was made with the code before the node was split by request, and made again
-when the map began answering from the evicted views' mean at a voxel (``evicted_view_cosines``).
+The stored file was made with the code before the node was split by request, made again
+when the map began answering from the evicted views' mean at a voxel (``evicted_view_cosines``),
+and again when ``govnesf``'s map answer began mixing that mean with the voxel's learned feature
+(``queries.evicted_views_learned_weight``).
 """
 
 from __future__ import annotations

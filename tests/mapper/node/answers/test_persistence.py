@@ -70,7 +70,8 @@ def test_a_loaded_map_continues_as_if_the_stream_had_not_stopped(tmp_path: Path)
     first = _node(tmp_path / "first")
     _stream(first, range(half))
     assert first.ctx.state.keyframes_evicted > 0  # the window turned over before the save
-    asked = np.asarray(first.state.global_map.snapshot().xyz)[::7].astype(np.float32)  # seen by the first half
+    # points the first half saw
+    asked = np.asarray(first.state.global_map.snapshot().xyz)[::7].astype(np.float32)
     before = _answers(first, asked)
     window, points = _window(first), len(first.state.global_map)
     assert isinstance(_ask(first, Save(name="half")), Ok)

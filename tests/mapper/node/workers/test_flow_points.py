@@ -105,6 +105,16 @@ def test_a_new_map_forgets_the_candidates_and_points(node: MapperNode, texture: 
     assert len(flow.geometry_points()[0]) > 0
     flow.on_map_loaded(node.state.global_map, 10**6)
     assert len(flow.geometry_points()[0]) == 0 and not flow._candidates
+    # a loaded window's keyframes are the next keyframes' partners: the first one after the load
+    # finds partners and adds points, none added for the loaded keyframes themselves
+    with node.state.lock:
+        loaded = node.state.window.keyframes
+    flow.on_map_loaded(node.state.global_map, 10**6 + 1, loaded)
+    assert len(flow._candidates) == len(loaded) == 3 and len(flow.geometry_points()[0]) == 0
+    no_partner = flow.stats()["no_partner"]
+    flow.on_keyframe(plane_frame(3, texture), 10**6 + 2)
+    flow.process_pending()
+    assert len(flow.geometry_points()[0]) > 0 and flow.stats()["no_partner"] == no_partner
 
 
 def test_disabled_worker_queues_nothing_and_serve_installs_it_only_when_enabled(
