@@ -730,6 +730,19 @@ class MapUpdated(Message):
 
     map_version: int = wire(COUNT, doc="The new map version.")
     keyframes: int = wire(COUNT, doc="Keyframes in the window.")
+    region_min: np.ndarray | None = wire(
+        Vector((3,)), unit="m", default=None, required="with region_max",
+        doc="The axis-aligned box (world) the change can touch: a new keyframe's depth points, or without "
+        "depth its view frustum up to `global_map.max_depth_m`; absent when the whole map may have changed "
+        "(a load) (extension).",
+    )
+    region_max: np.ndarray | None = wire(
+        Vector((3,)), unit="m", default=None, required="with region_min", doc="The box's maximum corner.",
+    )
+
+    def _check(self) -> None:
+        if (self.region_min is None) != (self.region_max is None):
+            raise bad("region_min and region_max: give both or neither")
 
 
 @message

@@ -57,8 +57,8 @@ from mapper.map.voxels import box_rows
 KeyframeLike = Any
 GlobalMapConfig = Any
 
-__all__ = ["carve", "frustum_box", "points_seen_through", "remove_rows", "see_through", "see_through_depths",
-           "warm_up"]
+__all__ = ["carve", "changed_region", "frustum_box", "points_seen_through", "remove_rows", "see_through",
+           "see_through_depths", "warm_up"]
 
 EDGE_PX = 1
 """A pixel carves with the smallest depth within this many pixels of it (and not at all when one of
@@ -90,6 +90,44 @@ def frustum_box(
     pose = np.asarray(world_from_cam, np.float64)
     world = np.concatenate([corners @ pose[:3, :3].T + pose[:3, 3], pose[None, :3, 3]])
     return world.min(axis=0), world.max(axis=0)
+
+
+def changed_region(
+    K: np.ndarray,  # noqa: N803 - (4,) fx, fy, cx, cy
+    world_from_cam: np.ndarray,  # (4, 4)
+    width: int,
+    height: int,
+    depth_m: np.ndarray | None,  # (H, W) metres, or None
+    min_depth_m: float,
+    max_depth_m: float,
+    *,
+    include_camera: bool = False,
+    stride: int = 4,
+) -> tuple[np.ndarray, np.ndarray]:
+    """World axis-aligned box (min (3,), max (3,)) of what a keyframe can change in the map: its
+    valid depth pixels (every ``stride``-th, in ``[min_depth_m, max_depth_m]``) back-projected, with
+    ``include_camera`` (carving clears the space in front of them) the camera centre too; without
+    depth, or with no valid pixel, its frustum up to ``max_depth_m`` (:func:`frustum_box`).
+
+    >>> K, depth = np.array([10., 10., 2., 2.]), np.full((4, 4), 2.0)
+    >>> lo, hi = changed_region(K, np.eye(4), 4, 4, depth, 0.1, 8.0, stride=1)
+    >>> lo.round(2).tolist(), hi.round(2).tolist()
+    ([-0.3, -0.3, 2.0], [0.3, 0.3, 2.0])
+    """
+    pose = np.asarray(world_from_cam, np.float64)
+    if depth_m is not None:
+        z = np.asarray(depth_m, np.float64)[::stride, ::stride]
+        rows, cols = np.nonzero(np.isfinite(z) & (z >= min_depth_m) & (z <= max_depth_m))
+        if rows.size:
+            fx, fy, cx, cy = (float(v) for v in K)
+            d = z[rows, cols]
+            u, v = cols * stride + 0.5, rows * stride + 0.5
+            cam = np.stack([(u - cx) / fx * d, (v - cy) / fy * d, d], axis=1)
+            world = cam @ pose[:3, :3].T + pose[:3, 3]
+            if include_camera:
+                world = np.concatenate([world, pose[None, :3, 3]])
+            return world.min(axis=0), world.max(axis=0)
+    return frustum_box(K, pose, width, height, max_depth_m)
 
 
 @numba.njit(boundscheck=False, cache=True, nogil=True)

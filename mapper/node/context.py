@@ -193,11 +193,16 @@ class NodeContext:
 
     # -- events -------------------------------------------------------------------------------
 
-    def publish(self, map_version: int, keyframes: int) -> None:
+    def publish(self, map_version: int, keyframes: int,
+                region: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """Queue a ``map_updated`` notice (O(1), never blocks; the oldest beyond
-        ``limits.events_queue_max`` is dropped and counted)."""
+        ``limits.events_queue_max`` is dropped and counted); ``region`` (min (3,), max (3,)) the box
+        the change can touch (None: the whole map may have)."""
         if self.config.events_endpoint:
-            self.events.put(MapUpdated(map_version=map_version, keyframes=keyframes))
+            lo, hi = (None, None) if region is None else (np.asarray(region[0], np.float64),
+                                                            np.asarray(region[1], np.float64))
+            self.events.put(MapUpdated(map_version=map_version, keyframes=keyframes, region_min=lo,
+                                       region_max=hi))
 
     # -- pacing -------------------------------------------------------------------------------
 

@@ -70,6 +70,21 @@ def _duplicate(ctx: NodeContext, frame: Frame, kept_K: np.ndarray) -> Ack | None
     return None
 
 
+def _changed_region(ctx: NodeContext, keyframe: Keyframe) -> tuple[np.ndarray, np.ndarray] | None:
+    """The box ``map_updated`` names for a new keyframe (:func:`mapper.map.carving.changed_region`:
+    its depth points, about 4 000 of them, or its frustum; the camera too where carving clears)."""
+    from mapper.map.carving import changed_region
+
+    gcfg = ctx.config.global_map
+    height, width = keyframe.rgb.shape[:2]
+    stride = max(2, int(np.ceil(np.sqrt(width * height / 4096.0))))
+    try:
+        return changed_region(keyframe.K, keyframe.world_from_cam, width, height, keyframe.depth_m,
+                              gcfg.min_depth_m, gcfg.max_depth_m, include_camera=gcfg.carve, stride=stride)
+    except (ValueError, FloatingPointError):  # never refuse a frame over its notice
+        return None
+
+
 def ingest_frame(ctx: NodeContext, frame: Frame) -> Ack:
     """Consider one validated frame for the window; returns its ack (raises ``ProtocolError`` for an
     error reply: nothing changed)."""
@@ -95,6 +110,7 @@ def ingest_frame(ctx: NodeContext, frame: Frame) -> Ack:
             if fitted is not keyframe:
                 keyframe = fitted
                 ctx.frames_downscaled += 1
+    region = _changed_region(ctx, keyframe) if ctx.config.events_endpoint else None
     with state.lock:
         refused = _check_against_map(ctx, frame)
         if refused is not None:
@@ -114,7 +130,7 @@ def ingest_frame(ctx: NodeContext, frame: Frame) -> Ack:
                 for old in update.evicted:
                     ctx.evicted_views.put(old, state.global_map)
             status = "keyframe"
-            ctx.publish(state.map_version, len(state.window))
+            ctx.publish(state.map_version, len(state.window), region)
         else:
             status = "accepted"
         state.ack_counts[status] += 1

@@ -333,7 +333,7 @@ def test_events_publish_map_updates(node: NodeProcess, client: MapperClient) -> 
         sub.setsockopt(zmq.SUBSCRIBE, b"")
         sub.setsockopt(zmq.RCVTIMEO, 200)
         sub.connect(node.events)
-        event = None
+        event, sent = None, None
         for attempt in range(25):  # a SUB misses what is published before it has joined
             frame = synthetic_frame(attempt, 20, W, H)
             frame.world_from_cam = frame.world_from_cam.copy()
@@ -341,11 +341,20 @@ def test_events_publish_map_updates(node: NodeProcess, client: MapperClient) -> 
             ack = client.send_frame(frame)
             assert ack.status == "keyframe"
             try:
-                event = decode(sub.recv(), direction="reply")
+                event, sent = decode(sub.recv(), direction="reply"), frame
                 break
             except zmq.Again:
                 continue
         assert isinstance(event, MapUpdated) and 0 < event.map_version <= _status(client).map_version
+        # the notice names the box the new keyframe can change: its depth points
+        assert sent is not None and sent.depth_m is not None
+        assert event.region_min is not None and event.region_max is not None
+        v, u = H // 2, W // 2
+        z = float(sent.depth_m[v, u])
+        fx, fy, cx, cy = sent.K
+        centre = sent.world_from_cam[:3, :3] @ [(u + 0.5 - cx) / fx * z, (v + 0.5 - cy) / fy * z, z]
+        centre = centre + sent.world_from_cam[:3, 3]
+        assert np.all(event.region_min - 0.05 <= centre) and np.all(centre <= event.region_max + 0.05)
         sub.close()
     finally:
         ctx.destroy(linger=0)

@@ -220,3 +220,23 @@ def test_snapshot_features_after_carving_equal_a_fresh_normalisation() -> None:
         fresh /= np.maximum(np.linalg.norm(fresh, axis=1, keepdims=True), 1e-12)
         np.testing.assert_allclose(snap.unit_features_f32(), fresh, atol=1e-6)
     assert gmap.points_carved > 0
+
+def test_changed_region_is_the_depth_points_box_or_the_frustum() -> None:
+    from mapper.map.carving import changed_region, frustum_box
+
+    K = np.array([50.0, 50.0, 32.0, 24.0])
+    pose = np.eye(4)
+    pose[:3, 3] = [1.0, 2.0, 3.0]
+    depth = np.full((48, 64), 2.0)
+    depth[:, :8] = np.nan  # invalid pixels count nowhere
+    lo, hi = changed_region(K, pose, 64, 48, depth, 0.1, 8.0, stride=1)
+    assert lo[2] == pytest.approx(5.0) and hi[2] == pytest.approx(5.0)  # a wall 2 m ahead
+    assert lo[0] == pytest.approx(1.0 + (8.5 - 32.0) / 50.0 * 2.0)  # from the first valid column
+    lo_c, hi_c = changed_region(K, pose, 64, 48, depth, 0.1, 8.0, include_camera=True, stride=1)
+    assert lo_c[2] == pytest.approx(3.0) and np.all(lo_c <= lo) and np.all(hi_c >= hi)  # the camera too
+    far = np.full((48, 64), 20.0)  # beyond max_depth_m: no valid pixel -> the frustum
+    for d in (None, far):
+        got = changed_region(K, pose, 64, 48, d, 0.1, 8.0)
+        want = frustum_box(K, pose, 64, 48, 8.0)
+        np.testing.assert_allclose(got[0], want[0])
+        np.testing.assert_allclose(got[1], want[1])
