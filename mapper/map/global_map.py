@@ -247,6 +247,11 @@ class GlobalMapConfig:
     9 recorded scenes, bounded window minus unbounded: worst scene -1.6 once against -2.7 every
     time (``govnesf``; docs/concepts/window-and-map.md). Once also spares the model the voxels already set."""
 
+    learned_features_depth_test: bool = True
+    """Those blended features use only the views whose input depth confirms the voxel (the model's
+    ``use_depth`` view selection) while the window's keyframes mostly carry input depth; off: every
+    view the voxel falls in, occluded or not."""
+
     learned_features_batch: int = 4
     """When the window's oldest keyframe is due, it and the next oldest up to this many are done
     together (one model evaluation for their voxels: the model's cached volume is recomputed once

@@ -206,6 +206,12 @@ class QueryConfig:
     """Keyframes that left the window and wait for the ``evicted_views`` worker; beyond this the
     oldest waiting is dropped (counted in status ``evicted_views.dropped``). 1..100000."""
 
+    learned_average_mix: float = 0.0
+    """``govnesf`` answers (not fallen back) are mixed with the averaging's over the same window
+    (``average``; ``average_depth`` with ``use_depth``): the best text of ``(1 - w)`` x the model's
+    cosines + ``w`` x the averaging's where both answer (:func:`mapper.node.answers.segment.mix_answers`).
+    0 = the model alone. 0..1."""
+
     learned_fallback: str = "geometry"
     """Do no harm: when ``segment_points`` with ``govnesf`` is answered by averaging instead
     (``average``, or ``average_depth`` with ``use_depth``; the reply's ``fallback`` says so per
@@ -225,6 +231,7 @@ class QueryConfig:
                               "'off', 'depth', 'both'")
         _check_range(where, "queries.evicted_views_learned_weight", self.evicted_views_learned_weight,
                      0.0, 1.0)
+        _check_range(where, "queries.learned_average_mix", self.learned_average_mix, 0.0, 1.0)
         _check_range(where, "queries.evicted_views_max_pending", self.evicted_views_max_pending, 1, 100_000)
         _check_range(where, "queries.workers", self.workers, 0, 64)
         _check_range(where, "queries.queue_length", self.queue_length, 1, 10_000)

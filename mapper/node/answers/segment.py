@@ -27,7 +27,7 @@ from mapper.node.context import NodeContext
 from protocol.errors import ProtocolError
 from protocol.messages import Message, Segmentation, SegmentPoints
 
-__all__ = ["SegmentAnswers", "answer_from_map"]
+__all__ = ["SegmentAnswers", "answer_from_map", "mix_answers"]
 
 
 class _LearnedNotLoaded:
@@ -82,6 +82,32 @@ def answer_from_map(
                          window_cos=window_cos, blend=ctx.map_blend(depth_tested=depth_tested),
                          nearest=nearest, map_cos=map_cos,
                          map_cos_weight=ctx.config.queries.evicted_views_learned_weight if learned else 1.0)
+
+
+def mix_answers(learned: PointAnswer, averaging: PointAnswer, weight: float) -> PointAnswer:
+    """The learned answer mixed with the averaging's over the same window (``queries.learned_average_mix``):
+    where both answer, the best text of ``(1 - weight) * learned + weight * averaging`` cosines (score:
+    that cosine); where only one answers, its answer (a point only views that left the window saw
+    keeps the averaging's ``map_only``). Without both answers' cosines, the learned answer as it is."""
+    if learned.cos is None or averaging.cos is None or learned.cos.shape != averaging.cos.shape:
+        return learned
+    seen_l, seen_a = learned.answered(), averaging.answered()
+    w = np.float32(weight)
+    cos = np.where(seen_l[:, None], learned.cos, averaging.cos).astype(np.float32, copy=True)
+    both = seen_l & seen_a
+    cos[both] = (np.float32(1.0) - w) * learned.cos[both] + w * averaging.cos[both]
+    seen = seen_l | seen_a
+    label = np.where(seen, np.argmax(cos, axis=1), -1).astype(np.int32)
+    score = np.where(seen, cos[np.arange(cos.shape[0]), np.maximum(label, 0)], 0.0).astype(np.float32)
+    map_only = None
+    if averaging.map_only is not None:
+        map_only = averaging.map_only & ~seen_l
+    timing = {**learned.timing_ms, "mixed": float(np.count_nonzero(both))}
+    return PointAnswer(label=label, score=score, timing_ms=timing, seen=seen, cos=cos,
+                       text_emb=learned.text_emb if learned.text_emb is not None else averaging.text_emb,
+                       snapshot=learned.snapshot if learned.snapshot is not None else averaging.snapshot,
+                       nearest=learned.nearest if learned.snapshot is not None else averaging.nearest,
+                       map_only=map_only)
 
 
 class SegmentAnswers:
@@ -152,15 +178,27 @@ class SegmentAnswers:
         a backend that falls back to it (the learned one) while an RGB-only window's geometry is
         pending; and whether it fell back. Averaging that cannot answer (e.g. no depth test
         possible) leaves the answer to the backend."""
-        if getattr(backend, "fallback_to_averaging", False) and self._learned_not_ready():
-            averaging = self.backends["average_depth" if depth_tested else "average"]
+        learned = getattr(backend, "fallback_to_averaging", False)
+        averaging = self.backends["average_depth" if depth_tested else "average"]
+        if learned and self._learned_not_ready():
             try:
                 window = averaging.segment(msg, want_cos)
             except ProtocolError:
                 return backend.segment(msg, want_cos), False
             window.timing_ms["fallback"] = 1.0
             return window, True
-        return backend.segment(msg, want_cos), False
+        mix = self.ctx.config.queries.learned_average_mix
+        if not learned or mix <= 0:
+            return backend.segment(msg, want_cos), False
+        answer = backend.segment(msg, True)
+        started = time.perf_counter()
+        try:
+            other = averaging.segment(msg, True)
+        except ProtocolError:  # averaging cannot answer (e.g. no depth test possible): the model's alone
+            return answer, False
+        mixed = mix_answers(answer, other, mix)
+        mixed.timing_ms["mix_average"] = (time.perf_counter() - started) * 1e3
+        return mixed, False
 
     def _learned_not_ready(self) -> bool:
         """``queries.learned_fallback``: "geometry": an RGB-only window's geometry work is pending;

@@ -139,8 +139,9 @@ def install_pre_eviction_features(ctx: NodeContext, runtime: ModelRuntime) -> Pr
     ``node.start()``; :meth:`PreEvictionFeatures.process_pending` runs it in place)."""
 
     def features(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        try:
-            return runtime.point_features(xyz)
+        try:  # with input depth, only views whose depth confirms a voxel blend into its feature
+            return runtime.point_features(xyz, use_depth=ctx.config.global_map.learned_features_depth_test
+                                          and ctx.window_has_depth())
         except RuntimeNotReady:
             return None
 

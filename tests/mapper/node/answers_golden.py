@@ -9,8 +9,9 @@ averaging), runs the background workers in place after every frame (deterministi
 ``segment_points`` with every method, a ``render`` and a ``query_points`` and writes the answers.
 The stored file was made with the code before the node was split by request, made again
 when the map began answering from the evicted views' mean at a voxel (``evicted_view_cosines``),
-and again when ``govnesf``'s map answer began mixing that mean with the voxel's learned feature
-(``queries.evicted_views_learned_weight``).
+again when ``govnesf``'s map answer began mixing that mean with the voxel's learned feature
+(``queries.evicted_views_learned_weight``), and again when those learned features began using the
+depth-tested view selection (``global_map.learned_features_depth_test``).
 """
 
 from __future__ import annotations

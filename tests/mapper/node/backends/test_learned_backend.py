@@ -382,3 +382,56 @@ def test_rgb_only_render_fills_the_rest_from_the_nearest_surface(
         assert (filled > 0).all()
     if reach == 0:
         assert not extra.any()
+
+
+def test_map_features_use_the_depth_test_while_the_window_has_depth(tmp_path: Path) -> None:
+    """``global_map.learned_features_depth_test``: the blended features written into the map come
+    from the model's depth-tested view selection while the window's keyframes carry input depth,
+    from every view without depth or with the setting off."""
+    from mapper.node.backends.learned import install_pre_eviction_features
+
+    calls: list[bool] = []
+
+    class Runtime:
+        def point_features(self, xyz: np.ndarray, *, use_depth: bool = False) -> tuple[np.ndarray, ...]:
+            calls.append(use_depth)
+            return np.zeros((len(xyz), 4), np.float32), np.zeros(len(xyz), bool)
+
+    for depth_test, with_depth, want in ((True, True, True), (True, False, False), (False, True, False)):
+        config = config_from_dict({"map_dir": str(tmp_path / "maps"), "autosave_name": "",
+                                   "save_on_exit": False,
+                                   "global_map": {"learned_features_depth_test": depth_test}})
+        mapper = MapperNode(config)
+        try:
+            worker = install_pre_eviction_features(mapper.ctx, Runtime())  # type: ignore[arg-type]
+            for seq in range(3):
+                f = frame(seq)
+                if not with_depth:
+                    f.depth_m = None
+                mapper.handle_ingest(encode(f))
+            calls.clear()
+            worker.features(np.zeros((2, 3), np.float32))
+            assert calls == [want], (depth_test, with_depth)
+        finally:
+            mapper.stop()
+
+
+def test_mix_answers_blends_where_both_answer_and_keeps_each_alone() -> None:
+    from mapper.node.answers.segment import mix_answers
+
+    learned = PointAnswer(label=np.array([0, 1, -1], np.int32), score=np.array([0.9, 0.6, 0.0], np.float32),
+                          seen=np.array([True, True, False]),
+                          cos=np.array([[0.9, 0.1], [0.5, 0.6], [0.0, 0.0]], np.float32))
+    averaging = PointAnswer(label=np.array([1, 0, 1], np.int32), score=np.array([0.8, 0.9, 0.7], np.float32),
+                            seen=np.array([True, True, True]),
+                            cos=np.array([[0.2, 0.8], [0.9, 0.1], [0.1, 0.7]], np.float32),
+                            map_only=np.array([False, False, True]))
+    mixed = mix_answers(learned, averaging, 0.5)
+    # point 0: 0.55 / 0.45 -> text 0; point 1: 0.7 / 0.35 -> text 0; point 2: averaging's alone
+    assert mixed.label.tolist() == [0, 0, 1]
+    np.testing.assert_allclose(mixed.score, [0.55, 0.7, 0.7], atol=1e-6)
+    assert mixed.answered().tolist() == [True, True, True]
+    assert mixed.map_only is not None and mixed.map_only.tolist() == [False, False, True]
+    assert mix_answers(learned, averaging, 0.0).label.tolist()[:2] == [0, 1]  # the model's where it answers
+    no_cos = PointAnswer(label=learned.label, score=learned.score)
+    assert mix_answers(no_cos, averaging, 0.5) is no_cos
