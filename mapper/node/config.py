@@ -206,6 +206,21 @@ class QueryConfig:
     """Keyframes that left the window and wait for the ``evicted_views`` worker; beyond this the
     oldest waiting is dropped (counted in status ``evicted_views.dropped``). 1..100000."""
 
+    evicted_frames_mb: float = 0.0
+    """With ``evicted_views`` "both": keep the keyframes without input depth that leave the window
+    as reduced views (pose, intrinsics, the OV map area-averaged to ``evicted_frames_cells``; never
+    the RGB; :mod:`mapper.map.evicted_frames`), up to this much memory (MB; beyond it the oldest is
+    dropped into the per-voxel means, counted in status ``evicted_views.frames_dropped``).
+    ``average`` then counts every kept view a point falls in as one more view of its average, and
+    ``govnesf``'s map answer mixes their mean as it mixes the voxels' (``evicted_views_learned_weight``):
+    without depth the map has few voxels on walls and floors, so the per-voxel means miss most points.
+    0 = off (keyframes without depth go to the per-voxel means). 0..100000."""
+
+    evicted_frames_cells: int = 300
+    """Most cells of a kept evicted view's OV map (``evicted_frames_mb``): area-averaged to the
+    largest size of the map's aspect within this (a 40 x 30 map: 20 x 15); float32, 384-d: 1.5 KB a
+    cell. 1..100000."""
+
     learned_fallback: str = "geometry"
     """Do no harm: when ``segment_points`` with ``govnesf`` is answered by averaging instead
     (``average``, or ``average_depth`` with ``use_depth``; the reply's ``fallback`` says so per
@@ -226,6 +241,8 @@ class QueryConfig:
         _check_range(where, "queries.evicted_views_learned_weight", self.evicted_views_learned_weight,
                      0.0, 1.0)
         _check_range(where, "queries.evicted_views_max_pending", self.evicted_views_max_pending, 1, 100_000)
+        _check_range(where, "queries.evicted_frames_mb", self.evicted_frames_mb, 0.0, 100_000.0)
+        _check_range(where, "queries.evicted_frames_cells", self.evicted_frames_cells, 1, 100_000)
         _check_range(where, "queries.workers", self.workers, 0, 64)
         _check_range(where, "queries.queue_length", self.queue_length, 1, 10_000)
         _check_range(where, "queries.map_radius_voxels", self.map_radius_voxels, 0.0, 100.0)
