@@ -178,3 +178,31 @@ def test_a_tight_budget_hands_dropped_views_to_the_voxel_means(tmp_path: Path) -
 def test_bad_config_is_refused(tmp_path: Path, key: str, value: Any) -> None:
     with pytest.raises(ConfigError, match=key):
         _node(tmp_path, 2, **{key: value})
+
+
+def test_the_learned_answer_takes_the_kept_views_where_nothing_else_answers(tmp_path: Path) -> None:
+    """``govnesf``'s map answer (``answer_from_map`` with ``learned``): a point neither its window
+    nor a map voxel answers takes the kept views' mean, the averaging's answer there."""
+    from mapper.node.answers.segment import answer_from_map
+
+    frames = _frames(depth=False)
+    unbounded, kept = _node(tmp_path, 100), _node(tmp_path, 2, evicted_frames_mb=16.0)
+    for node in (unbounded, kept):
+        _stream(node, frames)
+    xyz = _wall()
+    want = _segment(unbounded, "average", xyz)
+    emb = kept.ctx.text_encoder("test").encode(["c0", "c1", "c2", "c3"])
+    n = xyz.shape[0]
+    label, score, source = answer_from_map(kept.ctx, xyz, emb, np.full(n, -1, np.int32), np.zeros(n, np.float32),
+                                           np.zeros(n, bool), learned=True)
+    old = kept.state.window.keyframes[0].world_from_cam[0, 3]  # points left of the window's views
+    only_left = (want.label >= 0) & (xyz[:, 0] < old - 0.9)
+    assert only_left.sum() > 20
+    assert (source[only_left] == SOURCE_MAP).all()
+    assert np.array_equal(label[only_left], want.label[only_left])
+    # without the kept views: nothing answers them
+    plain = _node(tmp_path, 2)
+    _stream(plain, frames)
+    _, _, none = answer_from_map(plain.ctx, xyz, emb, np.full(n, -1, np.int32), np.zeros(n, np.float32),
+                                 np.zeros(n, bool), learned=True)
+    assert (none[only_left] == SOURCE_NONE).all()
