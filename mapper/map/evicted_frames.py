@@ -298,10 +298,11 @@ class EvictedFrameStore:
             self._reset(None, 0)
 
     def stats(self) -> dict[str, Any]:
-        with self._lock:
-            kept = int(self._used.sum())
-            return {"frames": kept, "frames_bytes": kept * self._frame_bytes(),
-                    "frames_dropped": self.dropped, "frames_added": self.added, "frame_cells": self._cells}
+        """``status`` figures; without the lock (a query may hold it for its whole computation and
+        ``status`` runs under the node's state lock): counts read as they are."""
+        kept = int(self._used.sum())
+        return {"frames": kept, "frames_bytes": kept * self._frame_bytes(),
+                "frames_dropped": self.dropped, "frames_added": self.added, "frame_cells": self._cells}
 
     # -- persistence (inside the evicted views' section of the global map) ----------------------
 

@@ -193,8 +193,8 @@ def test_the_learned_answer_takes_the_kept_views_where_nothing_else_answers(tmp_
     want = _segment(unbounded, "average", xyz)
     emb = kept.ctx.text_encoder("test").encode(["c0", "c1", "c2", "c3"])
     n = xyz.shape[0]
-    label, score, source = answer_from_map(kept.ctx, xyz, emb, np.full(n, -1, np.int32), np.zeros(n, np.float32),
-                                           np.zeros(n, bool), learned=True)
+    label, _, source = answer_from_map(kept.ctx, xyz, emb, np.full(n, -1, np.int32), np.zeros(n, np.float32),
+                                       np.zeros(n, bool), learned=True)
     old = kept.state.window.keyframes[0].world_from_cam[0, 3]  # points left of the window's views
     only_left = (want.label >= 0) & (xyz[:, 0] < old - 0.9)
     assert only_left.sum() > 20
