@@ -34,6 +34,8 @@ from typing import Any
 import numba
 import numpy as np
 
+from mapper.map.evicted_frames import EvictedFrameStore
+
 __all__ = ["CHANNELS", "EvictedViewStore", "absorb_rows", "in_image", "warm_up"]
 
 CHANNELS = ("all", "depth")
@@ -98,6 +100,9 @@ class EvictedViewStore:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._reset(None)
+        self.frames = EvictedFrameStore()
+        """Reduced views of evicted keyframes without input depth (``queries.evicted_frames_mb``;
+        :mod:`mapper.map.evicted_frames`): saved, loaded and cleared with these means."""
 
     def _reset(self, dim: int | None) -> None:
         cap = 0 if dim is None else 1024
@@ -303,6 +308,7 @@ class EvictedViewStore:
     def clear(self) -> None:
         with self._lock:
             self._reset(None)
+        self.frames.clear()
 
     def stats(self) -> dict[str, Any]:
         with self._lock:
@@ -325,7 +331,11 @@ class EvictedViewStore:
                 mean = ch.mean[:n].copy() if ch.mean.shape[1] else np.zeros((n, 0), np.float32)
                 arrays[f"{prefix}.{name}_mean"] = mean  # (n, 0): a channel never written
                 arrays[f"{prefix}.{name}_count"] = ch.count[:n].copy()
-            return arrays, {"points": n, "dim": self._dim, "keyframes": self.keyframes}
+            manifest: dict[str, Any] = {"points": n, "dim": self._dim, "keyframes": self.keyframes}
+        if len(self.frames):
+            frame_arrays, manifest["frames"] = self.frames.to_arrays(f"{prefix}.frames")
+            arrays.update(frame_arrays)
+        return arrays, manifest
 
     def restore(self, arrays: dict[str, np.ndarray], manifest: object, prefix: str) -> None:
         """Replace the content with a saved one (inverse of :meth:`to_arrays`); ``ValueError``
@@ -358,6 +368,12 @@ class EvictedViewStore:
             if not np.isfinite(got[f"{name}_mean"]).all():
                 raise ValueError(f"evicted views section: {name}_mean must be finite")
         keyframes = manifest.get("keyframes")
+        frames = EvictedFrameStore()
+        if manifest.get("frames") is not None:  # maps saved before the frames store lack it
+            frames.restore(arrays, manifest["frames"], f"{prefix}.frames")
+            if frames.dim is not None and dim is not None and frames.dim != dim:
+                raise ValueError(f"evicted frames section: dimension {frames.dim}, the views' {dim}")
+        self.frames = frames
         with self._lock:
             self._reset(dim)
             if dim is None:

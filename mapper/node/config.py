@@ -211,6 +211,22 @@ class QueryConfig:
     (``average``; ``average_depth`` with ``use_depth``): the best text of ``(1 - w)`` x the model's
     cosines + ``w`` x the averaging's where both answer (:func:`mapper.node.answers.segment.mix_answers`).
     0 = the model alone. 0..1."""
+    evicted_frames_mb: float = 0.0
+    """With ``evicted_views`` "both": keep the keyframes without input depth that leave the window
+    as reduced views (pose, intrinsics, the OV map area-averaged to ``evicted_frames_cells``; never
+    the RGB; :mod:`mapper.map.evicted_frames`), up to this much memory (MB; beyond it the oldest is
+    dropped into the per-voxel means, counted in status ``evicted_views.frames_dropped``).
+    ``average`` then counts every kept view a point falls in as one more view of its average, and
+    ``govnesf``'s map answer mixes their mean as it mixes the voxels' (``evicted_views_learned_weight``):
+    without depth the map has few voxels on walls and floors, so the per-voxel means miss most points.
+    0 = off (keyframes without depth go to the per-voxel means). 256 on the tuning split's six
+    RGB-only streams: window median ``average`` 24.3 -> 32.5, ``govnesf`` 24.8 -> 31.7, but one
+    stream's ``average`` -5.0 (docs/concepts/window-and-map.md): off by default. 0..100000."""
+
+    evicted_frames_cells: int = 300
+    """Most cells of a kept evicted view's OV map (``evicted_frames_mb``): area-averaged to the
+    largest size of the map's aspect within this (a 40 x 30 map: 20 x 15); float32, 384-d: 1.5 KB a
+    cell. 1..100000."""
 
     learned_fallback: str = "geometry"
     """Do no harm: when ``segment_points`` with ``govnesf`` is answered by averaging instead
@@ -233,6 +249,8 @@ class QueryConfig:
                      0.0, 1.0)
         _check_range(where, "queries.learned_average_mix", self.learned_average_mix, 0.0, 1.0)
         _check_range(where, "queries.evicted_views_max_pending", self.evicted_views_max_pending, 1, 100_000)
+        _check_range(where, "queries.evicted_frames_mb", self.evicted_frames_mb, 0.0, 100_000.0)
+        _check_range(where, "queries.evicted_frames_cells", self.evicted_frames_cells, 1, 100_000)
         _check_range(where, "queries.workers", self.workers, 0, 64)
         _check_range(where, "queries.queue_length", self.queue_length, 1, 10_000)
         _check_range(where, "queries.map_radius_voxels", self.map_radius_voxels, 0.0, 100.0)

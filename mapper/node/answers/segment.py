@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from mapper.map.evicted_views import EvictedViewStore
 from mapper.map.global_map import GlobalMapSnapshot
 from mapper.node.backends import PointAnswer, SegmentBackend
 from mapper.node.backends.average import AveragingBackend
@@ -27,7 +28,7 @@ from mapper.node.context import NodeContext
 from protocol.errors import ProtocolError
 from protocol.messages import Message, Segmentation, SegmentPoints
 
-__all__ = ["SegmentAnswers", "answer_from_map", "mix_answers"]
+__all__ = ["SegmentAnswers", "answer_from_map", "evicted_frame_cosines", "mix_answers"]
 
 
 class _LearnedNotLoaded:
@@ -77,11 +78,75 @@ def answer_from_map(
         if nearest is None:
             nearest = snap.nearest_with_feature(xyz, ctx.map_radius_m)
         map_cos = evicted_view_cosines(gmap.evicted, snap, nearest, text_emb)
-    return fill_from_map(snap, xyz, text_emb, label, score, window_seen, ctx.map_radius_m,
-                         more_confident=ctx.config.queries.map_when_more_confident,
-                         window_cos=window_cos, blend=ctx.map_blend(depth_tested=depth_tested),
-                         nearest=nearest, map_cos=map_cos,
-                         map_cos_weight=ctx.config.queries.evicted_views_learned_weight if learned else 1.0)
+    frames_cos = None
+    if learned and not depth_tested:  # the kept views of evicted keyframes without depth, mixed in
+        if nearest is None and ctx.map_radius_m > 0 and snap.n_with_features > 0:
+            nearest = snap.nearest_with_feature(xyz, ctx.map_radius_m)
+        frames_cos = evicted_frame_cosines(ctx, gmap.evicted, snap, nearest, xyz, text_emb)
+        if frames_cos is not None:
+            map_cos = _overlaid(map_cos, frames_cos)
+    label, score, source = fill_from_map(
+        snap, xyz, text_emb, label, score, window_seen, ctx.map_radius_m,
+        more_confident=ctx.config.queries.map_when_more_confident, window_cos=window_cos,
+        blend=ctx.map_blend(depth_tested=depth_tested), nearest=nearest, map_cos=map_cos,
+        map_cos_weight=ctx.config.queries.evicted_views_learned_weight if learned else 1.0)
+    if frames_cos is not None:  # no map voxel near, unseen by the window: the kept views answer
+        from mapper.node.queries import SOURCE_MAP, SOURCE_NONE, best_text
+
+        todo = np.flatnonzero((source == SOURCE_NONE) & frames_cos[1])
+        label[todo], score[todo] = best_text(frames_cos[0][todo], np.ones(todo.shape[0], bool))
+        source[todo] = SOURCE_MAP
+    return label, score, source
+
+
+def _overlaid(
+    under: tuple[np.ndarray, np.ndarray] | None, over: tuple[np.ndarray, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Map cosines ``(cos (N, T), given (N,))``: ``over``'s where it gives one, else ``under``'s."""
+    if under is None:
+        return over
+    cos = np.where(over[1][:, None], over[0], under[0])
+    return cos, over[1] | under[1]
+
+
+def evicted_frame_cosines(
+    ctx: NodeContext,
+    store: EvictedViewStore,
+    snap: GlobalMapSnapshot,
+    nearest: np.ndarray | None,  # (N,) int64 nearest map rows with a feature (-1: none), or None
+    xyz: np.ndarray,  # (N, 3) float32
+    text_emb: np.ndarray,  # (T, D) float32 unit rows
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The evicted views' answer at each point that a kept view of an evicted keyframe without
+    depth counts for (``queries.evicted_frames_mb``, :mod:`mapper.map.evicted_frames`): cosines
+    (N, T) of the mean of those views' samples at the point together with the ``all`` views of its
+    nearest voxel (each weighted by its views), and (N,) bool where given; None where none is."""
+    frames = store.frames
+    if ctx.evicted_views is None or not ctx.evicted_views.both or frames.dim != text_emb.shape[1] \
+            or len(frames) == 0:
+        return None
+    from mapper.map.evicted_frames import merged_prior
+
+    n = xyz.shape[0]
+    rows, mean, count = frames.means(np.asarray(xyz, np.float32))
+    if rows.size == 0:
+        return None
+    voxel = None
+    if nearest is not None and snap.keys is not None and len(store) and store.dim == text_emb.shape[1]:
+        hit = nearest[rows] >= 0
+        v_mean, v_count = store.lookup(snap.keys[nearest[rows][hit]], "all")
+        voxel = (v_mean, np.where(hit, np.cumsum(hit) - 1, -1).astype(np.int64),
+                 np.zeros(rows.shape[0], np.float32))
+        voxel[2][hit] = v_count
+    merged = merged_prior(rows.shape[0], voxel, np.arange(rows.shape[0]), mean, count, text_emb.shape[1])
+    assert merged is not None  # every row has a kept view
+    feat = merged[0]
+    feat /= np.maximum(np.linalg.norm(feat, axis=1, keepdims=True), 1e-12)
+    cos = np.zeros((n, text_emb.shape[0]), np.float32)
+    cos[rows] = feat @ np.asarray(text_emb, np.float32).T
+    given = np.zeros(n, bool)
+    given[rows] = True
+    return cos, given
 
 
 def mix_answers(learned: PointAnswer, averaging: PointAnswer, weight: float) -> PointAnswer:

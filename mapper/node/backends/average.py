@@ -17,6 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from mapper.map.evicted_frames import EvictedFrameStore, merged_prior
 from mapper.map.evicted_views import EvictedViewStore
 from mapper.map.global_map import GlobalMapSnapshot
 from mapper.map.window import Keyframe
@@ -25,7 +26,43 @@ from mapper.node.context import NodeContext
 from protocol.errors import ProtocolError
 from protocol.messages import SegmentPoints
 
-__all__ = ["AveragingBackend"]
+__all__ = ["AveragingBackend", "average_with_frames"]
+
+FRAMES_CHUNK = 65_536
+"""Points averaged at a time with the kept evicted views (their merged prior is (chunk, D) float32)."""
+
+
+def average_with_frames(
+    xyz: np.ndarray,  # (N, 3) float32
+    views: Sequence[tuple],  # the window's views (``segment_average_cosines``)
+    text_emb: np.ndarray,  # (T, D) float32
+    prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None,  # the voxels' evicted views
+    frames: EvictedFrameStore,
+    chunk: int = FRAMES_CHUNK,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``average`` with the kept views of evicted keyframes too: each point's average takes the
+    window's views, its voxel's evicted views and every kept view it falls in
+    (:func:`mapper.map.evicted_frames.merged_prior`), ``chunk`` points at a time. Returns
+    (cosines (N, T), the window's views that counted (N,), whether an evicted view counted (N,))."""
+    from mapper.node.queries import segment_average_cosines
+
+    n, dim = xyz.shape[0], text_emb.shape[1]
+    cos = np.zeros((n, text_emb.shape[0]), np.float32)
+    n_views = np.zeros(n, np.int64)
+    with_prior = np.zeros(n, bool)
+    for lo in range(0, n, chunk):
+        part = xyz[lo: lo + chunk]
+        m = part.shape[0]
+        rows, mean, count = frames.means(part)
+        part_prior = None if prior is None else (prior[0], prior[1][lo: lo + m], prior[2][lo: lo + m])
+        merged = merged_prior(m, part_prior, rows, mean, count, dim)
+        if not views and merged is None:
+            continue
+        cos[lo: lo + m], n_views[lo: lo + m] = segment_average_cosines(part, views, text_emb, use_depth=False,
+                                                                       prior=merged)
+        if merged is not None:
+            with_prior[lo: lo + m] = merged[1] >= 0
+    return cos, n_views, with_prior
 
 
 class AveragingBackend:
@@ -139,12 +176,17 @@ class AveragingBackend:
         t_near = time.perf_counter()
         prior = self._evicted_prior(map_store, map_snap, nearest, "depth" if use_depth else "all", text_emb)
         t_prior = time.perf_counter()
-        if views or prior is not None:
+        frames = None if use_depth else self._evicted_frames(map_store, text_emb)
+        if frames is not None:
+            cos, n_views, with_prior = average_with_frames(xyz, views, text_emb, prior, frames)
+        elif views or prior is not None:
             cos, n_views = segment_average_cosines(xyz, views, text_emb, use_depth=use_depth, prior=prior)
+            with_prior = prior[1] >= 0 if prior is not None else np.zeros(xyz.shape[0], bool)
         else:
             cos = np.zeros((xyz.shape[0], text_emb.shape[0]), np.float32)
             n_views = np.zeros(xyz.shape[0], np.int64)
-        evicted_only = (n_views == 0) & (prior[1] >= 0) if prior is not None else np.zeros(xyz.shape[0], bool)
+            with_prior = np.zeros(xyz.shape[0], bool)
+        evicted_only = (n_views == 0) & with_prior
         seen = (n_views > 0) | evicted_only
         label, score = best_text(cos, seen)
         t_avg = time.perf_counter()
@@ -156,10 +198,19 @@ class AveragingBackend:
             "average": 1e3 * (t_avg - t_prior),
             "total": 1e3 * (t_avg - started),
             "n_views": float(len(views)),
-            "from_evicted": float(np.count_nonzero(prior[2] > 0)) if prior is not None else 0.0,
+            "from_evicted": float(np.count_nonzero(with_prior)),
         }
         return PointAnswer(label=label, score=score, timing_ms=timing, seen=seen, cos=cos, text_emb=text_emb,
                            snapshot=map_snap, nearest=nearest, map_only=evicted_only)
+
+    def _evicted_frames(self, store: EvictedViewStore, text_emb: np.ndarray) -> EvictedFrameStore | None:
+        """The kept views of evicted keyframes without depth (``queries.evicted_frames_mb``), or
+        None when there are none of the texts' dimension."""
+        worker = self.ctx.evicted_views
+        frames = store.frames
+        if worker is None or not worker.both or frames.dim != text_emb.shape[1] or len(frames) == 0:
+            return None
+        return frames
 
     def _evicted_prior(
         self,

@@ -40,6 +40,10 @@ class EvictedViews:
         )
         self.both = cfg.queries.evicted_views == "both"
         """Also the ``all`` channel (``average``); else ``depth`` only (``average_depth``)."""
+        self.frames_budget = int(cfg.queries.evicted_frames_mb * 2**20) if self.both else 0
+        """``queries.evicted_frames_mb`` in bytes: keyframes without depth kept as reduced views
+        (:mod:`mapper.map.evicted_frames`) instead of their samples at the voxels; 0 = off."""
+        self.frame_cells = cfg.queries.evicted_frames_cells
         self.border_px = 10.0
         """The averaging's border (``segment_average``'s default; the node's methods use it)."""
         self.chunk = 32_768
@@ -107,24 +111,41 @@ class EvictedViews:
         return len(self.queue) + self._in_batch
 
     def _absorb(self, keyframe: Keyframe, gmap: Any) -> None:  # gmap: GlobalSemanticMap
-        from mapper.model.baselines import OVView, view_samples  # torch-heavy; imported when first used
-
+        """One evicted keyframe: kept as a reduced view when it has no depth and
+        ``queries.evicted_frames_mb`` is on (the views that budget drops: sampled at the voxels
+        instead), else its samples at the map's voxels."""
         started = time.perf_counter()
         with self.ctx.state.lock:
             current = self.ctx.state.global_map
         if gmap is not current:  # a map loaded since: the keyframe belongs to the old one
             self.stale += 1
             return
+        if self.frames_budget > 0 and keyframe.depth_m is None and keyframe.ov is not None:
+            dropped = gmap.evicted.frames.add(keyframe.ov, keyframe.K, keyframe.world_from_cam,
+                                              (keyframe.width, keyframe.height), max_cells=self.frame_cells,
+                                              budget_bytes=self.frames_budget)
+            gmap.evicted.absorb(np.zeros(0, np.int64), {})  # counts the keyframe
+            for frame in dropped:
+                self._absorb_voxels(frame, gmap, count=False)
+        else:
+            self._absorb_voxels(keyframe, gmap)
+        self.done += 1
+        self.seconds_total += time.perf_counter() - started
+
+    def _absorb_voxels(self, keyframe: Any, gmap: Any, count: bool = True) -> None:
+        """A keyframe's (or a dropped kept view's: ``count`` False, counted already) samples at
+        every map voxel it counts for, into the per-voxel means."""
+        from mapper.model.baselines import OVView, view_samples  # torch-heavy; imported when first used
+
         map_xyz, map_keys = gmap.geometry()  # points and keys only: no copy of the map's features
         if map_xyz.shape[0] == 0 or keyframe.ov is None:
-            self.done += 1
             return
         view = OVView(keyframe.ov, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
                       keyframe.depth_m)
         rows = in_image(map_xyz, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
                         self.border_px)
         store = gmap.evicted
-        first = True
+        first = count
         for lo in range(0, rows.shape[0], self.chunk):  # bounded memory: (chunk, D) samples at a time
             part = rows[lo: lo + self.chunk]
             xyz = map_xyz[part]
@@ -139,8 +160,6 @@ class EvictedViews:
             store.absorb(np.zeros(0, np.int64), {})  # counts the keyframe (no voxel in its image)
         if len(store) > max(2 * map_xyz.shape[0], 4096):  # voxels the map pruned since
             store.compact(map_keys)
-        self.done += 1
-        self.seconds_total += time.perf_counter() - started
 
     def stats(self) -> dict[str, Any]:
         """``status`` key ``evicted_views`` (called under the state lock: takes no node lock)."""
@@ -154,4 +173,5 @@ class EvictedViews:
             "ms_per_keyframe": round(1e3 * self.seconds_total / max(self.done, 1), 3),
             "bytes": store.nbytes,
             **store.stats(),
+            **store.frames.stats(),
         }

@@ -1,0 +1,208 @@
+"""The reduced views of evicted keyframes without depth (:mod:`mapper.map.evicted_frames`): the
+reduction, the samples against the averaging kernel over the same views (the frustum culling
+loses none), the memory budget, persistence and bad input; and a node with a window of 2 RGB-only
+keyframes answering ``average`` as the same node with an unbounded window, where without the store
+the points only evicted keyframes saw get no answer.
+
+Node frames: test_evicted_views' (a fake 4-d space, each frame's OV map one constant direction,
+cameras at x in [-0.6, 0.6] looking at the wall z = 2), without depth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from mapper.kernels.average import OVView, kernel_average
+from mapper.map.evicted_frames import EvictedFrameStore, merged_prior, reduce_ov
+from mapper.node.config import ConfigError, config_from_dict
+from mapper.node.queries import SOURCE_MAP, SOURCE_NONE
+from mapper.node.service import MapperNode
+from protocol.messages import Load, Ok, Save, decode, encode
+from tests.mapper.map.test_evicted_views import _frames, _segment, _stream, onehot_space  # noqa: F401
+
+_BIG = 1 << 30
+
+
+def test_reduce_ov_area_averages_within_the_cells() -> None:
+    rng = np.random.default_rng(0)
+    ov = rng.standard_normal((30, 40, 5)).astype(np.float16)
+    small = reduce_ov(ov, 300)
+    assert small.shape == (15, 20, 5) and small.dtype == np.float32
+    want = ov.astype(np.float32).reshape(15, 2, 20, 2, 5).mean(axis=(1, 3))
+    np.testing.assert_allclose(small, want, atol=1e-5)
+    odd = reduce_ov(ov[:29, :37], 100)  # not a whole factor: fractional areas, the mean kept
+    assert odd.shape[0] * odd.shape[1] <= 100
+    np.testing.assert_allclose(odd.mean(axis=(0, 1)), ov[:29, :37].astype(np.float32).mean(axis=(0, 1)),
+                               atol=1e-4)
+    assert reduce_ov(ov[:1, :40], 7).shape[:2] == (1, 7)
+    np.testing.assert_array_equal(reduce_ov(ov[:10, :10], 300), ov[:10, :10].astype(np.float32))
+    with pytest.raises(ValueError):
+        reduce_ov(ov[0], 10)
+
+
+def _random_views(rng: np.random.Generator, n: int, dim: int) -> list[tuple[Any, ...]]:
+    views = []
+    for _ in range(n):
+        yaw = rng.uniform(-np.pi, np.pi)
+        pose = np.eye(4)
+        pose[:3, :3] = [[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]]
+        pose[:3, 3] = rng.uniform(-2, 2, 3)
+        ov = rng.standard_normal((12, 16, dim)).astype(np.float32)
+        views.append((ov, np.array([60.0, 60.0, 40.0, 30.0]), pose, (80, 60)))
+    return views
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_means_equal_the_averaging_kernel_over_the_reduced_views(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    store = EvictedFrameStore()
+    views = _random_views(rng, 40, 6)
+    for ov, k, pose, wh in views:
+        assert store.add(ov, k, pose, wh, max_cells=48, budget_bytes=_BIG) == []
+    pts = rng.uniform(-4, 4, (3000, 3)).astype(np.float32)
+    rows, mean, count = store.means(pts, block=128)  # many blocks: the culling is exercised
+    parsed = [OVView(reduce_ov(ov, 48), k, pose, wh, None) for ov, k, pose, wh in views]
+    want, n = kernel_average(pts, parsed, use_depth=False, border_px=10.0, depth_rel_tol=0.25,
+                             distance_power=0.0, vw=None, dim=6, texts=None, raw=True, cache_table=False)
+    assert np.array_equal(rows, np.flatnonzero(n > 0)) and 0 < rows.size < pts.shape[0]
+    np.testing.assert_array_equal(count, n[rows].astype(np.float32))
+    np.testing.assert_allclose(mean, want[rows], atol=1e-5)
+
+
+def test_budget_drops_the_oldest_and_counts_them() -> None:
+    rng = np.random.default_rng(2)
+    store = EvictedFrameStore()
+    views = _random_views(rng, 5, 4)
+    one = 48 * 4 * 4  # the table rows of one view; the per-view constants are a few hundred bytes more
+    dropped = [store.add(*v, max_cells=48, budget_bytes=3 * one + 1024) for v in views]
+    assert [len(d) for d in dropped] == [0, 0, 0, 1, 1]
+    np.testing.assert_array_equal(dropped[3][0].world_from_cam, views[0][2])  # the oldest first
+    assert dropped[3][0].ov.shape == (6, 8, 4) and dropped[3][0].depth_m is None
+    stats = store.stats()
+    assert stats["frames"] == len(store) == 3 and stats["frames_dropped"] == 2 and stats["frames_added"] == 5
+    assert stats["frames_bytes"] == store.nbytes <= 3 * one + 1024
+    # a budget that holds no view: the view comes back at once
+    back = store.add(*views[0], max_cells=48, budget_bytes=10)
+    assert len(back) == 4 and len(store) == 0 and store.stats()["frames_dropped"] == 6
+
+
+def test_bad_input_changes_nothing_and_the_store_round_trips() -> None:
+    rng = np.random.default_rng(3)
+    store = EvictedFrameStore()
+    for v in _random_views(rng, 3, 4):
+        store.add(*v, max_cells=48, budget_bytes=_BIG)
+    ov, k, pose, wh = _random_views(rng, 1, 4)[0]
+    for bad in ((ov[..., :3], k, pose, wh), (ov, k[:3], pose, wh), (ov, k, pose * np.nan, wh),
+                (ov, k, pose, (0, 5))):
+        with pytest.raises(ValueError):
+            store.add(*bad, max_cells=48, budget_bytes=_BIG)
+    assert len(store) == 3
+    pts = rng.uniform(-3, 3, (500, 3)).astype(np.float32)
+    before = store.means(pts)
+    arrays, manifest = store.to_arrays("f")
+    fresh = EvictedFrameStore()
+    fresh.restore(arrays, manifest, "f")
+    for a, b in zip(fresh.means(pts), before, strict=True):
+        np.testing.assert_array_equal(a, b)
+    for field in ("ov", "K", "image_wh"):
+        broken = dict(arrays)
+        broken[f"f.{field}"] = broken[f"f.{field}"][:1]
+        with pytest.raises(ValueError, match=field):
+            fresh.restore(broken, manifest, "f")
+    assert len(fresh) == 3
+    # merged with a voxel prior: the views-weighted mean of both
+    p_tab = np.ones((1, 4), np.float32)
+    merged = merged_prior(2, (p_tab, np.array([0, -1]), np.array([3.0, 0.0], np.float32)), np.array([0]),
+                          np.zeros((1, 4), np.float32), np.array([1.0], np.float32), 4)
+    assert merged is not None
+    np.testing.assert_allclose(merged[0][0], 0.75)
+    assert merged[1].tolist() == [0, -1] and merged[2].tolist() == [4.0, 0.0]
+
+
+def _node(tmp_path: Path, max_keyframes: int, **queries: Any) -> MapperNode:
+    config = config_from_dict(
+        {"map_dir": str(tmp_path), "events_endpoint": "", "serve_model": False,
+         "window": {"max_keyframes": max_keyframes, "min_translation_m": 0.01},
+         "global_map": {"pixel_stride": 1}, "queries": {"evicted_views": "both", **queries}}
+    )  # fmt: skip
+    return MapperNode(config)
+
+
+def _wall(n: int = 400) -> np.ndarray:
+    xs, ys = np.meshgrid(np.linspace(-1.4, 1.4, 40), np.linspace(-0.5, 0.5, n // 40))
+    return np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 2.0)], axis=1).astype(np.float32)
+
+
+def test_rgb_only_window_answers_what_evicted_keyframes_saw(tmp_path: Path) -> None:
+    frames = _frames(depth=False)
+    unbounded = _node(tmp_path, 100)
+    kept = _node(tmp_path, 2, evicted_frames_mb=16.0)
+    plain = _node(tmp_path, 2)
+    for node in (unbounded, kept, plain):
+        _stream(node, frames)
+    assert len(kept.state.global_map.snapshot()) == 0  # no depth, no map voxels: nothing to keep per voxel
+    stats = kept.ctx.status_providers["evicted_views"]()
+    assert stats["frames"] == 4 and stats["frames_dropped"] == 0 and stats["frames_bytes"] > 0
+    xyz = _wall()
+    want, got, without = (_segment(n, "average", xyz) for n in (unbounded, kept, plain))
+    seen = want.label >= 0
+    only_evicted = seen & (without.source == SOURCE_NONE)
+    assert only_evicted.sum() > 20  # points only keyframes that left saw
+    assert (got.source[only_evicted] == SOURCE_MAP).all()
+    assert np.array_equal(got.label, want.label)
+    np.testing.assert_allclose(got.score, want.score, atol=1e-5)  # constant OV maps: reduced exactly
+    assert got.timing_ms["from_evicted"] >= only_evicted.sum()
+    # saved and loaded with the map
+    assert isinstance(decode(kept.handle_query(encode(Save(name="evf"))), direction="reply"), Ok)
+    fresh = _node(tmp_path, 2, evicted_frames_mb=16.0)
+    assert isinstance(decode(fresh.handle_query(encode(Load(name="evf"))), direction="reply"), Ok)
+    assert len(fresh.state.global_map.evicted.frames) == 4
+    # the loaded window keeps its two keyframes: the same answer
+    again = _segment(fresh, "average", xyz)
+    np.testing.assert_allclose(again.score, got.score, atol=1e-6)
+
+
+def test_a_tight_budget_hands_dropped_views_to_the_voxel_means(tmp_path: Path) -> None:
+    node = _node(tmp_path, 2, evicted_frames_mb=0.0001, evicted_frames_cells=48)  # 105 bytes: no view fits
+    _stream(node, _frames(depth=False))
+    stats = node.ctx.status_providers["evicted_views"]()
+    assert stats["frames"] == 0 and stats["frames_dropped"] == 4
+    assert stats["done"] == 4 and stats["keyframes"] == 4
+
+
+@pytest.mark.parametrize("key,value", [("evicted_frames_mb", -1.0), ("evicted_frames_mb", 1e9),
+                                       ("evicted_frames_cells", 0)])
+def test_bad_config_is_refused(tmp_path: Path, key: str, value: Any) -> None:
+    with pytest.raises(ConfigError, match=key):
+        _node(tmp_path, 2, **{key: value})
+
+
+def test_the_learned_answer_takes_the_kept_views_where_nothing_else_answers(tmp_path: Path) -> None:
+    """``govnesf``'s map answer (``answer_from_map`` with ``learned``): a point neither its window
+    nor a map voxel answers takes the kept views' mean, the averaging's answer there."""
+    from mapper.node.answers.segment import answer_from_map
+
+    frames = _frames(depth=False)
+    unbounded, kept = _node(tmp_path, 100), _node(tmp_path, 2, evicted_frames_mb=16.0)
+    for node in (unbounded, kept):
+        _stream(node, frames)
+    xyz = _wall()
+    want = _segment(unbounded, "average", xyz)
+    emb = kept.ctx.text_encoder("test").encode(["c0", "c1", "c2", "c3"])
+    n = xyz.shape[0]
+    label, _, source = answer_from_map(kept.ctx, xyz, emb, np.full(n, -1, np.int32), np.zeros(n, np.float32),
+                                       np.zeros(n, bool), learned=True)
+    old = kept.state.window.keyframes[0].world_from_cam[0, 3]  # points left of the window's views
+    only_left = (want.label >= 0) & (xyz[:, 0] < old - 0.9)
+    assert only_left.sum() > 20
+    assert (source[only_left] == SOURCE_MAP).all()
+    assert np.array_equal(label[only_left], want.label[only_left])
+    # without the kept views: nothing answers them
+    plain = _node(tmp_path, 2)
+    _stream(plain, frames)
+    _, _, none = answer_from_map(plain.ctx, xyz, emb, np.full(n, -1, np.int32), np.zeros(n, np.float32),
+                                 np.zeros(n, bool), learned=True)
+    assert (none[only_left] == SOURCE_NONE).all()
