@@ -211,7 +211,7 @@ class QueryConfig:
     (``average``; ``average_depth`` with ``use_depth``): the best text of ``(1 - w)`` x the model's
     cosines + ``w`` x the averaging's where both answer (:func:`mapper.node.answers.segment.mix_answers`).
     0 = the model alone. 0..1."""
-    evicted_frames_mb: float = 0.0
+    evicted_frames_mb: float = 256.0
     """With ``evicted_views`` "both": keep the keyframes without input depth that leave the window
     as reduced views (pose, intrinsics, the OV map area-averaged to ``evicted_frames_cells``; never
     the RGB; :mod:`mapper.map.evicted_frames`), up to this much memory (MB; beyond it the oldest is
@@ -219,9 +219,10 @@ class QueryConfig:
     ``average`` then counts every kept view a point falls in as one more view of its average, and
     ``govnesf``'s map answer mixes their mean as it mixes the voxels' (``evicted_views_learned_weight``):
     without depth the map has few voxels on walls and floors, so the per-voxel means miss most points.
-    0 = off (keyframes without depth go to the per-voxel means). 256 on the tuning split's six
-    RGB-only streams: window median ``average`` 24.3 -> 32.5, ``govnesf`` 24.8 -> 31.7, but one
-    stream's ``average`` -5.0 (docs/concepts/window-and-map.md): off by default. 0..100000."""
+    0 = off (keyframes without depth go to the per-voxel means). On the tuning split's six
+    RGB-only streams: window median ``average`` 24.3 -> 32.5, ``govnesf`` 24.8 -> 31.7; one
+    stream with odometry drift ``average`` -5.0, as low as the node holding every keyframe there
+    (docs/concepts/window-and-map.md). 0..100000."""
 
     evicted_frames_cells: int = 300
     """Most cells of a kept evicted view's OV map (``evicted_frames_mb``): area-averaged to the

@@ -140,7 +140,7 @@ def test_rgb_only_window_answers_what_evicted_keyframes_saw(tmp_path: Path) -> N
     frames = _frames(depth=False)
     unbounded = _node(tmp_path, 100)
     kept = _node(tmp_path, 2, evicted_frames_mb=16.0)
-    plain = _node(tmp_path, 2)
+    plain = _node(tmp_path, 2, evicted_frames_mb=0.0)
     for node in (unbounded, kept, plain):
         _stream(node, frames)
     assert len(kept.state.global_map.snapshot()) == 0  # no depth, no map voxels: nothing to keep per voxel
@@ -201,7 +201,7 @@ def test_the_learned_answer_takes_the_kept_views_where_nothing_else_answers(tmp_
     assert (source[only_left] == SOURCE_MAP).all()
     assert np.array_equal(label[only_left], want.label[only_left])
     # without the kept views: nothing answers them
-    plain = _node(tmp_path, 2)
+    plain = _node(tmp_path, 2, evicted_frames_mb=0.0)
     _stream(plain, frames)
     _, _, none = answer_from_map(plain.ctx, xyz, emb, np.full(n, -1, np.int32), np.zeros(n, np.float32),
                                  np.zeros(n, bool), learned=True)
