@@ -206,6 +206,11 @@ class QueryConfig:
     """Keyframes that left the window and wait for the ``evicted_views`` worker; beyond this the
     oldest waiting is dropped (counted in status ``evicted_views.dropped``). 1..100000."""
 
+    evicted_views_max_pending_mb: float = 256.0
+    """... and at most this much of their colour, depth and OV maps (MB; a 640 x 480 keyframe with a
+    384-d OV map at 1/4 resolution holds about 16 MB): the oldest waiting beyond it is dropped too
+    (counted the same way; the newest always waits). 0 = by count only. 0..100000."""
+
     learned_average_mix: float = 0.0
     """``govnesf`` answers (not fallen back) are mixed with the averaging's over the same window
     (``average``; ``average_depth`` with ``use_depth``): the best text of ``(1 - w)`` x the model's
@@ -250,6 +255,8 @@ class QueryConfig:
                      0.0, 1.0)
         _check_range(where, "queries.learned_average_mix", self.learned_average_mix, 0.0, 1.0)
         _check_range(where, "queries.evicted_views_max_pending", self.evicted_views_max_pending, 1, 100_000)
+        _check_range(where, "queries.evicted_views_max_pending_mb", self.evicted_views_max_pending_mb,
+                     0.0, 100_000.0)
         _check_range(where, "queries.evicted_frames_mb", self.evicted_frames_mb, 0.0, 100_000.0)
         _check_range(where, "queries.evicted_frames_cells", self.evicted_frames_cells, 1, 100_000)
         _check_range(where, "queries.workers", self.workers, 0, 64)

@@ -34,10 +34,18 @@ IDLE_WAIT_S = 0.5
 class KeyframeQueue(Generic[T]):
     """Bounded FIFO between the ingest thread and one worker (thread-safe)."""
 
-    def __init__(self, max_len: int) -> None:
+    def __init__(self, max_len: int, max_bytes: int = 0, size_of: Callable[[T], int] | None = None) -> None:
         if max_len < 1:
             raise ValueError(f"max_len {max_len} out of range: must be >= 1")
+        if max_bytes < 0 or (max_bytes > 0 and size_of is None):
+            raise ValueError(f"max_bytes {max_bytes}: must be >= 0, and > 0 only with size_of")
         self.max_len = max_len
+        self.max_bytes = max_bytes
+        """> 0: also drop the oldest while the queued items' ``size_of`` exceed this (the newest
+        item always stays)."""
+        self._size_of = size_of
+        self.bytes = 0
+        """What the queued items hold (``size_of``; 0 without it)."""
         self._items: deque[T] = deque()
         self._lock = threading.Lock()
         self.wake = threading.Event()
@@ -52,21 +60,31 @@ class KeyframeQueue(Generic[T]):
         with self._lock:
             self._items.append(item)
             self.queued += 1
-            while len(self._items) > self.max_len:
-                self._items.popleft()
+            self.bytes += self._size(item)
+            while len(self._items) > self.max_len or (
+                    self.max_bytes > 0 and self.bytes > self.max_bytes and len(self._items) > 1):
+                self.bytes -= self._size(self._items.popleft())
                 self.dropped += 1
         self.wake.set()
+
+    def _size(self, item: T) -> int:
+        return int(self._size_of(item)) if self._size_of is not None else 0
 
     def pop(self) -> T | None:
         """The oldest item, or None when empty."""
         with self._lock:
-            return self._items.popleft() if self._items else None
+            if not self._items:
+                return None
+            item = self._items.popleft()
+            self.bytes -= self._size(item)
+            return item
 
     def drain(self) -> list[T]:
         """Every item, oldest first; the queue is empty afterwards."""
         with self._lock:
             items = list(self._items)
             self._items.clear()
+            self.bytes = 0
             return items
 
     def __len__(self) -> int:

@@ -28,6 +28,11 @@ __all__ = ["EvictedViews"]
 log = logging.getLogger("mapper.node.workers.evicted_views")
 
 
+def keyframe_bytes(keyframe: Keyframe) -> int:
+    """What a queued keyframe holds: its colour, depth and OV arrays."""
+    return sum(int(a.nbytes) for a in (keyframe.rgb, keyframe.depth_m, keyframe.ov) if a is not None)
+
+
 class EvictedViews:
     """The node's worker that adds evicted keyframes' views to their global map's store (module
     docstring). ``install()`` hooks it into the node (before ``node.start()``)."""
@@ -36,7 +41,9 @@ class EvictedViews:
         self.ctx = ctx
         cfg = ctx.config
         self.queue: KeyframeQueue[tuple[Keyframe, Any]] = KeyframeQueue(  # (keyframe, its GlobalSemanticMap)
-            cfg.queries.evicted_views_max_pending
+            cfg.queries.evicted_views_max_pending,
+            max_bytes=int(cfg.queries.evicted_views_max_pending_mb * 2**20),
+            size_of=lambda item: keyframe_bytes(item[0]),
         )
         self.both = cfg.queries.evicted_views == "both"
         """Also the ``all`` channel (``average``); else ``depth`` only (``average_depth``)."""
@@ -78,7 +85,9 @@ class EvictedViews:
         def work() -> None:
             while len(self.queue) and not stop.is_set():
                 # the integrator first, unless this queue is half full (then nothing is dropped)
-                if self.ctx.integration.backlog() > 0 and 2 * len(self.queue) < self.queue.max_len:
+                q = self.queue
+                half_full = 2 * len(q) >= q.max_len or (q.max_bytes > 0 and 2 * q.bytes >= q.max_bytes)
+                if self.ctx.integration.backlog() > 0 and not half_full:
                     self.deferred += 1
                     return
                 self._process_one()
