@@ -67,7 +67,9 @@ def answer_from_map(
     that left the window (``queries.evicted_views``), the map answers with their average there
     (:func:`mapper.node.queries.evicted_view_cosines`) instead of the voxel's fused feature; for
     the ``learned`` model's answers, mixed with the voxel's own feature (which holds the model's
-    blend), ``queries.evicted_views_learned_weight``."""
+    blend), ``queries.evicted_views_learned_weight``. Points nothing answers take the kept views of
+    evicted keyframes without depth (``queries.evicted_frames_mb``) where one sees them, for every
+    method (a depth-tested answer only there)."""
     from mapper.node.queries import evicted_view_cosines, fill_from_map
 
     gmap = ctx.state.global_map
@@ -90,12 +92,23 @@ def answer_from_map(
         more_confident=ctx.config.queries.map_when_more_confident, window_cos=window_cos,
         blend=ctx.map_blend(depth_tested=depth_tested), nearest=nearest, map_cos=map_cos,
         map_cos_weight=ctx.config.queries.evicted_views_learned_weight if learned else 1.0)
-    if frames_cos is not None:  # no map voxel near, unseen by the window: the kept views answer
-        from mapper.node.queries import SOURCE_MAP, SOURCE_NONE, best_text
+    from mapper.node.queries import SOURCE_MAP, SOURCE_NONE, best_text
 
+    if frames_cos is not None:  # no map voxel near, unseen by the window: the kept views answer
         todo = np.flatnonzero((source == SOURCE_NONE) & frames_cos[1])
         label[todo], score[todo] = best_text(frames_cos[0][todo], np.ones(todo.shape[0], bool))
         source[todo] = SOURCE_MAP
+    elif depth_tested and len(gmap.evicted.frames):
+        # a depth-tested answer never mixes views without depth in, but a point nothing else
+        # answers takes the kept views' answer rather than none
+        none = np.flatnonzero(source == SOURCE_NONE)
+        if none.size:
+            sub = evicted_frame_cosines(ctx, gmap.evicted, snap, None if nearest is None else nearest[none],
+                                        np.asarray(xyz)[none], text_emb)
+            if sub is not None:
+                todo = none[sub[1]]
+                label[todo], score[todo] = best_text(sub[0][sub[1]], np.ones(todo.shape[0], bool))
+                source[todo] = SOURCE_MAP
     return label, score, source
 
 

@@ -206,3 +206,20 @@ def test_the_learned_answer_takes_the_kept_views_where_nothing_else_answers(tmp_
     _, _, none = answer_from_map(plain.ctx, xyz, emb, np.full(n, -1, np.int32), np.zeros(n, np.float32),
                                  np.zeros(n, bool), learned=True)
     assert (none[only_left] == SOURCE_NONE).all()
+
+
+def test_depth_tested_answers_take_the_kept_views_only_where_nothing_answers(tmp_path: Path) -> None:
+    """``average_depth`` (a depth test) never mixes the kept views in, but a point only keyframes
+    that left saw, which nothing else answers, takes their answer rather than none."""
+    frames = _frames(depth=False)
+    kept, plain = _node(tmp_path, 2, evicted_frames_mb=16.0), _node(tmp_path, 2, evicted_frames_mb=0.0)
+    for node in (kept, plain):
+        _stream(node, frames)
+    xyz = _wall()
+    got, without = _segment(kept, "average_depth", xyz), _segment(plain, "average_depth", xyz)
+    filled = (without.source == SOURCE_NONE) & (got.source != SOURCE_NONE)
+    assert filled.sum() > 20
+    assert (got.source[filled] == SOURCE_MAP).all() and (got.label[filled] >= 0).all()
+    answered = without.source != SOURCE_NONE  # what the depth-tested answer gave stays as it was
+    assert np.array_equal(got.label[answered], without.label[answered])
+    np.testing.assert_allclose(got.score[answered], without.score[answered], atol=1e-6)
