@@ -157,9 +157,10 @@ def test_node_warms_the_point_kernels(tmp_path: Path) -> None:
     cfg = config_from_dict({"map_dir": str(tmp_path), "autosave_name": "", "save_on_exit": False})
     node = MapperNode(cfg)
     try:
-        assert node.ctx.kernel_modules == ["mapper.map.query_kernels"]
+        # the evicted views' kernel too (queries.evicted_views, on by default)
+        assert node.ctx.kernel_modules == ["mapper.map.query_kernels", "mapper.map.evicted_views"]
         install_learned_backend(node, make_runtime(GovNeSF(TINY).eval(), source_views=3))
-        assert node.ctx.kernel_modules[1:] == [
+        assert node.ctx.kernel_modules[2:] == [
             "mapper.model.ops.sample_kernel",
             "mapper.model.ops.fusion_kernel",
             "mapper.model.ops.answer_kernel",

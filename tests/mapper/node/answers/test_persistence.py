@@ -42,9 +42,13 @@ def _ask(node: MapperNode, msg: Any) -> Any:
 def _stream(node: MapperNode, seqs: range) -> None:
     for seq in seqs:
         node.handle_ingest(encode(synthetic_frame(seq, N_FRAMES, 64, 48)))
+        if node.ctx.evicted_views is not None:  # as its worker would, soon after each eviction
+            node.ctx.evicted_views.process_pending()
 
 
 def _answers(node: MapperNode, xyz: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    if node.ctx.evicted_views is not None:  # settled: the node is not started, no worker thread runs
+        node.ctx.evicted_views.process_pending()
     out = {}
     for method in ("average", "average_depth"):
         reply = _ask(node, SegmentPoints(xyz=xyz, texts=TEXTS, method=method))
