@@ -247,6 +247,46 @@ class EvictedViewStore:
             counts[hit] = ch.count[rows[hit]]
             return means, counts
 
+    def cosines(
+        self,
+        keys: np.ndarray,  # (N,) int64 voxel keys (repeats allowed)
+        text_emb: np.ndarray,  # (T, D) float32 unit rows
+        min_views: float = 1.0,
+        channels: tuple[str, ...] = ("depth", "all"),
+    ) -> tuple[np.ndarray, np.ndarray]:  # (N, T) float32, (N,) bool
+        """Cosines of each key's channel mean (unit-normalised) with the texts, from the first of
+        ``channels`` where the voxel has at least ``min_views`` views, and where one did. Computed
+        once per distinct voxel, reading the means in place (no (N, D) copy): a query's points
+        share voxels, and the texts are few."""
+        keys = np.asarray(keys, np.int64).reshape(-1)
+        emb = np.asarray(text_emb, np.float32)
+        cos = np.zeros((keys.shape[0], emb.shape[0]), np.float32)
+        given = np.zeros(keys.shape[0], bool)
+        with self._lock:
+            if self._n == 0 or self._dim != emb.shape[1]:
+                return cos, given
+            rows = self._rows_for(keys, create=False)
+            for channel in channels:
+                ch = self._channels[channel]
+                if ch.mean.shape[1] == 0:
+                    continue
+                todo = np.flatnonzero((rows >= 0) & ~given)
+                if todo.size == 0:
+                    break
+                take = todo[ch.count[rows[todo]] >= min_views]
+                if take.size == 0:
+                    continue
+                unique, inverse = np.unique(rows[take], return_inverse=True)
+                for start in range(0, unique.shape[0], 16384):  # bounded temporaries
+                    part = unique[start:start + 16384]
+                    m = ch.mean[part]
+                    norms = np.maximum(np.linalg.norm(m, axis=1), np.float32(1e-12))
+                    block = (m @ emb.T) / norms[:, None]
+                    sel = (inverse >= start) & (inverse < start + part.shape[0])
+                    cos[take[sel]] = block[inverse[sel] - start]
+                given[take] = True
+        return cos, given
+
     def prior(
         self,
         keys: np.ndarray,  # (N,) int64 voxel keys, one per query point (-1 or absent: none)

@@ -988,19 +988,11 @@ def evicted_view_cosines(
     hit = nearest >= 0
     if not hit.any():
         return None
-    keys = snapshot.keys[nearest[hit]]
+    at = np.flatnonzero(hit)
     cos = np.zeros((nearest.shape[0], text_emb.shape[0]), np.float32)
     given = np.zeros(nearest.shape[0], bool)
-    at = np.flatnonzero(hit)
-    for channel in ("depth", "all"):
-        means, counts = store.lookup(keys, channel)
-        take = (counts >= min_views) & ~given[at]
-        if not take.any():
-            continue
-        m = means[take]
-        m /= np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-12)
-        cos[at[take]] = m @ np.asarray(text_emb, np.float32).T
-        given[at[take]] = True
+    got, ok = store.cosines(snapshot.keys[nearest[hit]], text_emb, min_views=min_views)
+    cos[at], given[at] = got, ok
     return (cos, given) if given.any() else None
 
 
