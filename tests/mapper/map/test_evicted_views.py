@@ -386,3 +386,32 @@ def test_the_learned_answer_mixes_the_voxel_feature_with_the_evicted_views() -> 
                                         map_cos_weight=w)
         assert label.tolist() == [want_label] * 2, w
         np.testing.assert_allclose(score, want_score, atol=2e-3)
+
+
+def test_store_cosines_equal_a_float64_reference_per_point() -> None:
+    """``EvictedViewStore.cosines``: per point, the cosine of its voxel's channel mean (``depth``
+    first, then ``all``, at least ``min_views`` views) with each text; repeats share a voxel."""
+    from mapper.map.evicted_views import EvictedViewStore
+
+    rng = np.random.default_rng(3)
+    store = EvictedViewStore()
+    keys = np.array([5, 9, 14, 20], np.int64)
+    depth = rng.standard_normal((4, D)).astype(np.float32)
+    every = rng.standard_normal((4, D)).astype(np.float32)
+    store.absorb(keys[:2], {"depth": (depth[:2], np.ones(2, bool)), "all": (every[:2], np.ones(2, bool))})
+    store.absorb(keys[2:], {"all": (every[2:], np.ones(2, bool))})
+    store.absorb(keys[3:], {"all": (every[3:], np.ones(1, bool))})  # key 20: two views
+    emb = rng.standard_normal((3, D)).astype(np.float32)
+    emb /= np.linalg.norm(emb, axis=1, keepdims=True)
+    asked = np.array([9, 5, 9, 14, 99, 20], np.int64)  # a repeat and a key the store lacks
+    cos, given = store.cosines(asked, emb)
+    assert given.tolist() == [True, True, True, True, False, True]
+    want = {5: depth[0], 9: depth[1], 14: every[2], 20: every[3]}  # 20's mean of two equal views
+    for i, key in enumerate(asked.tolist()):
+        if key in want:
+            m = want[key].astype(np.float64)
+            np.testing.assert_allclose(cos[i], emb.astype(np.float64) @ (m / np.linalg.norm(m)), atol=1e-5)
+    assert not cos[4].any()
+    cos2, given2 = store.cosines(asked, emb, min_views=2)
+    assert given2.tolist() == [False, False, False, False, False, True]
+    np.testing.assert_allclose(cos2[5], cos[5], atol=1e-6)
