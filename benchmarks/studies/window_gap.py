@@ -1,0 +1,101 @@
+"""Where the window loses against every keyframe: a scenario's points by the reply's ``source``.
+
+One scenario of the scenario matrix (``clients.matrix``: a split and an index, or any combination
+of its axes given as JSON) is streamed, as the matrix does, into a node at the default window and
+into the same node holding every keyframe; once both settled, ``segment_points`` at the
+ground-truth surface points for ``average`` and ``govnesf``. For each method it prints the 3D mIoU
+of both nodes and, by the window node's ``source`` (0 none, 1 window, 2 map), how many points and
+how many of them each node labels correctly, with the every-keyframe node's sources for the same
+points: a gap from points nothing answers (no map point near) reads differently from one where
+the window's own views answer worse.
+
+Run (a few minutes a scenario on 2 cores)::
+
+    python benchmarks/studies/window_gap.py --split tune --index 6
+    python benchmarks/studies/window_gap.py --scenario '{"seed": 7, "layout": "corridor", "path": "sparse",
+        "width": 160, "height": 120, "hfov_deg": 70, "effect": "jpeg", "pose_error": "noise_3cm",
+        "ov_noise": "calibrated", "depth": true}' --set queries.evicted_views=off
+
+Choose settings on tuning seeds only (``seed % 3 != 0``); the held-out split is for the report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from clients.harness import NodeProcess, mean_iou
+from clients.matrix.driver import RunSettings, _settle, prepare
+from clients.matrix.scenarios import FRAMES, Scenario, build_matrix
+from clients.sim.scenes import CLASS_NAMES
+
+METHODS = ("average", "govnesf")
+
+
+def scenario_of(args: argparse.Namespace) -> Scenario:
+    """The scenario the arguments name (``--scenario`` JSON, else ``--split`` / ``--index``)."""
+    if args.scenario:
+        spec = json.loads(args.scenario)
+        return Scenario(index=99, frames=FRAMES[spec["path"]], **spec)
+    return build_matrix(args.split)[args.index]
+
+
+def answers(
+    scenario: Scenario, prep: Any, which: str, settings: list[str]
+) -> dict[str, tuple[np.ndarray, ...]]:
+    """(label, source) per method of a fresh node (``window`` or ``all``) once settled."""
+    extra = ["--set", "save_on_exit=false", "--set", "load_autosave_on_start=false"]
+    for item in settings:
+        extra += ["--set", item]
+    if which == "all":
+        extra += ["--set", f"window.max_keyframes={scenario.frames + 10}"]
+    out: dict[str, tuple[np.ndarray, ...]] = {}
+    with tempfile.TemporaryDirectory(prefix="govnesf-gap-") as tmp:
+        log = Path(tmp) / "node.log"
+        node = NodeProcess(Path(tmp) / "maps", log_path=log, extra_args=extra, events=False)
+        with node:
+            node.wait_ready(120)
+            with node.client(timeout_s=600) as client:
+                for _ in client.send_frames(iter(prep.frames), window=4):
+                    pass
+                _settle(client, 120)
+                for method in METHODS:
+                    seg = client.segment_points(prep.gt_xyz, list(CLASS_NAMES), method=method, timeout_s=600)
+                    out[method] = (seg.label.astype(np.int64), np.asarray(seg.source))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--split", default="tune", choices=("tune", "heldout"))
+    p.add_argument("--index", type=int, default=0, help="the scenario's index in the split")
+    p.add_argument("--scenario", default="", help="a scenario as JSON (every axis but index and frames)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a node setting (repeat)")
+    args = p.parse_args(argv)
+    scenario = scenario_of(args)
+    print(scenario.name, flush=True)
+    prep = prepare(scenario, RunSettings())
+    got = {which: answers(scenario, prep, which, args.set) for which in ("window", "all")}
+    gt, n_texts = prep.gt_label, len(CLASS_NAMES)
+    for method in METHODS:
+        (lw, sw), (la, sa) = got["window"][method], got["all"][method]
+        print(f"{method}: mIoU window {100 * mean_iou(lw, gt, n_texts)[0]:.1f}, "
+              f"every keyframe {100 * mean_iou(la, gt, n_texts)[0]:.1f}")
+        for source, name in enumerate(("none", "window", "map")):
+            sel = sw == source
+            if not sel.any():
+                continue
+            right_w, right_a = np.mean(lw[sel] == gt[sel]), np.mean(la[sel] == gt[sel])
+            print(f"  window node source {name}: {int(sel.sum())} points, correct {right_w:.3f} "
+                  f"(every keyframe {right_a:.3f}; its sources {np.bincount(sa[sel], minlength=3).tolist()})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
