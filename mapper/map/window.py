@@ -59,9 +59,17 @@ class WindowConfig:
     keyframes of 4096 x 4096 frames with depth would hold 3.5 GB, and the global map integrates
     every second depth pixel. Frames up to this size are kept as sent. 0 = always as sent. 0..4096."""
 
+    max_ov_cells: int = 4800
+    """A keyframe whose OV map has more cells is kept with it area-averaged to at most this many (80 x
+    60 at 4:3; the aspect and dtype kept). The learned model blends OV maps on its own grid (the
+    working size / 4: 40 x 30 for ``cpu-small``), the averaging and the map sample them bilinearly:
+    a 640 x 480 camera's 384-d features at 1/4 resolution (160 x 120, 14.7 MB in float16) are kept
+    at 3.7 MB. 0 = always as sent. 0..10000000."""
+
     def validate(self, where: str) -> None:
         _check_range(where, "window.max_keyframes", self.max_keyframes, 1, 10_000)
         _check_range(where, "window.max_image_side", self.max_image_side, 0, 4096)
+        _check_range(where, "window.max_ov_cells", self.max_ov_cells, 0, 10_000_000)
         if 0 < self.max_image_side < 16:
             raise ConfigError(f"{where}: window.max_image_side = {self.max_image_side} must be 0 or >= 16")
         _check_range(where, "window.min_translation_m", self.min_translation_m, 0.0, 1e6)
@@ -185,6 +193,26 @@ def fit_image(keyframe: Keyframe, max_side: int) -> Keyframe:
         depth = cv2.resize(np.asarray(depth), (nw, nh), interpolation=cv2.INTER_NEAREST)
     K = fit_intrinsics(keyframe.K, w, h, max_side)
     return dataclasses.replace(keyframe, K=K, rgb=rgb, depth_m=depth)
+
+
+def fit_ov(keyframe: Keyframe, max_cells: int) -> Keyframe:
+    """``keyframe`` with its OV map area-averaged to at most ``max_cells`` cells
+    (``window.max_ov_cells``; :func:`mapper.map.evicted_frames.reduce_ov`, the aspect and the
+    dtype kept); the keyframe itself when it has none, it fits, or ``max_cells`` is 0.
+
+    >>> kf = Keyframe(seq=0, stamp_ns=0, camera="cam0", K=np.array([500.0, 500.0, 320.0, 240.0]),
+    ...               world_from_cam=np.eye(4), rgb=np.zeros((480, 640, 3), np.uint8),
+    ...               ov=np.ones((120, 160, 8), np.float16))
+    >>> small = fit_ov(kf, 4800)
+    >>> small.ov.shape, small.ov.dtype.name, float(small.ov.max())
+    ((60, 80, 8), 'float16', 1.0)
+    """
+    ov = keyframe.ov
+    if ov is None or max_cells <= 0 or ov.shape[0] * ov.shape[1] <= max_cells:
+        return keyframe
+    from mapper.map.evicted_frames import reduce_ov
+
+    return dataclasses.replace(keyframe, ov=reduce_ov(np.asarray(ov), max_cells).astype(ov.dtype))
 
 
 @dataclass

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from mapper.map.window import Keyframe, fit_image, fit_intrinsics
+from mapper.map.window import Keyframe, fit_image, fit_intrinsics, fit_ov
 from mapper.node.context import NodeContext
 from mapper.node.integration import IntegrateJob
 from protocol.errors import ProtocolError
@@ -102,11 +102,14 @@ def ingest_frame(ctx: NodeContext, frame: Frame) -> Ack:
     state = ctx.state
     max_side = ctx.config.window.max_image_side
     kept_K = fit_intrinsics(frame.K, frame.width, frame.height, max_side)  # K as a keyframe keeps it
-    if 0 < max_side < max(frame.width, frame.height):
+    max_cells = ctx.config.window.max_ov_cells
+    big_image = 0 < max_side < max(frame.width, frame.height)
+    big_ov = frame.ov is not None and 0 < max_cells < frame.ov.shape[0] * frame.ov.shape[1]
+    if big_image or big_ov:
         with state.lock:  # shrink only what will be a keyframe (the ingest thread alone adds)
             will_keep = state.window.is_keyframe(frame.camera, frame.world_from_cam)[0]
-        if will_keep:
-            fitted = fit_image(keyframe, max_side)  # outside the lock (tens of ms at 4096 px)
+        if will_keep:  # outside the lock (tens of ms at 4096 px)
+            fitted = fit_ov(fit_image(keyframe, max_side) if big_image else keyframe, max_cells)
             if fitted is not keyframe:
                 keyframe = fitted
                 ctx.frames_downscaled += 1

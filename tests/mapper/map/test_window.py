@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -207,3 +208,40 @@ def test_frames_larger_than_max_image_side_are_kept_shrunk_and_map_the_same_surf
     assert kept.state.window.keyframes[-1].width == w  # 0: as sent
     with pytest.raises(ConfigError, match="window.max_image_side"):
         config_from_dict({"window": {"max_image_side": 8}})
+
+
+def test_a_large_ov_map_is_kept_area_averaged_to_max_ov_cells(tmp_path: Path) -> None:
+    """``window.max_ov_cells``: a keyframe's OV map with more cells is kept area-averaged (aspect
+    and dtype kept), the map and the answers use it as any OV map; a frame that is no keyframe is
+    not touched; 0 keeps it as sent."""
+    from mapper.errors import ConfigError
+    from mapper.node.config import config_from_dict
+    from mapper.node.service import MapperNode
+    from protocol.messages import Ack, Frame, StatusRequest, decode, encode
+
+    rng = np.random.default_rng(1)
+    h, w = 120, 160
+    ov = np.zeros((h, w, 4), np.float16)
+    ov[:, : w // 2, 0] = 1.0  # left half: text 0; right half: text 1
+    ov[:, w // 2:, 1] = 1.0
+    frame = Frame(seq=1, stamp_ns=5, width=640, height=480, K=np.array([500.0, 500.0, 320.0, 240.0]),
+                  world_from_cam=np.eye(4), rgb=rng.integers(0, 255, (480, 640, 3), dtype=np.uint8),
+                  depth_m=np.full((480, 640), 2.0, np.float32), ov=ov, ov_space="test-space")  # fmt: skip
+    node = MapperNode(config_from_dict({"map_dir": str(tmp_path), "events_endpoint": "", "serve_model": False,
+                                        "global_map": {"integrate_queue": 0}}))  # fmt: skip
+    assert isinstance(decode(node.handle_ingest(encode(frame)), direction="reply"), Ack)
+    kf = node.state.window.keyframes[-1]
+    assert kf.ov is not None and kf.ov.shape == (60, 80, 4) and kf.ov.dtype == np.float16
+    np.testing.assert_array_equal(kf.ov[:, :40, 0], 1.0)  # area averages of whole halves: unchanged
+    np.testing.assert_array_equal(kf.ov[:, 40:, 1], 1.0)
+    status = decode(node.handle_query(encode(StatusRequest())), direction="reply")
+    assert status.extra["frames_downscaled"] == 1
+    same_place = dataclasses.replace(frame, seq=2, stamp_ns=6)  # not a keyframe: acked, not kept
+    ack = decode(node.handle_ingest(encode(same_place)), direction="reply")
+    assert isinstance(ack, Ack) and ack.status == "accepted"
+    kept = MapperNode(config_from_dict({"map_dir": str(tmp_path), "events_endpoint": "", "serve_model": False,
+                                        "window": {"max_ov_cells": 0}}))  # fmt: skip
+    kept.handle_ingest(encode(frame))
+    assert kept.state.window.keyframes[-1].ov.shape == (h, w, 4)  # 0: as sent
+    with pytest.raises(ConfigError, match="window.max_ov_cells"):
+        config_from_dict({"window": {"max_ov_cells": -1}})
