@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 
 from mapper.geometry.config import DenseFlowConfig, TriangulationConfig
-from mapper.geometry.triangulation import PosedView, intrinsics_matrix, project, select_partners
+from mapper.geometry.triangulation import PosedView, select_partners, triangulate_rays
 
 __all__ = [
     "FlowDepth",
@@ -212,35 +212,20 @@ def triangulate_flow(
     uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
     if uv_a.shape != uv_b.shape:
         raise ValueError(f"uv_a {uv_a.shape} and uv_b {uv_b.shape} must have the same shape")
-    n = uv_a.shape[0]
-    if n == 0:
+    if uv_a.shape[0] == 0:
         empty = np.zeros(0)
         return np.zeros(0, bool), empty, empty, empty, empty
-    pa_view, pb_view = a.posed, b.posed
-    Pa = intrinsics_matrix(a.K) @ pa_view.cam_from_world[:3]
-    Pb = intrinsics_matrix(b.K) @ pb_view.cam_from_world[:3]
-    hom = cv2.triangulatePoints(Pa, Pb, uv_a.T.copy(), uv_b.T.copy()).T.astype(np.float64)
-    w = hom[:, 3]
-    scale = np.abs(hom[:, :3]).max(axis=1)
-    finite = np.abs(w) > 1e-12 * np.maximum(scale, 1e-300)
-    xyz = np.where(finite[:, None], hom[:, :3] / np.where(finite, w, 1.0)[:, None], np.nan)
-    pa, za = project(a.K, a.world_from_cam, xyz)
-    pb, zb = project(b.K, b.world_from_cam, xyz)
-    reproj = np.maximum(np.linalg.norm(pa - uv_a, axis=1), np.linalg.norm(pb - uv_b, axis=1))
-    ra, rb = xyz - pa_view.center, xyz - pb_view.center
-    na, nb = np.linalg.norm(ra, axis=1), np.linalg.norm(rb, axis=1)
+    r = triangulate_rays(a.posed, b.posed, uv_a, uv_b)
+    za, parallax, reproj = r.depth_a, r.parallax_deg, r.reprojection_px
     with np.errstate(invalid="ignore", divide="ignore"):
-        cos = np.clip(np.sum(ra * rb, axis=1) / (na * nb), -1.0, 1.0)
-        parallax = np.degrees(np.arccos(cos))
-        focal = 0.5 * (float(np.mean(np.asarray(a.K)[:2])) + float(np.mean(np.asarray(b.K)[:2])))
-        ray = ray_sigma(np.maximum(na, nb), focal, config)
-        sigma = np.maximum(na, nb) * ray / np.sin(np.radians(parallax))
+        ray = ray_sigma(r.range_m, r.focal_px, config)
+        sigma = r.range_m * ray / np.sin(np.radians(parallax))
         keep = (
-            finite
-            & np.isfinite(xyz).all(axis=1)
-            & (za >= config.min_depth_m) & (zb >= config.min_depth_m)
+            r.finite
+            & np.isfinite(r.xyz).all(axis=1)
+            & (za >= config.min_depth_m) & (r.depth_b >= config.min_depth_m)
             & (za <= config.max_depth_m)
-            & (reproj <= config.reprojection_sigmas * focal * ray)
+            & (reproj <= config.reprojection_sigmas * r.focal_px * ray)
             & (parallax >= config.min_parallax_deg)
             & (sigma <= config.max_sigma_rel * za)
         )

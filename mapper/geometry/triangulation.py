@@ -52,6 +52,8 @@ import numpy as np
 from mapper.geometry.config import TriangulationConfig
 
 __all__ = [
+    "TwoViewRays",
+    "triangulate_rays",
     "FeatureExtractor",
     "detection_size",
     "Features",
@@ -384,23 +386,27 @@ def match_pair(
     return pairs[dist <= config.max_epipolar_px]
 
 
-def triangulate_pair(
-    a: PosedView, b: PosedView, uv_a: np.ndarray, uv_b: np.ndarray, config: TriangulationConfig
-) -> PairPoints:
-    """Triangulate correspondences ``uv_a`` (N, 2) in ``a`` and ``uv_b`` (N, 2) in ``b`` (pixel
-    centres at +0.5) and keep those passing the cheirality, depth, reprojection, parallax and
-    uncertainty checks (see the module docstring)."""
-    uv_a = np.asarray(uv_a, np.float64).reshape(-1, 2)
-    uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
-    if uv_a.shape != uv_b.shape:
-        raise ValueError(f"uv_a {uv_a.shape} and uv_b {uv_b.shape} must have the same shape")
-    n = uv_a.shape[0]
-    z0 = np.zeros(0, np.float64)
-    if n == 0:
-        return PairPoints(np.zeros((0, 3)), z0, z0, z0, np.zeros(0, np.int64))
+@dataclass(frozen=True)
+class TwoViewRays:
+    """Linear two-view triangulation of N correspondences and what the checks read (float64)."""
+
+    xyz: np.ndarray  # (N, 3) world points (NaN where the solution is at infinity)
+    finite: np.ndarray  # (N,) bool: not at infinity
+    reprojection_px: np.ndarray  # (N,) the larger of the two views' reprojection errors
+    depth_a: np.ndarray  # (N,) z in view a
+    depth_b: np.ndarray  # (N,) z in view b
+    range_m: np.ndarray  # (N,) the larger of the distances to the two camera centres
+    parallax_deg: np.ndarray  # (N,) the angle between the two rays at the point
+    focal_px: float  # the two views' mean focal length
+
+
+def triangulate_rays(a: PosedView, b: PosedView, uv_a: np.ndarray, uv_b: np.ndarray) -> TwoViewRays:
+    """``cv2.triangulatePoints`` with ``P = K [R | t]`` for ``uv_a`` / ``uv_b`` (N, 2) float64 (pixel
+    centres at +0.5), and per point its reprojection error, depths, range and parallax (the shared
+    part of the sparse and the dense flow triangulation; each applies its own checks)."""
     Pa = intrinsics_matrix(a.K) @ a.cam_from_world[:3]
     Pb = intrinsics_matrix(b.K) @ b.cam_from_world[:3]
-    hom = cv2.triangulatePoints(Pa, Pb, uv_a.T.copy(), uv_b.T.copy()).T  # (N, 4)
+    hom = cv2.triangulatePoints(Pa, Pb, uv_a.T.copy(), uv_b.T.copy()).T.astype(np.float64)  # (N, 4)
     w = hom[:, 3]
     scale = np.abs(hom[:, :3]).max(axis=1)
     finite = np.abs(w) > 1e-12 * np.maximum(scale, 1e-300)
@@ -414,21 +420,39 @@ def triangulate_pair(
         cos = np.clip(np.sum(ra * rb, axis=1) / (na * nb), -1.0, 1.0)
     parallax = np.degrees(np.arccos(cos))
     focal = 0.5 * (float(np.mean(np.asarray(a.K)[:2])) + float(np.mean(np.asarray(b.K)[:2])))
-    sigma_px = np.maximum(config.pixel_sigma_px, reproj)
+    return TwoViewRays(xyz, finite, reproj, za, zb, np.maximum(na, nb), parallax, focal)
+
+
+def triangulate_pair(
+    a: PosedView, b: PosedView, uv_a: np.ndarray, uv_b: np.ndarray, config: TriangulationConfig
+) -> PairPoints:
+    """Triangulate correspondences ``uv_a`` (N, 2) in ``a`` and ``uv_b`` (N, 2) in ``b`` (pixel
+    centres at +0.5) and keep those passing the cheirality, depth, reprojection, parallax and
+    uncertainty checks (see the module docstring)."""
+    uv_a = np.asarray(uv_a, np.float64).reshape(-1, 2)
+    uv_b = np.asarray(uv_b, np.float64).reshape(-1, 2)
+    if uv_a.shape != uv_b.shape:
+        raise ValueError(f"uv_a {uv_a.shape} and uv_b {uv_b.shape} must have the same shape")
+    if uv_a.shape[0] == 0:
+        z0 = np.zeros(0, np.float64)
+        return PairPoints(np.zeros((0, 3)), z0, z0, z0, np.zeros(0, np.int64))
+    r = triangulate_rays(a, b, uv_a, uv_b)
+    sigma_px = np.maximum(config.pixel_sigma_px, r.reprojection_px)
     with np.errstate(invalid="ignore", divide="ignore"):
-        sigma = np.maximum(na, nb) * (sigma_px / focal) / np.sin(np.radians(parallax))
+        sigma = r.range_m * (sigma_px / r.focal_px) / np.sin(np.radians(r.parallax_deg))
     keep = (
-        finite
-        & np.isfinite(xyz).all(axis=1)
-        & (za >= config.min_depth_m) & (zb >= config.min_depth_m)  # cheirality
-        & (za <= config.max_depth_m)
-        & (reproj <= config.max_reprojection_px)
-        & (parallax >= config.min_parallax_deg)
+        r.finite
+        & np.isfinite(r.xyz).all(axis=1)
+        & (r.depth_a >= config.min_depth_m) & (r.depth_b >= config.min_depth_m)  # cheirality
+        & (r.depth_a <= config.max_depth_m)
+        & (r.reprojection_px <= config.max_reprojection_px)
+        & (r.parallax_deg >= config.min_parallax_deg)
         & (sigma <= config.max_sigma_m)
     )
     keep &= np.isfinite(sigma)
     idx = np.flatnonzero(keep)
-    return PairPoints(xyz[idx], sigma[idx], parallax[idx], reproj[idx], idx.astype(np.int64))
+    return PairPoints(r.xyz[idx], sigma[idx], r.parallax_deg[idx], r.reprojection_px[idx],
+                      idx.astype(np.int64))
 
 
 # -- one keyframe against its partners -----------------------------------------------------------
