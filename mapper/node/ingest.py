@@ -105,15 +105,17 @@ def ingest_frame(ctx: NodeContext, frame: Frame) -> Ack:
     max_cells = ctx.config.window.max_ov_cells
     big_image = 0 < max_side < max(frame.width, frame.height)
     big_ov = frame.ov is not None and 0 < max_cells < frame.ov.shape[0] * frame.ov.shape[1]
-    if big_image or big_ov:
-        with state.lock:  # shrink only what will be a keyframe (the ingest thread alone adds)
+    events = bool(ctx.config.events_endpoint)
+    will_keep = False
+    if big_image or big_ov or events:
+        with state.lock:  # work only for what will be a keyframe (the ingest thread alone adds)
             will_keep = state.window.is_keyframe(frame.camera, frame.world_from_cam)[0]
-        if will_keep:  # outside the lock (tens of ms at 4096 px)
-            fitted = fit_ov(fit_image(keyframe, max_side) if big_image else keyframe, max_cells)
-            if fitted is not keyframe:
-                keyframe = fitted
-                ctx.frames_downscaled += 1
-    region = _changed_region(ctx, keyframe) if ctx.config.events_endpoint else None
+    if will_keep and (big_image or big_ov):  # outside the lock (tens of ms at 4096 px)
+        fitted = fit_ov(fit_image(keyframe, max_side) if big_image else keyframe, max_cells)
+        if fitted is not keyframe:
+            keyframe = fitted
+            ctx.frames_downscaled += 1
+    region = _changed_region(ctx, keyframe) if events and will_keep else None
     with state.lock:
         refused = _check_against_map(ctx, frame)
         if refused is not None:
