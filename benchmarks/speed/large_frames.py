@@ -53,6 +53,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", action="store_true", help="serve the learned model too")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = p.parse_args(argv)
+    for name in ("frames", "width", "height", "ov_div", "dim", "pipeline", "sample"):
+        if getattr(args, name) < 1:
+            p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     frames = [large_frame(i, args.frames, args.width, args.height, args.ov_div, args.dim)
               for i in range(args.frames)]
     extra = ["--set", "save_on_exit=false", "--set", "load_autosave_on_start=false"]

@@ -78,7 +78,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scenario", default="", help="a scenario as JSON (every axis but index and frames)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a node setting (repeat)")
     args = p.parse_args(argv)
-    scenario = scenario_of(args)
+    try:
+        scenario = scenario_of(args)
+    except (ValueError, KeyError, TypeError, IndexError) as exc:  # bad JSON, a missing axis, no such index
+        p.error(f"no such scenario ({type(exc).__name__}: {exc}); give --split/--index within the split "
+                "or --scenario with every axis but index and frames")
     print(scenario.name, flush=True)
     prep = prepare(scenario, RunSettings())
     got = {which: answers(scenario, prep, which, args.set) for which in ("window", "all")}
