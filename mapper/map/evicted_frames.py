@@ -33,6 +33,10 @@ __all__ = ["EvictedFrameStore", "KeptFrame", "merged_prior", "reduce_ov"]
 
 _FIELDS = ("cam_from_world", "K", "image_wh", "ov_wh", "order")
 
+OCCLUSION_SIDE = 80
+"""The longest side (pixels) of a kept view's z-buffer of a request's points (:meth:`EvictedFrameStore.means`
+with an occlusion footprint): the points are splatted at this resolution at most."""
+
 
 def _area_weights(n_in: int, n_out: int) -> np.ndarray:  # (n_out, n_in) float32 rows summing to 1
     """Area averaging along one axis: output cell i covers ``[i, i + 1) * n_in / n_out`` of the
@@ -221,12 +225,19 @@ class EvictedFrameStore:
         threads: int = 0,
         block: int = 2048,
         cell_m: float = 0.25,
+        occlusion_footprint_m: float = 0.0,
+        depth_tol: float = 0.25,
+        occluders: np.ndarray | None = None,  # (M, 3) the points splatted (default: ``xyz``)
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The kept views' samples at the points: (rows (m,) int64 of the points at least one
         view counts for, their mean samples (m, D) float32, their view counts (m,) float32). A view
         counts for a point in front of it and inside its image less ``border_px`` (the
         averaging's test, in the compiled kernel); each point's sample is the bilinear tap of the
-        view's reduced map."""
+        view's reduced map. With ``occlusion_footprint_m`` > 0 a view counts only where no other
+        of the points hides the point in it: the points are splatted into each view (each covering
+        that footprint, at most :data:`OCCLUSION_SIDE` pixels a side) and a point passes where its
+        depth is within ``depth_tol`` of that z-buffer (the test ``average_depth`` makes against the
+        request's points for window keyframes without depth)."""
         from mapper.kernels import average_kernel as kernel
         from mapper.map.query_kernels import morton_codes
 
@@ -242,6 +253,10 @@ class EvictedFrameStore:
             counts = np.zeros(n, np.float32)
             starts = np.arange(0, n, block)
             visible = self._visible(pts, order, starts, block, slots, border_px)  # (B, S) bool
+            occ = None
+            if occlusion_footprint_m > 0:
+                occ = self._occluders(pts if occluders is None else np.asarray(occluders, np.float32), slots,
+                                      np.asarray(visible.any(axis=0), bool), occlusion_footprint_m, threads)
             for b, lo in enumerate(starts):
                 vis = slots[visible[b]]
                 if vis.size == 0:
@@ -251,17 +266,49 @@ class EvictedFrameStore:
                 bottom = (self._image_wh[vis, 1] - border_px).astype(np.float64)
                 ov_scale = (self._ov_wh[vis] / self._image_wh[vis]).astype(np.float32)
                 k = vis.size
+                if occ is None:
+                    depth = (np.zeros(1, np.float32), np.zeros(k, np.int64), np.ones(k, np.int64),
+                             np.ones(k, np.int64), np.ones((k, 2), np.float32))
+                else:
+                    pos = np.searchsorted(slots, vis)
+                    depth = (occ[0], occ[1][pos], occ[2][pos, 0], occ[2][pos, 1], occ[3][pos])
                 out, count = kernel.average_kernel(
                     pts[idx], self._cam_from_world[vis], self._K[vis], right, bottom, float(border_px), 1e-6,
                     vis.astype(np.int64) * self._cells, self._ov_wh[vis, 0], self._ov_wh[vis, 1], ov_scale,
-                    self._table, use_depth=False, has_depth=np.zeros(k, bool),
-                    depth_flat=np.zeros(1, np.float32), d_off=np.zeros(k, np.int64), d_w=np.ones(k, np.int64),
-                    d_h=np.ones(k, np.int64), d_scale=np.ones((k, 2), np.float32), depth_tol=0.25,
+                    self._table, use_depth=occ is not None, has_depth=np.ones(k, bool),
+                    depth_flat=depth[0], d_off=depth[1], d_w=depth[2],
+                    d_h=depth[3], d_scale=depth[4], depth_tol=float(depth_tol),
                     distance_power=0.0, view_weights=None, texts=None, threads=threads, raw=True)
                 means[idx] = out
                 counts[idx] = count
         rows = np.flatnonzero(counts > 0)
         return rows, means[rows], counts[rows]
+
+    def _occluders(
+        self, pts: np.ndarray, slots: np.ndarray, any_block: np.ndarray, footprint_m: float, threads: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The points' z-buffer in each of ``slots`` whose frustum meets a block (``any_block``
+        (S,) bool; the others get an empty 1 x 1 map): (depths flat, offset (S,) int64, size
+        (S, 2) int64 w x h, scale (S, 2) float32 from image pixels to the z-buffer's)."""
+        from mapper.geometry.splat import occluder_depths
+
+        size = np.ones((slots.shape[0], 2), np.int64)
+        scale = np.ones((slots.shape[0], 2), np.float32)
+        maps: list[np.ndarray] = [np.zeros(1, np.float32)] * slots.shape[0]
+        wh = self._image_wh[slots]
+        for w, h in {(int(a), int(b)) for a, b in wh[any_block]}:
+            s = min(1.0, OCCLUSION_SIDE / max(w, h))
+            zw, zh = max(1, int(round(w * s))), max(1, int(round(h * s)))
+            group = np.flatnonzero(any_block & (wh[:, 0] == w) & (wh[:, 1] == h))
+            K = self._K[slots[group]].astype(np.float64) * np.array([zw / w, zh / h, zw / w, zh / h])
+            z = occluder_depths(pts, K, self._world_from_cam[slots[group]], zw, zh, footprint_m,
+                                threads=max(threads, 1))
+            for j, g in enumerate(group):
+                maps[g] = z[j].reshape(-1)
+                size[g] = (zw, zh)
+                scale[g] = (zw / w, zh / h)
+        offset = np.concatenate([[0], np.cumsum([m.size for m in maps])[:-1]]).astype(np.int64)
+        return np.concatenate(maps).astype(np.float32), offset, size, scale
 
     def _visible(
         self, pts: np.ndarray, order: np.ndarray, starts: np.ndarray, block: int, slots: np.ndarray,

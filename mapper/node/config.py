@@ -216,6 +216,18 @@ class QueryConfig:
     (``average``; ``average_depth`` with ``use_depth``): the best text of ``(1 - w)`` x the model's
     cosines + ``w`` x the averaging's where both answer (:func:`mapper.node.answers.segment.mix_answers`).
     0 = the model alone. 0..1."""
+    learned_evicted_views: float = 0.5
+    """``govnesf`` answers (not fallen back) where views of keyframes that left the window count
+    for a point: mixed with those views' own mean (the nearest voxel's, ``evicted_views``, and the
+    kept views of ``evicted_frames_mb`` where the request's other points do not hide the point in
+    them, the test ``point_occlusion`` makes; :func:`mapper.node.backends.average.evicted_cosines`)
+    by ``w`` x their share of the point's views, ``evicted / (evicted + window)``
+    (:func:`mapper.node.answers.segment.mix_answers`): the model's answer stands for the window's
+    views and those that left count as the averaging counts them, so the learned answer does not
+    lose what the averaging keeps of them. On the tuning split (docs/concepts/window-and-map.md):
+    ``govnesf`` - ``average`` worst -4.0 -> -1.8, DGM - ``average_depth`` median +1.0 -> +1.5;
+    one stream with odometry drift -1.7. 0 = off. 0..1."""
+
     evicted_frames_mb: float = 256.0
     """With ``evicted_views`` "both": keep the keyframes without input depth that leave the window
     as reduced views (pose, intrinsics, the OV map area-averaged to ``evicted_frames_cells``; never
@@ -254,6 +266,7 @@ class QueryConfig:
         _check_range(where, "queries.evicted_views_learned_weight", self.evicted_views_learned_weight,
                      0.0, 1.0)
         _check_range(where, "queries.learned_average_mix", self.learned_average_mix, 0.0, 1.0)
+        _check_range(where, "queries.learned_evicted_views", self.learned_evicted_views, 0.0, 1.0)
         _check_range(where, "queries.evicted_views_max_pending", self.evicted_views_max_pending, 1, 100_000)
         _check_range(where, "queries.evicted_views_max_pending_mb", self.evicted_views_max_pending_mb,
                      0.0, 100_000.0)

@@ -162,18 +162,20 @@ def evicted_frame_cosines(
     return cos, given
 
 
-def mix_answers(learned: PointAnswer, averaging: PointAnswer, weight: float) -> PointAnswer:
-    """The learned answer mixed with the averaging's over the same window (``queries.learned_average_mix``):
-    where both answer, the best text of ``(1 - weight) * learned + weight * averaging`` cosines (score:
-    that cosine); where only one answers, its answer (a point only views that left the window saw
-    keeps the averaging's ``map_only``). Without both answers' cosines, the learned answer as it is."""
+def mix_answers(learned: PointAnswer, averaging: PointAnswer, weight: float | np.ndarray) -> PointAnswer:
+    """The learned answer mixed with the averaging's over the same window (``queries.learned_average_mix``,
+    ``queries.learned_evicted_views``): where both answer, the best text of ``(1 - weight) * learned +
+    weight * averaging`` cosines (score: that cosine; ``weight`` one for all points or (N,) per
+    point); where only one answers, its answer (a point only views that left the window saw keeps
+    the averaging's ``map_only``). Without both answers' cosines, the learned answer as it is."""
     if learned.cos is None or averaging.cos is None or learned.cos.shape != averaging.cos.shape:
         return learned
     seen_l, seen_a = learned.answered(), averaging.answered()
-    w = np.float32(weight)
+    w = np.broadcast_to(np.asarray(weight, np.float32), seen_l.shape)
     cos = np.where(seen_l[:, None], learned.cos, averaging.cos).astype(np.float32, copy=True)
     both = seen_l & seen_a
-    cos[both] = (np.float32(1.0) - w) * learned.cos[both] + w * averaging.cos[both]
+    wb = w[both][:, None]
+    cos[both] = (np.float32(1.0) - wb) * learned.cos[both] + wb * averaging.cos[both]
     seen = seen_l | seen_a
     label = np.where(seen, np.argmax(cos, axis=1), -1).astype(np.int32)
     score = np.where(seen, cos[np.arange(cos.shape[0]), np.maximum(label, 0)], 0.0).astype(np.float32)
@@ -186,6 +188,18 @@ def mix_answers(learned: PointAnswer, averaging: PointAnswer, weight: float) -> 
                        snapshot=learned.snapshot if learned.snapshot is not None else averaging.snapshot,
                        nearest=learned.nearest if learned.snapshot is not None else averaging.nearest,
                        map_only=map_only)
+
+
+def _evicted_answer(averaging: PointAnswer, where: np.ndarray) -> PointAnswer:
+    """The evicted views' own answer from an averaging answer made ``want_evicted``: their mean's
+    cosines where any counts (``evicted_views`` > 0) and ``where`` (N,) bool."""
+    assert averaging.evicted_cos is not None and averaging.evicted_views is not None
+    from mapper.node.queries import best_text
+
+    seen = (averaging.evicted_views > 0) & where
+    label, score = best_text(averaging.evicted_cos, seen)
+    return PointAnswer(label=label, score=score, seen=seen, cos=averaging.evicted_cos,
+                       text_emb=averaging.text_emb, snapshot=averaging.snapshot, nearest=averaging.nearest)
 
 
 class SegmentAnswers:
@@ -265,18 +279,42 @@ class SegmentAnswers:
                 return backend.segment(msg, want_cos), False
             window.timing_ms["fallback"] = 1.0
             return window, True
-        mix = self.ctx.config.queries.learned_average_mix
-        if not learned or mix <= 0:
+        q = self.ctx.config.queries
+        mix, share = q.learned_average_mix, q.learned_evicted_views
+        if share > 0 and not self._has_evicted_views():
+            share = 0.0
+        if not learned or (mix <= 0 and share <= 0):
             return backend.segment(msg, want_cos), False
         answer = backend.segment(msg, True)
         started = time.perf_counter()
         try:
-            other = averaging.segment(msg, True)
+            if share > 0 and isinstance(averaging, AveragingBackend):
+                other = averaging.segment(msg, True, want_evicted=True)
+            else:
+                other = averaging.segment(msg, True)
         except ProtocolError:  # averaging cannot answer (e.g. no depth test possible): the model's alone
             return answer, False
-        mixed = mix_answers(answer, other, mix)
+        weight: float | np.ndarray = mix
+        if share > 0 and other.views is not None and other.evicted_views is not None \
+                and other.evicted_cos is not None:
+            # the views of keyframes that left count for a point by their share of its views, the
+            # model's answer standing for the window's: (1 - s) x model + s x their mean
+            evicted = other.evicted_views
+            part = share * evicted / np.maximum(evicted + other.views, np.float32(1e-6))
+            # only where the model answers: the points it does not see keep the map's answer
+            answer = mix_answers(answer, _evicted_answer(other, answer.answered()), part)
+        mixed = mix_answers(answer, other, weight) if mix > 0 else answer
         mixed.timing_ms["mix_average"] = (time.perf_counter() - started) * 1e3
         return mixed, False
+
+    def _has_evicted_views(self) -> bool:
+        """Whether views of keyframes that left the window are kept for the averaging that would
+        mix (``queries.learned_evicted_views``)."""
+        ctx = self.ctx
+        if ctx.evicted_views is None:
+            return False
+        store = ctx.state.global_map.evicted
+        return len(store) > 0 or (len(store.frames) > 0 and ctx.config.queries.point_occlusion)
 
     def _learned_not_ready(self) -> bool:
         """``queries.learned_fallback``: "geometry": an RGB-only window's geometry work is pending;

@@ -51,6 +51,13 @@ class PointAnswer:
     """(N,) int64: the snapshot's nearest rows with a feature, when looked up already (-1: none)."""
     map_only: np.ndarray | None = None
     """(N,) bool: points only views that left the window answered: their ``source`` is the map."""
+    views: np.ndarray | None = None
+    """(N,) float32: the window's views that counted for each point (the averaging's)."""
+    evicted_views: np.ndarray | None = None
+    """(N,) float32: the views of keyframes that left the window that counted (the averaging's:
+    its nearest voxel's and the kept views'), 0 where none."""
+    evicted_cos: np.ndarray | None = None
+    """(N, T) float32: the cosines of those evicted views' mean alone, when asked for."""
 
     def answered(self) -> np.ndarray:
         """(N,) bool: :attr:`seen`, or ``label >= 0``."""

@@ -26,7 +26,7 @@ from mapper.node.context import NodeContext
 from protocol.errors import ProtocolError
 from protocol.messages import SegmentPoints
 
-__all__ = ["AveragingBackend", "average_with_frames"]
+__all__ = ["AveragingBackend", "average_with_frames", "evicted_cosines"]
 
 FRAMES_CHUNK = 65_536
 """Points averaged at a time with the kept evicted views (their merged prior is (chunk, D) float32)."""
@@ -43,13 +43,14 @@ def average_with_frames(
     """``average`` with the kept views of evicted keyframes too: each point's average takes the
     window's views, its voxel's evicted views and every kept view it falls in
     (:func:`mapper.map.evicted_frames.merged_prior`), ``chunk`` points at a time. Returns
-    (cosines (N, T), the window's views that counted (N,), whether an evicted view counted (N,))."""
+    (cosines (N, T), the window's views that counted (N,), the evicted views that counted (N,)
+    float32: the voxel's and the kept ones)."""
     from mapper.node.queries import segment_average_cosines
 
     n, dim = xyz.shape[0], text_emb.shape[1]
     cos = np.zeros((n, text_emb.shape[0]), np.float32)
     n_views = np.zeros(n, np.int64)
-    with_prior = np.zeros(n, bool)
+    evicted = np.zeros(n, np.float32)
     for lo in range(0, n, chunk):
         part = xyz[lo: lo + chunk]
         m = part.shape[0]
@@ -61,8 +62,55 @@ def average_with_frames(
         cos[lo: lo + m], n_views[lo: lo + m] = segment_average_cosines(part, views, text_emb, use_depth=False,
                                                                        prior=merged)
         if merged is not None:
-            with_prior[lo: lo + m] = merged[1] >= 0
-    return cos, n_views, with_prior
+            evicted[lo: lo + m] = np.where(merged[1] >= 0, merged[2], 0.0)
+    return cos, n_views, evicted
+
+
+def evicted_cosines(
+    xyz: np.ndarray,  # (N, 3) float32
+    text_emb: np.ndarray,  # (T, D) float32 unit rows
+    prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None,  # the voxels' evicted views
+    frames: EvictedFrameStore | None,
+    footprint_m: float,
+    chunk: int = FRAMES_CHUNK,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The evicted views' own answer: (cosines (N, T) float32 of the mean of each point's
+    voxel's evicted views and the kept views that count for it, zero rows where none does; their
+    views (N,) float32). With ``footprint_m`` > 0 a kept view counts only where the request's other
+    points do not hide the point in it (:meth:`EvictedFrameStore.means`); without it the kept views
+    are left out (they carry no depth)."""
+    n, dim = xyz.shape[0], text_emb.shape[1]
+    cos = np.zeros((n, text_emb.shape[0]), np.float32)
+    count = np.zeros(n, np.float32)
+    for lo in range(0, n, chunk):
+        part = xyz[lo: lo + chunk]
+        m = part.shape[0]
+        part_prior = None if prior is None else (prior[0], prior[1][lo: lo + m], prior[2][lo: lo + m])
+        rows, mean, views = np.zeros(0, np.int64), np.zeros((0, dim), np.float32), np.zeros(0, np.float32)
+        if frames is not None and footprint_m > 0:
+            rows, mean, views = frames.means(part, occlusion_footprint_m=footprint_m,
+                                             occluders=xyz if n > m else None)
+        merged = merged_prior(m, part_prior, rows, mean, views, dim)
+        if merged is not None:
+            cos[lo: lo + m] = prior_cosines(merged, text_emb)
+            count[lo: lo + m] = np.where(merged[1] >= 0, merged[2], 0.0)
+    return cos, count
+
+
+def prior_cosines(
+    prior: tuple[np.ndarray, np.ndarray, np.ndarray],  # (P, D) means, (N,) row (-1: none), (N,) views
+    text_emb: np.ndarray,  # (T, D) float32 unit rows
+) -> np.ndarray:  # (N, T) float32
+    """The cosines of each point's evicted views' mean (an averaging ``prior``) with the texts; zero
+    rows where it has none."""
+    table, row, weight = prior
+    out = np.zeros((row.shape[0], text_emb.shape[0]), np.float32)
+    hit = np.flatnonzero((row >= 0) & (weight > 0))
+    if hit.size:
+        feat = np.asarray(table[row[hit]], np.float32)
+        feat = feat / np.maximum(np.linalg.norm(feat, axis=1, keepdims=True), np.float32(1e-12))
+        out[hit] = feat @ np.asarray(text_emb, np.float32).T
+    return out
 
 
 class AveragingBackend:
@@ -78,25 +126,28 @@ class AveragingBackend:
     def depth_tested(self, msg: SegmentPoints) -> bool:
         return self.use_depth
 
-    def segment(self, msg: SegmentPoints, want_cos: bool) -> PointAnswer:
+    def segment(self, msg: SegmentPoints, want_cos: bool, want_evicted: bool = False) -> PointAnswer:
         """The averaging's answer with the points in Z-order of map voxels where they do not come
         spatially coherent (``queries.spatial_sort``, :func:`mapper.node.queries.spatial_order`),
         returned in the request's order. (The learned model's path groups its points by view set
-        and cell already: a shuffled request costs it about as much as a coherent one.)"""
+        and cell already: a shuffled request costs it about as much as a coherent one.) With
+        ``want_evicted`` the answer's ``evicted_cos`` holds the evicted views' own cosines."""
         if not self.ctx.config.queries.spatial_sort:
-            return self._segment_ordered(msg)
+            return self._segment_ordered(msg, want_evicted)
         from mapper.node.queries import spatial_order
 
         started = time.perf_counter()
         xyz = np.asarray(msg.xyz, np.float32)
         order = spatial_order(xyz, self.ctx.config.global_map.voxel_size_m)
         if order is None:
-            return self._segment_ordered(msg)
+            return self._segment_ordered(msg, want_evicted)
         sorted_ms = 1e3 * (time.perf_counter() - started)
         in_order = copy.copy(msg)  # a permutation of points validated at the boundary: not checked again
         in_order.xyz = xyz[order]
-        answer = self._segment_ordered(in_order)
-        for name in ("label", "score", "seen", "cos", "nearest", "map_only"):  # back to the request's order
+        answer = self._segment_ordered(in_order, want_evicted)
+        # back to the request's order
+        for name in ("label", "score", "seen", "cos", "nearest", "map_only", "views", "evicted_views",
+                     "evicted_cos"):
             arr = getattr(answer, name)
             if arr is not None:
                 back = np.empty_like(arr)
@@ -125,7 +176,7 @@ class AveragingBackend:
             out.update({i: z[j] for j, i in enumerate(same)})
         return out
 
-    def _segment_ordered(self, msg: SegmentPoints) -> PointAnswer:
+    def _segment_ordered(self, msg: SegmentPoints, want_evicted: bool = False) -> PointAnswer:
         """The averaging over the window's keyframes where they see a point, together with the
         views of keyframes that left the window at its nearest map voxel (:meth:`_evicted_prior`)."""
         from mapper.node.queries import best_text, segment_average_cosines
@@ -177,15 +228,22 @@ class AveragingBackend:
         prior = self._evicted_prior(map_store, map_snap, nearest, "depth" if use_depth else "all", text_emb)
         t_prior = time.perf_counter()
         frames = None if use_depth else self._evicted_frames(map_store, text_emb)
+        evicted = np.zeros(xyz.shape[0], np.float32)
         if frames is not None:
-            cos, n_views, with_prior = average_with_frames(xyz, views, text_emb, prior, frames)
+            cos, n_views, evicted = average_with_frames(xyz, views, text_emb, prior, frames)
         elif views or prior is not None:
             cos, n_views = segment_average_cosines(xyz, views, text_emb, use_depth=use_depth, prior=prior)
-            with_prior = prior[1] >= 0 if prior is not None else np.zeros(xyz.shape[0], bool)
+            if prior is not None:
+                evicted = np.where(prior[1] >= 0, prior[2], 0.0).astype(np.float32)
         else:
             cos = np.zeros((xyz.shape[0], text_emb.shape[0]), np.float32)
             n_views = np.zeros(xyz.shape[0], np.int64)
-            with_prior = np.zeros(xyz.shape[0], bool)
+        evicted_cos = evicted_count = None
+        if want_evicted:  # the evicted views' own answer, the kept views with the occlusion test
+            kept = self._evicted_frames(map_store, text_emb)
+            footprint = self._occlusion_footprint(xyz) if kept is not None else 0.0
+            evicted_cos, evicted_count = evicted_cosines(xyz, text_emb, prior, kept, footprint)
+        with_prior = evicted > 0
         evicted_only = (n_views == 0) & with_prior
         seen = (n_views > 0) | evicted_only
         label, score = best_text(cos, seen)
@@ -201,7 +259,20 @@ class AveragingBackend:
             "from_evicted": float(np.count_nonzero(with_prior)),
         }
         return PointAnswer(label=label, score=score, timing_ms=timing, seen=seen, cos=cos, text_emb=text_emb,
-                           snapshot=map_snap, nearest=nearest, map_only=evicted_only)
+                           snapshot=map_snap, nearest=nearest, map_only=evicted_only,
+                           views=n_views.astype(np.float32),
+                           evicted_views=evicted if evicted_count is None else evicted_count,
+                           evicted_cos=evicted_cos)
+
+    def _occlusion_footprint(self, xyz: np.ndarray) -> float:
+        """The footprint (m) of each of the request's points splatted as an occluder into the kept
+        views of evicted keyframes (``queries.point_occlusion``: ``model.point_occlusion_footprint``
+        times the points' median spacing), 0 when that test is off or the points have no spacing."""
+        if not self.ctx.config.queries.point_occlusion or xyz.shape[0] < 2:
+            return 0.0
+        from mapper.geometry.splat import point_spacing
+
+        return float(self.ctx.config.model.point_occlusion_footprint * point_spacing(xyz))
 
     def _evicted_frames(self, store: EvictedViewStore, text_emb: np.ndarray) -> EvictedFrameStore | None:
         """The kept views of evicted keyframes without depth (``queries.evicted_frames_mb``), or

@@ -72,6 +72,50 @@ def test_means_equal_the_averaging_kernel_over_the_reduced_views(seed: int) -> N
     np.testing.assert_allclose(mean, want[rows], atol=1e-5)
 
 
+def test_means_with_occlusion_equal_the_kernel_against_the_points_z_buffers() -> None:
+    """With an occlusion footprint a kept view counts for a point only where the points' own
+    z-buffer in that view (``occluder_depths``, as ``average_depth`` tests window keyframes
+    without depth) passes it: the same as the averaging kernel with those z-buffers as depth."""
+    from mapper.geometry.splat import occluder_depths
+
+    rng = np.random.default_rng(5)
+    store = EvictedFrameStore()
+    views = _random_views(rng, 30, 6)  # 80 x 60 images: the z-buffers at full size
+    for ov, k, pose, wh in views:
+        store.add(ov, k, pose, wh, max_cells=48, budget_bytes=_BIG)
+    pts = rng.uniform(-4, 4, (2000, 3)).astype(np.float32)
+    footprint = 0.3
+    rows, mean, count = store.means(pts, block=128, occlusion_footprint_m=footprint)
+    z = occluder_depths(pts, np.stack([v[1] for v in views]), np.stack([v[2] for v in views]), 80, 60, footprint)
+    parsed = [OVView(reduce_ov(ov, 48), k, pose, wh, z[i]) for i, (ov, k, pose, wh) in enumerate(views)]
+    want, n = kernel_average(pts, parsed, use_depth=True, border_px=10.0, depth_rel_tol=0.25,
+                             distance_power=0.0, vw=None, dim=6, texts=None, raw=True, cache_table=False)
+    assert np.array_equal(rows, np.flatnonzero(n > 0))
+    np.testing.assert_array_equal(count, n[rows].astype(np.float32))
+    np.testing.assert_allclose(mean, want[rows], atol=1e-5)
+    _, _, untested = store.means(pts, block=128)
+    assert count.sum() < untested.sum()  # some views hid some points
+
+
+def test_occlusion_drops_the_view_only_for_the_hidden_point() -> None:
+    """A point right behind another on the same ray of a kept view (and a patch of points around
+    the front one, the occluder) loses that view; the front point keeps it; the occluders given
+    apart count as the points' own."""
+    store = EvictedFrameStore()
+    ov = np.ones((12, 16, 4), np.float32)
+    store.add(ov, np.array([60.0, 60.0, 40.0, 30.0]), np.eye(4), (80, 60), max_cells=48, budget_bytes=_BIG)
+    gx, gy = np.meshgrid(np.linspace(-0.2, 0.2, 9), np.linspace(-0.2, 0.2, 9))
+    front = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, 2.0)], 1).astype(np.float32)
+    behind = np.array([[0.0, 0.0, 3.0]], np.float32)
+    pts = np.concatenate([front, behind])
+    rows, _, _ = store.means(pts, occlusion_footprint_m=0.1)
+    assert pts.shape[0] - 1 not in rows and 40 in rows  # the hidden point lost its view, the centre kept it
+    rows_alone, _, _ = store.means(behind, occlusion_footprint_m=0.1)
+    assert rows_alone.tolist() == [0]  # nothing in front of it: the view counts
+    rows_given, _, _ = store.means(behind, occlusion_footprint_m=0.1, occluders=pts)
+    assert rows_given.size == 0
+
+
 def test_budget_drops_the_oldest_and_counts_them() -> None:
     rng = np.random.default_rng(2)
     store = EvictedFrameStore()
@@ -223,3 +267,47 @@ def test_depth_tested_answers_take_the_kept_views_only_where_nothing_answers(tmp
     answered = without.source != SOURCE_NONE  # what the depth-tested answer gave stays as it was
     assert np.array_equal(got.label[answered], without.label[answered])
     np.testing.assert_allclose(got.score[answered], without.score[answered], atol=1e-6)
+
+
+class _ConstantLearned:
+    """A stand-in learned backend (falls back to averaging like ``govnesf``): text ``c3`` at every
+    point, cosine 1, the others 0."""
+
+    ready = True
+    fallback_to_averaging = True
+
+    def depth_tested(self, msg: Any) -> bool:
+        return bool(msg.use_depth)
+
+    def segment(self, msg: Any, want_cos: bool) -> Any:
+        from mapper.node.backends import PointAnswer
+
+        n = len(msg.xyz)
+        cos = np.zeros((n, len(msg.texts)), np.float32)
+        cos[:, 3] = 1.0
+        return PointAnswer(label=np.full(n, 3, np.int32), score=np.ones(n, np.float32), seen=np.ones(n, bool),
+                           cos=cos)
+
+
+@pytest.mark.parametrize("share", [0.0, 1.0])
+def test_learned_answers_mix_the_evicted_views_by_their_share(tmp_path: Path, share: float) -> None:
+    """``queries.learned_evicted_views``: where only views that left the window count for a point
+    (share 1) the learned answer mixed at weight 1 is theirs (the averaging's there); where none
+    left, or with the setting at 0, the model's answer stays."""
+    from mapper.node.answers.segment import SegmentAnswers
+
+    node = _node(tmp_path, 2, evicted_frames_mb=16.0, learned_evicted_views=share, map_when_more_confident=False)
+    _stream(node, _frames(depth=False))
+    assert isinstance(node.segment, SegmentAnswers)
+    node.segment.register("govnesf", _ConstantLearned())  # type: ignore[arg-type]
+    xyz = _wall()
+    got, average = _segment(node, "govnesf", xyz), _segment(node, "average", xyz)
+    only_evicted = average.source == SOURCE_MAP  # no window view counts there
+    window = average.source == 1
+    assert only_evicted.sum() > 20 and window.sum() > 20
+    assert (got.label[window] == 3).mean() > 0.5  # window views and kept ones: a mix that leans on the model
+    if share == 0.0:
+        assert (got.label[got.label >= 0] == 3).all()
+    else:
+        assert np.array_equal(got.label[only_evicted], average.label[only_evicted])
+        assert (average.label[only_evicted] != 3).any()  # the test can tell the two apart

@@ -11,7 +11,9 @@ The stored file was made with the code before the node was split by request, mad
 when the map began answering from the evicted views' mean at a voxel (``evicted_view_cosines``),
 again when ``govnesf``'s map answer began mixing that mean with the voxel's learned feature
 (``queries.evicted_views_learned_weight``), and again when those learned features began using the
-depth-tested view selection (``global_map.learned_features_depth_test``).
+depth-tested view selection (``global_map.learned_features_depth_test``), and again when
+``govnesf``'s answers began mixing the evicted views' own mean by their share of a point's views
+(``queries.learned_evicted_views``; with it at 0 the answers equal the stored ones before).
 """
 
 from __future__ import annotations

@@ -435,3 +435,20 @@ def test_mix_answers_blends_where_both_answer_and_keeps_each_alone() -> None:
     assert mix_answers(learned, averaging, 0.0).label.tolist()[:2] == [0, 1]  # the model's where it answers
     no_cos = PointAnswer(label=learned.label, score=learned.score)
     assert mix_answers(no_cos, averaging, 0.5) is no_cos
+
+
+def test_mix_answers_takes_a_weight_per_point() -> None:
+    """``queries.learned_evicted_views`` mixes with a weight per point (the evicted views' share
+    of its views): 0 keeps the model's answer, 1 takes the other's, in between the blend."""
+    from mapper.node.answers.segment import mix_answers
+
+    cos_l = np.array([[0.9, 0.1], [0.9, 0.1], [0.6, 0.4]], np.float32)
+    cos_a = np.array([[0.1, 0.9], [0.1, 0.9], [0.2, 0.8]], np.float32)
+    seen = np.ones(3, bool)
+    learned = PointAnswer(label=np.zeros(3, np.int32), score=cos_l[:, 0].copy(), seen=seen, cos=cos_l)
+    other = PointAnswer(label=np.ones(3, np.int32), score=cos_a[:, 1].copy(), seen=seen, cos=cos_a)
+    mixed = mix_answers(learned, other, np.array([0.0, 1.0, 0.2], np.float32))
+    assert mixed.label.tolist() == [0, 1, 0]  # point 2: 0.8 * (0.6, 0.4) + 0.2 * (0.2, 0.8) = (0.52, 0.48)
+    np.testing.assert_allclose(mixed.cos[2], [0.52, 0.48], atol=1e-6)
+    np.testing.assert_allclose(mixed.score[:2], [0.9, 0.9], atol=1e-6)
+
