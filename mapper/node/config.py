@@ -224,9 +224,9 @@ class QueryConfig:
     by ``w`` x their share of the point's views, ``evicted / (evicted + window)``
     (:func:`mapper.node.answers.segment.mix_answers`): the model's answer stands for the window's
     views and those that left count as the averaging counts them, so the learned answer does not
-    lose what the averaging keeps of them. On the tuning split (docs/concepts/window-and-map.md):
-    ``govnesf`` - ``average`` worst -4.0 -> -1.8, DGM - ``average_depth`` median +1.0 -> +1.5;
-    one stream with odometry drift -1.7. 0 = off. 0..1."""
+    lose what the averaging keeps of them. Not where ``map_blend`` applies (answers without a depth
+    test while the window has depth): that blend mixes the evicted views' mean in already.
+    Measured on the tuning split in docs/concepts/window-and-map.md. 0 = off. 0..1."""
 
     evicted_frames_mb: float = 256.0
     """With ``evicted_views`` "both": keep the keyframes without input depth that leave the window
