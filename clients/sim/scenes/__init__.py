@@ -38,9 +38,9 @@ True
 """
 
 from clients.sim.scenes.appearance import Colour, Light, Material, Texture
-from clients.sim.scenes.generate import generate_scene
+from clients.sim.scenes.generate import generate_room, generate_scene, room_wall_boxes
 from clients.sim.scenes.placement import placed_reserve
-from clients.sim.scenes.scene import Instance, Scene
+from clients.sim.scenes.scene import Doorway, Instance, LightMap, Scene
 from clients.sim.scenes.styles import STYLES, SceneStyle
 from clients.sim.scenes.vocabulary import (
     CLASS_NAMES,
@@ -58,12 +58,16 @@ __all__ = [
     "SCANNET20",
     "STYLES",
     "Colour",
+    "Doorway",
     "Instance",
     "Light",
+    "LightMap",
     "Material",
     "Scene",
     "SceneStyle",
     "Texture",
+    "generate_room",
     "generate_scene",
     "placed_reserve",
+    "room_wall_boxes",
 ]
