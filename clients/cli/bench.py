@@ -22,7 +22,11 @@ What is measured (docs/results.md explains each number and the targets):
   cached (map unchanged, answer computed), a new text, the same question repeated (the answer
   cache), p50 / p95, and the ratio to the floor (the bare fp32 matrix product of the same size:
   N x 384 by 384 x 7, one text and six negatives, measured here with numpy);
-* ``rss``: the node's RSS (status) along a long stream (frames 1000 ... 5000 by default).
+* ``rss``: the node's RSS (status) along a long stream (frames 1000 ... 5000 by default);
+* ``floor``: a simulated floor's tour streamed into a second node with its default settings
+  (``--floor-rooms``, ``--floor-frames``; `clients.cli.bench_floor`): map points, pruned points,
+  RSS, ack and integration p95 of the first and last frames, ``query_points`` over the floor and
+  with a ``region``, save and load times.
 
 ``--quick`` runs everything tiny (smoke test: the command runs and writes valid JSON with the
 expected keys). The bench runs the node and the map writer (``python -m
@@ -31,6 +35,7 @@ ship in the package, so an installed ``govnesf`` runs it as a checkout does.
 
     govnesf bench --out out/bench/node            # the full run (about half an hour on 2 cores)
     govnesf bench --quick --out /tmp/bench        # smoke
+    govnesf bench --floor-rooms 5 --floor-frames 2000 --out out/bench/node   # a smaller floor phase
 """
 
 from __future__ import annotations
@@ -55,6 +60,7 @@ from typing import Any
 import numpy as np
 
 from clients.cli.args import positive_int
+from clients.cli.bench_floor import bench_floor, floor_markdown
 from clients.client import MapperClient
 from clients.harness import REPO_ROOT, NodeProcess, look_at, render_floor
 from protocol.errors import RemoteError
@@ -494,6 +500,7 @@ EXPECTED_KEYS = (
     "status_during_render",
     "query_points",
     "rss",
+    "floor",
 )
 
 
@@ -580,6 +587,8 @@ def to_markdown(r: dict[str, Any]) -> str:
     for s in rss["samples"]:
         lines.append(f"| {s['frame']} | {(s['rss_bytes'] or 0) / 1e6:.0f} | {s['global_points']} |")
     lines.append(f"\nGrowth from frame 1000 to the end: {rss['growth_pct_from_1000']} %.")
+    if r.get("floor"):
+        lines += floor_markdown(r["floor"])
     return "\n".join(lines) + "\n"
 
 
@@ -594,6 +603,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "query_sizes": [1_000] if quick else [10_000, 100_000, 1_000_000],
         "rss_frames": 10 if quick else args.rss_frames,
         "rss_every": 5 if quick else 1000,
+        "floor_rooms": 2 if quick else args.floor_rooms,
+        "floor_frames": 40 if quick else args.floor_frames,
+        "floor_queries": 3 if quick else 30,
         "node_args": [
             "--set",
             "global_map.max_points=2000000",
@@ -635,7 +647,24 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 )
             if node.signal() != 0:
                 print(f"bench: the node exited non-zero; log {root / 'node.log'}", file=sys.stderr)
+        result["floor"] = None
+        if settings["floor_rooms"]:
+            print(f"bench: a floor of {settings['floor_rooms']} rooms, {settings['floor_frames']} frames, "
+                  "into a node with default settings", flush=True)
+            result["floor"] = bench_floor(root, settings["floor_rooms"], settings["floor_frames"],
+                                          settings["floor_queries"], list(args.node_arg))
     return result
+
+
+def floor_rooms(text: str) -> int:
+    """argparse type of ``--floor-rooms``: 0, or 2..30."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if n != 0 and not 2 <= n <= 30:
+        raise argparse.ArgumentTypeError(f"{n} must be 0 (no floor phase) or 2..30")
+    return n
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -647,6 +676,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=positive_int, default=300, help="frames of the ingest phase")
     parser.add_argument(
         "--rss-frames", type=positive_int, default=5000, help="frames of the long stream (RSS)"
+    )
+    parser.add_argument(
+        "--floor-rooms", type=floor_rooms, default=20,
+        help="rooms of the floor phase's simulated floor (2..30; 0 leaves the phase out; default 20)",
+    )
+    parser.add_argument(
+        "--floor-frames", type=positive_int, default=20_000, help="frames of the floor phase's tour"
     )
     parser.add_argument(
         "--node-arg",
