@@ -79,6 +79,9 @@ def bench_floor(root: Path, rooms: int, frames: int, queries: int, node_args: li
                         samples.append({"frame": k, "rss_bytes": st.extra.get("rss_bytes"),
                                         "global_points": st.extra.get("global_points"),
                                         "s": round(time.perf_counter() - t_stream, 1)})
+                        print(f"bench floor: frame {k}/{frames}, {samples[-1]['s']} s, RSS "
+                              f"{(st.extra.get('rss_bytes') or 0) / 1e6:.0f} MB, "
+                              f"{st.extra.get('global_points')} map points", flush=True)
             stream_s = time.perf_counter() - t_stream
             settle_s = wait_until_settled(client, timeout_s=600.0)
             st = client.status()
