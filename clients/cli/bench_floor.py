@@ -11,7 +11,8 @@ they are streamed (pipelined, 8 in flight). Measured:
 * ack latency p50 / p95 of the first and of the last ``window`` frames (1000, or half the frames
   when fewer), and the node's keyframe integration p50 / p95 after the first ``window`` frames and
   at the end (``status``: its last 1000 keyframes);
-* ``query_points`` ("find the chair") once the node has settled: the first answer (``first_ms``:
+* ``query_points`` ("find the chair") once the node has settled (or after a minute:
+  ``busy_after_settle`` counts what it still had queued): the first answer (``first_ms``:
   the node builds what its answers share), then p50 / p95 over the whole floor and with a
   ``region`` (the first room's box), each a new question (its ``max_points``), so computed, not
   from the answer cache;
@@ -35,6 +36,9 @@ import numpy as np
 from clients.harness import NodeProcess
 
 FLOOR_QUERY = ["find the chair"]
+SETTLE_TIMEOUT_S = 60.0
+"""The longest wait for the node to settle after the stream (the learned model's unapplied window
+changes, counted as pending in ``status``, can stay there until a query applies them)."""
 
 
 def _pcts(seconds: list[float]) -> dict[str, float | int | None]:
@@ -47,7 +51,7 @@ def bench_floor(root: Path, rooms: int, frames: int, queries: int, node_args: li
                 seed: int = 0) -> dict[str, Any]:
     """Start a node (default settings plus ``node_args``) with its maps under ``root``, stream the
     tour, measure (see the module's docstring); the node is stopped at the end."""
-    from clients.cli.bench import wait_until_settled
+    from clients.cli.bench import _busy_items, wait_until_settled
     from clients.sim.export import RecordConfig, SimStream
 
     config = RecordConfig(seed=seed, floor_rooms=rooms, frames=frames, width=160, height=120, depth=True,
@@ -83,9 +87,10 @@ def bench_floor(root: Path, rooms: int, frames: int, queries: int, node_args: li
                               f"{(st.extra.get('rss_bytes') or 0) / 1e6:.0f} MB, "
                               f"{st.extra.get('global_points')} map points", flush=True)
             stream_s = time.perf_counter() - t_stream
-            settle_s = wait_until_settled(client, timeout_s=600.0)
+            settle_s = wait_until_settled(client, timeout_s=SETTLE_TIMEOUT_S)
             st = client.status()
             extra = st.extra
+            busy = _busy_items(extra)
             room0 = stream.floor.rooms[0]
             box = (np.array([*room0.lo, -0.5]), np.array([*room0.hi, float(room0.size[2]) + 0.5]))
             first_ms = round(1e3 * _seconds(lambda: client.query_points(FLOOR_QUERY, timeout_s=300.0)), 3)
@@ -98,7 +103,7 @@ def bench_floor(root: Path, rooms: int, frames: int, queries: int, node_args: li
         "tour": {"visits": stream.tour.visits, "step_m": round(stream.tour.step_m, 4),
                  "loop_share": round(stream.tour.loop_share, 3), "build_s": round(build_s, 2)},
         "stream_s": round(stream_s, 1), "frames_per_s": round(frames / max(stream_s, 1e-9), 2),
-        "acks": statuses, "settle_s": settle_s,
+        "acks": statuses, "settle_s": settle_s, "busy_after_settle": busy,
         "global_points": extra.get("global_points"),
         "global_points_pruned": extra.get("global_points_pruned"),
         "global_points_total": extra.get("global_points_total"),

@@ -80,13 +80,13 @@ def floor_tour(floor: Floor, n_frames: int, seed: int, *, revisit_rooms: int = 2
     loop_total = sum(_length(loops[k][1]) for k in visits)
     share = 1.0
     for _ in range(2):  # the share depends on the transit length, which hardly depends on it
-        legs, modes = _route(floor, visits, loops, share)
+        legs, modes = _route(floor, visits, loops, share, clearance_m)
         pts = np.concatenate(legs)
         total = _length(pts)
         transit_len = total - share * loop_total
         budget = n_frames * max_step_m - transit_len
         share = float(np.clip(budget / max(loop_total, 1e-9), MIN_LOOP_SHARE, 1.0))
-    legs, modes = _route(floor, visits, loops, share)
+    legs, modes = _route(floor, visits, loops, share, clearance_m)
     xy, look_room, step = _walk(legs, modes, n_frames)
     poses = _gaze(floor, xy, look_room, step, seed, max_turn_deg, (lo_h, hi_h))
     return Tour(poses, floor.room_at(xy), visits, share, step)
@@ -131,7 +131,7 @@ def _free_path(scene_local: Scene, a: np.ndarray, b: np.ndarray, clearance_m: fl
 
 
 def _route(floor: Floor, visits: list[int], loops: dict[int, tuple[np.ndarray, np.ndarray]],
-           share: float) -> tuple[list[np.ndarray], list[int]]:
+           share: float, clearance_m: float) -> tuple[list[np.ndarray], list[int]]:
     """The tour as legs of xy points and, per leg, the room the camera looks across (-1: it looks
     where it goes)."""
     legs: list[np.ndarray] = []
@@ -148,7 +148,7 @@ def _route(floor: Floor, visits: list[int], loops: dict[int, tuple[np.ndarray, n
         legs.append(part)
         modes.append(k)
         if n_loop < len(loop):   # back to where the loop began (A* on the room's free floor)
-            back = _free_path(room.local, part[-1] - room.lo, loop[0] - room.lo, 0.3) + room.lo
+            back = _free_path(room.local, part[-1] - room.lo, loop[0] - room.lo, clearance_m) + room.lo
             legs.append(back)
             modes.append(-1)
         legs.append(np.concatenate([way_in[::-1], _door_out(floor, room)[None]]))
@@ -205,8 +205,8 @@ def _gaze(floor: Floor, xy: np.ndarray, look_room: np.ndarray, step: float, seed
     sigma = max(1.0, 0.5 / max(step, 1e-6))
     w = ndimage.gaussian_filter1d(in_loop.astype(np.float64), sigma, mode="nearest")[:, None]
     fwd = w * across + (1.0 - w) * ahead
-    still = np.linalg.norm(fwd, axis=1) < 1e-6
-    fwd[still] = ahead[still] if not np.all(still) else np.array([1.0, 0.0])
+    still = np.linalg.norm(fwd, axis=1) < 1e-6   # across and ahead opposite, half and half
+    fwd[still] = ahead[still]
     yaw = np.unwrap(np.arctan2(fwd[:, 1], fwd[:, 0]))
     yaw += np.radians(20.0) * w[:, 0] * _smooth_noise(rng, travelled, (2.0, 5.0))
     max_turn = math.radians(max_turn_deg)
