@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from clients.cli.bench_common import _busy_items, _pcts, describe_machine, wait_until_settled
 from clients.harness import NodeProcess
 
 FLOOR_QUERY = ["find the chair"]
@@ -41,17 +42,10 @@ SETTLE_TIMEOUT_S = 60.0
 changes, counted as pending in ``status``, can stay there until a query applies them)."""
 
 
-def _pcts(seconds: list[float]) -> dict[str, float | int | None]:
-    from clients.cli.bench import _pcts as pcts
-
-    return pcts(seconds)
-
-
 def bench_floor(root: Path, rooms: int, frames: int, queries: int, node_args: list[str],
                 seed: int = 0) -> dict[str, Any]:
     """Start a node (default settings plus ``node_args``) with its maps under ``root``, stream the
     tour, measure (see the module's docstring); the node is stopped at the end."""
-    from clients.cli.bench import _busy_items, wait_until_settled
     from clients.sim.export import RecordConfig, SimStream
 
     config = RecordConfig(seed=seed, floor_rooms=rooms, frames=frames, width=160, height=120, depth=True,
@@ -183,8 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     import json
     import tempfile
 
-    from clients.cli.args import positive_int
-    from clients.cli.bench import describe_machine, floor_rooms
+    from clients.cli.args import floor_rooms, positive_int
 
     parser = argparse.ArgumentParser(prog="python -m clients.cli.bench_floor",
                                      description=__doc__.split("\n")[0])

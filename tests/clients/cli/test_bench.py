@@ -74,7 +74,7 @@ def test_bench_refuses_bad_input_before_the_run(tmp_path: Path, capsys: pytest.C
 
 
 def test_busy_items_count_what_the_node_still_has_queued() -> None:
-    from clients.cli.bench import _busy_items
+    from clients.cli.bench_common import _busy_items
 
     assert _busy_items({}) == 0
     assert _busy_items({"integration": {"backlog": 0}, "model": {"pending": 0}, "map_features": None}) == 0
