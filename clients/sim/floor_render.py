@@ -6,9 +6,9 @@ camera in the spine casts against the whole floor. With Open3D the images are th
 one `SceneRenderer` of the whole floor (the faces keep their relative order, so even ties
 between faces resolve the same way); the torch fallback casts in coordinates centred on the part
 it casts against, so a few edge pixels can differ by float32 rounding. Open3D's BVH hardly slows
-down with more triangles (160x120 frames on 2 cores: 40 frames/s in one room, 37 on a floor of
-20); the torch fallback does (it tests each bundle of rays against every triangle its cone can
-reach): 14 frames/s in one room, 1.3 on the whole floor of 20, 3.4 with the bands.
+down with more triangles; the torch fallback does (it tests each bundle of rays against every
+triangle its cone can reach), and the bands win it about twice (docs/how-to/simulator.md,
+`benchmarks/speed/sim_floor_render.py`).
 
 >>> from clients.sim.scenes.floor import generate_floor
 >>> from clients.sim.robot import default_intrinsics, look_at
@@ -59,6 +59,12 @@ class FloorRenderer:
             faces = np.flatnonzero((self.floor.face_zone == zone) | (self.floor.face_zone == -1))
             self._by_zone[zone] = SceneRenderer(_sub_scene(self.scene, faces), self._backend, self._device)
         return self._by_zone[zone]
+
+    def prepare(self) -> FloorRenderer:
+        """Build every band's caster (and the whole floor's) now, not at the first frame there."""
+        for zone in range(-1, len(self.floor.band_y)):
+            self._renderer(zone)
+        return self
 
     @property
     def backend(self) -> str:
