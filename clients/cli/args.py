@@ -75,3 +75,14 @@ def late_reply_message(exc: TimeoutError, args: argparse.Namespace, pinged: bool
         f"the node at {args.query} answers its status but sent no reply to this request within "
         f"--timeout {args.timeout:g} s ({tries} tr{'y' if tries == 1 else 'ies'}); try a longer --timeout"
     )
+
+
+def floor_rooms(text: str) -> int:
+    """argparse type of ``--floor-rooms``: 0, or 2..30."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if n != 0 and not 2 <= n <= 30:
+        raise argparse.ArgumentTypeError(f"{n} must be 0 (no floor phase) or 2..30")
+    return n

@@ -22,7 +22,11 @@ What is measured (docs/results.md explains each number and the targets):
   cached (map unchanged, answer computed), a new text, the same question repeated (the answer
   cache), p50 / p95, and the ratio to the floor (the bare fp32 matrix product of the same size:
   N x 384 by 384 x 7, one text and six negatives, measured here with numpy);
-* ``rss``: the node's RSS (status) along a long stream (frames 1000 ... 5000 by default).
+* ``rss``: the node's RSS (status) along a long stream (frames 1000 ... 5000 by default);
+* ``floor``: a simulated floor's tour streamed into a second node with its default settings
+  (``--floor-rooms``, ``--floor-frames``; `clients.cli.bench_floor`): map points, pruned points,
+  RSS, ack and integration p95 of the first and last frames, ``query_points`` over the floor and
+  with a ``region``, save and load times.
 
 ``--quick`` runs everything tiny (smoke test: the command runs and writes valid JSON with the
 expected keys). The bench runs the node and the map writer (``python -m
@@ -31,6 +35,7 @@ ship in the package, so an installed ``govnesf`` runs it as a checkout does.
 
     govnesf bench --out out/bench/node            # the full run (about half an hour on 2 cores)
     govnesf bench --quick --out /tmp/bench        # smoke
+    govnesf bench --floor-rooms 5 --floor-frames 2000 --out out/bench/node   # a smaller floor phase
 """
 
 from __future__ import annotations
@@ -40,7 +45,6 @@ import functools
 import json
 import math
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -48,13 +52,14 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from clients.cli.args import positive_int
+from clients.cli.args import floor_rooms, positive_int
+from clients.cli.bench_common import _pcts, describe_machine, wait_until_settled
+from clients.cli.bench_floor import bench_floor, floor_markdown
 from clients.client import MapperClient
 from clients.harness import REPO_ROOT, NodeProcess, look_at, render_floor
 from protocol.errors import RemoteError
@@ -79,60 +84,7 @@ SEGMENT_TEXTS = ["floor", "chair", "table", "wall"]
 # -- machine -------------------------------------------------------------------------------------
 
 
-def _version(dist: str) -> str | None:
-    try:
-        return metadata.version(dist)
-    except metadata.PackageNotFoundError:
-        return None
-
-
-def describe_machine() -> dict[str, Any]:
-    """CPU model, cores, RAM, Python and library versions (no torch import)."""
-    cpu = platform.processor() or None
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    ram = None
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal"):
-                ram = int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    affinity = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
-    return {
-        "cpu_model": cpu,
-        "cpu_count": os.cpu_count(),
-        "cpus_usable": affinity,
-        "ram_bytes": ram,
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "torch": _version("torch"),
-        "numpy": _version("numpy"),
-        "pyzmq": _version("pyzmq"),
-        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
-        "load_avg_1m": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
-    }
-
-
 # -- helpers -------------------------------------------------------------------------------------
-
-
-def _pcts(seconds: list[float]) -> dict[str, float | int | None]:
-    """p50 / p95 / max in ms, and the count."""
-    if not seconds:
-        return {"p50_ms": None, "p95_ms": None, "max_ms": None, "n": 0}
-    arr = np.asarray(seconds) * 1e3
-    return {
-        "p50_ms": round(float(np.percentile(arr, 50)), 3),
-        "p95_ms": round(float(np.percentile(arr, 95)), 3),
-        "max_ms": round(float(arr.max()), 3),
-        "n": len(seconds),
-    }
 
 
 def _timed(fn: Callable[[], Any]) -> tuple[float, Any]:
@@ -261,30 +213,6 @@ def bench_ingest(
         else None,
         "map_points": st.extra.get("global_points"),
     }
-
-
-def _busy_items(extra: dict[str, Any]) -> int:
-    """Work the node still has queued after a stream, from its ``status``: the integrator's backlog,
-    the model's unapplied window changes and the background workers' pending keyframes."""
-    busy = int((extra.get("integration") or {}).get("backlog", 0) or 0)
-    for key in ("model", "map_features", "evicted_views", "rendered_depth", "triangulation", "ov_backend"):
-        stats = extra.get(key)
-        if isinstance(stats, dict):
-            busy += int(stats.get("pending", 0) or 0)
-    return busy
-
-
-def wait_until_settled(client: MapperClient, timeout_s: float = 60.0, poll_s: float = 0.1) -> float:
-    """Seconds until the node's ``status`` shows nothing queued twice in a row (at most
-    ``timeout_s``): the heavy queries after a stream are then measured without its catch-up."""
-    t0 = time.perf_counter()
-    quiet = 0
-    while time.perf_counter() - t0 < timeout_s:
-        quiet = quiet + 1 if _busy_items(client.status().extra) == 0 else 0
-        if quiet >= 2:
-            break
-        time.sleep(poll_s)
-    return round(time.perf_counter() - t0, 3)
 
 
 def bench_segment(client: MapperClient, n_points: int, repeats: int) -> dict[str, Any]:
@@ -494,6 +422,7 @@ EXPECTED_KEYS = (
     "status_during_render",
     "query_points",
     "rss",
+    "floor",
 )
 
 
@@ -580,6 +509,8 @@ def to_markdown(r: dict[str, Any]) -> str:
     for s in rss["samples"]:
         lines.append(f"| {s['frame']} | {(s['rss_bytes'] or 0) / 1e6:.0f} | {s['global_points']} |")
     lines.append(f"\nGrowth from frame 1000 to the end: {rss['growth_pct_from_1000']} %.")
+    if r.get("floor"):
+        lines += floor_markdown(r["floor"])
     return "\n".join(lines) + "\n"
 
 
@@ -594,6 +525,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "query_sizes": [1_000] if quick else [10_000, 100_000, 1_000_000],
         "rss_frames": 10 if quick else args.rss_frames,
         "rss_every": 5 if quick else 1000,
+        "floor_rooms": 2 if quick else args.floor_rooms,
+        "floor_frames": 40 if quick else args.floor_frames,
+        "floor_queries": 3 if quick else 30,
         "node_args": [
             "--set",
             "global_map.max_points=2000000",
@@ -635,6 +569,12 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 )
             if node.signal() != 0:
                 print(f"bench: the node exited non-zero; log {root / 'node.log'}", file=sys.stderr)
+        result["floor"] = None
+        if settings["floor_rooms"]:
+            print(f"bench: a floor of {settings['floor_rooms']} rooms, {settings['floor_frames']} frames, "
+                  "into a node with default settings", flush=True)
+            result["floor"] = bench_floor(root, settings["floor_rooms"], settings["floor_frames"],
+                                          settings["floor_queries"], list(args.node_arg))
     return result
 
 
@@ -647,6 +587,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=positive_int, default=300, help="frames of the ingest phase")
     parser.add_argument(
         "--rss-frames", type=positive_int, default=5000, help="frames of the long stream (RSS)"
+    )
+    parser.add_argument(
+        "--floor-rooms", type=floor_rooms, default=20,
+        help="rooms of the floor phase's simulated floor (2..30; 0 leaves the phase out; default 20)",
+    )
+    parser.add_argument(
+        "--floor-frames", type=positive_int, default=20_000, help="frames of the floor phase's tour"
     )
     parser.add_argument(
         "--node-arg",

@@ -2,6 +2,7 @@
 
     govnesf sim record --seed 0 --style apartment --frames 300 --width 160 --height 120 [--depth]
                        [--no-ov] --out DIR
+    govnesf sim record --seed 0 --floor-rooms 20 --frames 20000 --depth --out DIR   # a floor tour
     govnesf sim stream --seed 0 --style apartment --frames 300 [--depth] [--no-ov]
                        --ingest tcp://127.0.0.1:5555 --rate 10
 
@@ -17,7 +18,9 @@ import time
 from collections import Counter
 from typing import Any
 
-from clients.sim.export import RGB_ENCODINGS, RecordConfig, SimStream, record
+from clients.sim.export import FLOOR_PATH, RGB_ENCODINGS, RecordConfig, SimStream, record
+from clients.sim.paths import PATH_KINDS
+from clients.sim.scenes.floor import FLOOR_ROOMS
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -38,14 +41,22 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help="largest horizontal camera move per frame, metres (default 0.08)")
     p.add_argument("--fps", type=float, default=10.0, help="nominal frame rate for stamps (default 10)")
     p.add_argument("--rgb-encoding", default="rgb8", choices=RGB_ENCODINGS, help="colour encoding")
+    p.add_argument("--floor-rooms", type=int, default=0,
+                   help=f"a floor of N rooms ({FLOOR_ROOMS[0]}..{FLOOR_ROOMS[1]}) of --style joined by "
+                        "corridors instead of one room (default 0: one room)")
+    p.add_argument("--path", default=None, choices=sorted((*PATH_KINDS, FLOOR_PATH)),
+                   help=f"camera path (default: loop in a room, {FLOOR_PATH} on a floor: every room, "
+                        "then the first rooms again)")
+    p.add_argument("--revisit-rooms", type=int, default=2,
+                   help=f"{FLOOR_PATH}: how many of the first rooms the tour comes back to (default 2)")
 
 
 def _config(args: argparse.Namespace, **extra: Any) -> RecordConfig:
     cfg = RecordConfig(seed=args.seed, style=args.style, frames=args.frames, width=args.width,
                        height=args.height, hfov_deg=args.hfov, depth=args.depth, ov=not args.no_ov,
                        trajectory_seed=args.trajectory_seed, fps=args.fps, rgb_encoding=args.rgb_encoding,
-                       ov_stride=args.ov_stride, max_step_m=args.max_step,
-                       **extra)
+                       ov_stride=args.ov_stride, max_step_m=args.max_step, floor_rooms=args.floor_rooms,
+                       path=args.path, revisit_rooms=args.revisit_rooms, **extra)
     cfg.validate()
     return cfg
 

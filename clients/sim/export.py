@@ -6,12 +6,14 @@ Layout written by `record(config, out_dir)` (see docs/how-to/simulator.md)::
     DIR/scene.ply              the mesh, each face coloured by its label (palette in gt/)
     DIR/preview/               a few frames (rgb | label | depth) and a top-down map with the path
     DIR/gt/class_names.json    label id -> class name (ScanNet-20 first)
-    DIR/gt/scene.json          seed, style, room bounds, light, instances (class, aabb, centroid)
+    DIR/gt/scene.json          seed, style, room bounds, light, instances (class, aabb, centroid);
+                               on a floor, "floor": rooms (box, doorway, instance ids), corridors, visits
     DIR/gt/mesh.npz            vertices (V,3) f32, triangles (F,3) i32, face_label, face_instance
     DIR/gt/points.npz          surface samples: xyz (P,3) f32, label (P,) i32, instance (P,) i32,
                                n_views (P,) i32 = stream frames that see the point
     DIR/gt/stream.npz          per stream frame: K (F,4), world_from_cam (F,4,4), depth_m, label,
-                               instance (F,H,W) (always, even when the recording has no depth)
+                               instance (F,H,W) (always, even when the recording has no depth),
+                               room (F,) (a floor's room holding the camera, -1 in corridors; 0 in a room)
     DIR/gt/novel_views.npz     held-out views near the path, NOT in the stream: K, world_from_cam,
                                rgb, depth_m, label, instance, stream_index (nearest stream frame)
 
@@ -32,15 +34,20 @@ from typing import Any
 
 import numpy as np
 
+from clients.sim.floor_render import FloorRenderer
+from clients.sim.paths import PATH_KINDS, camera_path
 from clients.sim.raycast import RenderedView, SceneRenderer
 from clients.sim.robot import default_intrinsics, obstacle_distance_field, robot_trajectory
 from clients.sim.scenes import CLASS_NAMES, LABEL_OF, SCANNET20, STYLES, Scene, generate_scene
+from clients.sim.scenes.floor import FLOOR_ROOMS, Floor, generate_floor
+from clients.sim.tour import Tour, floor_tour
 from govnesf._extras import require
 from protocol.messages import Frame
 
 OV_SPACE = "minilm-l6-v2"
 RECORDING_NAME = "frames.govrec"
 RGB_ENCODINGS = ("rgb8", "png", "jpeg")
+FLOOR_PATH = "floor_tour"
 MAX_GT_STREAM_BYTES = 2 * 2**30
 """`record` keeps the per-frame ground truth (depth, label, instance) in memory until the end."""
 
@@ -81,6 +88,19 @@ class RecordConfig:
     """Number of preview frames written as PNG."""
     ov_stride: int | None = None
     """SimLSeg output stride (features are ceil(H / s) x ceil(W / s)); None: SimLSeg's default."""
+    floor_rooms: int = 0
+    """0: one room (`style`'s layout); 2..30: a floor of that many `style` rooms joined by corridors
+    (`clients.sim.scenes.floor`), toured by `path` floor_tour."""
+    path: str | None = None
+    """Camera path: a room's `clients.sim.paths.PATH_KINDS` (None: loop, with `max_step_m`), or
+    floor_tour for a floor (None on a floor: floor_tour)."""
+    revisit_rooms: int = 2
+    """floor_tour: how many of the first rooms the tour goes back to at its end."""
+
+    @property
+    def path_kind(self) -> str:
+        """The camera path this config makes."""
+        return self.path or ("floor_tour" if self.floor_rooms else "loop")
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad field, its value and the allowed range."""
@@ -101,6 +121,13 @@ class RecordConfig:
             (self.ov_stride is None or 1 <= self.ov_stride <= 64,
              f"ov_stride {self.ov_stride} out of range 1..64"),
             (0 <= self.previews <= 100, f"previews {self.previews} out of range 0..100"),
+            (self.floor_rooms == 0 or FLOOR_ROOMS[0] <= self.floor_rooms <= FLOOR_ROOMS[1],
+             f"floor_rooms {self.floor_rooms} out of range {FLOOR_ROOMS[0]}..{FLOOR_ROOMS[1]} (0: one room)"),
+            (self.path_kind in ((FLOOR_PATH,) if self.floor_rooms else PATH_KINDS),
+             f"path {self.path!r} unknown for a {'floor' if self.floor_rooms else 'room'}; choose one of "
+             f"{[FLOOR_PATH] if self.floor_rooms else sorted(PATH_KINDS)}"),
+            (self.revisit_rooms >= 0 and (not self.floor_rooms or self.revisit_rooms <= self.floor_rooms),
+             f"revisit_rooms {self.revisit_rooms} out of range 0..{self.floor_rooms or 'floor_rooms'}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -113,17 +140,31 @@ class SimStream:
 
     config: RecordConfig
     scene: Scene
-    renderer: SceneRenderer
+    renderer: SceneRenderer | FloorRenderer
     K: np.ndarray                # (4,) float64
     poses: np.ndarray            # (F, 4, 4) float64 world_from_cam
     simlseg: Any | None          # clients.sim.simlseg.SimLSeg when config.ov
+    floor: Floor | None = None   # the floor, when config.floor_rooms
+    tour: Tour | None = None     # its tour (the room of each frame)
 
     @classmethod
     def build(cls, config: RecordConfig) -> SimStream:
         config.validate()
-        scene = generate_scene(config.seed, config.style)
         tseed = config.seed if config.trajectory_seed is None else config.trajectory_seed
-        poses = robot_trajectory(scene, config.frames, seed=tseed, max_step_m=config.max_step_m)
+        floor, tour = None, None
+        renderer: SceneRenderer | FloorRenderer
+        if config.floor_rooms:
+            floor = generate_floor(config.seed, config.floor_rooms, config.style)
+            tour = floor_tour(floor, config.frames, seed=tseed, revisit_rooms=config.revisit_rooms,
+                              max_step_m=config.max_step_m)
+            scene, poses, renderer = floor.scene, tour.poses, FloorRenderer(floor)
+        else:
+            scene = generate_scene(config.seed, config.style)
+            if config.path_kind == "loop":
+                poses = robot_trajectory(scene, config.frames, seed=tseed, max_step_m=config.max_step_m)
+            else:
+                poses = camera_path(scene, config.path_kind, config.frames, seed=tseed)
+            renderer = SceneRenderer(scene)
         simlseg = None
         if config.ov:
             # lazy: pulls torch and the text encoder
@@ -132,8 +173,8 @@ class SimStream:
 
             sl_cfg = SimLSegConfig() if config.ov_stride is None else SimLSegConfig(stride=config.ov_stride)
             simlseg = SimLSeg(CLASS_NAMES, get_text_encoder(), seed=config.seed, config=sl_cfg)
-        return cls(config, scene, SceneRenderer(scene), default_intrinsics(config.width, config.height,
-                                                                           config.hfov_deg), poses, simlseg)
+        return cls(config, scene, renderer, default_intrinsics(config.width, config.height, config.hfov_deg),
+                   poses, simlseg, floor, tour)
 
     def render(self, index: int) -> RenderedView:
         return self.renderer.render(self.K, self.poses[index], self.config.width, self.config.height)
@@ -295,6 +336,22 @@ def scene_json(stream: SimStream) -> dict[str, Any]:
                        "centroid": i.centroid.tolist(), "support_id": i.support_id}
                       for i in scene.instances],
         "K": stream.K.tolist(), "width": cfg.width, "height": cfg.height,
+        "floor": None if stream.floor is None else floor_json(stream.floor, stream.tour),
+    }
+
+
+def floor_json(floor: Floor, tour: Tour | None) -> dict[str, Any]:
+    """A floor's plan: rooms (interior box, doorway, band), corridors, spine, the tour's visits."""
+    return {
+        "rooms": [{"index": r.index, "band": r.band, "lo": r.lo.tolist(), "hi": r.hi.tolist(),
+                   "door_xy": r.door_xy.tolist(), "door_width_m": r.doorway.width_m,
+                   "instances": [i.instance_id for i in floor.scene.instances
+                                 if (i.centroid[:2] >= r.lo).all() and (i.centroid[:2] <= r.hi).all()]}
+                  for r in floor.rooms],
+        "corridors": [c.tolist() for c in floor.corridors], "spine": floor.spine.tolist(),
+        "visits": None if tour is None else tour.visits,
+        "loop_share": None if tour is None else tour.loop_share,
+        "step_m": None if tour is None else tour.step_m,
     }
 
 
@@ -343,11 +400,13 @@ def record(config: RecordConfig, out_dir: str | Path, *, progress: bool = True) 
     gt_inst = np.zeros((f, h, w), np.int16)
     preview_at = set(np.linspace(0, f - 1, cfg.previews).astype(int).tolist()) if cfg.previews else set()
     meta = {"generator": "govnesf-sim", "seed": cfg.seed, "style": cfg.style, "frames": f,
+            "floor_rooms": cfg.floor_rooms, "path": cfg.path_kind,
             "width": w, "height": h, "hfov_deg": cfg.hfov_deg, "depth": cfg.depth,
             "ov_space": OV_SPACE if cfg.ov else "", "class_names": list(CLASS_NAMES)}
     t_render = t_ov = 0.0
     with RecordingWriter(out / RECORDING_NAME, meta) as writer:
-        bar = tqdm(range(f), desc=f"sim record {cfg.style}/{cfg.seed}", unit="frame", disable=not progress)
+        what = f"{cfg.style}/{cfg.seed}" + (f" floor of {cfg.floor_rooms}" if cfg.floor_rooms else "")
+        bar = tqdm(range(f), desc=f"sim record {what}", unit="frame", disable=not progress)
         for k in bar:
             ta = time.perf_counter()
             view = stream.render(k)
@@ -365,8 +424,9 @@ def record(config: RecordConfig, out_dir: str | Path, *, progress: bool = True) 
                 _save_png(out / "preview" / f"frame_{k:05d}.png", strip)
 
     np.savez_compressed(out / "gt" / "points.npz", xyz=xyz, label=plabel, instance=pinst, n_views=n_views)
+    room = stream.tour.room if stream.tour is not None else np.zeros(f, np.int32)
     np.savez_compressed(out / "gt" / "stream.npz", K=np.tile(stream.K, (f, 1)), world_from_cam=stream.poses,
-                        depth_m=gt_depth, label=gt_label, instance=gt_inst)
+                        depth_m=gt_depth, label=gt_label, instance=gt_inst, room=room.astype(np.int32))
     np.savez_compressed(out / "gt" / "mesh.npz", vertices=scene.vertices, triangles=scene.triangles,
                         face_label=scene.face_label, face_instance=scene.face_instance)
     if cfg.novel_views:

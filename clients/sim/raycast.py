@@ -577,6 +577,13 @@ class SceneRenderer:
         else:
             self._rc = TorchRaycaster(scene.vertices, scene.triangles, device)
         self._emissive = scene.face_texture == int(Texture.SKY)
+        lights = scene.light_map.lights if scene.light_map is not None else [scene.light]
+        self._light_table = {
+            "position": np.stack([lt.position for lt in lights]).astype(np.float64),
+            "colour": np.stack([lt.colour for lt in lights]).astype(np.float64),
+            "ambient": np.array([lt.ambient for lt in lights]),
+            "diffuse": np.array([lt.diffuse for lt in lights]),
+            "falloff": np.array([lt.falloff_m for lt in lights])}
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Cast world rays. origins, dirs: (N, 3) (dirs unit) -> t_hit (N,) metres (inf: miss),
@@ -643,13 +650,23 @@ class SceneRenderer:
             ray_dist_m=dist.reshape(height, width))
 
     def _shade(self, p: np.ndarray, n: np.ndarray, emissive: np.ndarray) -> np.ndarray:
-        """(N, 3) light multiplier at points p (N, 3) with camera-facing normals n (N, 3)."""
-        light = self.scene.light
-        to_l = light.position - p
+        """(N, 3) light multiplier at points p (N, 3) with camera-facing normals n (N, 3). A floor's
+        points each take the light of the part of the floor they face (`Scene.light_map`, looked up
+        5 cm off the surface towards the camera, so the two faces of a wall take their own sides')."""
+        light_map = self.scene.light_map
+        if light_map is None:
+            light = self.scene.light
+            position, colour = light.position[None, :], light.colour[None, :]
+            ambient, diffuse, falloff = light.ambient, light.diffuse, light.falloff_m
+        else:
+            ids = light_map.lookup(p + 0.05 * n)
+            table = self._light_table
+            position, colour = table["position"][ids], table["colour"][ids]
+            ambient, diffuse, falloff = table["ambient"][ids], table["diffuse"][ids], table["falloff"][ids]
+        to_l = position - p
         d = np.linalg.norm(to_l, axis=1)
         lam = np.clip(np.sum(n * to_l, axis=1) / np.maximum(d, 1e-9), 0.0, 1.0)
-        atten = 1.0 / (1.0 + (d / light.falloff_m) ** 2) * 2.0
-        s = (light.ambient + light.diffuse * lam * atten)[:, None] * light.colour[None, :]
+        atten = 1.0 / (1.0 + (d / falloff) ** 2) * 2.0
+        s = (ambient + diffuse * lam * atten)[:, None] * colour
         s[emissive] = 1.0
         return s
-

@@ -1,9 +1,10 @@
 """Procedural indoor scenes for the simulated robot (client side, ground truth lives here).
 
-A scene is one room (rectangular, or L-shaped when a structural block fills a corner) built
-from axis-aligned boxes, cylinders and spheres. Every triangle carries a class label (index into
-`CLASS_NAMES`), an instance id and a material (base colour, second colour, procedural texture
-kind and scale) that the ray caster (`clients.sim.raycast`) turns into colour at the hit point.
+A scene is one room (rectangular, or L-shaped when a structural block fills a corner; or a floor
+of rooms, `floor`) built from axis-aligned boxes, cylinders and spheres. Every triangle carries a
+class label (index into `CLASS_NAMES`), an instance id and a material (base colour, second colour,
+procedural texture kind and scale) that the ray caster (`clients.sim.raycast`) turns into colour
+at the hit point.
 
 Furniture comes in functional *zones* (living, dining, bedroom, kitchen, bathroom, office), each
 a set of objects placed against walls or in the room's middle. Placement rejects any candidate
@@ -25,7 +26,10 @@ Modules, each importing only the ones above it (none imports this package's `__i
 - `furniture`: object builders (sofa, bed, kitchen run, window, ...)
 - `placement`: `_Placer`, wall / middle placement with collision and free-floor checks
 - `zones`: functional zones (anchor + extras) and free-standing clutter
-- `generate`: `generate_scene`, which assembles the room into a `Scene`
+- `generate`: `generate_scene`, which assembles the room into a `Scene`; `generate_room`, a room of
+  a given size with an open `Doorway` (for floors)
+- `floor`: `generate_floor`, 2-30 rooms joined by doorways and corridors, merged into one `Scene`
+  (imported from `clients.sim.scenes.floor`, not re-exported here)
 
 Names with a leading underscore are internal to this package; the public ones are re-exported
 here (`from clients.sim.scenes import generate_scene, Scene, CLASS_NAMES, ...`).
@@ -38,9 +42,9 @@ True
 """
 
 from clients.sim.scenes.appearance import Colour, Light, Material, Texture
-from clients.sim.scenes.generate import generate_scene
+from clients.sim.scenes.generate import generate_room, generate_scene, room_wall_boxes
 from clients.sim.scenes.placement import placed_reserve
-from clients.sim.scenes.scene import Instance, Scene
+from clients.sim.scenes.scene import Doorway, Instance, LightMap, Scene
 from clients.sim.scenes.styles import STYLES, SceneStyle
 from clients.sim.scenes.vocabulary import (
     CLASS_NAMES,
@@ -58,12 +62,16 @@ __all__ = [
     "SCANNET20",
     "STYLES",
     "Colour",
+    "Doorway",
     "Instance",
     "Light",
+    "LightMap",
     "Material",
     "Scene",
     "SceneStyle",
     "Texture",
+    "generate_room",
     "generate_scene",
     "placed_reserve",
+    "room_wall_boxes",
 ]

@@ -18,13 +18,16 @@ import numpy as np
 
 from clients.sim.scenes.appearance import Light, Material, Texture
 from clients.sim.scenes.furniture import _clock, _curtain_panel, _door, _picture, _window
-from clients.sim.scenes.placement import _Placer
+from clients.sim.scenes.placement import _Placer, placed_reserve
 from clients.sim.scenes.primitives import _box, _group, _Object, _Part
 from clients.sim.scenes.rand import _Rand, _scaled
-from clients.sim.scenes.scene import Instance, Scene
+from clients.sim.scenes.scene import Doorway, Instance, Scene
 from clients.sim.scenes.styles import STYLES, SceneStyle
 from clients.sim.scenes.vocabulary import LABEL_OF
 from clients.sim.scenes.zones import _ZONES, _clutter
+
+_WALL_T_M = 0.1
+_CASING_M = 0.07  # width of a doorway's frame on the room side
 
 
 def generate_scene(seed: int, style: str = "apartment") -> Scene:
@@ -48,7 +51,42 @@ def generate_scene(seed: int, style: str = "apartment") -> Scene:
     wall_mat = _place_openings(p, r, st, size)
     _place_zones(p, r, st)
     _place_decoration(p, r)
-    structure_parts = _structure_parts(r, st, size, structures, wall_mat)
+    return _assemble(int(seed), style, r, st, size, structures, p, wall_mat, None)
+
+
+def generate_room(seed: int, style: str, size: tuple[float, float, float] | np.ndarray,
+                  doorway: Doorway) -> Scene:
+    """Build one room of a floor: of the given interior `size` (x, y, ceiling height), rectangular,
+    with an open doorway in one of its walls (a door frame, and a keep-out area in front of it that
+    no furniture takes, so the robot can always drive in) instead of a closed door. Fully
+    determined by `(seed, style, size, doorway)`; the draws after the room's shape follow
+    `generate_scene`'s order (windows, zones and clutter, decoration, materials and light).
+
+    >>> room = generate_room(2, "apartment", (5.0, 4.5, 2.6), Doorway(wall=2, centre_x=2.0))
+    >>> [round(float(v), 2) for v in room.room_max], any(i.class_name == "door" for i in room.instances)
+    ([5.0, 4.5, 2.6], True)
+    """
+    if style not in STYLES:
+        raise ValueError(f"unknown scene style {style!r}; choose one of {sorted(STYLES)}")
+    if not isinstance(seed, int | np.integer) or seed < 0:
+        raise ValueError(f"seed {seed!r} must be an int >= 0")
+    st = STYLES[style]
+    size_a = np.asarray(size, dtype=np.float64)
+    doorway.check(size_a)
+    r = _Rand(int(seed) * 7919 + sum(map(ord, style)) + 104_729, st)
+    p = _Placer(r, size_a, [])
+    _place_doorway(p, r, size_a, doorway)
+    wall_mat = _place_windows(p, r, st, size_a)
+    _place_zones(p, r, st)
+    _place_decoration(p, r)
+    return _assemble(int(seed), style, r, st, size_a, [], p, wall_mat, doorway)
+
+
+def _assemble(seed: int, style: str, r: _Rand, st: SceneStyle, size: np.ndarray,
+              structures: list[np.ndarray], p: _Placer, wall_mat: Material,
+              doorway: Doorway | None) -> Scene:
+    """The room's mesh (structure, then the placed objects), its light, as a `Scene`."""
+    structure_parts = _structure_parts(r, st, size, structures, wall_mat, doorway)
     mesh = _Mesh()
     for part, name in structure_parts:
         mesh.add(part, LABEL_OF[name], -1)
@@ -57,7 +95,7 @@ def generate_scene(seed: int, style: str = "apartment") -> Scene:
     triangles = np.concatenate(mesh.tris).astype(np.int32)
     light = _light(r, st, size)
     return Scene(
-        seed=int(seed), style=style, vertices=vertices, triangles=triangles,
+        seed=seed, style=style, vertices=vertices, triangles=triangles,
         face_label=np.concatenate(mesh.labels), face_instance=np.concatenate(mesh.inst_ids),
         instances=instances, room_min=np.zeros(3), room_max=size.astype(np.float64),
         face_colour=np.concatenate(mesh.cols), face_colour2=np.concatenate(mesh.cols2),
@@ -87,6 +125,11 @@ def _place_openings(p: _Placer, r: _Rand, st: SceneStyle, size: np.ndarray) -> M
     door = _door(r)
     dw = door.aabb()[1, 0]
     p.try_place(door, reserve=np.array([[-dw - 0.1, 0.0, 0.0], [dw + 0.1, 1.1, 2.2]]), tries=80)
+    return _place_windows(p, r, st, size)
+
+
+def _place_windows(p: _Placer, r: _Rand, st: SceneStyle, size: np.ndarray) -> Material:
+    """Draw the walls' material, then place the windows with curtains; returns the material."""
     wall_mat = r.mat(r.pick(st.wall_colours), *r.pick(st.wall_textures), contrast=0.85)
     curtain_mat = r.mat(r.pick(st.fabric_colours), Texture.FABRIC, 0.05)
     for _ in range(int(r.rng.integers(st.n_windows[0], st.n_windows[1] + 1))):
@@ -102,6 +145,31 @@ def _place_openings(p: _Placer, r: _Rand, st: SceneStyle, size: np.ndarray) -> M
                 0, np.array([ww + cw / 2 + 0.01, 0, 0])))
         p.try_place(_group("window", members), blocks_floor=True)
     return wall_mat
+
+
+DOORWAY_KEEP_OUT_M = 1.5
+"""Depth of the area in front of a floor room's doorway that no furniture takes."""
+
+
+def _place_doorway(p: _Placer, r: _Rand, size: np.ndarray, d: Doorway) -> None:
+    """A door frame around the doorway (three "door" instances: the two jambs and the head, so
+    that no obstacle box spans the opening) and the keep-out area in front of it."""
+    w, h = d.width_m, d.height_m
+    along = d.centre_x if d.wall == 0 else float(size[0]) - d.centre_x
+    pose = p.wall_pose(d.wall, along, w / 2 + _CASING_M)
+    if pose is None:  # Doorway.check keeps the opening on the wall
+        raise ValueError(f"doorway {d} does not fit on wall {d.wall} of a room of size {size.tolist()}")
+    mat = r.mat((0.9, 0.9, 0.88), Texture.PLAIN, 0.1)
+    c, t = _CASING_M, _WALL_T_M
+    left = _Object("door", [_box((-w / 2 - c, 0, 0), (-w / 2, 0.02, h + c), mat),
+                            _box((-w / 2, -t, 0), (-w / 2 + 0.02, 0, h), mat)])
+    right = _Object("door", [_box((w / 2, 0, 0), (w / 2 + c, 0.02, h + c), mat),
+                             _box((w / 2 - 0.02, -t, 0), (w / 2, 0, h), mat)])
+    head = _Object("door", [_box((-w / 2, 0, h), (w / 2, 0.02, h + c), mat),
+                            _box((-w / 2, -t, h - 0.02), (w / 2, 0, h), mat)])
+    keep_out = np.array([[-w / 2 - 0.2, 0.0, 0.0], [w / 2 + 0.2, DOORWAY_KEEP_OUT_M, float(size[2])]])
+    p.commit(_group("door", [left, right, head]).transformed(*pose), blocks_floor=False,
+             reserve=placed_reserve(keep_out, pose))
 
 
 def _place_zones(p: _Placer, r: _Rand, st: SceneStyle) -> None:
@@ -127,25 +195,48 @@ def _place_decoration(p: _Placer, r: _Rand) -> None:
 
 
 def _structure_parts(r: _Rand, st: SceneStyle, size: np.ndarray, structures: list[np.ndarray],
-                     wall_mat: Material) -> list[tuple[_Part, str]]:
-    """Floor, ceiling, the four outer walls (0.1 m thick, outside the room) and the inner blocks."""
+                     wall_mat: Material, doorway: Doorway | None = None) -> list[tuple[_Part, str]]:
+    """Floor, ceiling, the four outer walls (0.1 m thick, outside the room; the one with the
+    doorway in three pieces around it) and the inner blocks."""
     floor_c, floor_c2 = r.pick(st.floor_colours)
     floor_tex, floor_scale = r.pick(st.floor_textures)
     floor_mat = Material(r.jitter(floor_c), floor_c2, floor_tex, floor_scale)
     ceil_mat = Material(st.ceiling_colour, _scaled(st.ceiling_colour, 0.9), Texture.PLAIN, 0.5)
-    t = 0.1
+    t = _WALL_T_M
     sx, sy, sz = size
     structure_parts: list[tuple[_Part, str]] = [
         (_box((0, 0, -t), (sx, sy, 0), floor_mat), "floor"),
         (_box((0, 0, sz), (sx, sy, sz + t), ceil_mat), "ceiling"),
-        (_box((-t, -t, 0), (sx + t, 0, sz), wall_mat), "wall"),
-        (_box((-t, sy, 0), (sx + t, sy + t, sz), wall_mat), "wall"),
-        (_box((-t, 0, 0), (0, sy, sz), wall_mat), "wall"),
-        (_box((sx, 0, 0), (sx + t, sy, sz), wall_mat), "wall"),
     ]
+    structure_parts += [(_box(b[0], b[1], wall_mat), "wall") for b in room_wall_boxes(size, doorway)]
     for b in structures:
         structure_parts.append((_box(b[0], b[1], wall_mat), "wall"))
     return structure_parts
+
+
+def room_wall_boxes(size: np.ndarray, doorway: Doorway | None = None) -> list[np.ndarray]:
+    """(2, 3) boxes of a room's four outer walls (0.1 m thick, outside the interior [0, size]);
+    the wall with the doorway comes as three: either side of the opening and the lintel above it.
+
+    >>> [b[:, 0].tolist() for b in room_wall_boxes(np.array([4.0, 3.0, 2.5]), Doorway(0, 2.0, 1.0))][:3]
+    [[-0.1, 1.5], [2.5, 4.1], [1.5, 2.5]]
+    """
+    t = _WALL_T_M
+    sx, sy, sz = (float(v) for v in size)
+    walls = {0: np.array([[-t, -t, 0], [sx + t, 0, sz]]), 2: np.array([[-t, sy, 0], [sx + t, sy + t, sz]]),
+             1: np.array([[sx, 0, 0], [sx + t, sy, sz]]), 3: np.array([[-t, 0, 0], [0, sy, sz]])}
+    out: list[np.ndarray] = []
+    for k in (0, 2, 3, 1):
+        box = walls[k]
+        if doorway is None or doorway.wall != k:
+            out.append(box)
+            continue
+        x0, x1 = doorway.centre_x - doorway.width_m / 2, doorway.centre_x + doorway.width_m / 2
+        left, right, lintel = box.copy(), box.copy(), box.copy()
+        left[1, 0], right[0, 0] = x0, x1
+        lintel[0, 0], lintel[1, 0], lintel[0, 2] = x0, x1, doorway.height_m
+        out += [left, right, lintel]
+    return out
 
 
 class _Mesh:
@@ -210,7 +301,6 @@ def _light(r: _Rand, st: SceneStyle, size: np.ndarray) -> Light:
         diffuse=r.u(*st.light_diffuse), ambient=r.u(*st.ambient), falloff_m=r.u(3.0, 4.5))
 
 
-_WALL_T_M = 0.1
 _DOORWAY_M = 1.2
 
 

@@ -1,4 +1,5 @@
-"""The scene container: a labelled triangle mesh of one room, its object instances and light.
+"""The scene container: a labelled triangle mesh of one room (or of a floor of rooms), its object
+instances and light(s), and the `Doorway` of a floor's room.
 """
 
 from __future__ import annotations
@@ -9,6 +10,48 @@ import numpy as np
 
 from clients.sim.scenes.appearance import Light
 from clients.sim.scenes.vocabulary import NON_BLOCKING_CLASSES
+
+
+@dataclass(frozen=True)
+class Doorway:
+    """An open doorway in one of a room's long walls (a floor's rooms open onto a corridor): on
+    the wall at y = 0 (`wall` 0) or at y = size_y (`wall` 2), centred at x = `centre_x` (room
+    frame), `width_m` wide and `height_m` high."""
+
+    wall: int
+    centre_x: float
+    width_m: float = 1.1
+    height_m: float = 2.1
+
+    def check(self, size: np.ndarray) -> None:
+        """ValueError unless the doorway fits the room of interior `size` (x, y, height)."""
+        if self.wall not in (0, 2):
+            raise ValueError(f"doorway wall {self.wall} must be 0 (y = 0) or 2 (y = size_y)")
+        if not 0.8 <= self.width_m <= 2.0 or not 1.9 <= self.height_m <= float(size[2]) - 0.1:
+            raise ValueError(f"doorway {self.width_m} x {self.height_m} m out of range "
+                             f"(width 0.8..2, height 1.9..{float(size[2]) - 0.1:.2f})")
+        margin = self.width_m / 2 + 0.3
+        if not margin <= self.centre_x <= float(size[0]) - margin:
+            raise ValueError(f"doorway centre_x {self.centre_x} must keep {margin:.2f} m from the "
+                             f"room's corners (x in 0..{float(size[0])})")
+
+
+@dataclass
+class LightMap:
+    """The lights of a floor and which one shades a point: `lights[ids[i, j]]` for the world xy in
+    cell (i, j) of a grid (`cell_m` cells from `origin`); points off the grid take the nearest cell."""
+
+    lights: list[Light]
+    origin: np.ndarray  # (2,) world xy of cell (0, 0)'s corner
+    cell_m: float
+    ids: np.ndarray     # (nx, ny) int16 index into lights
+
+    def lookup(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) int64 light index for world points xy (N, 2+) (extra columns ignored)."""
+        g = np.floor((np.asarray(xy)[:, :2] - self.origin) / self.cell_m).astype(np.int64)
+        i = np.clip(g[:, 0], 0, self.ids.shape[0] - 1)
+        j = np.clip(g[:, 1], 0, self.ids.shape[1] - 1)
+        return self.ids[i, j].astype(np.int64)
 
 
 @dataclass
@@ -50,6 +93,7 @@ class Scene:
     face_normal: np.ndarray     # (F, 3) float32 unit normal (winding order; renderer flips it)
     light: Light
     structures: list[tuple[np.ndarray, np.ndarray]]  # AABBs (min, max) of structural blocks
+    light_map: LightMap | None = None  # a floor's lights (then `light` is the first room's)
 
     @property
     def num_faces(self) -> int:

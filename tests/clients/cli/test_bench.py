@@ -41,17 +41,31 @@ def test_bench_quick_writes_json_and_markdown(tmp_path: Path) -> None:
     assert q["repeat"]["n"] == 3 and q["new_text"]["n"] == 3
     assert [s["frame"] for s in result["rss"]["samples"]] == [5, 10]
     assert all(s["rss_bytes"] for s in result["rss"]["samples"])
+    floor = result["floor"]  # a tiny floor's tour into a second node (default settings + --node-arg)
+    assert floor["rooms"] == 2 and floor["frames"] == 40 and sum(floor["acks"].values()) == 40
+    assert floor["tour"]["visits"] == [0, 1, 0, 1]
+    assert floor["global_points"] > 0 and floor["global_points_pruned"] == 0
+    assert [s["frame"] for s in floor["rss"]] == [10, 20, 30, 40]
+    assert all(s["rss_bytes"] for s in floor["rss"])
+    assert floor["ack_first"]["n"] == floor["ack_last"]["n"] == floor["window"] == 20
+    assert floor["integrate_last"]["p95_ms"] is not None
+    assert floor["query_points"]["whole"]["n"] == floor["query_points"]["region"]["n"] == 3
+    assert floor["save_s"] > 0 and floor["load_s"] > 0
     md = out.with_suffix(".md").read_text()
     assert md.startswith("# govnesf bench (quick)") and "## query_points" in md
+    assert "## A floor of 2 rooms" in md
 
 
 def test_bench_refuses_bad_input_before_the_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A bad --frames is an argparse error; an unwritable --out fails at once, writes nothing."""
-    for bad in (["--frames", "-3"], ["--rss-frames", "0"]):
+    for bad in (["--frames", "-3"], ["--rss-frames", "0"], ["--floor-frames", "0"]):
         with pytest.raises(SystemExit) as exc:
             main(bad)
         assert exc.value.code == 2
         assert "must be 1 or more" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        main(["--floor-rooms", "31"])
+    assert exc.value.code == 2 and "must be 0 (no floor phase) or 2..30" in capsys.readouterr().err
     afile = tmp_path / "afile"
     afile.write_text("")
     assert main(["--out", str(afile / "x")]) == 2
@@ -60,7 +74,7 @@ def test_bench_refuses_bad_input_before_the_run(tmp_path: Path, capsys: pytest.C
 
 
 def test_busy_items_count_what_the_node_still_has_queued() -> None:
-    from clients.cli.bench import _busy_items
+    from clients.cli.bench_common import _busy_items
 
     assert _busy_items({}) == 0
     assert _busy_items({"integration": {"backlog": 0}, "model": {"pending": 0}, "map_features": None}) == 0
