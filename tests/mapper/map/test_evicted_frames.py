@@ -86,7 +86,8 @@ def test_means_with_occlusion_equal_the_kernel_against_the_points_z_buffers() ->
     pts = rng.uniform(-4, 4, (2000, 3)).astype(np.float32)
     footprint = 0.3
     rows, mean, count = store.means(pts, block=128, occlusion_footprint_m=footprint)
-    z = occluder_depths(pts, np.stack([v[1] for v in views]), np.stack([v[2] for v in views]), 80, 60, footprint)
+    Ks, poses = np.stack([v[1] for v in views]), np.stack([v[2] for v in views])
+    z = occluder_depths(pts, Ks, poses, 80, 60, footprint)
     parsed = [OVView(reduce_ov(ov, 48), k, pose, wh, z[i]) for i, (ov, k, pose, wh) in enumerate(views)]
     want, n = kernel_average(pts, parsed, use_depth=True, border_px=10.0, depth_rel_tol=0.25,
                              distance_power=0.0, vw=None, dim=6, texts=None, raw=True, cache_table=False)
@@ -296,7 +297,8 @@ def test_learned_answers_mix_the_evicted_views_by_their_share(tmp_path: Path, sh
     left, or with the setting at 0, the model's answer stays."""
     from mapper.node.answers.segment import SegmentAnswers
 
-    node = _node(tmp_path, 2, evicted_frames_mb=16.0, learned_evicted_views=share, map_when_more_confident=False)
+    node = _node(tmp_path, 2, evicted_frames_mb=16.0, learned_evicted_views=share,
+                 map_when_more_confident=False)
     _stream(node, _frames(depth=False))
     assert isinstance(node.segment, SegmentAnswers)
     node.segment.register("govnesf", _ConstantLearned())  # type: ignore[arg-type]
