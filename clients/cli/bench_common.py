@@ -71,8 +71,14 @@ def _pcts(seconds: list[float]) -> dict[str, float | int | None]:
 
 
 def _busy_items(extra: dict[str, Any]) -> int:
-    """Work the node still has queued after a stream, from its ``status``: the integrator's backlog,
-    the model's unapplied window changes and the background workers' pending keyframes."""
+    """Work the node still has queued after a stream, from its ``status``: its own ``pending`` (the
+    background work on acked keyframes, by source) where it reports that; else the integrator's
+    backlog, the model's unapplied window changes and the background workers' pending keyframes.
+    (The model applies its window changes when a query or render next needs its volume: not
+    background work, so a node reporting ``pending`` leaves them out.)"""
+    reported = extra.get("pending")
+    if isinstance(reported, dict):
+        return sum(int(v) for v in reported.values() if isinstance(v, int) and v > 0)
     busy = int((extra.get("integration") or {}).get("backlog", 0) or 0)
     for key in ("model", "map_features", "evicted_views", "rendered_depth", "triangulation", "ov_backend"):
         stats = extra.get(key)

@@ -81,6 +81,10 @@ def test_busy_items_count_what_the_node_still_has_queued() -> None:
     extra = {"integration": {"backlog": 2}, "model": {"pending": 3}, "map_features": {"pending": 1},
              "rendered_depth": {"pending": 0}, "other": {"pending": 9}}
     assert _busy_items(extra) == 6  # keys it does not know are not counted
+    # a node that reports its own pending work is read from that (the model's window changes wait
+    # for the next query: not background work)
+    assert _busy_items({**extra, "pending": {"integration": 2, "map_features": 0, "evicted_views": 4}}) == 6
+    assert _busy_items({**extra, "pending": {}}) == 0
 
 
 def test_map_writer_is_a_package_module_run_from_anywhere(
