@@ -38,8 +38,8 @@ from clients.harness import NodeProcess
 
 FLOOR_QUERY = ["find the chair"]
 SETTLE_TIMEOUT_S = 60.0
-"""The longest wait for the node to settle after the stream (the learned model's unapplied window
-changes, counted as pending in ``status``, can stay there until a query applies them)."""
+"""The longest wait for the node to settle after the stream (its ``status`` ``pending`` empty twice
+in a row, :func:`clients.cli.bench_common.wait_until_settled`)."""
 
 
 def bench_floor(root: Path, rooms: int, frames: int, queries: int, node_args: list[str],
