@@ -200,6 +200,16 @@ class Depth(Array):
         return depth
 
 
+def all_finite(value: np.ndarray) -> bool:
+    """Whether every element of a float16 or float32 array is finite. float16 by its bits (an
+    exponent of all ones is Inf or NaN): numpy's ``isfinite`` has no fast path for half floats, and a
+    384-d map at 160 x 120 took 26 ms a frame that way."""
+    if value.dtype == np.float16:
+        bits = np.ascontiguousarray(value).view(np.uint16)
+        return not bool(np.any((bits & np.uint16(0x7C00)) == np.uint16(0x7C00)))
+    return bool(np.all(np.isfinite(value)))
+
+
 class FeatureMap(Kind):
     """A precomputed (h, w, d) OV feature map, float16 or float32 (kept as received), finite,
     1 <= h, w <= `MAX_OV_SIDE`, 1 <= d <= `MAX_OV_DIM`."""
@@ -218,7 +228,7 @@ class FeatureMap(Kind):
             raise bad(f"{name}: h, w = {h}, {w} out of range 1..{MAX_OV_SIDE}")
         if not 1 <= d <= MAX_OV_DIM:
             raise bad(f"{name}: feature dimension d = {d} out of range 1..{MAX_OV_DIM}")
-        if not np.all(np.isfinite(value)):
+        if not all_finite(value):
             raise bad(f"{name}: feature map contains NaN or Inf")
         return value
 

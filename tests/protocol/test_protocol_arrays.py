@@ -106,3 +106,22 @@ def test_image_decode_size_check() -> None:
     wire = encode_image(np.zeros((4, 5, 3), np.uint8), "png")
     with pytest.raises(ProtocolError, match="png image is 5x4 but the message says 4x5"):
         decode_image(wire, width=4, height=5, field="rgb")
+
+
+@pytest.mark.parametrize("dtype", [np.float16, np.float32])
+def test_all_finite_matches_numpy_for_every_special_value(dtype: type) -> None:
+    """The feature maps' finite check (float16 by its exponent bits) against ``np.isfinite``: the
+    largest, smallest and subnormal values pass, Inf, -Inf and NaN (any payload) fail, strided too."""
+    from protocol.messages import all_finite
+
+    info = np.finfo(dtype)
+    base = np.random.default_rng(0).standard_normal((6, 8, 5)).astype(dtype)
+    for value in (info.max, -info.max, info.tiny, info.tiny / 4, -0.0, np.inf, -np.inf, np.nan):
+        arr = base.copy()
+        arr[2, 3, 1] = value
+        assert all_finite(arr) == bool(np.all(np.isfinite(arr))), value
+        assert all_finite(arr[:, ::2]) == bool(np.all(np.isfinite(arr[:, ::2]))), value
+    if dtype is np.float16:
+        bits = np.arange(1 << 16, dtype=np.uint16).view(np.float16)  # every half float, NaN payloads too
+        for chunk in np.split(bits, 256):
+            assert all_finite(chunk.reshape(1, 1, -1)) == bool(np.all(np.isfinite(chunk)))

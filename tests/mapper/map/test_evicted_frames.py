@@ -43,6 +43,19 @@ def test_reduce_ov_area_averages_within_the_cells() -> None:
         reduce_ov(ov[0], 10)
 
 
+def test_reduce_ov_whole_blocks_equal_the_area_weights() -> None:
+    """Where the reduced size divides the map's, the block mean (the fast path) equals the area
+    weights' average (the general path) in float64."""
+    from mapper.map.evicted_frames import _area_weights
+
+    ov = np.random.default_rng(1).standard_normal((120, 160, 6)).astype(np.float16)
+    small = reduce_ov(ov, 4800)  # 60 x 80: 2 x 2 blocks
+    want = np.einsum("ih,hwd,jw->ijd", _area_weights(120, 60).astype(np.float64), ov.astype(np.float64),
+                     _area_weights(160, 80).astype(np.float64))
+    assert small.shape == (60, 80, 6) and small.dtype == np.float32
+    np.testing.assert_allclose(small, want, atol=1e-6)
+
+
 def _random_views(rng: np.random.Generator, n: int, dim: int) -> list[tuple[Any, ...]]:
     views = []
     for _ in range(n):
