@@ -167,8 +167,8 @@ class EvictedViews:
             first = False
         if first:
             store.absorb(np.zeros(0, np.int64), {})  # counts the keyframe (no voxel in its image)
-        if len(store) > max(2 * map_xyz.shape[0], 4096):  # voxels the map pruned since
-            store.compact(map_keys)
+        if len(store) > max(2 * gmap.total_points, 4096):  # voxels the map pruned since (paged ones stay)
+            store.compact(gmap.all_keys())
 
     def stats(self) -> dict[str, Any]:
         """``status`` key ``evicted_views`` (called under the state lock: takes no node lock)."""
