@@ -1,0 +1,175 @@
+"""Two rooms one after the other into a node whose global map is bounded far below both: what the
+first room's answers keep once the second is mapped, with paging (the default) and with the old
+prune (``global_map.paging=false``), through real nodes.
+
+Room A (a simulated ``clients.sim`` room, the robot's ``loop`` path, SimLSeg ``ov``, input depth)
+is streamed into a ``govnesf serve`` process (:class:`clients.harness.NodeProcess`, the shipped
+settings plus ``global_map.max_points``), the node settles and is asked ``segment_points`` at the
+ground-truth surface samples room A's frames saw (``average`` and ``govnesf``; the 32 class names
+as texts; 3D mIoU, :func:`clients.harness.mean_iou`) and ``query_points`` for each class present
+(the matches inside room A's box, ``region``); then room B (another seed's room, its poses moved 12 m along x)
+is streamed, the node settles and room A is asked again. Reported per mode: the answers before and
+after, and ``status`` (resident, paged, total and pruned points, tile store bytes, RSS).
+
+Run: ``python benchmarks/studies/two_rooms_bounded.py`` (two rooms of 120 frames, max_points
+30000: about 10 min on 2 cores), ``--quick`` (60 frames, ``average`` only: a first look). Seeds
+with ``seed % 3 == 0`` are held out; the defaults (1 and 2) are tuning seeds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from clients.harness import NodeProcess, mean_iou
+from clients.matrix.driver import pending_work
+from clients.sim.export import OV_SPACE, count_views
+from clients.sim.paths import camera_path
+from clients.sim.raycast import SceneRenderer
+from clients.sim.robot import default_intrinsics
+from clients.sim.scenes import CLASS_NAMES, LABEL_OF, generate_scene
+from protocol.messages import Frame
+
+LAYOUTS = ("apartment", "studio", "office", "living_large", "sparse", "corridor")
+NODE_ARGS = ("--set", "save_on_exit=false", "--set", "load_autosave_on_start=false",
+             "--set", "autosave_name=")
+OFFSET_M = 12.0
+
+
+@dataclass
+class Room:
+    frames: list[Frame]
+    gt_xyz: np.ndarray  # (P, 3) float32 world points some frame saw
+    gt_label: np.ndarray  # (P,) int64
+
+
+def prepare(seed: int, frames: int, offset_m: float, samples: int = 6000) -> Room:
+    """Render the seed's room (160x120, 70 deg, input depth) with its world moved ``offset_m``
+    along x (the poses and the ground truth; the rendering is the room's own)."""
+    from clients.sim.simlseg import SimLSeg, SimLSegConfig
+    from clients.sim.text import get_text_encoder
+
+    scene = generate_scene(seed, LAYOUTS[seed % len(LAYOUTS)])
+    poses = camera_path(scene, "loop", frames, seed=seed)
+    width, height = 160, 120
+    K = default_intrinsics(width, height, 70.0)
+    renderer = SceneRenderer(scene)
+    simlseg = SimLSeg(CLASS_NAMES, get_text_encoder(), seed=seed, config=SimLSegConfig(stride=4))
+    gt_xyz, gt_label, _ = scene.sample_surface(samples, seed=seed, exclude_labels=(LABEL_OF["ceiling"],))
+    views = np.zeros(len(gt_xyz), np.int32)
+    shift = np.eye(4)
+    shift[0, 3] = offset_m
+    out: list[Frame] = []
+    for k in range(frames):
+        view = renderer.render(K, poses[k], width, height)
+        count_views(gt_xyz, K, poses[k], view.depth_m, views)
+        ov = simlseg.features(view, frame_index=k, K=K)
+        out.append(Frame(seq=k, stamp_ns=int(round(k * 1e8)), width=width, height=height, K=K.copy(),
+                         world_from_cam=shift @ poses[k], rgb=view.rgb, depth_m=view.depth_m, ov=ov,
+                         ov_space=OV_SPACE))
+    seen = views > 0
+    return Room(out, (gt_xyz[seen] + shift[:3, 3]).astype(np.float32), gt_label[seen].astype(np.int64))
+
+
+def settle(client: Any, timeout_s: float) -> bool:
+    t0, quiet = time.perf_counter(), 0
+    while time.perf_counter() - t0 < timeout_s:
+        quiet = quiet + 1 if not pending_work(client.status(timeout_s=60.0).extra) else 0
+        if quiet >= 2:
+            return True
+        time.sleep(0.25)
+    return False
+
+
+def ask(client: Any, room: Room, methods: list[str]) -> dict[str, Any]:
+    """Room A's answers: segment mIoU (%) per method, and query_points matches inside its box."""
+    texts = list(CLASS_NAMES)
+    out: dict[str, Any] = {}
+    for method in methods:
+        started = time.perf_counter()
+        seg = client.segment_points(room.gt_xyz, texts, method=method, timeout_s=900.0)
+        out[f"miou_{method}"] = round(100.0 * mean_iou(seg.label.astype(np.int64), room.gt_label,
+                                                       len(texts))[0], 2)
+        out[f"segment_{method}_s"] = round(time.perf_counter() - started, 2)
+    low, high = room.gt_xyz.min(axis=0) - 0.5, room.gt_xyz.max(axis=0) + 0.5
+    present = [CLASS_NAMES[c] for c in np.unique(room.gt_label)]
+    started = time.perf_counter()
+    matches = 0
+    for text in present:
+        pts = client.query_points([text], objects=False, max_points=200_000, region=(low, high),
+                                  timeout_s=600.0)
+        matches += int(pts.xyz.shape[0])
+    out["query_matches_in_room"] = matches
+    out["query_ms_per_text"] = round(1e3 * (time.perf_counter() - started) / max(len(present), 1), 1)
+    return out
+
+
+def map_status(client: Any) -> dict[str, Any]:
+    extra = client.status(timeout_s=60.0).extra
+    keys = ("global_points", "global_points_total", "global_points_paged", "global_tiles_paged",
+            "global_points_pruned", "global_points_paged_out", "global_points_paged_in",
+            "global_tile_store_bytes", "rss_bytes")
+    return {k: extra.get(k) for k in keys}
+
+
+def run(mode: str, room_a: Room, room_b: Room, max_points: int, methods: list[str], work: Path,
+        settle_s: float) -> dict[str, Any]:
+    args = (*NODE_ARGS, "--set", f"global_map.max_points={max_points}",
+            "--set", f"global_map.paging={'true' if mode == 'paging' else 'false'}")
+    out: dict[str, Any] = {"mode": mode}
+    with NodeProcess(work / mode, extra_args=args, events=False, log_path=work / f"{mode}.log") as node:
+        node.wait_ready(180.0)
+        with node.client(timeout_s=600.0) as client:
+            for name, room in (("a", room_a), ("b", room_b)):
+                for _ in client.send_frames(iter(room.frames), window=4):
+                    pass
+                out[f"settled_after_{name}"] = settle(client, settle_s)
+                out[f"status_after_{name}"] = map_status(client)
+                out[f"room_a_after_{name}"] = ask(client, room_a, methods)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", default="1,2", help="room A's and room B's seeds")
+    parser.add_argument("--frames", type=int, default=120)
+    parser.add_argument("--max-points", type=int, default=30_000)
+    parser.add_argument("--modes", default="paging,prune")
+    parser.add_argument("--quick", action="store_true", help="60 frames per room, average only")
+    parser.add_argument("--settle-s", type=float, default=600.0)
+    parser.add_argument("--out", type=Path, default=None, help="write the results as JSON here")
+    args = parser.parse_args()
+    seeds = [int(s) for s in args.seeds.split(",")]
+    if len(seeds) != 2 or args.frames < 2 or args.max_points < 1:
+        parser.error("--seeds takes two seeds, --frames >= 2, --max-points >= 1")
+    frames = 60 if args.quick else args.frames
+    methods = ["average"] if args.quick else ["average", "govnesf"]
+    room_a, room_b = prepare(seeds[0], frames, 0.0), prepare(seeds[1], frames, OFFSET_M)
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for mode in args.modes.split(","):
+            if mode not in ("paging", "prune"):
+                parser.error(f"--modes: {mode!r} is not paging or prune")
+            started = time.perf_counter()
+            row = run(mode, room_a, room_b, args.max_points, methods, Path(tmp), args.settle_s)
+            row["seconds"] = round(time.perf_counter() - started, 1)
+            results.append(row)
+            print(json.dumps(row, indent=1), flush=True)
+    for row in results:
+        before, after = row["room_a_after_a"], row["room_a_after_b"]
+        deltas = {k: round(after[k] - before[k], 2) for k in before if k.startswith("miou_")}
+        print(f"{row['mode']}: room A before {before} after {after}; mIoU change {deltas}; "
+              f"status after B {row['status_after_b']}")
+    if args.out is not None:
+        args.out.write_text(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()
