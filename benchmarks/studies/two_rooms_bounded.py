@@ -8,8 +8,10 @@ settings plus ``global_map.max_points``), the node settles and is asked ``segmen
 ground-truth surface samples room A's frames saw (``average`` and ``govnesf``; the 32 class names
 as texts; 3D mIoU, :func:`clients.harness.mean_iou`) and ``query_points`` for each class present
 (the matches inside room A's box, ``region``); then room B (another seed's room, its poses moved 12 m along x)
-is streamed, the node settles and room A is asked again. Reported per mode: the answers before and
-after, and ``status`` (resident, paged, total and pruned points, tile store bytes, RSS).
+is streamed, the node settles and room A is asked again. Modes: ``unbounded`` (the shipped
+``max_points``: what the answers do when room A's keyframes leave the window and nothing is
+dropped), ``paging`` and ``prune``. Reported per mode: the answers before and after, and ``status``
+(resident, paged, total and pruned points, tile store bytes, RSS).
 
 Run: ``python benchmarks/studies/two_rooms_bounded.py`` (two rooms of 120 frames, max_points
 30000: about 10 min on 2 cores), ``--quick`` (60 frames, ``average`` only: a first look). Seeds
@@ -121,8 +123,10 @@ def map_status(client: Any) -> dict[str, Any]:
 
 def run(mode: str, room_a: Room, room_b: Room, max_points: int, methods: list[str], work: Path,
         settle_s: float) -> dict[str, Any]:
-    args = (*NODE_ARGS, "--set", f"global_map.max_points={max_points}",
-            "--set", f"global_map.paging={'true' if mode == 'paging' else 'false'}")
+    args: tuple[str, ...] = NODE_ARGS
+    if mode != "unbounded":  # unbounded: the shipped max_points, far above both rooms
+        args = (*args, "--set", f"global_map.max_points={max_points}",
+                "--set", f"global_map.paging={'true' if mode == 'paging' else 'false'}")
     out: dict[str, Any] = {"mode": mode}
     with NodeProcess(work / mode, extra_args=args, events=False, log_path=work / f"{mode}.log") as node:
         node.wait_ready(180.0)
@@ -141,10 +145,12 @@ def main() -> None:
     parser.add_argument("--seeds", default="1,2", help="room A's and room B's seeds")
     parser.add_argument("--frames", type=int, default=120)
     parser.add_argument("--max-points", type=int, default=30_000)
-    parser.add_argument("--modes", default="paging,prune")
+    parser.add_argument("--modes", default="unbounded,paging,prune",
+                        help="unbounded (the shipped max_points), paging, prune (global_map.paging=false)")
     parser.add_argument("--quick", action="store_true", help="60 frames per room, average only")
     parser.add_argument("--settle-s", type=float, default=600.0)
     parser.add_argument("--out", type=Path, default=None, help="write the results as JSON here")
+    parser.add_argument("--work", type=Path, default=None, help="keep the nodes' map dirs and logs here")
     args = parser.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
     if len(seeds) != 2 or args.frames < 2 or args.max_points < 1:
@@ -153,12 +159,15 @@ def main() -> None:
     methods = ["average"] if args.quick else ["average", "govnesf"]
     room_a, room_b = prepare(seeds[0], frames, 0.0), prepare(seeds[1], frames, OFFSET_M)
     results = []
+    modes = args.modes.split(",")
+    if not set(modes) <= {"unbounded", "paging", "prune"}:
+        parser.error(f"--modes: {args.modes!r}: each of unbounded, paging, prune")
     with tempfile.TemporaryDirectory() as tmp:
-        for mode in args.modes.split(","):
-            if mode not in ("paging", "prune"):
-                parser.error(f"--modes: {mode!r} is not paging or prune")
+        work = args.work if args.work is not None else Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        for mode in modes:
             started = time.perf_counter()
-            row = run(mode, room_a, room_b, args.max_points, methods, Path(tmp), args.settle_s)
+            row = run(mode, room_a, room_b, args.max_points, methods, work, args.settle_s)
             row["seconds"] = round(time.perf_counter() - started, 1)
             results.append(row)
             print(json.dumps(row, indent=1), flush=True)
