@@ -1346,6 +1346,9 @@ class _StoredMap:
             lo = np.floor_divide(np.floor((pts - reach) / voxel).astype(np.int64), tile)
             hi = np.floor_divide(np.floor((pts + reach) / voxel).astype(np.int64), tile)
             span = int((hi - lo).max())
+            if span > 2:  # a radius of several tiles: the paged tiles in the points' box
+                box = (pts.min(axis=0) - reach, pts.max(axis=0) + reach)
+                return self._page_in(sorted(self._store.select(tile * voxel, box)))
             wanted: set[int] = set()
             for step in itertools.product(range(span + 1), repeat=3):
                 idx = np.minimum(lo + np.asarray(step, np.int64), hi)

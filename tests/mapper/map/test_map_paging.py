@@ -109,6 +109,9 @@ def test_segment_lookup_pages_in_the_tiles_of_the_asked_points() -> None:
     row = snap.nearest_with_feature(at, 0.1)[0]
     assert row >= 0 and np.linalg.norm(snap.xyz[row] - at[0]) < 0.05
     assert bounded.page_in_near(np.array([[50.0, 0.0, 0.0]]), 0.1) == 0  # nothing paged there
+    _two_rooms(bounded)  # room B last again: room A pages out
+    assert bounded.page_in_near(np.array([[0.0, 0.0, 2.0]]), 3.0) > 0  # a radius of many tiles
+    assert bounded.paged_points == 0
 
 
 def test_save_restore_holds_paged_tiles() -> None:
