@@ -117,7 +117,7 @@ def map_status(client: Any) -> dict[str, Any]:
     extra = client.status(timeout_s=60.0).extra
     keys = ("global_points", "global_points_total", "global_points_paged", "global_tiles_paged",
             "global_points_pruned", "global_points_paged_out", "global_points_paged_in",
-            "global_tile_store_bytes", "rss_bytes")
+            "global_tile_store_bytes", "global_integrate_ms_mean", "global_integrate_ms_p95", "rss_bytes")
     return {k: extra.get(k) for k in keys}
 
 

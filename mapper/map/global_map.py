@@ -79,7 +79,7 @@ from scipy.spatial import cKDTree
 from mapper.checks import check_range as _check_range
 from mapper.checks import check_shape
 from mapper.errors import ConfigError
-from mapper.map.carving import carve
+from mapper.map.carving import carve, changed_region
 from mapper.map.evicted_views import EvictedViewStore
 from mapper.map.tile_store import TileInfo, TileStore, key_indices, tile_ids, tile_summary
 from mapper.map.voxels import KEY_OFFSET, pack_indices, voxel_keys
@@ -1331,6 +1331,28 @@ class _StoredMap:
         paged = [t for t in np.unique(tile_ids(keys, self.tile_voxels)).tolist() if t in self._store.info]
         return self._page_in(paged) if paged else 0
 
+    def _page_in_observed(self, keyframe: KeyframeLike, obs: Observations, carving: bool) -> None:
+        """Page in the paged tiles a keyframe's observations fall in and, when it carves, those in
+        the box it can clear (camera to depth: :func:`mapper.map.carving.changed_region`) (lock held)."""
+        if not self._store.info:
+            return
+        if carving:
+            cfg, (height, width) = self.config, keyframe.rgb.shape[:2]
+            box = changed_region(keyframe.K, keyframe.world_from_cam, width, height, keyframe.depth_m,
+                                 cfg.min_depth_m, cfg.max_depth_m, include_camera=True)
+            self._page_in(sorted(self._store.select(self.tile_voxels * cfg.voxel_size_m, box)))
+        self._page_in_keys(voxel_keys(obs.xyz, self.config.voxel_size_m)[0])
+
+    def paged_geometry(self, region: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """(xyz (n, 3) float32, keys (n,) int64) of the paged voxels in the tiles that intersect
+        ``region`` (a world box), read without paging them in: with :meth:`geometry`, what a worker
+        that projects the map into a view needs (the evicted views record paged voxels too)."""
+        with self._lock:
+            if not self._store.info:
+                return np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
+            tiles = self._store.select(self.tile_voxels * self.config.voxel_size_m, region)
+            return self._store.read_geometry(tiles)
+
     def page_in_near(self, xyz: np.ndarray, radius_m: float) -> int:
         """Page in the paged tiles within ``radius_m`` of the points ``xyz`` (N, 3) (what a
         ``segment_points`` at those points reads from the map). Resident voxels may exceed
@@ -1583,7 +1605,7 @@ class GlobalSemanticMap(_StoredMap):
                 self._map_version = map_version
             if isinstance(obs, str):
                 return IntegrateStats(0, 0, 0, 0, keyframe.ov is not None, time.perf_counter() - started, obs)
-            self._page_in_keys(voxel_keys(obs.xyz, self.config.voxel_size_m)[0])  # paged tiles it sees
+            self._page_in_observed(keyframe, obs, carve and self.config.carve)
             carved = self._carve(keyframe) if carve and self.config.carve else 0
             touched, new, pruned = self._fuse(obs, int(keyframe.stamp_ns))
             seconds = time.perf_counter() - started

@@ -243,6 +243,18 @@ class TileStore:
                 parts += [_decoded(row, dim) for row in cur.fetchall()]
         return _concatenated(parts, dim)
 
+    def read_geometry(self, tiles: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+        """(xyz (n, 3) float32, keys (n,) int64) of the voxels of ``tiles`` (only those columns read)."""
+        wanted = [int(t) for t in tiles if int(t) in self.info]
+        xyz, keys = [np.zeros((0, 3), np.float32)], [np.zeros(0, np.int64)]
+        for lo in range(0, len(wanted), 500):
+            chunk = wanted[lo: lo + 500]
+            for blob_xyz, blob_keys in self._conn().execute(
+                    f"SELECT xyz, keys FROM tiles WHERE tile IN ({', '.join('?' * len(chunk))})", chunk):
+                xyz.append(np.frombuffer(blob_xyz, np.float32).reshape(-1, 3))
+                keys.append(np.frombuffer(blob_keys, np.int64))
+        return np.concatenate(xyz), np.concatenate(keys)
+
     def keys(self) -> np.ndarray:
         """(n,) int64 voxel keys of every paged voxel (only that column is read)."""
         if not self.info:
