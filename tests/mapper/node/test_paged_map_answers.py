@@ -39,9 +39,13 @@ def _encoder() -> Iterator[None]:
 
 
 def _node(tmp_path: Path, frames: int = 20, **global_map: Any) -> Any:
-    node = in_process_node(tmp_path, global_map={"integrate_queue": 0, **global_map})
+    """A node fed ``frames`` synthetic frames through a window of 4 keyframes, the views of the
+    keyframes that leave it recorded per voxel as they leave (the evicted-view worker's work)."""
+    node = in_process_node(tmp_path, global_map={"integrate_queue": 0, **global_map},
+                           window={"max_keyframes": 4})
     for seq in range(frames):
         node.handle_ingest(encode(synthetic_frame(seq, 20, 64, 48)))
+        node.ctx.evicted_views.process_pending()
     return node
 
 
@@ -68,6 +72,7 @@ def test_a_bounded_map_answers_as_an_unbounded_one(tmp_path: Path) -> None:
     assert s_bounded["global_points"] < s_full["global_points"]
     assert s_bounded["global_points_total"] == s_full["global_points_total"] == s_full["global_points"]
     assert s_full["global_points_paged"] == 0 and s_full["global_tile_store_bytes"] == 0
+    assert s_bounded["evicted_views"]["voxels"] == s_full["evicted_views"]["voxels"] > 0
     for text in ("dark", "light"):
         want = _ask(full, QueryPoints(texts=[text], objects=True))
         got = _ask(bounded, QueryPoints(texts=[text], objects=True))
