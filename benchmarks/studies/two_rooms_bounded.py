@@ -110,6 +110,15 @@ def ask(client: Any, room: Room, methods: list[str]) -> dict[str, Any]:
         matches += int(pts.xyz.shape[0])
     out["query_matches_in_room"] = matches
     out["query_ms_per_text"] = round(1e3 * (time.perf_counter() - started) / max(len(present), 1), 1)
+    # the same texts over the whole map: how many map points each query scored (resident + the
+    # paged tiles whose summary says they may match) and its time
+    scored, times = [], []
+    for text in present:
+        pts = client.query_points([text], objects=True, timeout_s=600.0)
+        scored.append(pts.timing_ms.get("map_points", 0.0))
+        times.append(pts.timing_ms.get("total", 0.0))
+    out["whole_map_query_points_scored_mean"] = round(float(np.mean(scored)), 1)
+    out["whole_map_query_ms_p50"] = round(float(np.median(times)), 1)
     return out
 
 
@@ -122,8 +131,8 @@ def map_status(client: Any) -> dict[str, Any]:
 
 
 def run(mode: str, room_a: Room, room_b: Room, max_points: int, methods: list[str], work: Path,
-        settle_s: float) -> dict[str, Any]:
-    args: tuple[str, ...] = NODE_ARGS
+        settle_s: float, settings: list[str]) -> dict[str, Any]:
+    args: tuple[str, ...] = (*NODE_ARGS, *(a for kv in settings for a in ("--set", kv)))
     if mode != "unbounded":  # unbounded: the shipped max_points, far above both rooms
         args = (*args, "--set", f"global_map.max_points={max_points}",
                 "--set", f"global_map.paging={'true' if mode == 'paging' else 'false'}")
@@ -151,6 +160,8 @@ def main() -> None:
     parser.add_argument("--settle-s", type=float, default=600.0)
     parser.add_argument("--out", type=Path, default=None, help="write the results as JSON here")
     parser.add_argument("--work", type=Path, default=None, help="keep the nodes' map dirs and logs here")
+    parser.add_argument("--set", dest="settings", action="append", default=[], metavar="KEY=VALUE",
+                        help="a node setting for every mode (repeatable), e.g. queries.evicted_views=false")
     args = parser.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
     if len(seeds) != 2 or args.frames < 2 or args.max_points < 1:
@@ -167,7 +178,7 @@ def main() -> None:
         work.mkdir(parents=True, exist_ok=True)
         for mode in modes:
             started = time.perf_counter()
-            row = run(mode, room_a, room_b, args.max_points, methods, work, args.settle_s)
+            row = run(mode, room_a, room_b, args.max_points, methods, work, args.settle_s, args.settings)
             row["seconds"] = round(time.perf_counter() - started, 1)
             results.append(row)
             print(json.dumps(row, indent=1), flush=True)

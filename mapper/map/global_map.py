@@ -1686,8 +1686,8 @@ class GlobalSemanticMap(_StoredMap):
         the fused average: docs/concepts/window-and-map.md), and keeps its norm and feature weight, so later
         observations still fuse as a running weighted mean; a voxel without one takes the
         feature's direction with norm 1 and its geometric confidence as feature weight. Voxels
-        pruned since are skipped, and with ``global_map.learned_features_once`` (default) voxels
-        given a learned feature before. Returns the number of voxels set. Raises ``ValueError``
+        paged out since are paged in; voxels pruned since are skipped, and with
+        ``global_map.learned_features_once`` (default) voxels given a learned feature before. Returns the number of voxels set. Raises ``ValueError``
         (nothing changed) on a shape or dimension mismatch."""
         keys = np.asarray(keys, np.int64).reshape(-1)
         feats = np.asarray(features, np.float32)
@@ -1699,6 +1699,7 @@ class GlobalSemanticMap(_StoredMap):
         with self._lock:
             if self._dim is not None and dims["D"] != self._dim:
                 raise ValueError(f"features have dimension {dims['D']}, the global map's {self._dim}")
+            self._page_in_keys(keys[good])  # paged out since seen_voxels: back, as never paged
             rows, found = self._rows_of(keys)
             keep = found & good
             if self.config.learned_features_once:
