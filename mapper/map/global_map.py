@@ -1687,8 +1687,9 @@ class GlobalSemanticMap(_StoredMap):
         observations still fuse as a running weighted mean; a voxel without one takes the
         feature's direction with norm 1 and its geometric confidence as feature weight. Voxels
         paged out since are paged in; voxels pruned since are skipped, and with
-        ``global_map.learned_features_once`` (default) voxels given a learned feature before. Returns the number of voxels set. Raises ``ValueError``
-        (nothing changed) on a shape or dimension mismatch."""
+        ``global_map.learned_features_once`` (default) voxels given a learned feature before.
+        Returns the number of voxels set. Raises ``ValueError`` (nothing changed) on a shape or
+        dimension mismatch."""
         keys = np.asarray(keys, np.int64).reshape(-1)
         feats = np.asarray(features, np.float32)
         if feats.ndim != 2 or feats.shape[0] != keys.shape[0] or feats.shape[1] < 1:
