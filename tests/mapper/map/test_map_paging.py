@@ -222,3 +222,16 @@ def test_cone_summary_skips_only_tiles_that_cannot_match() -> None:
 def test_bad_paging_settings_are_refused(setting: dict[str, object], fragment: str) -> None:
     with pytest.raises(ConfigError, match=fragment):
         config_from_dict({"global_map": setting})
+
+
+def test_learned_features_reach_voxels_paged_out_since_they_were_seen() -> None:
+    full, bounded = GlobalSemanticMap(_cfg()), GlobalSemanticMap(_cfg(max_points=1000))
+    for gmap in (full, bounded):
+        first = make_kf(plane_depth(2.0), ov=_ov(1), stamp_ns=1)
+        gmap.integrate(first)
+        keys, _ = gmap.seen_voxels(first)
+        gmap.integrate(make_kf(plane_depth(1.0), world_from_cam=ROOM_B, ov=_ov(3), stamp_ns=3))
+        feats = np.random.default_rng(7).normal(size=(keys.shape[0], 8)).astype(np.float32)
+        assert gmap.set_features(keys, feats) == keys.shape[0] == 768
+    assert bounded.points_paged_in > 0
+    _assert_same_voxels(bounded, full)
