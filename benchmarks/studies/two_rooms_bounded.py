@@ -127,7 +127,12 @@ def map_status(client: Any) -> dict[str, Any]:
     keys = ("global_points", "global_points_total", "global_points_paged", "global_tiles_paged",
             "global_points_pruned", "global_points_paged_out", "global_points_paged_in",
             "global_tile_store_bytes", "global_integrate_ms_mean", "global_integrate_ms_p95", "rss_bytes")
-    return {k: extra.get(k) for k in keys}
+    out = {k: extra.get(k) for k in keys}
+    for worker, fields in (("evicted_views", ("done", "dropped", "stale", "deferred", "voxels")),
+                           ("map_features", ("done", "late", "dropped", "voxels_set"))):
+        if isinstance(extra.get(worker), dict):
+            out.update({f"{worker}.{f}": extra[worker].get(f) for f in fields})
+    return out
 
 
 def run(mode: str, room_a: Room, room_b: Room, max_points: int, methods: list[str], work: Path,
