@@ -1117,6 +1117,8 @@ class _StoredMap:
     _feat_stamp: np.ndarray
     _sorted_keys: np.ndarray
     _sorted_rows: np.ndarray
+    _joined: tuple[tuple[int, int, tuple[int, ...]], GlobalMapSnapshot] | None = None
+    """The latest :meth:`query_snapshot` with paged tiles: ((version, generation, tiles), snapshot)."""
     if TYPE_CHECKING:
         def _reset(self, dim: int | None) -> None: ...
         def _grow(self, need: int) -> None: ...
@@ -1250,6 +1252,7 @@ class _StoredMap:
         """Move the least recently observed whole tiles to the store until ``prune_to_fraction *
         max_points`` voxels remain; the tiles the latest keyframe observed stay (lock held)."""
         cfg, n = self.config, self._n
+        self._joined = None  # memory is short: the kept query snapshot goes first
         tiles = tile_ids(self._keys[:n], self.tile_voxels)
         uniq, inverse = np.unique(tiles, return_inverse=True)
         inverse = inverse.ravel()
@@ -1387,16 +1390,25 @@ class _StoredMap:
         """A snapshot for a ``query_points`` over the whole map: the resident voxels (the cached
         :meth:`snapshot`) followed by the voxels of the paged tiles that intersect ``region`` and
         for which ``may_match`` holds on their summary (read, not made resident). Nothing paged
-        selected: the snapshot itself."""
+        selected: the snapshot itself. The latest such snapshot is kept until the map's version
+        changes: further queries of that version selecting the same tiles share it (and its
+        normalised features)."""
         with self._lock:
             snap = self._snapshot_locked()
             if not self._store.info:
                 return snap
-            tiles = self._store.select(self.tile_voxels * self.config.voxel_size_m, region, may_match)
+            tiles = tuple(sorted(self._store.select(self.tile_voxels * self.config.voxel_size_m, region,
+                                                    may_match)))
             if not tiles:
                 return snap
+            kept = self._joined
+            if kept is not None and kept[0] == (snap.version, snap.generation, tiles):
+                return kept[1]
             got = self._store.read(tiles, self._dim)
-        return _joined_snapshot(snap, got)
+        joined = _joined_snapshot(snap, got)
+        with self._lock:
+            self._joined = ((snap.version, snap.generation, tiles), joined)
+        return joined
 
 
 def _joined_snapshot(snap: GlobalMapSnapshot, paged: dict[str, np.ndarray]) -> GlobalMapSnapshot:

@@ -96,6 +96,10 @@ def test_query_snapshot_reads_paged_tiles_without_paging_them_in() -> None:
     box_a = (np.array([-2.0, -2.0, 1.0]), np.array([2.0, 2.0, 3.0]))
     assert len(bounded.query_snapshot(region=box_a)) == len(full)
     assert bounded.query_snapshot(may_match=lambda info: False) is bounded.snapshot()
+    kept = bounded.query_snapshot()
+    assert bounded.query_snapshot() is kept  # kept for the version
+    bounded.integrate(make_kf(plane_depth(1.0), world_from_cam=ROOM_B, ov=_ov(5), stamp_ns=5))
+    assert bounded.query_snapshot() is not kept and len(bounded.query_snapshot()) == len(full)
 
 
 def test_segment_lookup_pages_in_the_tiles_of_the_asked_points() -> None:
