@@ -1346,10 +1346,13 @@ class _StoredMap:
             self._page_in(sorted(self._store.select(self.tile_voxels * cfg.voxel_size_m, box)))
         self._page_in_keys(voxel_keys(obs.xyz, self.config.voxel_size_m)[0])
 
-    def paged_geometry(self, region: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """(xyz (n, 3) float32, keys (n,) int64) of the paged voxels in the tiles that intersect
-        ``region`` (a world box), read without paging them in: with :meth:`geometry`, what a worker
-        that projects the map into a view needs (the evicted views record paged voxels too)."""
+    def paged_geometry(
+        self, region: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(xyz (n, 3) float32, keys (n,) int64) of the paged voxels (those in the tiles that
+        intersect ``region``, a world box, when given), read without paging them in: with
+        :meth:`geometry`, what a worker that projects the whole map into a view needs (the evicted
+        views record paged voxels too)."""
         with self._lock:
             if not self._store.info:
                 return np.zeros((0, 3), np.float32), np.zeros(0, np.int64)

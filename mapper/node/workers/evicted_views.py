@@ -147,15 +147,10 @@ class EvictedViews:
         from mapper.model.baselines import OVView, view_samples  # torch-heavy; imported when first used
 
         map_xyz, map_keys = gmap.geometry()  # points and keys only: no copy of the map's features
-        if gmap.paged_points and keyframe.ov is not None:  # paged voxels in its frustum (read, not paged in)
-            from mapper.map.carving import frustum_box
-
-            box = frustum_box(keyframe.K, keyframe.world_from_cam, keyframe.width, keyframe.height,
-                              gmap.config.max_depth_m)
-            paged_xyz, paged_keys = gmap.paged_geometry(box)
-            if paged_keys.size:
-                map_xyz = np.concatenate([map_xyz, paged_xyz])
-                map_keys = np.concatenate([map_keys, paged_keys])
+        if gmap.paged_points and keyframe.ov is not None:  # paged voxels too (read, not paged in)
+            paged_xyz, paged_keys = gmap.paged_geometry()
+            map_xyz = np.concatenate([map_xyz, paged_xyz])
+            map_keys = np.concatenate([map_keys, paged_keys])
         if map_xyz.shape[0] == 0 or keyframe.ov is None:
             return
         view = OVView(keyframe.ov, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
