@@ -1020,6 +1020,17 @@ def _mixed_features(unit: np.ndarray, fused: np.ndarray, fresh: np.ndarray) -> n
     return mixed.astype(np.float16)
 
 
+def _learn_rows(arrays: dict[str, np.ndarray], rows: np.ndarray, unit: np.ndarray) -> None:
+    """Give ``rows`` of the per-voxel ``arrays`` (``feat``, ``feat_norm``, ``feat_weight``,
+    ``weight``, ``learned``) the learned unit features ``unit`` (n, D) float32 by the rule of
+    :meth:`GlobalSemanticMap.set_features`, in place (``unit`` is overwritten)."""
+    fresh = arrays["feat_weight"][rows] <= 0
+    arrays["feat"][rows] = _mixed_features(unit, arrays["feat"][rows], fresh)
+    arrays["feat_norm"][rows[fresh]] = 1.0
+    arrays["feat_weight"][rows[fresh]] = np.maximum(arrays["weight"][rows[fresh]], 1e-6)
+    arrays["learned"][rows] = 1
+
+
 def _prune_keep(
     weight: np.ndarray, last_seen_kf: np.ndarray, kf_counter: int, config: GlobalMapConfig, limit: int = 0
 ) -> np.ndarray:
@@ -1098,6 +1109,7 @@ class _StoredMap:
     config: GlobalMapConfig
     evicted: EvictedViewStore
     points_pruned: int
+    points_learned: int
     keyframes_integrated: int
     points_paged_out: int
     points_paged_in: int
@@ -1123,6 +1135,7 @@ class _StoredMap:
         def _reset(self, dim: int | None) -> None: ...
         def _grow(self, need: int) -> None: ...
         def _compact(self, keep: np.ndarray) -> None: ...
+        def _set_dim(self, dim: int) -> None: ...
         def _snapshot_locked(self) -> GlobalMapSnapshot: ...
 
     # -- persistence -------------------------------------------------------------------------
@@ -1358,6 +1371,42 @@ class _StoredMap:
                 return np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
             tiles = self._store.select(self.tile_voxels * self.config.voxel_size_m, region)
             return self._store.read_geometry(tiles)
+
+    def _paged_lookup(
+        self, keys: np.ndarray
+    ) -> tuple[dict[str, np.ndarray], list[int], np.ndarray, np.ndarray]:
+        """The paged tiles voxel ``keys`` (U,) fall in, read: (their arrays, the tiles, each key's
+        row in those arrays, a (U,) bool mask of the keys found) (lock held)."""
+        tiles = [t for t in np.unique(tile_ids(keys, self.tile_voxels)).tolist() if t in self._store.info]
+        got = self._store.read(tiles, self._dim)
+        order = np.argsort(got["keys"], kind="stable")
+        _, rows, found = _lookup(got["keys"][order], order.astype(np.int64), keys)
+        return got, tiles, rows, found
+
+    def _paged_voxels(self, keys: np.ndarray, unlearned: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Of voxel ``keys`` (U,) not resident: (keys, xyz (n, 3) float32) of those paged (with
+        ``unlearned``, only those without a learned feature) (lock held)."""
+        got, _, rows, found = self._paged_lookup(keys)
+        if unlearned:
+            found &= got["learned"][rows] == 0
+        return keys[found], got["xyz"][rows[found]].copy()
+
+    def _set_paged_features(self, keys: np.ndarray, unit: np.ndarray) -> int:
+        """:meth:`set_features` for voxel ``keys`` (U,) not resident, with unit features (U, D):
+        those paged take them in the store (their tiles rewritten), without paging them in (lock
+        held). Returns how many were set."""
+        got, tiles, rows, found = self._paged_lookup(keys)
+        if self.config.learned_features_once:
+            found[found] = got["learned"][rows[found]] == 0
+        if not found.any():
+            return 0
+        self._set_dim(int(unit.shape[1]))
+        if "feat" not in got:  # the tiles were paged before the map had features
+            got = self._store.read(tiles, self._dim)
+        _learn_rows(got, rows[found], unit[found])
+        self._put_tiles(got)  # the same tiles, replaced
+        self.points_learned += int(np.count_nonzero(found))
+        return int(np.count_nonzero(found))
 
     def page_in_near(self, xyz: np.ndarray, radius_m: float) -> int:
         """Page in the paged tiles within ``radius_m`` of the points ``xyz`` (N, 3) (what a
@@ -1679,11 +1728,15 @@ class GlobalSemanticMap(_StoredMap):
         keys, ok = voxel_keys(obs.xyz, self.config.voxel_size_m)
         ukeys = np.unique(keys[ok])
         with self._lock:
-            self._page_in_keys(ukeys)
             rows, found = self._rows_of(ukeys)
-            if unlearned:
-                found &= self._learned[rows] == 0
-            return ukeys[found], self._xyz[rows[found]].copy()
+            keep = found & (self._learned[rows] == 0) if unlearned else found
+            out_keys, out_xyz = ukeys[keep], self._xyz[rows[keep]].copy()
+            if self._store.info and not found.all():  # paged ones too, read without paging them in
+                more_keys, more_xyz = self._paged_voxels(ukeys[~found], unlearned)
+                order = np.argsort(np.concatenate([out_keys, more_keys]), kind="stable")
+                out_keys = np.concatenate([out_keys, more_keys])[order]
+                out_xyz = np.concatenate([out_xyz, more_xyz])[order]
+            return out_keys, out_xyz
 
     def _rows_of(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows of ``keys`` (U,) and a (U,) bool mask of those in the map (lock held)."""
@@ -1701,7 +1754,7 @@ class GlobalSemanticMap(_StoredMap):
         the fused average: docs/concepts/window-and-map.md), and keeps its norm and feature weight, so later
         observations still fuse as a running weighted mean; a voxel without one takes the
         feature's direction with norm 1 and its geometric confidence as feature weight. Voxels
-        paged out since are paged in; voxels pruned since are skipped, and with
+        paged out since are set in the tile store; voxels pruned since are skipped, and with
         ``global_map.learned_features_once`` (default) voxels given a learned feature before.
         Returns the number of voxels set. Raises ``ValueError`` (nothing changed) on a shape or
         dimension mismatch."""
@@ -1715,25 +1768,25 @@ class GlobalSemanticMap(_StoredMap):
         with self._lock:
             if self._dim is not None and dims["D"] != self._dim:
                 raise ValueError(f"features have dimension {dims['D']}, the global map's {self._dim}")
-            self._page_in_keys(keys[good])  # paged out since seen_voxels: back, as never paged
             rows, found = self._rows_of(keys)
+            away = good & ~found  # paged ones are set in the store, without paging them in
+            paged = self._set_paged_features(keys[away], feats[away] / norm[away, None]) if away.any() else 0
             keep = found & good
             if self.config.learned_features_once:
                 keep[keep] = self._learned[rows[keep]] == 0
             if not keep.any():
-                return 0
+                self._version += paged > 0
+                return paged
             self._set_dim(int(dims["D"]))
             assert self._feat is not None
             rows = rows[keep]
-            fresh = self._feat_weight[rows] <= 0
-            self._feat[rows] = _mixed_features(feats[keep] / norm[keep, None], self._feat[rows], fresh)
+            mine = {"feat": self._feat, "feat_norm": self._feat_norm, "feat_weight": self._feat_weight,
+                    "weight": self._weight, "learned": self._learned}
+            _learn_rows(mine, rows, feats[keep] / norm[keep, None])
             self._feat_stamp[rows] = self._version + 1
-            self._feat_norm[rows[fresh]] = 1.0
-            self._feat_weight[rows[fresh]] = np.maximum(self._weight[rows[fresh]], 1e-6)
-            self._learned[rows] = 1
             self.points_learned += int(rows.shape[0])
             self._version += 1
-            return int(rows.shape[0])
+            return int(rows.shape[0]) + paged
 
     def _fuse_features(self, obs: Observations) -> tuple[int, int]:
         """Fuse the features of ``obs`` into the voxels that exist (lock held); the same sums as

@@ -228,14 +228,19 @@ def test_bad_paging_settings_are_refused(setting: dict[str, object], fragment: s
         config_from_dict({"global_map": setting})
 
 
-def test_learned_features_reach_voxels_paged_out_since_they_were_seen() -> None:
+def test_learned_features_reach_paged_voxels_without_paging_them_in() -> None:
     full, bounded = GlobalSemanticMap(_cfg()), GlobalSemanticMap(_cfg(max_points=1000))
+    first = make_kf(plane_depth(2.0), ov=_ov(1), stamp_ns=1)
+    seen = []
     for gmap in (full, bounded):
-        first = make_kf(plane_depth(2.0), ov=_ov(1), stamp_ns=1)
         gmap.integrate(first)
-        keys, _ = gmap.seen_voxels(first)
         gmap.integrate(make_kf(plane_depth(1.0), world_from_cam=ROOM_B, ov=_ov(3), stamp_ns=3))
+        keys, xyz = gmap.seen_voxels(first, unlearned=True)  # paged ones too, read
+        seen.append((keys, xyz))
         feats = np.random.default_rng(7).normal(size=(keys.shape[0], 8)).astype(np.float32)
         assert gmap.set_features(keys, feats) == keys.shape[0] == 768
-    assert bounded.points_paged_in > 0
+    assert bounded.points_paged_in == 0 and bounded.paged_points == 768  # set in the store
+    np.testing.assert_array_equal(seen[0][0], seen[1][0])
+    np.testing.assert_array_equal(seen[0][1], seen[1][1])
     _assert_same_voxels(bounded, full)
+    assert bounded.set_features(keys, feats) == full.set_features(keys, feats) == 0  # once
