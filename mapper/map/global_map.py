@@ -27,9 +27,12 @@ frames without ``ov`` add geometry only (points without a feature); when the nod
 in-process OV backend (:mod:`mapper.node.workers.ov_features`) their features arrive later through
 :meth:`GlobalSemanticMap.integrate_features`, which fuses features into the voxels the keyframe's
 points fell in without adding geometry weight a second time. Points are kept when their
-keyframe leaves the window. Memory is bounded by ``max_points``: beyond it the voxels with the
-lowest priority ``weight * 0.5 ** (keyframes since last seen / stale_half_life_keyframes)`` are
-dropped until ``prune_to_fraction * max_points`` remain (rarely seen, long unseen voxels go first).
+keyframe leaves the window. Memory is bounded by ``max_points``: beyond it whole tiles of the map
+(``tile_m``), least recently observed first, are paged out to the map's tile store
+(:mod:`mapper.map.tile_store`) until ``prune_to_fraction * max_points`` remain, and come back when
+needed (:class:`_StoredMap`); with ``paging`` off the voxels with the lowest priority ``weight *
+0.5 ** (keyframes since last seen / stale_half_life_keyframes)`` are dropped instead (rarely seen,
+long unseen voxels go first).
 With ``carve`` (default), a keyframe with input depth first lowers the confidence of the voxels it
 sees through and removes those whose evidence is gone (:mod:`mapper.map.carving`), so what moved
 away leaves the map.
@@ -1102,7 +1105,10 @@ class _StoredMap:
     moves are the map's). Beyond ``max_points`` resident voxels the least recently observed tiles
     go to the map's :class:`mapper.map.tile_store.TileStore` and come back when an observation
     touches them (:meth:`_page_in_keys`), when ``segment_points`` asks about points in them
-    (:meth:`page_in_near`); ``query_points`` reads those that may match (:meth:`query_snapshot`).
+    (:meth:`page_in_near`); ``query_points`` reads those that may match (:meth:`query_snapshot`),
+    the evicted-view worker their positions (:meth:`paged_geometry`), and the learned features of a
+    keyframe leaving the window are read and written in the store (:meth:`_paged_voxels`,
+    :meth:`_set_paged_features`).
     Paging out is a prune whose rows can come back: it moves rows (``feat_reset``), keeps the voxel
     keys, so the evicted views kept per key (:mod:`mapper.map.evicted_views`) re-attach on page-in."""
 
