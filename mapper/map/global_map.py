@@ -1189,6 +1189,7 @@ class _StoredMap:
         got, keys, rows, dim = saved.fields, saved.keys, saved.rows, saved.dim
         with self._lock:
             self._store.clear()
+            self._joined = None
             self._reset(dim)
             m = rows.shape[0]
             self._grow(m)
@@ -1218,6 +1219,7 @@ class _StoredMap:
         """Drop every point, paged ones too (the feature dimension is forgotten too)."""
         with self._lock:
             self._store.clear()
+            self._joined = None
             self._reset(None)
             self.evicted = EvictedViewStore()
             if map_version is not None:
@@ -1401,14 +1403,14 @@ class _StoredMap:
         """:meth:`set_features` for voxel ``keys`` (U,) not resident, with unit features (U, D):
         those paged take them in the store (their tiles rewritten), without paging them in (lock
         held). Returns how many were set."""
-        got, tiles, rows, found = self._paged_lookup(keys)
+        got, _, rows, found = self._paged_lookup(keys)
         if self.config.learned_features_once:
             found[found] = got["learned"][rows[found]] == 0
         if not found.any():
             return 0
         self._set_dim(int(unit.shape[1]))
-        if "feat" not in got:  # the tiles were paged before the map had features
-            got = self._store.read(tiles, self._dim)
+        if "feat" not in got:  # the map had no features when these tiles were read: none had any
+            got["feat"] = np.zeros((got["keys"].shape[0], unit.shape[1]), np.float16)
         _learn_rows(got, rows[found], unit[found])
         self._put_tiles(got)  # the same tiles, replaced
         self.points_learned += int(np.count_nonzero(found))

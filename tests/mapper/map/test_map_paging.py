@@ -244,3 +244,17 @@ def test_learned_features_reach_paged_voxels_without_paging_them_in() -> None:
     np.testing.assert_array_equal(seen[0][1], seen[1][1])
     _assert_same_voxels(bounded, full)
     assert bounded.set_features(keys, feats) == full.set_features(keys, feats) == 0  # once
+
+
+def test_learned_features_reach_paged_voxels_of_a_map_without_features() -> None:
+    full, bounded = GlobalSemanticMap(_cfg()), GlobalSemanticMap(_cfg(max_points=1000))
+    first = make_kf(plane_depth(2.0), stamp_ns=1)  # geometry only: the map has no feature dimension
+    for gmap in (full, bounded):
+        gmap.integrate(first)
+        gmap.integrate(make_kf(plane_depth(1.0), world_from_cam=ROOM_B, stamp_ns=3))
+        keys, _ = gmap.seen_voxels(first)
+        assert gmap.dim is None and keys.shape[0] == 768
+        feats = np.random.default_rng(3).normal(size=(keys.shape[0], 8)).astype(np.float32)
+        assert gmap.set_features(keys, feats) == 768 and gmap.dim == 8
+    assert bounded.paged_points == 768
+    _assert_same_voxels(bounded, full)
