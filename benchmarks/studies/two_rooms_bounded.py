@@ -119,6 +119,8 @@ def ask(client: Any, room: Room, methods: list[str]) -> dict[str, Any]:
         times.append(pts.timing_ms.get("total", 0.0))
     out["whole_map_query_points_scored_mean"] = round(float(np.mean(scored)), 1)
     out["whole_map_query_ms_p50"] = round(float(np.median(times)), 1)
+    out["whole_map_matches"] = sum(int(client.query_points([text], objects=False, max_points=200_000,
+                                                           timeout_s=600.0).xyz.shape[0]) for text in present)
     return out
 
 

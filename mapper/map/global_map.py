@@ -140,6 +140,12 @@ class GlobalMapConfig:
     ``query_points`` reads only the paged tiles whose summary says a voxel may match (exact: the
     skipped ones cannot). 1..256."""
 
+    tile_skip: str = "exact"
+    """Which paged tiles a ``query_points`` skips: "exact" (default): those whose summary proves no
+    voxel can match (the answer is that of the whole map); "centroids": also those none of whose
+    centroids would match as a point (approximate: a match among a centroid's voxels can be
+    missed; measured in docs/concepts/window-and-map.md)."""
+
     max_disk_points: int = 0
     """Most voxels in the tile store; beyond it the paged voxels with the lowest priority (as
     without ``paging``) are dropped down to ``prune_to_fraction`` of it and counted in
@@ -339,6 +345,9 @@ class GlobalMapConfig:
         _check_range(where, "global_map.tile_m", self.tile_m, self.voxel_size_m, 1000.0)
         _check_range(where, "global_map.tile_summary_k", self.tile_summary_k, 1, 256)
         _check_range(where, "global_map.max_disk_points", self.max_disk_points, 0, 10_000_000_000)
+        if self.tile_skip not in ("exact", "centroids"):
+            raise ConfigError(
+                f"{where}: global_map.tile_skip = {self.tile_skip!r}; allowed: exact, centroids")
         if not isinstance(self.paging, bool):
             raise ConfigError(f"{where}: global_map.paging = {self.paging!r} must be true or false")
         _check_range(where, "global_map.min_depth_m", self.min_depth_m, 0.0, 1e3)

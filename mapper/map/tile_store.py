@@ -51,6 +51,7 @@ __all__ = [
     "SCALAR_FIELDS",
     "TileInfo",
     "TileStore",
+    "centroids_may_match",
     "cone_may_match",
     "key_indices",
     "tile_ids",
@@ -151,6 +152,28 @@ def cone_may_match(
     may = upper + _MATCH_EPS > floor[:, None]
     if min_score is not None:
         may &= upper + _MATCH_EPS >= min_score
+    return bool(may.any())
+
+
+def centroids_may_match(
+    centroids: np.ndarray,  # (k, D) float32 unit centroids of a tile (tile_summary)
+    text_emb: np.ndarray,  # (T, D) float32 the query's texts
+    neg_emb: np.ndarray,  # (Q, D) float32 its negatives
+    min_score: float | None,
+) -> bool:
+    """Whether a centroid of the tile, scored as a map point, would match (its best text's cosine
+    beats every negative and ``min_score``): an approximate test (a match among the voxels around a
+    centroid that does not match is missed). False wherever :func:`cone_may_match` is (a centroid
+    lies in its own cone)."""
+    if centroids.shape[0] == 0:
+        return False
+    cent = centroids.astype(np.float64)
+    best = (cent @ np.asarray(text_emb, np.float64).T).max(axis=1)
+    may = np.ones(cent.shape[0], bool)
+    if neg_emb.shape[0]:
+        may &= best > (cent @ np.asarray(neg_emb, np.float64).T).max(axis=1)
+    if min_score is not None:
+        may &= best >= min_score
     return bool(may.any())
 
 

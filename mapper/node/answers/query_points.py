@@ -39,12 +39,13 @@ def _region(msg: QueryPoints) -> tuple[np.ndarray, np.ndarray] | None:
     return np.asarray(msg.region_min, np.float64), np.asarray(msg.region_max, np.float64)
 
 
-def _tile_filter(encoder: Any, msg: QueryPoints) -> Callable[[TileInfo], bool]:
-    """Whether a paged tile may hold a match of ``msg`` (:func:`mapper.map.tile_store.cone_may_match`
-    on its feature summary). The negatives are those :func:`mapper.node.queries.query_points`
-    uses, or fewer where it falls back to the default set (fewer negatives only let more tiles
-    through), so a skipped tile holds no match."""
-    from mapper.map.tile_store import cone_may_match
+def _tile_filter(encoder: Any, msg: QueryPoints, rule: str = "exact") -> Callable[[TileInfo], bool]:
+    """Whether a paged tile may hold a match of ``msg`` (``global_map.tile_skip``: "exact":
+    :func:`mapper.map.tile_store.cone_may_match` on its feature summary; "centroids":
+    :func:`mapper.map.tile_store.centroids_may_match`, approximate). The negatives are those
+    :func:`mapper.node.queries.query_points` uses, or fewer where it falls back to the default set
+    (fewer negatives only let more tiles through), so with "exact" a skipped tile holds no match."""
+    from mapper.map.tile_store import centroids_may_match, cone_may_match
     from mapper.node.queries import DEFAULT_NEGATIVES, NEGATIVE_DROP_SIMILARITY, normalise_query
 
     text_emb = np.asarray(encoder.encode([normalise_query(t) for t in msg.texts]), np.float32)
@@ -56,6 +57,8 @@ def _tile_filter(encoder: Any, msg: QueryPoints) -> Callable[[TileInfo], bool]:
     def may_match(info: TileInfo) -> bool:
         if info.centroids.shape[1] != text_emb.shape[1]:
             return info.centroids.shape[0] > 0  # the query reports the mismatch
+        if rule == "centroids":
+            return centroids_may_match(info.centroids, text_emb, neg_emb, msg.min_score)
         return cone_may_match(info.centroids, info.least_cos, text_emb, neg_emb, msg.min_score)
 
     return may_match
@@ -157,8 +160,11 @@ class QueryPointsAnswers:
         taken = time.monotonic()
         gmap = self.ctx.state.global_map
         # paged tiles that may match (exact: the others cannot) are read for the query, not paged in
-        snapshot = gmap.query_snapshot(_region(msg), _tile_filter(encoder, msg)) if gmap.paged_points \
-            else gmap.snapshot()
+        if gmap.paged_points:
+            rule = self.ctx.config.global_map.tile_skip
+            snapshot = gmap.query_snapshot(_region(msg), _tile_filter(encoder, msg, rule))
+        else:
+            snapshot = gmap.snapshot()
         answer = query_points(
             snapshot,
             encoder,

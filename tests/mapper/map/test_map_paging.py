@@ -12,7 +12,14 @@ import pytest
 
 from mapper.errors import ConfigError
 from mapper.map.global_map import GlobalSemanticMap
-from mapper.map.tile_store import SCALAR_FIELDS, TileStore, cone_may_match, tile_ids, tile_summary
+from mapper.map.tile_store import (
+    SCALAR_FIELDS,
+    TileStore,
+    centroids_may_match,
+    cone_may_match,
+    tile_ids,
+    tile_summary,
+)
 from mapper.node.config import GlobalMapConfig, config_from_dict
 from tests.mapper.map.test_global_map import make_kf, plane_depth
 
@@ -212,6 +219,8 @@ def test_cone_summary_skips_only_tiles_that_cannot_match() -> None:
         may = cone_may_match(cent, least, text.astype(np.float32), neg.astype(np.float32), min_score)
         assert may or not match.any()  # never skips a tile that holds a match
         skipped += not may
+        approximate = centroids_may_match(cent, text.astype(np.float32), neg.astype(np.float32), min_score)
+        assert may or not approximate  # skips at least what the exact test skips
     assert skipped > 10  # and does skip tiles
 
 
@@ -221,6 +230,7 @@ def test_cone_summary_skips_only_tiles_that_cannot_match() -> None:
         ({"tile_m": 0.01}, "global_map.tile_m"),
         ({"tile_summary_k": 0}, "global_map.tile_summary_k"),
         ({"max_disk_points": -1}, "global_map.max_disk_points"),
+        ({"tile_skip": "some"}, "global_map.tile_skip"),
     ],
 )
 def test_bad_paging_settings_are_refused(setting: dict[str, object], fragment: str) -> None:

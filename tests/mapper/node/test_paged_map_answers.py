@@ -112,3 +112,14 @@ def test_a_saved_bounded_map_holds_its_paged_tiles(tmp_path: Path) -> None:
     assert reloaded["global_points_paged"] > 0
     assert reloaded["global_points"] + reloaded["global_points_paged"] == reloaded["global_points_total"]
     assert list((tmp_path / "maps" / ".tiles").glob("*.sqlite3"))  # in the map directory
+
+
+def test_approximate_tile_skipping_answers_a_subset(tmp_path: Path) -> None:
+    full = _node(tmp_path / "a")
+    rough = _node(tmp_path / "b", **BOUNDED, tile_skip="centroids")
+    assert _status(rough)["global_points_paged"] > 0
+    for text in ("dark", "light"):
+        want = _ask(full, QueryPoints(texts=[text], objects=False, max_points=100_000))
+        got = _ask(rough, QueryPoints(texts=[text], objects=False, max_points=100_000))
+        assert isinstance(got, Points) and 0 < got.xyz.shape[0] <= want.xyz.shape[0]
+        assert {tuple(p) for p in got.xyz.tolist()} <= {tuple(p) for p in want.xyz.tolist()}
