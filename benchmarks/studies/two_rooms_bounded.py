@@ -156,6 +156,43 @@ def run(mode: str, room_a: Room, room_b: Room, max_points: int, methods: list[st
     return out
 
 
+def compare_skips(room_a: Room, room_b: Room, max_points: int) -> dict[str, Any]:
+    """``global_map.tile_skip`` "exact" against "centroids" on the same map: two in-process nodes
+    (no learned model, background work done in line, so both maps are equal) fed both rooms, then
+    a whole-map ``query_points`` per class present: matches, points scored, time."""
+    from protocol.messages import QueryPoints, decode, encode
+    from tests.node_helpers import in_process_node
+
+    texts = [CLASS_NAMES[c] for c in np.unique(np.concatenate([room_a.gt_label, room_b.gt_label]))]
+    out: dict[str, Any] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for rule in ("exact", "centroids"):
+            settings = {"integrate_queue": 0, "max_points": max_points, "tile_skip": rule}
+            node = in_process_node(Path(tmp) / rule, global_map=settings)
+            for frame in (*room_a.frames, *room_b.frames):
+                node.handle_ingest(encode(frame))
+                if node.ctx.evicted_views is not None:
+                    node.ctx.evicted_views.process_pending()
+            answers, scored, times = [], [], []
+            for text in texts:
+                started = time.perf_counter()
+                reply = decode(node.handle_query(encode(QueryPoints(texts=[text], objects=False,
+                                                                    max_points=200_000))), direction="reply")
+                times.append(1e3 * (time.perf_counter() - started))
+                answers.append({tuple(p) for p in reply.xyz.tolist()})
+                scored.append(reply.timing_ms["map_points"])
+            total = node.ctx.state.global_map.total_points
+            out[rule] = {"answers": answers, "scored_share": round(float(np.mean(scored)) / total, 4),
+                         "ms_p50": round(float(np.median(times)), 1)}
+    exact, rough = out["exact"], out["centroids"]
+    pairs = list(zip(exact["answers"], rough["answers"], strict=True))
+    return {"texts": len(texts), "matches_exact": sum(len(a) for a, _ in pairs),
+            "matches_centroids": sum(len(b) for _, b in pairs),
+            "matches_kept": sum(len(a & b) for a, b in pairs),
+            "extra_in_centroids": sum(len(b - a) for a, b in pairs),
+            **{f"{rule}_{k}": v for rule in out for k, v in out[rule].items() if k != "answers"}}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", default="1,2", help="room A's and room B's seeds")
@@ -164,6 +201,8 @@ def main() -> None:
     parser.add_argument("--modes", default="unbounded,paging,prune",
                         help="unbounded (the shipped max_points), paging, prune (global_map.paging=false)")
     parser.add_argument("--quick", action="store_true", help="60 frames per room, average only")
+    parser.add_argument("--compare-skips", action="store_true",
+                        help="only compare global_map.tile_skip exact and centroids on one map, in-process")
     parser.add_argument("--settle-s", type=float, default=600.0)
     parser.add_argument("--out", type=Path, default=None, help="write the results as JSON here")
     parser.add_argument("--work", type=Path, default=None, help="keep the nodes' map dirs and logs here")
@@ -176,6 +215,9 @@ def main() -> None:
     frames = 60 if args.quick else args.frames
     methods = ["average"] if args.quick else ["average", "govnesf"]
     room_a, room_b = prepare(seeds[0], frames, 0.0), prepare(seeds[1], frames, OFFSET_M)
+    if args.compare_skips:
+        print(json.dumps(compare_skips(room_a, room_b, args.max_points), indent=1))
+        return
     results = []
     modes = args.modes.split(",")
     if not set(modes) <= {"unbounded", "paging", "prune"}:
