@@ -160,7 +160,7 @@ def compare_skips(room_a: Room, room_b: Room, max_points: int) -> dict[str, Any]
     """``global_map.tile_skip`` "exact" against "centroids" on the same map: two in-process nodes
     (no learned model, background work done in line, so both maps are equal) fed both rooms, then
     a whole-map ``query_points`` per class present: matches, points scored, time."""
-    from protocol.messages import QueryPoints, decode, encode
+    from protocol.messages import Points, QueryPoints, decode, encode
     from tests.node_helpers import in_process_node
 
     texts = [CLASS_NAMES[c] for c in np.unique(np.concatenate([room_a.gt_label, room_b.gt_label]))]
@@ -178,6 +178,7 @@ def compare_skips(room_a: Room, room_b: Room, max_points: int) -> dict[str, Any]
                 started = time.perf_counter()
                 reply = decode(node.handle_query(encode(QueryPoints(texts=[text], objects=False,
                                                                     max_points=200_000))), direction="reply")
+                assert isinstance(reply, Points), reply
                 times.append(1e3 * (time.perf_counter() - started))
                 answers.append({tuple(p) for p in reply.xyz.tolist()})
                 scored.append(reply.timing_ms["map_points"])
