@@ -129,7 +129,7 @@ class GlobalMapConfig:
     paging: bool = True
     """Beyond ``max_points``, page the least recently observed tiles out to the tile store (nothing
     is forgotten). Off: prune the lowest-priority voxels (the map forgets; two rooms 12 m apart with
-    ``max_points`` far below both: docs/concepts/window-and-map.md)."""
+    ``max_points`` far below both: docs/concepts/map-paging.md)."""
 
     tile_m: float = 4.0
     """Edge of a paging tile (metres; rounded to whole voxels): what pages out and in together.
@@ -144,7 +144,7 @@ class GlobalMapConfig:
     """Which paged tiles a ``query_points`` skips: "exact" (default): those whose summary proves no
     voxel can match (the answer is that of the whole map); "centroids": also those none of whose
     centroids would match as a point (approximate: a match among a centroid's voxels can be
-    missed; measured in docs/concepts/window-and-map.md)."""
+    missed; measured in docs/concepts/map-paging.md)."""
 
     max_disk_points: int = 0
     """Most voxels in the tile store; beyond it the paged voxels with the lowest priority (as

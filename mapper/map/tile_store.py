@@ -14,7 +14,7 @@ Every write is one transaction; the file is opened in WAL mode (readers in other
 last committed state while this process writes). The file is the node's scratch space: a saved map
 (``save``) holds the paged tiles too, and the file is deleted with its map.
 
-Why SQLite (zarr, LanceDB and LMDB compared in docs/concepts/window-and-map.md): it is in Python's
+Why SQLite (zarr, LanceDB and LMDB compared in docs/concepts/map-paging.md): it is in Python's
 standard library (no new dependency), transactional, one writer with several reader processes in
 WAL mode, and a tile is one row looked up by its integer key.
 
