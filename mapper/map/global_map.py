@@ -27,9 +27,12 @@ frames without ``ov`` add geometry only (points without a feature); when the nod
 in-process OV backend (:mod:`mapper.node.workers.ov_features`) their features arrive later through
 :meth:`GlobalSemanticMap.integrate_features`, which fuses features into the voxels the keyframe's
 points fell in without adding geometry weight a second time. Points are kept when their
-keyframe leaves the window. Memory is bounded by ``max_points``: beyond it the voxels with the
-lowest priority ``weight * 0.5 ** (keyframes since last seen / stale_half_life_keyframes)`` are
-dropped until ``prune_to_fraction * max_points`` remain (rarely seen, long unseen voxels go first).
+keyframe leaves the window. Memory is bounded by ``max_points``: beyond it whole tiles of the map
+(``tile_m``), least recently observed first, are paged out to the map's tile store
+(:mod:`mapper.map.tile_store`) until ``prune_to_fraction * max_points`` remain, and come back when
+needed (:class:`_StoredMap`); with ``paging`` off the voxels with the lowest priority ``weight *
+0.5 ** (keyframes since last seen / stale_half_life_keyframes)`` are dropped instead (rarely seen,
+long unseen voxels go first).
 With ``carve`` (default), a keyframe with input depth first lowers the confidence of the voxels it
 sees through and removes those whose evidence is gone (:mod:`mapper.map.carving`), so what moved
 away leaves the map.
@@ -59,14 +62,18 @@ from __future__ import annotations
 import hashlib
 import itertools
 import logging
+import os
 import sys
+import tempfile
 import threading
 import time
 import warnings
+import weakref
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -75,9 +82,10 @@ from scipy.spatial import cKDTree
 from mapper.checks import check_range as _check_range
 from mapper.checks import check_shape
 from mapper.errors import ConfigError
-from mapper.map.carving import carve
+from mapper.map.carving import carve, changed_region
 from mapper.map.evicted_views import EvictedViewStore
-from mapper.map.voxels import voxel_keys
+from mapper.map.tile_store import TileInfo, TileStore, key_indices, tile_ids, tile_summary
+from mapper.map.voxels import KEY_OFFSET, pack_indices, voxel_keys
 
 log = logging.getLogger("mapper.map.global_map")
 
@@ -105,14 +113,43 @@ class GlobalMapConfig:
     """Back-project every ``pixel_stride``-th pixel of each keyframe's depth (both axes). 1..64."""
 
     max_points: int = 250_000
-    """Most voxels kept; beyond this the lowest-priority voxels are dropped (confidence halved per
-    ``stale_half_life_keyframes`` keyframes since last seen) down to ``prune_to_fraction``. 1..1e8."""
+    """Most voxels kept in memory. Beyond this, with ``paging`` (default), the least recently
+    observed tiles (``tile_m``) are written to the map directory's tile store and dropped from
+    memory until ``prune_to_fraction`` of it remain (they come back when needed:
+    :mod:`mapper.map.tile_store`); without it the lowest-priority voxels are dropped (confidence
+    halved per ``stale_half_life_keyframes`` keyframes since last seen). 1..1e8."""
 
     prune_to_fraction: float = 0.9
-    """After a prune, keep this fraction of ``max_points`` (hysteresis: not every frame prunes). 0.1..1."""
+    """After a page-out or prune, keep this fraction of ``max_points`` (hysteresis: not every frame
+    pages). 0.1..1."""
 
     stale_half_life_keyframes: float = 200.0
     """Keyframes after which an unseen voxel's pruning priority halves. > 0."""
+
+    paging: bool = True
+    """Beyond ``max_points``, page the least recently observed tiles out to the tile store (nothing
+    is forgotten). Off: prune the lowest-priority voxels (the map forgets; two rooms 12 m apart with
+    ``max_points`` far below both: docs/concepts/map-paging.md)."""
+
+    tile_m: float = 4.0
+    """Edge of a paging tile (metres; rounded to whole voxels): what pages out and in together.
+    ``voxel_size_m``..1000."""
+
+    tile_summary_k: int = 8
+    """Feature centroids kept per paged tile (:func:`mapper.map.tile_store.tile_summary`): a
+    ``query_points`` reads only the paged tiles whose summary says a voxel may match (exact: the
+    skipped ones cannot). 1..256."""
+
+    tile_skip: str = "exact"
+    """Which paged tiles a ``query_points`` skips: "exact" (default): those whose summary proves no
+    voxel can match (the answer is that of the whole map); "centroids": also those none of whose
+    centroids would match as a point (approximate: a match among a centroid's voxels can be
+    missed; measured in docs/concepts/map-paging.md)."""
+
+    max_disk_points: int = 0
+    """Most voxels in the tile store; beyond it the paged voxels with the lowest priority (as
+    without ``paging``) are dropped down to ``prune_to_fraction`` of it and counted in
+    ``global_points_pruned``. 0 = unlimited. 0..1e10."""
 
     min_depth_m: float = 0.1
     """Depths below this (metres) are ignored (sensor minimum range). >= 0."""
@@ -305,6 +342,14 @@ class GlobalMapConfig:
         _check_range(where, "global_map.max_points", self.max_points, 1, 100_000_000)
         _check_range(where, "global_map.prune_to_fraction", self.prune_to_fraction, 0.1, 1.0)
         _check_range(where, "global_map.stale_half_life_keyframes", self.stale_half_life_keyframes, 1e-3, 1e9)
+        _check_range(where, "global_map.tile_m", self.tile_m, self.voxel_size_m, 1000.0)
+        _check_range(where, "global_map.tile_summary_k", self.tile_summary_k, 1, 256)
+        _check_range(where, "global_map.max_disk_points", self.max_disk_points, 0, 10_000_000_000)
+        if self.tile_skip not in ("exact", "centroids"):
+            raise ConfigError(
+                f"{where}: global_map.tile_skip = {self.tile_skip!r}; allowed: exact, centroids")
+        if not isinstance(self.paging, bool):
+            raise ConfigError(f"{where}: global_map.paging = {self.paging!r} must be true or false")
         _check_range(where, "global_map.min_depth_m", self.min_depth_m, 0.0, 1e3)
         _check_range(where, "global_map.max_depth_m", self.max_depth_m, 1e-3, 1e4)
         if self.max_depth_m <= self.min_depth_m:
@@ -987,12 +1032,24 @@ def _mixed_features(unit: np.ndarray, fused: np.ndarray, fresh: np.ndarray) -> n
     return mixed.astype(np.float16)
 
 
+def _learn_rows(arrays: dict[str, np.ndarray], rows: np.ndarray, unit: np.ndarray) -> None:
+    """Give ``rows`` of the per-voxel ``arrays`` (``feat``, ``feat_norm``, ``feat_weight``,
+    ``weight``, ``learned``) the learned unit features ``unit`` (n, D) float32 by the rule of
+    :meth:`GlobalSemanticMap.set_features`, in place (``unit`` is overwritten)."""
+    fresh = arrays["feat_weight"][rows] <= 0
+    arrays["feat"][rows] = _mixed_features(unit, arrays["feat"][rows], fresh)
+    arrays["feat_norm"][rows[fresh]] = 1.0
+    arrays["feat_weight"][rows[fresh]] = np.maximum(arrays["weight"][rows[fresh]], 1e-6)
+    arrays["learned"][rows] = 1
+
+
 def _prune_keep(
-    weight: np.ndarray, last_seen_kf: np.ndarray, kf_counter: int, config: GlobalMapConfig
+    weight: np.ndarray, last_seen_kf: np.ndarray, kf_counter: int, config: GlobalMapConfig, limit: int = 0
 ) -> np.ndarray:
-    """The rows (ascending) a prune keeps: the ``prune_to_fraction * max_points`` (at least 1) with
-    the highest priority ``weight * 0.5 ** (keyframes since last seen / stale_half_life_keyframes)``."""
-    keep_n = max(1, int(config.max_points * config.prune_to_fraction))
+    """The rows (ascending) a prune keeps: the ``prune_to_fraction * limit`` (``limit`` 0:
+    ``max_points``; at least 1) with the highest priority ``weight * 0.5 ** (keyframes since last
+    seen / stale_half_life_keyframes)``."""
+    keep_n = max(1, int((limit or config.max_points) * config.prune_to_fraction))
     age = (kf_counter - last_seen_kf).astype(np.float64)
     priority = weight * np.exp2(-age / config.stale_half_life_keyframes)
     return np.sort(np.argpartition(-priority, keep_n - 1)[:keep_n])
@@ -1044,11 +1101,423 @@ def _query_workers() -> int:
     return max(1, int(torch.get_num_threads())) if torch is not None else 1
 
 
-class GlobalSemanticMap:
+_PAGED_FIELDS = ("keys", "xyz", "weight", "feat_norm", "feat_weight", "hits", "last_seen_ns", "last_seen_kf",
+                 "learned")
+"""The per-voxel arrays a paged tile holds (:mod:`mapper.map.tile_store`), besides ``feat``."""
+
+_STORES = itertools.count(1)
+"""Tile store files of this process (one per map object)."""
+
+
+class _StoredMap:
+    """Saving, loading and paging of :class:`GlobalSemanticMap` (its persistence half; the rows it
+    moves are the map's). Beyond ``max_points`` resident voxels the least recently observed tiles
+    go to the map's :class:`mapper.map.tile_store.TileStore` and come back when an observation
+    touches them (:meth:`_page_in_keys`), when ``segment_points`` asks about points in them
+    (:meth:`page_in_near`); ``query_points`` reads those that may match (:meth:`query_snapshot`),
+    the evicted-view worker their positions (:meth:`paged_geometry`), and the learned features of a
+    keyframe leaving the window are read and written in the store (:meth:`_paged_voxels`,
+    :meth:`_set_paged_features`).
+    Paging out is a prune whose rows can come back: it moves rows (``feat_reset``), keeps the voxel
+    keys, so the evicted views kept per key (:mod:`mapper.map.evicted_views`) re-attach on page-in."""
+
+    config: GlobalMapConfig
+    evicted: EvictedViewStore
+    points_pruned: int
+    points_learned: int
+    keyframes_integrated: int
+    points_paged_out: int
+    points_paged_in: int
+    _lock: threading.Lock
+    _store: TileStore
+    _n: int
+    _dim: int | None
+    _version: int
+    _generation: int
+    _map_version: int
+    _kf_counter: int
+    _keys: np.ndarray
+    _feat: np.ndarray | None
+    _weight: np.ndarray
+    _last_seen_kf: np.ndarray
+    _learned: np.ndarray
+    _feat_stamp: np.ndarray
+    _sorted_keys: np.ndarray
+    _sorted_rows: np.ndarray
+    _joined: tuple[tuple[int, int, tuple[int, ...]], GlobalMapSnapshot] | None = None
+    """The latest :meth:`query_snapshot` with paged tiles: ((version, generation, tiles), snapshot)."""
+    if TYPE_CHECKING:
+        def _reset(self, dim: int | None) -> None: ...
+        def _grow(self, need: int) -> None: ...
+        def _compact(self, keep: np.ndarray) -> None: ...
+        def _set_dim(self, dim: int) -> None: ...
+        def _snapshot_locked(self) -> GlobalMapSnapshot: ...
+
+    # -- persistence -------------------------------------------------------------------------
+
+    def to_arrays(self, prefix: str = "global") -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """``({"global.<field>": array}, manifest section)`` for :class:`mapper.node.store.MapStore`
+        (plain numeric arrays, no pickle): every voxel, resident and paged. Taken under the lock: a
+        consistent copy."""
+        with self._lock:
+            rows = self._all_rows()
+            arrays = {f"{prefix}.{name}": rows[name] for name in _SAVED_AS_IS}
+            arrays[f"{prefix}.age_kf"] = (self._kf_counter - rows["last_seen_kf"]).astype(np.int64)
+            arrays[f"{prefix}.learned"] = rows["learned"]
+            if self._feat is not None:
+                arrays[f"{prefix}.feat"] = rows["feat"]
+            ev_arrays, ev_manifest = self.evicted.to_arrays(f"{prefix}.evicted")
+            arrays.update(ev_arrays)
+            manifest: dict[str, Any] = {
+                "evicted_views": ev_manifest,
+                "format": _FORMAT,
+                "points": int(rows["keys"].shape[0]),
+                "dim": self._dim,
+                "voxel_size_m": self.config.voxel_size_m,
+                "map_version": self._map_version,
+                "points_pruned": self.points_pruned,
+                "keyframes_integrated": self.keyframes_integrated,
+            }
+        return arrays, manifest
+
+    def _all_rows(self) -> dict[str, np.ndarray]:
+        """Copies of every voxel's arrays, the resident rows then the paged ones (lock held)."""
+        n = self._n
+        paged = self._store.read(list(self._store.info), self._dim)
+        names = _PAGED_FIELDS + (("feat",) if self._feat is not None else ())
+        return {name: np.concatenate([getattr(self, f"_{name}")[:n], paged[name]]) for name in names}
+
+    def restore(
+        self, arrays: dict[str, np.ndarray], manifest: object, map_version: int, prefix: str = "global"
+    ) -> None:
+        """Replace the content with a saved one (inverse of :meth:`to_arrays`). Checks every array
+        and raises ``ValueError`` naming the field; the map is unchanged on error. A map saved with
+        another voxel size is re-keyed (voxels that now coincide keep the most confident one).
+        Beyond ``max_points``, tiles page out as they would while mapping."""
+        saved = _read_saved(arrays, manifest, self.config.voxel_size_m, prefix)  # nothing changed yet
+        got, keys, rows, dim = saved.fields, saved.keys, saved.rows, saved.dim
+        with self._lock:
+            self._store.clear()
+            self._joined = None
+            self._reset(dim)
+            m = rows.shape[0]
+            self._grow(m)
+            self._n = m
+            self._keys[:m] = keys[rows]  # re-keyed for another voxel size
+            for name in _SAVED_AS_IS[1:]:
+                getattr(self, f"_{name}")[:m] = got[name][rows]
+            self._last_seen_kf[:m] = -got["age_kf"][rows]
+            self._learned[:m] = got["learned"][rows] != 0
+            if self._feat is not None:
+                self._feat[:m] = got["feat"][rows]
+            self._sorted_keys, self._sorted_rows = _sorted_index(self._keys[:m])
+            self.points_pruned = saved.points_pruned
+            self._map_version = map_version
+            self._version += 1
+            self._generation = next(_GENERATIONS)
+            self.evicted = saved.evicted
+            self._apply_bound()
+
+    def retag(self, map_version: int) -> None:
+        """Set the node map version that the current content corresponds to (e.g. after a load)."""
+        with self._lock:
+            self._map_version = map_version
+            self._version += 1
+
+    def clear(self, map_version: int | None = None) -> None:
+        """Drop every point, paged ones too (the feature dimension is forgotten too)."""
+        with self._lock:
+            self._store.clear()
+            self._joined = None
+            self._reset(None)
+            self.evicted = EvictedViewStore()
+            if map_version is not None:
+                self._map_version = map_version
+            self._version += 1
+            self._generation = next(_GENERATIONS)
+
+    # -- paging ------------------------------------------------------------------------------
+
+    @property
+    def tile_voxels(self) -> int:
+        """Edge of a paging tile in voxels (``tile_m`` rounded to whole voxels)."""
+        return max(1, int(round(self.config.tile_m / self.config.voxel_size_m)))
+
+    @property
+    def paged_points(self) -> int:
+        """Voxels in the tile store (not in memory)."""
+        return self._store.points
+
+    @property
+    def total_points(self) -> int:
+        """Every voxel of the map: resident and paged."""
+        return self._n + self._store.points
+
+    def all_keys(self) -> np.ndarray:
+        """(N,) int64 voxel keys of every voxel, resident and paged (e.g. to drop the evicted views
+        of voxels no longer in the map)."""
+        with self._lock:
+            return np.concatenate([self._keys[: self._n], self._store.keys()])
+
+    def _apply_bound(self) -> int:
+        """The ``max_points`` bound (lock held; the caller bumped the version): page tiles out
+        (``paging``) or prune. Returns the voxels pruned (forgotten)."""
+        if self._n <= self.config.max_points:
+            return 0
+        if not self.config.paging:
+            return self._prune_rows()
+        self._page_out()
+        return self._prune_store()
+
+    def _prune_rows(self) -> int:
+        """Drop the lowest-priority resident voxels (``paging`` off; lock held). Returns how many."""
+        n = self._n
+        keep = _prune_keep(self._weight[:n], self._last_seen_kf[:n], self._kf_counter, self.config)
+        self._compact(keep)
+        self.points_pruned += n - keep.shape[0]
+        log.debug("global map: dropped %d voxels (max_points %d)", n - keep.shape[0], self.config.max_points)
+        return n - int(keep.shape[0])
+
+    def _page_out(self) -> None:
+        """Move the least recently observed whole tiles to the store until ``prune_to_fraction *
+        max_points`` voxels remain; the tiles the latest keyframe observed stay (lock held)."""
+        cfg, n = self.config, self._n
+        self._joined = None  # memory is short: the kept query snapshot goes first
+        tiles = tile_ids(self._keys[:n], self.tile_voxels)
+        uniq, inverse = np.unique(tiles, return_inverse=True)
+        inverse = inverse.ravel()
+        counts = np.bincount(inverse, minlength=uniq.shape[0])
+        recent = np.full(uniq.shape[0], np.iinfo(np.int64).min, np.int64)
+        np.maximum.at(recent, inverse, self._last_seen_kf[:n])
+        order = np.lexsort((uniq, recent))
+        order = order[recent[order] < self._kf_counter]
+        excess = n - max(1, int(cfg.max_points * cfg.prune_to_fraction))
+        pick = order[: int(np.searchsorted(np.cumsum(counts[order]), excess)) + 1]
+        if pick.size == 0:
+            return
+        out = np.zeros(uniq.shape[0], bool)
+        out[pick] = True
+        rows = np.flatnonzero(out[inverse])
+        names = _PAGED_FIELDS + (("feat",) if self._feat is not None else ())
+        self._put_tiles({name: getattr(self, f"_{name}")[rows] for name in names})
+        self._compact(np.flatnonzero(~out[inverse]))
+        self.points_paged_out += int(rows.shape[0])
+
+    def _put_tiles(self, fields: dict[str, np.ndarray]) -> None:
+        """Write voxels (``_PAGED_FIELDS`` and ``feat``) to the store, one row per tile, each with
+        its feature summary (lock held)."""
+        tiles = tile_ids(fields["keys"], self.tile_voxels)
+        order = np.argsort(tiles, kind="stable")
+        groups = np.split(order, np.flatnonzero(np.diff(tiles[order])) + 1)
+        feat, k = fields.get("feat"), self.config.tile_summary_k
+        ids, parts, cents, least, index, last = [], [], [], [], [], []
+        for rows in groups:
+            part = {name: arr[rows] for name, arr in fields.items()}
+            unit = _unit_rows(part["feat"][part["feat_weight"] > 0]) if feat is not None else np.zeros((0, 0))
+            c, lc = tile_summary(unit, k)
+            ids.append(int(tiles[rows[0]]))
+            parts.append(part)
+            cents.append(c)
+            least.append(lc)
+            idx = np.floor_divide(key_indices(part["keys"][:1]), self.tile_voxels)[0]
+            index.append((int(idx[0]), int(idx[1]), int(idx[2])))
+            last.append(int(part["last_seen_kf"].max()))
+        self._store.put(ids, parts, cents, least, index, last)
+
+    def _prune_store(self) -> int:
+        """``max_disk_points``: beyond it drop the lowest-priority paged voxels (lock held). Returns
+        how many were dropped."""
+        cfg = self.config
+        if cfg.max_disk_points <= 0 or self._store.points <= cfg.max_disk_points:
+            return 0
+        got = self._store.take(list(self._store.info), self._dim)
+        total = int(got["keys"].shape[0])
+        keep = _prune_keep(got["weight"], got["last_seen_kf"], self._kf_counter, cfg, cfg.max_disk_points)
+        self._put_tiles({name: arr[keep] for name, arr in got.items()})
+        self.points_pruned += total - int(keep.shape[0])
+        return total - int(keep.shape[0])
+
+    def _page_in(self, tiles: list[int]) -> int:
+        """Bring paged ``tiles`` back into memory (lock held): appended rows, a new version.
+        Returns the voxels brought back."""
+        got = self._store.take(tiles, self._dim)
+        m = int(got["keys"].shape[0])
+        if m == 0:
+            return 0
+        self._version += 1
+        start = self._n
+        self._grow(start + m)
+        for name in _PAGED_FIELDS:
+            getattr(self, f"_{name}")[start: start + m] = got[name]
+        if self._feat is not None:
+            self._feat[start: start + m] = got["feat"]
+        self._feat_stamp[start: start + m] = self._version
+        self._n = start + m
+        self._sorted_keys, self._sorted_rows = _sorted_index(self._keys[: self._n])
+        self.points_paged_in += m
+        return m
+
+    def _page_in_keys(self, keys: np.ndarray) -> int:
+        """Page in the paged tiles that voxel ``keys`` fall in (lock held). Returns the voxels."""
+        if not self._store.info or keys.size == 0:
+            return 0
+        paged = [t for t in np.unique(tile_ids(keys, self.tile_voxels)).tolist() if t in self._store.info]
+        return self._page_in(paged) if paged else 0
+
+    def _page_in_observed(self, keyframe: KeyframeLike, obs: Observations, carving: bool) -> None:
+        """Page in the paged tiles a keyframe's observations fall in and, when it carves, those in
+        the box it can clear (camera to depth: :func:`mapper.map.carving.changed_region`) (lock held)."""
+        if not self._store.info:
+            return
+        if carving:
+            cfg, (height, width) = self.config, keyframe.rgb.shape[:2]
+            box = changed_region(keyframe.K, keyframe.world_from_cam, width, height, keyframe.depth_m,
+                                 cfg.min_depth_m, cfg.max_depth_m, include_camera=True)
+            self._page_in(sorted(self._store.select(self.tile_voxels * cfg.voxel_size_m, box)))
+        self._page_in_keys(voxel_keys(obs.xyz, self.config.voxel_size_m)[0])
+
+    def paged_geometry(
+        self, region: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(xyz (n, 3) float32, keys (n,) int64) of the paged voxels (those in the tiles that
+        intersect ``region``, a world box, when given), read without paging them in: with
+        :meth:`geometry`, what a worker that projects the whole map into a view needs (the evicted
+        views record paged voxels too)."""
+        with self._lock:
+            if not self._store.info:
+                return np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
+            tiles = self._store.select(self.tile_voxels * self.config.voxel_size_m, region)
+            return self._store.read_geometry(tiles)
+
+    def _paged_lookup(
+        self, keys: np.ndarray
+    ) -> tuple[dict[str, np.ndarray], list[int], np.ndarray, np.ndarray]:
+        """The paged tiles voxel ``keys`` (U,) fall in, read: (their arrays, the tiles, each key's
+        row in those arrays, a (U,) bool mask of the keys found) (lock held)."""
+        tiles = [t for t in np.unique(tile_ids(keys, self.tile_voxels)).tolist() if t in self._store.info]
+        got = self._store.read(tiles, self._dim)
+        order = np.argsort(got["keys"], kind="stable")
+        _, rows, found = _lookup(got["keys"][order], order.astype(np.int64), keys)
+        return got, tiles, rows, found
+
+    def _paged_voxels(self, keys: np.ndarray, unlearned: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Of voxel ``keys`` (U,) not resident: (keys, xyz (n, 3) float32) of those paged (with
+        ``unlearned``, only those without a learned feature) (lock held)."""
+        got, _, rows, found = self._paged_lookup(keys)
+        if unlearned:
+            found &= got["learned"][rows] == 0
+        return keys[found], got["xyz"][rows[found]].copy()
+
+    def _set_paged_features(self, keys: np.ndarray, unit: np.ndarray) -> int:
+        """:meth:`set_features` for voxel ``keys`` (U,) not resident, with unit features (U, D):
+        those paged take them in the store (their tiles rewritten), without paging them in (lock
+        held). Returns how many were set."""
+        got, _, rows, found = self._paged_lookup(keys)
+        if self.config.learned_features_once:
+            found[found] = got["learned"][rows[found]] == 0
+        if not found.any():
+            return 0
+        self._set_dim(int(unit.shape[1]))
+        if "feat" not in got:  # the map had no features when these tiles were read: none had any
+            got["feat"] = np.zeros((got["keys"].shape[0], unit.shape[1]), np.float16)
+        _learn_rows(got, rows[found], unit[found])
+        self._put_tiles(got)  # the same tiles, replaced
+        self.points_learned += int(np.count_nonzero(found))
+        return int(np.count_nonzero(found))
+
+    def page_in_near(self, xyz: np.ndarray, radius_m: float) -> int:
+        """Page in the paged tiles within ``radius_m`` of the points ``xyz`` (N, 3) (what a
+        ``segment_points`` at those points reads from the map). Resident voxels may exceed
+        ``max_points`` until the next keyframe pages the least recently observed tiles out again.
+        Returns the voxels brought back."""
+        pts = np.asarray(xyz, np.float64).reshape(-1, 3)
+        pts = pts[np.isfinite(pts).all(axis=1)]
+        voxel, tile = self.config.voxel_size_m, self.tile_voxels
+        reach = max(float(radius_m), 0.0)
+        with self._lock:
+            if not self._store.info or pts.shape[0] == 0:
+                return 0
+            lo = np.floor_divide(np.floor((pts - reach) / voxel).astype(np.int64), tile)
+            hi = np.floor_divide(np.floor((pts + reach) / voxel).astype(np.int64), tile)
+            span = int((hi - lo).max())
+            if span > 2:  # a radius of several tiles: the paged tiles in the points' box
+                box = (pts.min(axis=0) - reach, pts.max(axis=0) + reach)
+                return self._page_in(sorted(self._store.select(tile * voxel, box)))
+            wanted: set[int] = set()
+            for step in itertools.product(range(span + 1), repeat=3):
+                idx = np.minimum(lo + np.asarray(step, np.int64), hi)
+                idx = idx[np.all(np.abs(idx) < KEY_OFFSET - 1, axis=1)]
+                wanted.update(pack_indices(idx).tolist())
+            paged = [t for t in wanted if t in self._store.info]
+            return self._page_in(sorted(paged)) if paged else 0
+
+    def query_snapshot(
+        self,
+        region: tuple[np.ndarray, np.ndarray] | None = None,
+        may_match: Callable[[TileInfo], bool] | None = None,
+    ) -> GlobalMapSnapshot:
+        """A snapshot for a ``query_points`` over the whole map: the resident voxels (the cached
+        :meth:`snapshot`) followed by the voxels of the paged tiles that intersect ``region`` and
+        for which ``may_match`` holds on their summary (read, not made resident). Nothing paged
+        selected: the snapshot itself. The latest such snapshot is kept until the map's version
+        changes: further queries of that version selecting the same tiles share it (and its
+        normalised features)."""
+        with self._lock:
+            snap = self._snapshot_locked()
+            if not self._store.info:
+                return snap
+            tiles = tuple(sorted(self._store.select(self.tile_voxels * self.config.voxel_size_m, region,
+                                                    may_match)))
+            if not tiles:
+                return snap
+            kept = self._joined
+            if kept is not None and kept[0] == (snap.version, snap.generation, tiles):
+                return kept[1]
+            got = self._store.read(tiles, self._dim)
+        joined = _joined_snapshot(snap, got)
+        with self._lock:
+            self._joined = ((snap.version, snap.generation, tiles), joined)
+        return joined
+
+
+def _joined_snapshot(snap: GlobalMapSnapshot, paged: dict[str, np.ndarray]) -> GlobalMapSnapshot:
+    """``snap`` with the ``paged`` voxels appended (same version: the store changes only with one);
+    its unit features are computed on their own (no rows shared with the map's snapshots)."""
+
+    def joined(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
+        if a is None or b is None:
+            return None
+        out = np.concatenate([a, b])
+        out.setflags(write=False)
+        return out
+
+    feat = joined(snap.feat, paged.get("feat"))
+    weight, feat_weight = joined(snap.weight, paged["weight"]), joined(snap.feat_weight, paged["feat_weight"])
+    hits, seen = joined(snap.hits, paged["hits"]), joined(snap.last_seen_ns, paged["last_seen_ns"])
+    xyz = joined(snap.xyz, paged["xyz"])
+    assert xyz is not None and weight is not None and feat_weight is not None and hits is not None
+    assert seen is not None
+    return GlobalMapSnapshot(
+        version=snap.version, map_version=snap.map_version, voxel_size_m=snap.voxel_size_m, xyz=xyz,
+        feat=feat, weight=weight, feat_weight=feat_weight, hits=hits, last_seen_ns=seen,
+        keys=joined(snap.keys, paged["keys"]), generation=snap.generation)
+
+
+class GlobalSemanticMap(_StoredMap):
     """Voxel-hashed surface points with fused OV features; see the module docstring."""
 
-    def __init__(self, config: GlobalMapConfig, fusion: FusionRule = weighted_mean_fusion) -> None:
+    def __init__(
+        self,
+        config: GlobalMapConfig,
+        fusion: FusionRule = weighted_mean_fusion,
+        tile_dir: str | Path | None = None,
+    ) -> None:
         self.config = config
+        self.tile_dir = Path(tempfile.gettempdir(), "govnesf-tiles") if tile_dir is None else Path(tile_dir)
+        """Where the tile store's file is made when the first tile pages out (the node:
+        ``<map_dir>/.tiles``; default: the system's temporary directory)."""
+        self._store = TileStore(self.tile_dir / f"tiles-{os.getpid()}-{next(_STORES)}.sqlite3")
+        weakref.finalize(self, self._store.destroy)  # the file goes with the map
         self.fusion: FusionRule = fusion
         """The feature fusion rule (replaceable by the learned model)."""
         self._lock = threading.Lock()
@@ -1088,7 +1557,10 @@ class GlobalSemanticMap:
         self._kf_counter = 0
         self._map_version = 0
         self.points_pruned = 0
-        """Voxels dropped by the ``max_points`` bound since start (or the last restore)."""
+        """Voxels dropped by the ``max_points`` bound (``paging`` off) or ``max_disk_points`` since
+        start (or the last restore)."""
+        self.points_paged_out = 0
+        self.points_paged_in = 0
         self.points_carved = 0
         """Voxels removed by visibility carving since start (or the last restore)."""
         self.keyframes_integrated = 0
@@ -1143,9 +1615,16 @@ class GlobalSemanticMap:
             with_feat = int(np.count_nonzero(self._feat_weight[:n] > 0))
             return {
                 "global_points": n,
+                "global_points_total": n + self._store.points,
                 "global_points_with_features": with_feat,
                 "global_max_points": self.config.max_points,
                 "global_points_pruned": self.points_pruned,
+                "global_points_paged": self._store.points,
+                "global_tiles_paged": len(self._store),
+                "global_points_paged_out": self.points_paged_out,
+                "global_points_paged_in": self.points_paged_in,
+                "global_tile_store_bytes": self._store.disk_bytes,
+                "global_max_disk_points": self.config.max_disk_points,
                 "global_points_carved": self.points_carved,
                 "global_map_bytes": self.nbytes,
                 "global_map_allocated_bytes": self.allocated_bytes,
@@ -1207,6 +1686,7 @@ class GlobalSemanticMap:
                 self._map_version = map_version
             if isinstance(obs, str):
                 return IntegrateStats(0, 0, 0, 0, keyframe.ov is not None, time.perf_counter() - started, obs)
+            self._page_in_observed(keyframe, obs, carve and self.config.carve)
             carved = self._carve(keyframe) if carve and self.config.carve else 0
             touched, new, pruned = self._fuse(obs, int(keyframe.stamp_ns))
             seconds = time.perf_counter() - started
@@ -1266,9 +1746,14 @@ class GlobalSemanticMap:
         ukeys = np.unique(keys[ok])
         with self._lock:
             rows, found = self._rows_of(ukeys)
-            if unlearned:
-                found &= self._learned[rows] == 0
-            return ukeys[found], self._xyz[rows[found]].copy()
+            keep = found & (self._learned[rows] == 0) if unlearned else found
+            out_keys, out_xyz = ukeys[keep], self._xyz[rows[keep]].copy()
+            if self._store.info and not found.all():  # paged ones too, read without paging them in
+                more_keys, more_xyz = self._paged_voxels(ukeys[~found], unlearned)
+                order = np.argsort(np.concatenate([out_keys, more_keys]), kind="stable")
+                out_keys = np.concatenate([out_keys, more_keys])[order]
+                out_xyz = np.concatenate([out_xyz, more_xyz])[order]
+            return out_keys, out_xyz
 
     def _rows_of(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows of ``keys`` (U,) and a (U,) bool mask of those in the map (lock held)."""
@@ -1286,9 +1771,10 @@ class GlobalSemanticMap:
         the fused average: docs/concepts/window-and-map.md), and keeps its norm and feature weight, so later
         observations still fuse as a running weighted mean; a voxel without one takes the
         feature's direction with norm 1 and its geometric confidence as feature weight. Voxels
-        pruned since are skipped, and with ``global_map.learned_features_once`` (default) voxels
-        given a learned feature before. Returns the number of voxels set. Raises ``ValueError``
-        (nothing changed) on a shape or dimension mismatch."""
+        paged out since are set in the tile store; voxels pruned since are skipped, and with
+        ``global_map.learned_features_once`` (default) voxels given a learned feature before.
+        Returns the number of voxels set. Raises ``ValueError`` (nothing changed) on a shape or
+        dimension mismatch."""
         keys = np.asarray(keys, np.int64).reshape(-1)
         feats = np.asarray(features, np.float32)
         if feats.ndim != 2 or feats.shape[0] != keys.shape[0] or feats.shape[1] < 1:
@@ -1300,29 +1786,31 @@ class GlobalSemanticMap:
             if self._dim is not None and dims["D"] != self._dim:
                 raise ValueError(f"features have dimension {dims['D']}, the global map's {self._dim}")
             rows, found = self._rows_of(keys)
+            away = good & ~found  # paged ones are set in the store, without paging them in
+            paged = self._set_paged_features(keys[away], feats[away] / norm[away, None]) if away.any() else 0
             keep = found & good
             if self.config.learned_features_once:
                 keep[keep] = self._learned[rows[keep]] == 0
             if not keep.any():
-                return 0
+                self._version += paged > 0
+                return paged
             self._set_dim(int(dims["D"]))
             assert self._feat is not None
             rows = rows[keep]
-            fresh = self._feat_weight[rows] <= 0
-            self._feat[rows] = _mixed_features(feats[keep] / norm[keep, None], self._feat[rows], fresh)
+            mine = {"feat": self._feat, "feat_norm": self._feat_norm, "feat_weight": self._feat_weight,
+                    "weight": self._weight, "learned": self._learned}
+            _learn_rows(mine, rows, feats[keep] / norm[keep, None])
             self._feat_stamp[rows] = self._version + 1
-            self._feat_norm[rows[fresh]] = 1.0
-            self._feat_weight[rows[fresh]] = np.maximum(self._weight[rows[fresh]], 1e-6)
-            self._learned[rows] = 1
             self.points_learned += int(rows.shape[0])
             self._version += 1
-            return int(rows.shape[0])
+            return int(rows.shape[0]) + paged
 
     def _fuse_features(self, obs: Observations) -> tuple[int, int]:
         """Fuse the features of ``obs`` into the voxels that exist (lock held); the same sums as
         :meth:`_fuse`. Returns (observations fused, voxels touched)."""
         assert obs.cells is not None and obs.bilinear is not None and obs.ov_flat is not None
         keys, ok = voxel_keys(obs.xyz, self.config.voxel_size_m)
+        self._page_in_keys(keys[ok])
         _, _, found = _lookup(self._sorted_keys, self._sorted_rows, keys)
         keep = ok & found
         if not keep.any():
@@ -1388,7 +1876,7 @@ class GlobalSemanticMap:
         self._last_seen_kf[rows] = self._kf_counter
         if sum_wfeat is not None:  # integrate bumped the version before this
             self._fuse_into(rows, sum_wfeat, sum_w, self._version)
-        pruned = self._prune_if_needed()
+        pruned = self._apply_bound()
         return n_u, n_new, pruned
 
     def _carve(self, keyframe: KeyframeLike) -> int:
@@ -1397,20 +1885,6 @@ class GlobalSemanticMap:
             self.config, keyframe, self._rows(), self._n, self._sorted_keys, self._sorted_rows, self._version)
         self.points_carved += gone
         return gone
-
-    def _prune_if_needed(self) -> int:
-        """Apply the ``max_points`` bound (lock held). Returns the number of voxels dropped."""
-        cfg = self.config
-        if self._n <= cfg.max_points:
-            return 0
-        n = self._n
-        keep = _prune_keep(self._weight[:n], self._last_seen_kf[:n], self._kf_counter, cfg)
-        keep_n = keep.shape[0]
-        self._compact(keep)
-        dropped = n - keep_n
-        self.points_pruned += dropped
-        log.debug("global map: dropped %d voxels (max_points %d)", dropped, cfg.max_points)
-        return dropped
 
     def _compact(self, keep: np.ndarray) -> None:
         """Keep only rows ``keep`` (ascending), rebuild the sorted index (lock held)."""
@@ -1446,99 +1920,32 @@ class GlobalSemanticMap:
         return xyz, keys
 
     def snapshot(self) -> GlobalMapSnapshot:
-        """The immutable snapshot of the current version (copied once per version, then cached)."""
+        """The immutable snapshot of the current version (copied once per version, then cached):
+        the resident voxels (:meth:`query_snapshot` adds paged ones)."""
         with self._lock:
-            snap = self._snapshot
-            if snap is not None and snap.version == self._version:
-                return snap
-            n = self._n
-            snap = GlobalMapSnapshot(
-                version=self._version,
-                map_version=self._map_version,
-                voxel_size_m=self.config.voxel_size_m,
-                xyz=_frozen(self._xyz, n),
-                feat=_frozen(self._feat, n) if self._feat is not None else None,
-                weight=_frozen(self._weight, n),
-                feat_weight=_frozen(self._feat_weight, n),
-                hits=_frozen(self._hits, n),
-                last_seen_ns=_frozen(self._last_seen_ns, n),
-                feat_stamp=_frozen(self._feat_stamp, n),
-                feat_reset=self._feat_reset,
-                keys=_frozen(self._keys, n),
-                generation=self._generation,
-                _unit_source=self._unit_source,
-            )
-            self._snapshot = snap
+            return self._snapshot_locked()
+
+    def _snapshot_locked(self) -> GlobalMapSnapshot:
+        """The snapshot of the current version (lock held)."""
+        snap = self._snapshot
+        if snap is not None and snap.version == self._version:
             return snap
-
-    # -- persistence -------------------------------------------------------------------------
-
-    def to_arrays(self, prefix: str = "global") -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        """``({"global.<field>": array}, manifest section)`` for :class:`mapper.node.store.MapStore`
-        (plain numeric arrays, no pickle). Taken under the lock: a consistent copy."""
-        with self._lock:
-            n = self._n
-            arrays: dict[str, np.ndarray] = {
-                f"{prefix}.{name}": getattr(self, f"_{name}")[:n].copy() for name in _SAVED_AS_IS
-            }
-            arrays[f"{prefix}.age_kf"] = (self._kf_counter - self._last_seen_kf[:n]).astype(np.int64)
-            arrays[f"{prefix}.learned"] = self._learned[:n].copy()
-            if self._feat is not None:
-                arrays[f"{prefix}.feat"] = self._feat[:n].copy()
-            ev_arrays, ev_manifest = self.evicted.to_arrays(f"{prefix}.evicted")
-            arrays.update(ev_arrays)
-            manifest: dict[str, Any] = {
-                "evicted_views": ev_manifest,
-                "format": _FORMAT,
-                "points": n,
-                "dim": self._dim,
-                "voxel_size_m": self.config.voxel_size_m,
-                "map_version": self._map_version,
-                "points_pruned": self.points_pruned,
-                "keyframes_integrated": self.keyframes_integrated,
-            }
-        return arrays, manifest
-
-    def restore(
-        self, arrays: dict[str, np.ndarray], manifest: object, map_version: int, prefix: str = "global"
-    ) -> None:
-        """Replace the content with a saved one (inverse of :meth:`to_arrays`). Checks every array
-        and raises ``ValueError`` naming the field; the map is unchanged on error. A map saved with
-        another voxel size is re-keyed (voxels that now coincide keep the most confident one)."""
-        saved = _read_saved(arrays, manifest, self.config.voxel_size_m, prefix)  # nothing changed yet
-        got, keys, rows, dim = saved.fields, saved.keys, saved.rows, saved.dim
-        with self._lock:
-            self._reset(dim)
-            m = rows.shape[0]
-            self._grow(m)
-            self._n = m
-            self._keys[:m] = keys[rows]  # re-keyed for another voxel size
-            for name in _SAVED_AS_IS[1:]:
-                getattr(self, f"_{name}")[:m] = got[name][rows]
-            self._last_seen_kf[:m] = -got["age_kf"][rows]
-            self._learned[:m] = got["learned"][rows] != 0
-            if self._feat is not None:
-                self._feat[:m] = got["feat"][rows]
-            self._sorted_keys, self._sorted_rows = _sorted_index(self._keys[:m])
-            self.points_pruned = saved.points_pruned
-            self._map_version = map_version
-            self._version += 1
-            self._generation = next(_GENERATIONS)
-            self.evicted = saved.evicted
-            self._prune_if_needed()
-
-    def retag(self, map_version: int) -> None:
-        """Set the node map version that the current content corresponds to (e.g. after a load)."""
-        with self._lock:
-            self._map_version = map_version
-            self._version += 1
-
-    def clear(self, map_version: int | None = None) -> None:
-        """Drop every point (the feature dimension is forgotten too)."""
-        with self._lock:
-            self._reset(None)
-            self.evicted = EvictedViewStore()
-            if map_version is not None:
-                self._map_version = map_version
-            self._version += 1
-            self._generation = next(_GENERATIONS)
+        n = self._n
+        snap = GlobalMapSnapshot(
+            version=self._version,
+            map_version=self._map_version,
+            voxel_size_m=self.config.voxel_size_m,
+            xyz=_frozen(self._xyz, n),
+            feat=_frozen(self._feat, n) if self._feat is not None else None,
+            weight=_frozen(self._weight, n),
+            feat_weight=_frozen(self._feat_weight, n),
+            hits=_frozen(self._hits, n),
+            last_seen_ns=_frozen(self._last_seen_ns, n),
+            feat_stamp=_frozen(self._feat_stamp, n),
+            feat_reset=self._feat_reset,
+            keys=_frozen(self._keys, n),
+            generation=self._generation,
+            _unit_source=self._unit_source,
+        )
+        self._snapshot = snap
+        return snap

@@ -8,6 +8,7 @@ import threading
 import time
 from collections import Counter
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from mapper.map.global_map import GlobalSemanticMap
@@ -34,8 +35,9 @@ class MapState:
         self.lock = threading.Lock()
         self.config = config
         self.window = KeyframeWindow(config.window)
-        self.global_map = GlobalSemanticMap(config.global_map)
-        """Global semantic point map (own lock; kept when keyframes leave the window)."""
+        self.global_map = GlobalSemanticMap(config.global_map, tile_dir=Path(config.map_dir) / ".tiles")
+        """Global semantic point map (own lock; kept when keyframes leave the window; tiles beyond
+        ``global_map.max_points`` page out to ``<map_dir>/.tiles``)."""
         self.map_version = 0
         self.ov_space: str | None = config.ov_space
         """Embedding space of the map (pinned by config, else set by the first keyframe with ov)."""

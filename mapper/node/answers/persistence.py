@@ -154,7 +154,8 @@ class Persistence:
                 f"map {name!r} holds ov_space {ov_space!r}; this node is pinned to {ctx.config.ov_space!r}",
             )
         # build the new global map aside, so a damaged section changes nothing
-        fresh = GlobalSemanticMap(ctx.config.global_map, fusion=ctx.state.global_map.fusion)
+        fresh = GlobalSemanticMap(ctx.config.global_map, fusion=ctx.state.global_map.fusion,
+                                  tile_dir=ctx.state.global_map.tile_dir)
         section = manifest.get("global_map")
         try:
             if section is not None:

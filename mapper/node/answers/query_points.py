@@ -14,7 +14,8 @@ import logging
 import queue
 import threading
 import time
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -23,6 +24,7 @@ from protocol.errors import ProtocolError
 from protocol.messages import Message, Points, QueryPoints
 
 if TYPE_CHECKING:
+    from mapper.map.tile_store import TileInfo
     from mapper.node.queries import AnswerCache, AnswerKey, BlockLabelCache
 
 __all__ = ["QueryPointsAnswers"]
@@ -35,6 +37,31 @@ def _region(msg: QueryPoints) -> tuple[np.ndarray, np.ndarray] | None:
     if msg.region_min is None or msg.region_max is None:
         return None
     return np.asarray(msg.region_min, np.float64), np.asarray(msg.region_max, np.float64)
+
+
+def _tile_filter(encoder: Any, msg: QueryPoints, rule: str = "exact") -> Callable[[TileInfo], bool]:
+    """Whether a paged tile may hold a match of ``msg`` (``global_map.tile_skip``: "exact":
+    :func:`mapper.map.tile_store.cone_may_match` on its feature summary; "centroids":
+    :func:`mapper.map.tile_store.centroids_may_match`, approximate). The negatives are those
+    :func:`mapper.node.queries.query_points` uses, or fewer where it falls back to the default set
+    (fewer negatives only let more tiles through), so with "exact" a skipped tile holds no match."""
+    from mapper.map.tile_store import centroids_may_match, cone_may_match
+    from mapper.node.queries import DEFAULT_NEGATIVES, NEGATIVE_DROP_SIMILARITY, normalise_query
+
+    text_emb = np.asarray(encoder.encode([normalise_query(t) for t in msg.texts]), np.float32)
+    negatives = [normalise_query(n) for n in (DEFAULT_NEGATIVES if msg.negatives is None else msg.negatives)]
+    neg_emb = np.asarray(encoder.encode(negatives), np.float32) if negatives else text_emb[:0]
+    if neg_emb.shape[0]:
+        neg_emb = neg_emb[(neg_emb @ text_emb.T).max(axis=1) < NEGATIVE_DROP_SIMILARITY]
+
+    def may_match(info: TileInfo) -> bool:
+        if info.centroids.shape[1] != text_emb.shape[1]:
+            return info.centroids.shape[0] > 0  # the query reports the mismatch
+        if rule == "centroids":
+            return centroids_may_match(info.centroids, text_emb, neg_emb, msg.min_score)
+        return cone_may_match(info.centroids, info.least_cos, text_emb, neg_emb, msg.min_score)
+
+    return may_match
 
 
 class QueryPointsAnswers:
@@ -131,7 +158,13 @@ class QueryPointsAnswers:
         labels, answers = self._caches()
         encoder = self.ctx.text_encoder("query_points")
         taken = time.monotonic()
-        snapshot = self.ctx.state.global_map.snapshot()
+        gmap = self.ctx.state.global_map
+        # paged tiles that may match (exact: the others cannot) are read for the query, not paged in
+        if gmap.paged_points:
+            rule = self.ctx.config.global_map.tile_skip
+            snapshot = gmap.query_snapshot(_region(msg), _tile_filter(encoder, msg, rule))
+        else:
+            snapshot = gmap.snapshot()
         answer = query_points(
             snapshot,
             encoder,

@@ -233,6 +233,8 @@ class SegmentAnswers:
         ctx = self.ctx
         started = time.perf_counter()
         ctx.wait_settled(msg.settle_timeout_s)
+        # the map's answer at points in paged tiles comes from those tiles: page them in
+        ctx.state.global_map.page_in_near(np.asarray(msg.xyz, np.float32), ctx.map_radius_m)
         depth_tested = backend.depth_tested(msg)
         want_cos = ctx.map_blend(depth_tested=depth_tested) > 0 and ctx.map_radius_m > 0
         window, fell_back = self._window_answer(backend, msg, want_cos, depth_tested)

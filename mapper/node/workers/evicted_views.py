@@ -147,6 +147,10 @@ class EvictedViews:
         from mapper.model.baselines import OVView, view_samples  # torch-heavy; imported when first used
 
         map_xyz, map_keys = gmap.geometry()  # points and keys only: no copy of the map's features
+        if gmap.paged_points and keyframe.ov is not None:  # paged voxels too (read, not paged in)
+            paged_xyz, paged_keys = gmap.paged_geometry()
+            map_xyz = np.concatenate([map_xyz, paged_xyz])
+            map_keys = np.concatenate([map_keys, paged_keys])
         if map_xyz.shape[0] == 0 or keyframe.ov is None:
             return
         view = OVView(keyframe.ov, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
@@ -167,8 +171,8 @@ class EvictedViews:
             first = False
         if first:
             store.absorb(np.zeros(0, np.int64), {})  # counts the keyframe (no voxel in its image)
-        if len(store) > max(2 * map_xyz.shape[0], 4096):  # voxels the map pruned since
-            store.compact(map_keys)
+        if len(store) > max(2 * gmap.total_points, 4096):  # voxels the map pruned since (paged ones stay)
+            store.compact(gmap.all_keys())
 
     def stats(self) -> dict[str, Any]:
         """``status`` key ``evicted_views`` (called under the state lock: takes no node lock)."""

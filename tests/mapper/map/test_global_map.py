@@ -185,7 +185,7 @@ def test_frames_without_depth_or_ov() -> None:
 
 def test_max_points_drops_least_recently_seen_voxels_first() -> None:
     cfg = GlobalMapConfig(pixel_stride=1, voxel_size_m=0.02, max_points=400, prune_to_fraction=0.5,
-                          stale_half_life_keyframes=1.0)  # fmt: skip
+                          stale_half_life_keyframes=1.0, paging=False)  # fmt: skip
     gmap = GlobalSemanticMap(cfg)
     first = gmap.integrate(make_kf(plane_depth(2.0), stamp_ns=1))
     assert first.voxels_pruned > 0 and len(gmap) == 200
