@@ -61,6 +61,44 @@ def _absorb_rows(mean, count, rows, feat, at):  # pragma: no cover - compiled
         count[r] = n + np.float32(1.0)
 
 
+def behind_surface(
+    xyz: np.ndarray,  # (N, 3) world metres
+    K: np.ndarray,  # (4,) fx, fy, cx, cy of the depth image
+    world_from_cam: np.ndarray,  # (4, 4)
+    depth_m: np.ndarray,  # (H, W) z-depth, 0 or non-finite = none
+    rel_tol: float,
+) -> np.ndarray:  # (N,) bool
+    """Points a view with depth cannot see: in front of the camera, inside the depth image, and
+    more than ``rel_tol`` of the measured depth behind it at their pixel (the nearest pixel, as the
+    averaging's depth test reads it). Points at pixels without a depth, behind the camera or outside
+    the image are not behind anything.
+
+    >>> depth = np.full((4, 4), 2.0, np.float32)
+    >>> pts = np.array([[0.0, 0.0, 2.2], [0.0, 0.0, 2.6], [0.0, 0.0, 9.0], [0.0, 0.0, -3.0]])
+    >>> behind_surface(pts, np.array([2.0, 2.0, 2.0, 2.0]), np.eye(4), depth, 0.25).tolist()
+    [False, True, True, False]
+    """
+    pts = np.asarray(xyz, np.float64)
+    pose = np.asarray(world_from_cam, np.float64)
+    cam = (pts - pose[:3, 3]) @ pose[:3, :3]  # world -> camera: R^T (p - t)
+    z = cam[:, 2]
+    out = np.zeros(pts.shape[0], bool)
+    front = z > 1e-6
+    if not front.any():
+        return out
+    fx, fy, cx, cy = (float(v) for v in np.asarray(K, np.float64).reshape(-1))
+    h, w = depth_m.shape
+    zf = z[front]
+    col = np.floor(cam[front, 0] / zf * fx + cx)
+    row = np.floor(cam[front, 1] / zf * fy + cy)
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    d = np.zeros(zf.shape[0], np.float64)
+    d[inside] = np.asarray(depth_m)[row[inside].astype(np.int64), col[inside].astype(np.int64)]
+    d = np.where(np.isfinite(d), d, 0.0)
+    out[np.flatnonzero(front)] = (d > 0) & (zf > d * (1.0 + rel_tol))
+    return out
+
+
 def absorb_rows(
     mean: np.ndarray,  # (cap, D) float32 running means, updated in place
     count: np.ndarray,  # (cap,) float32 samples behind each, updated in place

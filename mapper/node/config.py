@@ -196,6 +196,13 @@ class QueryConfig:
     with depth, one room's ``average`` -1.6. Costs D x 4 bytes a voxel per channel (status
     ``evicted_views.bytes``; 384-d, "both": 3 KB a voxel) and 0.2-0.3 s of a worker a keyframe."""
 
+    evicted_views_occlusion: bool = False
+    """The ``all`` channel of ``evicted_views`` (every view a voxel falls in) leaves out, for a
+    keyframe with input depth, the voxels behind what that keyframe measured (more than 25% of the
+    depth behind it at their pixel): a camera in one room does not record its view of the room
+    behind the wall. Keyframes without depth record every voxel in their image, as before.
+    Measured in docs/concepts/window-and-map.md."""
+
     evicted_views_learned_weight: float = 0.5
     """For ``govnesf`` (not answered by averaging), the map's answer at a voxel that holds evicted
     views: ``(1 - w)`` x the voxel's own feature (where the model's blend was written before its

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from mapper.map.evicted_views import in_image
+from mapper.map.evicted_views import behind_surface, in_image
 from mapper.node.keyframe_queue import KeyframeQueue, LimitedLog, run_worker
 
 if TYPE_CHECKING:
@@ -26,6 +26,10 @@ __all__ = ["EvictedViews"]
 # as ``Any``: the global map holds the store, so naming those types would make an import cycle.
 
 log = logging.getLogger("mapper.node.workers.evicted_views")
+
+OCCLUSION_REL_TOL = 0.25
+"""``queries.evicted_views_occlusion``: a voxel more than this share of the measured depth behind
+it is hidden from the keyframe (the averaging's depth-test tolerance)."""
 
 
 def keyframe_bytes(keyframe: Keyframe) -> int:
@@ -51,6 +55,9 @@ class EvictedViews:
         """``queries.evicted_frames_mb`` in bytes: keyframes without depth kept as reduced views
         (:mod:`mapper.map.evicted_frames`) instead of their samples at the voxels; 0 = off."""
         self.frame_cells = cfg.queries.evicted_frames_cells
+        self.all_occlusion = cfg.queries.evicted_views_occlusion
+        """``queries.evicted_views_occlusion``: the ``all`` channel of a keyframe with depth leaves
+        out the voxels behind what it measured (:func:`mapper.map.evicted_views.behind_surface`)."""
         self.border_px = 10.0
         """The averaging's border (``segment_average``'s default; the node's methods use it)."""
         self.chunk = 32_768
@@ -164,7 +171,13 @@ class EvictedViews:
             xyz = map_xyz[part]
             samples = {}
             if self.both:
-                samples["all"] = view_samples(xyz, view, use_depth=False, border_px=self.border_px)
+                feat, counted = view_samples(xyz, view, use_depth=False, border_px=self.border_px)
+                if keyframe.depth_m is not None and self.all_occlusion:  # not through what it measured
+                    hidden = behind_surface(xyz, keyframe.K, keyframe.world_from_cam, keyframe.depth_m,
+                                            OCCLUSION_REL_TOL)
+                    counted = counted & ~hidden
+                    feat[hidden] = 0.0
+                samples["all"] = (feat, counted)
             if keyframe.depth_m is not None:
                 samples["depth"] = view_samples(xyz, view, use_depth=True, border_px=self.border_px)
             store.absorb(map_keys[part], samples, new_keyframe=first)
