@@ -415,3 +415,49 @@ def test_store_cosines_equal_a_float64_reference_per_point() -> None:
     cos2, given2 = store.cosines(asked, emb, min_views=2)
     assert given2.tolist() == [False, False, False, False, False, True]
     np.testing.assert_allclose(cos2[5], cos[5], atol=1e-6)
+
+
+def test_occlusion_keeps_a_keyframe_with_depth_from_recording_what_it_cannot_see(tmp_path: Path) -> None:
+    """``queries.evicted_views_occlusion``: the wall behind the object the odd frames measured at
+    1.5 m (their left half) takes fewer ``all`` views than without the test; the ``depth`` channel
+    is the same either way; keyframes that saw the wall itself count as before."""
+    frames = _frames()
+    on = _node(tmp_path, 2, evicted_views="both", evicted_views_occlusion=True)
+    off = _node(tmp_path, 2, evicted_views="both", evicted_views_occlusion=False)
+    for node in (on, off):
+        _stream(node, frames)
+    keys = off.state.global_map.snapshot().keys
+    xyz = off.state.global_map.snapshot().xyz
+    assert keys is not None
+    wall = np.abs(xyz[:, 2] - 2.0) < 0.05
+    _, n_on = on.state.global_map.evicted.lookup(keys[wall], "all")
+    _, n_off = off.state.global_map.evicted.lookup(keys[wall], "all")
+    assert (n_on <= n_off).all() and (n_on < n_off).any()
+    _, d_on = on.state.global_map.evicted.lookup(keys, "depth")
+    _, d_off = off.state.global_map.evicted.lookup(keys, "depth")
+    np.testing.assert_array_equal(d_on, d_off)
+
+
+def test_behind_surface_against_a_float64_reference() -> None:
+    """Random points against a random depth image: hidden exactly where a point is in front, in the
+    image, at a pixel with depth, and more than the tolerance behind it."""
+    from mapper.map.evicted_views import behind_surface
+
+    rng = np.random.default_rng(4)
+    depth = rng.uniform(0.5, 4.0, (24, 32)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.2] = 0.0
+    depth[0, 0] = np.nan
+    K = np.array([30.0, 30.0, 16.0, 12.0])
+    pose = np.eye(4)
+    pose[:3, 3] = [0.2, -0.1, 0.3]
+    pts = rng.uniform([-3, -3, -1], [3, 3, 8], (4000, 3))
+    got = behind_surface(pts, K, pose, depth, 0.25)
+    want = np.zeros(len(pts), bool)
+    for i, p in enumerate(pts - pose[:3, 3]):
+        if p[2] <= 1e-6:
+            continue
+        c, r = int(np.floor(p[0] / p[2] * 30 + 16)), int(np.floor(p[1] / p[2] * 30 + 12))
+        if 0 <= c < 32 and 0 <= r < 24 and np.isfinite(depth[r, c]) and depth[r, c] > 0:
+            want[i] = p[2] > depth[r, c] * 1.25
+    np.testing.assert_array_equal(got, want)
+    assert want.sum() > 100 and (~want).sum() > 100
