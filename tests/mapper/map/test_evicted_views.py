@@ -386,16 +386,6 @@ def test_the_learned_answer_mixes_the_voxel_feature_with_the_evicted_views() -> 
                                         map_cos_weight=w)
         assert label.tolist() == [want_label] * 2, w
         np.testing.assert_allclose(score, want_score, atol=2e-3)
-    # one weight per point (``queries.evicted_views_unlearned_alone``: 1 at a voxel the model's
-    # blend never reached)
-    label, score, _ = fill_from_map(snap, xyz, emb, none, np.zeros(2, np.float32), unseen, 0.125,
-                                    nearest=nearest, map_cos=(evicted, np.ones(2, bool)),
-                                    map_cos_weight=np.array([0.3, 1.0], np.float32))
-    assert label.tolist() == [0, 1]
-    np.testing.assert_allclose(score, [0.7, 1.0], atol=2e-3)
-    assert snap.learned is not None and not snap.learned.any()  # nothing set_features wrote
-    gmap.set_features(snap.keys[:1], np.eye(len(TEXTS), D, dtype=np.float32)[:1])
-    assert gmap.snapshot().learned.tolist()[:2] == [1, 0]
 
 
 def test_store_cosines_equal_a_float64_reference_per_point() -> None:
