@@ -560,7 +560,6 @@ class GlobalMapSnapshot:
     """Rows moved or were replaced at this version (prune, restore, clear): ``feat_stamp`` says
     nothing about blocks computed before it."""
     keys: np.ndarray | None = None  # (N,) int64 each row's voxel key
-    learned: np.ndarray | None = None  # (N,) uint8: 1 where the row holds the model's blend (set_features)
     generation: int = 0
     """The map's :attr:`GlobalSemanticMap.generation` (unique in the process; a new map,
     ``restore`` and ``clear`` change it, growing and fusing do not): answers of another generation
@@ -1501,8 +1500,7 @@ def _joined_snapshot(snap: GlobalMapSnapshot, paged: dict[str, np.ndarray]) -> G
     return GlobalMapSnapshot(
         version=snap.version, map_version=snap.map_version, voxel_size_m=snap.voxel_size_m, xyz=xyz,
         feat=feat, weight=weight, feat_weight=feat_weight, hits=hits, last_seen_ns=seen,
-        keys=joined(snap.keys, paged["keys"]), learned=joined(snap.learned, paged.get("learned")),
-        generation=snap.generation)
+        keys=joined(snap.keys, paged["keys"]), generation=snap.generation)
 
 
 class GlobalSemanticMap(_StoredMap):
@@ -1946,7 +1944,6 @@ class GlobalSemanticMap(_StoredMap):
             feat_stamp=_frozen(self._feat_stamp, n),
             feat_reset=self._feat_reset,
             keys=_frozen(self._keys, n),
-            learned=_frozen(self._learned, n),
             generation=self._generation,
             _unit_source=self._unit_source,
         )

@@ -209,12 +209,6 @@ class QueryConfig:
     keyframes left: ``global_map.learned_features``) + ``w`` x the evicted views' mean; the
     averaging methods take the evicted views' mean alone. 0..1."""
 
-    evicted_views_unlearned_alone: bool = False
-    """With ``evicted_views_learned_weight``: at a voxel that holds no learned feature (the model's
-    blend never reached it: ``global_map.learned_features``), whose feature is then the fused
-    average of the few depth pixels that fell inside it, ``govnesf``'s map answer is the evicted
-    views' mean alone, as the averaging's is. Measured in docs/concepts/window-and-map.md."""
-
     evicted_views_max_pending: int = 64
     """Keyframes that left the window and wait for the ``evicted_views`` worker; beyond this the
     oldest waiting is dropped (counted in status ``evicted_views.dropped``). 1..100000."""

@@ -898,7 +898,7 @@ def fill_from_map(
     blend: float = 0.0,
     nearest: np.ndarray | None = None,  # (N,) int64 snapshot.nearest_with_feature(xyz, radius_m), if known
     map_cos: tuple[np.ndarray, np.ndarray] | None = None,  # ((N, T) float32 cosines, (N,) bool where given)
-    map_cos_weight: float | np.ndarray = 1.0,  # or (N,) per point
+    map_cos_weight: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Answer the points the window did not from the map: (label (N,) int32, score (N,) float32,
     source (N,) uint8). A point the window saw keeps the window's answer (``SOURCE_WINDOW``); an
@@ -914,8 +914,7 @@ def fill_from_map(
     already. ``map_cos``: the map's cosines for some points, used instead of their nearest map
     row's fused feature where that row exists (:func:`evicted_view_cosines`: the views of the
     keyframes that left the window, at the row's voxel), mixed with the row's own as
-    ``(1 - map_cos_weight) * own + map_cos_weight * map_cos`` (1: instead of it; one weight, or
-    (N,) one per point)."""
+    ``(1 - map_cos_weight) * own + map_cos_weight * map_cos`` (1: instead of it)."""
     label = np.array(label, np.int32, copy=True)
     score = np.array(score, np.float32, copy=True)
     seen = np.asarray(window_seen, bool)
@@ -943,12 +942,10 @@ def fill_from_map(
             given = np.asarray(map_cos[1], bool)[idx]
             sims = np.array(sims, np.float32, copy=True)
             given_cos = np.asarray(map_cos[0], np.float32)[idx[given]]
-            w = np.asarray(map_cos_weight, np.float32)
-            if w.ndim:  # per point
-                w = w[idx[given]][:, None]
-            if np.all(w >= 1.0):
+            if map_cos_weight >= 1.0:
                 sims[given] = given_cos
             else:
+                w = np.float32(map_cos_weight)
                 sims[given] = (np.float32(1.0) - w) * sims[given] + w * given_cos
         if blending:
             assert window_cos is not None

@@ -87,18 +87,11 @@ def answer_from_map(
         frames_cos = evicted_frame_cosines(ctx, gmap.evicted, snap, nearest, xyz, text_emb)
         if frames_cos is not None:
             map_cos = _overlaid(map_cos, frames_cos)
-    weight: float | np.ndarray = ctx.config.queries.evicted_views_learned_weight if learned else 1.0
-    if learned and ctx.config.queries.evicted_views_unlearned_alone and nearest is not None \
-            and snap.learned is not None:
-        # a voxel without the model's blend holds its fused average only: the evicted mean alone
-        has = np.asarray(nearest) >= 0
-        weight = np.full(len(xyz), float(weight), np.float32)
-        weight[has] = np.where(snap.learned[np.asarray(nearest)[has]] != 0, weight[has], 1.0)
     label, score, source = fill_from_map(
         snap, xyz, text_emb, label, score, window_seen, ctx.map_radius_m,
         more_confident=ctx.config.queries.map_when_more_confident, window_cos=window_cos,
         blend=ctx.map_blend(depth_tested=depth_tested), nearest=nearest, map_cos=map_cos,
-        map_cos_weight=weight)
+        map_cos_weight=ctx.config.queries.evicted_views_learned_weight if learned else 1.0)
     from mapper.node.queries import SOURCE_MAP, SOURCE_NONE, best_text
 
     if frames_cos is not None:  # no map voxel near, unseen by the window: the kept views answer
