@@ -86,6 +86,7 @@ def test_bounded_window_with_evicted_views_answers_as_an_unbounded_one(
     same answers; with the shipped rules (the map's cosines blended in) at least as many labels."""
     frames = _frames()
     rules: dict[str, Any] = {"map_blend": 0.0, "map_when_more_confident": False} if isolate else {}
+    rules["evicted_views_occlusion"] = False  # the window's own averaging counts views through objects too
     unbounded, bounded = _node(tmp_path, 100, **rules), _node(tmp_path, 2, evicted_views="both", **rules)
     plain = _node(tmp_path, 2, evicted_views="off", **rules)
     for node in (unbounded, bounded, plain):

@@ -13,7 +13,9 @@ again when ``govnesf``'s map answer began mixing that mean with the voxel's lear
 (``queries.evicted_views_learned_weight``), and again when those learned features began using the
 depth-tested view selection (``global_map.learned_features_depth_test``), and again when
 ``govnesf``'s answers began mixing the evicted views' own mean by their share of a point's views
-(``queries.learned_evicted_views``; with it at 0 the answers equal the stored ones before).
+(``queries.learned_evicted_views``; with it at 0 the answers equal the stored ones before), and
+again when the evicted views' ``all`` channel began leaving out what a keyframe with depth cannot
+see (``queries.evicted_views_occlusion``).
 """
 
 from __future__ import annotations
