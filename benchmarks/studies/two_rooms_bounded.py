@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from clients.harness import NodeProcess, mean_iou
-from clients.matrix.driver import pending_work
+from clients.matrix.driver import _settle
 from clients.sim.export import OV_SPACE, count_views
 from clients.sim.paths import camera_path
 from clients.sim.raycast import SceneRenderer
@@ -40,6 +40,7 @@ from clients.sim.scenes import CLASS_NAMES, LABEL_OF, generate_scene
 from protocol.messages import Frame
 
 LAYOUTS = ("apartment", "studio", "office", "living_large", "sparse", "corridor")
+"""The room of seed ``s`` is ``LAYOUTS[s % len(LAYOUTS)]`` (as ``continue_map.py``'s)."""
 NODE_ARGS = ("--set", "save_on_exit=false", "--set", "load_autosave_on_start=false",
              "--set", "autosave_name=")
 OFFSET_M = 12.0
@@ -78,16 +79,6 @@ def prepare(seed: int, frames: int, offset_m: float, samples: int = 6000) -> Roo
                          ov_space=OV_SPACE))
     seen = views > 0
     return Room(out, (gt_xyz[seen] + shift[:3, 3]).astype(np.float32), gt_label[seen].astype(np.int64))
-
-
-def settle(client: Any, timeout_s: float) -> bool:
-    t0, quiet = time.perf_counter(), 0
-    while time.perf_counter() - t0 < timeout_s:
-        quiet = quiet + 1 if not pending_work(client.status(timeout_s=60.0).extra) else 0
-        if quiet >= 2:
-            return True
-        time.sleep(0.25)
-    return False
 
 
 def ask(client: Any, room: Room, methods: list[str]) -> dict[str, Any]:
@@ -150,7 +141,7 @@ def run(mode: str, room_a: Room, room_b: Room, max_points: int, methods: list[st
             for name, room in (("a", room_a), ("b", room_b)):
                 for _ in client.send_frames(iter(room.frames), window=4):
                     pass
-                out[f"settled_after_{name}"] = settle(client, settle_s)
+                out[f"settled_after_{name}"] = _settle(client, settle_s)[0]
                 out[f"status_after_{name}"] = map_status(client)
                 out[f"room_a_after_{name}"] = ask(client, room_a, methods)
     return out

@@ -275,8 +275,19 @@ def robot_trajectory(
     horiz = np.maximum(np.hypot(dx, dy), 1.0)
     pitch = np.clip(np.arctan2(tz - z, horiz), math.radians(-35.0), math.radians(12.0))
     roll = np.radians(1.5) * _smooth_noise(rng, travelled, (2.0, 4.0))
-    poses = np.empty((n_frames, 4, 4))
-    for k in range(n_frames):
+    return poses_from_angles(xy, z, yaw, pitch, roll)
+
+
+def poses_from_angles(
+    xy: np.ndarray,  # (n, 2) camera positions in the floor plane (m)
+    z: np.ndarray,  # (n,) camera heights (m)
+    yaw: np.ndarray,  # (n,) heading about world z (rad)
+    pitch: np.ndarray,  # (n,) elevation of the optical axis (rad)
+    roll: np.ndarray,  # (n,) roll about it (rad)
+) -> np.ndarray:  # (n, 4, 4) world_from_cam
+    """Camera poses looking along the heading and elevation at each position (:func:`look_at`)."""
+    poses = np.empty((xy.shape[0], 4, 4))
+    for k in range(xy.shape[0]):
         eye = np.array([xy[k, 0], xy[k, 1], z[k]])
         fwd = np.array([math.cos(pitch[k]) * math.cos(yaw[k]), math.cos(pitch[k]) * math.sin(yaw[k]),
                         math.sin(pitch[k])])

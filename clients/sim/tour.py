@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from clients.sim.robot import _astar, _smooth_noise, look_at, obstacle_distance_field, wall_loop
+from clients.sim.robot import _astar, _smooth_noise, obstacle_distance_field, poses_from_angles, wall_loop
 from clients.sim.scenes import Scene
 from clients.sim.scenes.floor import Floor, FloorRoom
 
@@ -217,10 +217,4 @@ def _gaze(floor: Floor, xy: np.ndarray, look_room: np.ndarray, step: float, seed
     pitch_room = np.clip(np.arctan2(tz - z, horiz), math.radians(-35.0), math.radians(12.0))
     pitch = w[:, 0] * pitch_room + (1.0 - w[:, 0]) * math.radians(-8.0)
     roll = np.radians(1.5) * _smooth_noise(rng, travelled, (2.0, 4.0))
-    poses = np.empty((n, 4, 4))
-    for i in range(n):
-        eye = np.array([xy[i, 0], xy[i, 1], z[i]])
-        d = np.array([math.cos(pitch[i]) * math.cos(yaw[i]), math.cos(pitch[i]) * math.sin(yaw[i]),
-                      math.sin(pitch[i])])
-        poses[i] = look_at(eye, eye + d, roll_rad=float(roll[i]))
-    return poses
+    return poses_from_angles(xy, z, yaw, pitch, roll)
