@@ -49,7 +49,7 @@ SETTLE_TIMEOUT_S = 600.0
 def parse_variants(text: str) -> dict[str, dict[str, Any]]:
     """``{"name": {"queries_field": value}}`` from JSON, each field checked against
     :class:`mapper.node.config.QueryConfig`; ``ValueError`` naming what is wrong."""
-    from mapper.node.config import QueryConfig
+    from mapper.node.config import ConfigError, QueryConfig
 
     try:
         variants = json.loads(text)
@@ -62,6 +62,10 @@ def parse_variants(text: str) -> dict[str, dict[str, Any]]:
         unknown = sorted(set(settings) - fields)
         if unknown:
             raise ValueError(f"variant {name!r}: {', '.join(unknown)} not a [queries] setting")
+        try:  # values in range, before anything streams
+            dataclasses.replace(QueryConfig(), **settings).validate(f"variant {name!r}")
+        except (ConfigError, TypeError) as exc:
+            raise ValueError(str(exc)) from None
     return variants
 
 
@@ -147,6 +151,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         variants = {"base": {}, **parse_variants(args.variants)}
+        bad = [item for item in args.set if "=" not in item]
+        if bad:
+            raise ValueError(f"--set {bad[0]!r}: expected KEY=VALUE")
         overrides = {k: json.loads(v) for k, v in (item.split("=", 1) for item in args.set)}
     except ValueError as exc:  # JSONDecodeError is one; a --set without "="
         p.error(str(exc))

@@ -12,7 +12,8 @@ def test_variants_name_queries_settings_only() -> None:
     want = {"off": {"learned_evicted_views": 0.0}}
     assert parse_variants('{"off": {"learned_evicted_views": 0.0}}') == want
     for bad, words in (("{not json", "not JSON"), ("[1]", "object of objects"), ("{}", "object of objects"),
-                       ('{"a": {"window_size": 3}}', "window_size not a [queries] setting")):
+                       ('{"a": {"window_size": 3}}', "window_size not a [queries] setting"),
+                       ('{"a": {"map_blend": 5.0}}', "map_blend")):
         with pytest.raises(ValueError, match=words.replace("[", r"\[").replace("]", r"\]")):
             parse_variants(bad)
 
