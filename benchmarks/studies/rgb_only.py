@@ -342,7 +342,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, default=None, help="also write the rows as JSON")
     p.add_argument("--pose-noise", default="", metavar="T_M,R_DEG",
                    help="per-frame pose error sent to the node (1 sigma per axis), e.g. 0.02,1.0")
-    p.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE",
+    p.add_argument("--set", nargs="*", action="extend", default=[], metavar="SECTION.KEY=VALUE",
                    help="node config overrides, e.g. stereo.prior_fill_px=16")
     args = p.parse_args(argv)
     unknown = [m for m in args.modes.split(",") if m.strip() not in MODES]

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from mapper.errors import ConfigError
 
 DETECTORS = ("sift", "orb")
+POSE_METHODS = ("pnp", "window")
 
 
 @dataclass(frozen=True)
@@ -172,6 +173,27 @@ class TriangulationConfig:
     """A refinement moving the pose more than this many prior sigmas (of the 3-axis norm) is
     rejected. 0.1..100."""
 
+    pose_method: str = "pnp"
+    """How ``refine_poses`` refines: "pnp" (each keyframe against its partners' triangulated points,
+    :mod:`mapper.geometry.pose_refine`) or "window" (the last ``pose_window`` RGB-only keyframes
+    adjusted jointly from dense matches, :mod:`mapper.geometry.window_adjust`)."""
+
+    pose_window: int = 12
+    """"window": keyframes adjusted together (the newest and the ones before it). 2..256."""
+
+    pose_partners: int = 3
+    """"window": partners a keyframe is matched with (chosen among the adjusted keyframes by overlap
+    and parallax, as triangulation's partners). 1..16."""
+
+    pose_pair_matches: int = 120
+    """"window": matches kept per pair, spread over the image (one per grid cell). 8..10000."""
+
+    pose_flow_sigma_px: float = 0.5
+    """"window": expected error of a dense match (pixels, 1 sigma per axis). 0.01..100."""
+
+    pose_max_evaluations: int = 60
+    """"window": most residual evaluations of one adjustment (SciPy's ``max_nfev``). 5..10000."""
+
     def validate(self, where: str) -> None:
         """Raise :class:`ConfigError` naming ``where``, the key, the value and the allowed range."""
 
@@ -229,6 +251,14 @@ class TriangulationConfig:
         check("pose_huber_px", self.pose_huber_px, 0.01, 100.0)
         check("pose_min_gain", self.pose_min_gain, 0.0, 1.0)
         check("pose_max_sigmas", self.pose_max_sigmas, 0.1, 100.0)
+        if self.pose_method not in POSE_METHODS:
+            raise ConfigError(f"{where}: triangulation.pose_method = {self.pose_method!r}; allowed: "
+                              f"{', '.join(POSE_METHODS)}")
+        check("pose_window", self.pose_window, 2, 256)
+        check("pose_partners", self.pose_partners, 1, 16)
+        check("pose_pair_matches", self.pose_pair_matches, 8, 10_000)
+        check("pose_flow_sigma_px", self.pose_flow_sigma_px, 0.01, 100.0)
+        check("pose_max_evaluations", self.pose_max_evaluations, 5, 10_000)
 
 
 @dataclass(frozen=True)

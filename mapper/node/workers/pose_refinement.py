@@ -17,13 +17,16 @@ from __future__ import annotations
 import threading
 from collections import OrderedDict, deque
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from mapper.geometry.config import TriangulationConfig
+from mapper.geometry.config import DenseFlowConfig, TriangulationConfig
+from mapper.geometry.dense_flow import FlowView, flow_view, select_flow_partners
 from mapper.geometry.pose_refine import PoseRefinement, refine_pose
 from mapper.geometry.triangulation import Features
+from mapper.geometry.window_adjust import PairMatches, adjust_poses, pair_matches
 
 __all__ = ["KeyframePoses", "correspondences"]
 
@@ -74,6 +77,11 @@ class KeyframePoses:
         self.rejected: dict[str, int] = {}
         self._moves: deque[tuple[float, float]] = deque(maxlen=1000)  # accepted (m, deg)
         self._poses: OrderedDict[KeyframeKey, np.ndarray] = OrderedDict()
+        # pose_method = "window": the adjusted keyframes (key, view at the pose as sent, estimate)
+        # and their matches (key a, key b, matches); only the refining thread touches them
+        self._flow = DenseFlowConfig()
+        self._window: deque[tuple[KeyframeKey, FlowView, np.ndarray]] = deque(maxlen=config.pose_window)
+        self._pairs: list[tuple[KeyframeKey, KeyframeKey, PairMatches]] = []
 
     def refine(
         self, key: KeyframeKey, K: np.ndarray, world_from_cam: np.ndarray, features: Features,
@@ -81,7 +89,47 @@ class KeyframePoses:
     ) -> PoseRefinement:
         """Refine the keyframe ``key``'s pose from its matches with its partners' points."""
         uv, xyz = correspondences(features, partners, matched)
-        result = refine_pose(K, world_from_cam, uv, xyz, self.config)
+        return self._record(key, refine_pose(K, world_from_cam, uv, xyz, self.config))
+
+    def refine_window(self, key: KeyframeKey, K: np.ndarray, world_from_cam: np.ndarray,
+                      rgb: np.ndarray) -> PoseRefinement:
+        """``pose_method = "window"``: add the keyframe to the adjusted window (its dense matches with
+        up to ``pose_partners`` of the last ``pose_window`` keyframes), adjust the window jointly
+        (:func:`mapper.geometry.window_adjust.adjust_poses`, started at the earlier estimates) and
+        return the new keyframe's pose (as sent where it was not accepted)."""
+        cfg = self.config
+        view = flow_view(rgb, K, world_from_cam, self._flow.max_width)
+        window = self._window
+        estimates = [e for _, _, e in window]
+        posed = [replace(v, world_from_cam=e).posed for (_, v, _), e in zip(window, estimates, strict=True)]
+        chosen = select_flow_partners(view.posed, posed, replace(self._flow, max_partners=cfg.pose_partners))
+        new_pairs = []
+        for c in chosen:  # matched at the poses as sent (the warp needs only the rough rotation)
+            m = pair_matches(view, window[c][1], 0, 0, cfg, self._flow)
+            if m is not None:
+                new_pairs.append((window[c][0], m))
+        window.append((key, view, world_from_cam.copy()))
+        self._pairs.extend((key, other, m) for other, m in new_pairs)
+        index = {k: i for i, (k, _, _) in enumerate(window)}
+        self._pairs = [(a, b, m) for a, b, m in self._pairs if a in index and b in index]
+        pairs = [replace(m, a=index[a], b=index[b]) for a, b, m in self._pairs]
+        sent = np.stack([v.world_from_cam for _, v, _ in window])
+        out = adjust_poses(np.stack([v.K for _, v, _ in window]), sent, pairs, cfg,
+                           start=np.stack([e for _, _, e in window]))
+        for i, (k, v, _) in enumerate(window):
+            window[i] = (k, v, out.world_from_cam[i])
+        last = len(window) - 1
+        accepted = bool(out.accepted[last])
+        reason = out.reason[last]
+        result = PoseRefinement(
+            out.world_from_cam[last].copy() if accepted else np.asarray(world_from_cam, np.float64).copy(),
+            accepted, reason, int(out.matches[last]), int(out.matches[last]),
+            float(out.error_before_px[last]), float(out.error_after_px[last]),
+            float(out.translation_m[last]), float(out.rotation_deg[last]),
+        )
+        return self._record(key, result)
+
+    def _record(self, key: KeyframeKey, result: PoseRefinement) -> PoseRefinement:
         with self._lock:
             self.attempted += 1
             if result.accepted:
@@ -103,6 +151,8 @@ class KeyframePoses:
         """Forget the refined poses (a map was replaced); the counts stay."""
         with self._lock:
             self._poses.clear()
+            self._window.clear()
+            self._pairs = []
 
     def stats(self) -> dict[str, Any]:
         """``status``: keyframes tried and refined, why the others kept their pose, and how far the

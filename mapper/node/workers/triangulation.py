@@ -537,8 +537,12 @@ class SparseTriangulation:
             partners = [(candidates[i].view, candidates[i].detected(self.extractor)) for i in chosen]
             matched = [self.extractor.match(features, f) for _, f in partners]
             if self.config.refine_poses:  # its pose against the partners' points, before its own
-                refined = self.poses.refine(keyframe_key(keyframe), view.K, pose, features,
-                                            [candidates[i].points for i in chosen], matched)
+                if self.config.pose_method == "window":  # the last keyframes adjusted jointly
+                    refined = self.poses.refine_window(keyframe_key(keyframe), view.K, pose,
+                                                       np.asarray(keyframe.rgb))
+                else:
+                    refined = self.poses.refine(keyframe_key(keyframe), view.K, pose, features,
+                                                [candidates[i].points for i in chosen], matched)
                 if refined.accepted:
                     keyframe = replace(keyframe, world_from_cam=refined.world_from_cam)
                     view = replace(view, world_from_cam=refined.world_from_cam)

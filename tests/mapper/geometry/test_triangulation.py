@@ -615,3 +615,41 @@ def test_plugin_leaves_poses_alone_when_refinement_is_off(node: MapperNode, text
         node.handle_ingest(encode(plane_frame(i, texture)))
     tri.process_pending()
     assert tri.poses.refined() == {} and tri.stats()["poses"]["attempted"] == 0
+
+
+def test_plugin_adjusts_the_window_of_poses_from_dense_matches(node: MapperNode) -> None:
+    """triangulation.pose_method = "window": a simulated room's RGB-only keyframes sent with 2 cm /
+    1 degree of error per frame are used nearer the truth (joint adjustment of each new keyframe with
+    the ones before it, mapper.geometry.window_adjust); the window keeps the poses as sent; status
+    counts them; a map load forgets the adjusted window. (A plane alone would not do: its matches
+    cannot tell a turn from a shift.)"""
+    from clients.harness import sim_stream
+    from clients.sim.sensor import noisy_poses
+
+    stream = sim_stream(5, 48, 160, 120, depth=False, ov=False)
+    sent = noisy_poses(stream.poses, 0.02, 1.0, seed=5)
+    config = TriangulationConfig(refine_poses=True, pose_method="window")
+    tri = SparseTriangulation(node.ctx, config=config)
+    tri.install()
+    frames = []
+    for k, (frame, _) in enumerate(stream.frames()):
+        if k % 2 or k >= 40:
+            continue
+        frame = dataclasses.replace(frame, world_from_cam=sent[k])
+        frames.append((k, frame))
+        node.handle_ingest(encode(frame))
+        tri.process_pending()
+    refined = tri.poses.refined()
+    pairs = [(stream.poses[k], sent[k], refined[keyframe_key(f)])
+             for k, f in frames if keyframe_key(f) in refined]
+    assert len(pairs) >= 0.75 * len(frames)
+    before = np.median([pose_change(t, s)[1] for t, s, _ in pairs])
+    after = np.median([pose_change(t, r)[1] for t, _, r in pairs])
+    assert after < 0.7 * before, (before, after)
+    for k, f in frames[-3:]:
+        kept = [w for w in node.state.window.keyframes if w.seq == f.seq]
+        np.testing.assert_array_equal(kept[0].world_from_cam, sent[k])  # the pose as sent is kept
+    poses = tri.stats()["poses"]
+    assert poses["attempted"] == len(frames) and poses["refined"] == len(refined)
+    tri.poses.clear()
+    assert tri.poses.refined() == {}

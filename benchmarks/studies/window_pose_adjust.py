@@ -1,0 +1,131 @@
+"""Keyframe poses sent with odometry error, adjusted over a sliding window from dense matches.
+
+The pure-geometry study behind ``triangulation.pose_method = "window"``
+(:mod:`mapper.geometry.window_adjust`), without a node: a simulated room's frames are taken as
+keyframes one after the other (every ``--stride``-th frame), their poses sent with per-frame
+error (``--pose-noise T_M,R_DEG``, 1 sigma per axis, :func:`clients.sim.sensor.noisy_poses`; or
+``--drift``: a random walk of such steps). Each new keyframe is matched (DIS flow) with up to
+``pose_partners`` of the last ``pose_window`` keyframes (chosen at their current estimates), then
+the window is adjusted jointly. Reported, against the true poses: the error of each keyframe's
+pose as sent, as adjusted when it arrived (what the node's triangulation would use), and at the
+end of the stream (after later keyframes constrained it); medians and 90th percentiles, and the
+time per adjustment.
+
+Usage::
+
+    python benchmarks/studies/window_pose_adjust.py --seed 5 --frames 96 --pose-noise 0.02,1.0
+    python benchmarks/studies/window_pose_adjust.py --seed 4 --style studio --stride 3 --set pose_window=8
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from typing import Any
+
+import numpy as np
+
+from clients.harness import sim_stream
+from clients.sim.sensor import noisy_poses
+from mapper.geometry.config import DenseFlowConfig, TriangulationConfig
+from mapper.geometry.dense_flow import flow_view, select_flow_partners
+from mapper.geometry.pose_refine import pose_change
+from mapper.geometry.window_adjust import PairMatches, adjust_poses, pair_matches
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    config = TriangulationConfig(pose_prior_m=args.pose_noise[0], pose_prior_deg=args.pose_noise[1])
+    for key, value in args.overrides:
+        config = dataclasses.replace(config, **{key: type(getattr(config, key))(value)})
+    config.validate("--set")
+    flow = DenseFlowConfig()
+    stream = sim_stream(args.seed, args.frames, args.width, args.height, depth=False, ov=False,
+                        style=args.style)
+    truth_all = np.asarray(stream.poses, np.float64)
+    sent_all = noisy_poses(truth_all, args.pose_noise[0], args.pose_noise[1], seed=args.seed,
+                           drift=args.drift)
+    views: list[Any] = []
+    truth: list[np.ndarray] = []
+    estimate: list[np.ndarray] = []
+    used: list[np.ndarray] = []
+    pairs: list[PairMatches] = []
+    seconds: list[float] = []
+    for k, (frame, _) in enumerate(stream.frames()):
+        if k % args.stride:
+            continue
+        view = flow_view(frame.rgb, stream.K, sent_all[k], flow.max_width)
+        views.append(view)
+        truth.append(truth_all[k])
+        estimate.append(sent_all[k].copy())
+        i = len(views) - 1
+        lo = max(0, i - config.pose_window + 1)
+        t0 = time.perf_counter()
+        cands = [dataclasses.replace(views[j], world_from_cam=estimate[j]).posed for j in range(lo, i)]
+        new = dataclasses.replace(view, world_from_cam=estimate[i]).posed
+        partner_cfg = dataclasses.replace(flow, max_partners=config.pose_partners)
+        chosen = select_flow_partners(new, cands, partner_cfg)
+        for c in chosen:
+            m = pair_matches(view, views[lo + c], i, lo + c, config, flow)
+            if m is not None:
+                pairs.append(m)
+        local = [dataclasses.replace(p, a=p.a - lo, b=p.b - lo) for p in pairs if p.a >= lo and p.b >= lo]
+        sent_w = np.stack([v.world_from_cam for v in views[lo:]])
+        K_w = np.stack([v.K for v in views[lo:]])
+        out = adjust_poses(K_w, sent_w, local, config)
+        for j in range(lo, i + 1):
+            estimate[j] = out.world_from_cam[j - lo]
+        seconds.append(time.perf_counter() - t0)
+        used.append(estimate[i].copy())
+
+    def errors(poses: list[np.ndarray]) -> dict[str, float]:
+        e = np.array([pose_change(t, p) for t, p in zip(truth, poses, strict=True)])
+        return {"median_cm": 100 * float(np.median(e[:, 0])),
+                "p90_cm": 100 * float(np.percentile(e[:, 0], 90)),
+                "median_deg": float(np.median(e[:, 1])), "p90_deg": float(np.percentile(e[:, 1], 90))}
+
+    return {
+        "keyframes": len(views), "pairs": len(pairs),
+        "matches_per_pair": float(np.mean([len(p) for p in pairs])) if pairs else 0.0,
+        "sent": errors([v.world_from_cam for v in views]), "used": errors(used), "end": errors(estimate),
+        "adjust_ms_median": 1e3 * float(np.median(seconds)),
+        "adjust_ms_p90": 1e3 * float(np.percentile(seconds, 90)),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seed", type=int, default=5)
+    parser.add_argument("--style", default="apartment")
+    parser.add_argument("--frames", type=int, default=96)
+    parser.add_argument("--stride", type=int, default=1, help="every N-th frame is a keyframe")
+    parser.add_argument("--width", type=int, default=160)
+    parser.add_argument("--height", type=int, default=120)
+    parser.add_argument("--pose-noise", default="0.02,1.0", help="T_M,R_DEG per frame (1 sigma per axis)")
+    parser.add_argument("--drift", action="store_true", help="a random walk of such steps")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a TriangulationConfig field (pose_window, pose_partners, ...)")
+    parser.add_argument("--json", help="write the result here")
+    args = parser.parse_args(argv)
+    try:
+        t, r = (float(v) for v in args.pose_noise.split(","))
+    except ValueError:
+        parser.error(f"--pose-noise must be T_M,R_DEG, got {args.pose_noise!r}")
+    args.pose_noise = (t, r)
+    args.overrides = []
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep or key not in {f.name for f in dataclasses.fields(TriangulationConfig)}:
+            parser.error(f"--set {item!r}: expected KEY=VALUE with KEY a TriangulationConfig field")
+        args.overrides.append((key, value))
+    result = run(args)
+    print(json.dumps(result, indent=1))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(result, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
