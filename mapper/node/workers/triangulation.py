@@ -116,8 +116,10 @@ class ExtentSink(Protocol):
 
 
 def keyframe_key(keyframe: Any) -> KeyframeKey:
-    """``(camera, seq, stamp_ns)``: a keyframe's identity that survives a swap in the window."""
-    return (str(getattr(keyframe, "camera", "")), int(keyframe.seq), int(keyframe.stamp_ns))
+    """``(camera, seq, stamp_ns)``: a keyframe's identity that survives a swap in the window; a
+    named robot's camera is ``"<robot>/<camera>"`` (two robots' frames may share seq and stamp)."""
+    camera, robot = str(getattr(keyframe, "camera", "")), str(getattr(keyframe, "robot", ""))
+    return (f"{robot}/{camera}" if robot else camera, int(keyframe.seq), int(keyframe.stamp_ns))
 
 
 @dataclass(frozen=True)
@@ -172,6 +174,7 @@ class _Candidate:
     features: Features | None = None
     stereo: _StereoImage | None = None  # its image (and depth) at the sweep's working size
     points: tuple[np.ndarray, np.ndarray] | None = None  # its triangulated keypoints: (feature index, xyz)
+    robot: str = ""  # partners are the same robot's recent keyframes
 
     def detected(self, extractor: FeatureExtractor) -> Features:
         if self.features is None:
@@ -399,7 +402,8 @@ class SparseTriangulation:
         self._queue: KeyframeQueue[tuple[Any, int, GlobalSemanticMap, bool]] = KeyframeQueue(
             self.config.max_pending
         )  # (keyframe, its map version, the node's map when it was queued, restored by a load)
-        self._candidates: deque[_Candidate] = deque(maxlen=self.config.candidate_keyframes)
+        self._candidates: dict[str, deque[_Candidate]] = {}
+        """Partner candidates by robot: each robot's ``candidate_keyframes`` most recent keyframes."""
         self._points: _KeyframeBudget[SparsePoints] = _KeyframeBudget(self.config.max_points, len)
         self._swept: _KeyframeBudget[tuple[np.ndarray, np.ndarray]] = _KeyframeBudget(  # (xyz, sigma)
             self.stereo.max_points, lambda xyz_sigma: len(xyz_sigma[1])
@@ -521,14 +525,15 @@ class SparseTriangulation:
                     self._reset_locked()
                 self._map = target
             generation = self._generation
-            candidates = list(self._candidates)
+            candidates = list(self._candidates.get(getattr(keyframe, "robot", ""), ()))
         try:
             height, width = keyframe.rgb.shape[:2]
             pose = np.asarray(keyframe.world_from_cam, np.float64)
             view = PosedView(np.asarray(keyframe.K, np.float64), pose, int(width), int(height))
             image = stereo_image(keyframe, self.stereo) if self.stereo.enabled else None
             if keyframe.depth_m is not None:
-                candidate = _Candidate(keyframe_key(keyframe), view, keyframe.rgb, stereo=image)
+                candidate = _Candidate(keyframe_key(keyframe), view, keyframe.rgb, stereo=image,
+                                       robot=getattr(keyframe, "robot", ""))
                 if not self._add_candidate(generation, candidate):
                     self.stale += 1  # a load meanwhile
                 return 0
@@ -543,7 +548,8 @@ class SparseTriangulation:
                     keyframe = replace(keyframe, world_from_cam=refined.world_from_cam)
                     view = replace(view, world_from_cam=refined.world_from_cam)
                     image = stereo_image(keyframe, self.stereo) if image is not None else None
-            own = _Candidate(keyframe_key(keyframe), view, None, features, stereo=image)
+            own = _Candidate(keyframe_key(keyframe), view, None, features, stereo=image,
+                             robot=getattr(keyframe, "robot", ""))
             if not self._add_candidate(generation, own):
                 self.stale += 1  # a load while it was detected
                 return 0
@@ -635,7 +641,9 @@ class SparseTriangulation:
         with self._lock:
             if generation != self._generation:
                 return False
-            self._candidates.append(candidate)
+            recent = self._candidates.setdefault(candidate.robot,
+                                                 deque(maxlen=self.config.candidate_keyframes))
+            recent.append(candidate)
             return True
 
     def _reset_locked(self) -> None:
@@ -790,7 +798,7 @@ class SparseTriangulation:
         with self._lock:
             pts = sum(p.xyz.nbytes + p.sigma_m.nbytes * 5 + p.uv.nbytes for p in self._points.items.values())
             pts += self._priors.nbytes_locked()
-            candidates = list(self._candidates)
+            candidates = [c for robot in self._candidates.values() for c in robot]
         feats = 0
         for c in candidates:
             f = c.features
