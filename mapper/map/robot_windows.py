@@ -44,9 +44,67 @@ import numpy as np
 
 from mapper.map.window import Keyframe, KeyframeCallback, KeyframeWindow, WindowConfig, WindowUpdate
 
-__all__ = ["RobotCallback", "RobotWindows", "TooManyRobots"]
+__all__ = ["RobotCallback", "RobotWindows", "TooManyRobots", "observed_box", "robot_groups"]
 
 RobotCallback = Callable[[str, KeyframeWindow], None]
+
+
+def observed_box(keyframe: Keyframe, max_range_m: float, stride: int = 8, pad_m: float = 0.1
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The axis-aligned box (min (3,), max (3,), world metres) of what ``keyframe`` observed: its
+    input depth back-projected (every ``stride``-th pixel, up to ``max_range_m``), or, without
+    depth, its frustum up to ``max_range_m``; padded by ``pad_m``."""
+    fx, fy, cx, cy = (float(v) for v in keyframe.K)
+    pose = np.asarray(keyframe.world_from_cam, np.float64)
+    h, w = keyframe.height, keyframe.width
+    cam: np.ndarray | None = None
+    if keyframe.depth_m is not None:
+        depth = np.asarray(keyframe.depth_m)[::stride, ::stride]
+        rows, cols = np.nonzero(np.isfinite(depth) & (depth > 0) & (depth <= max_range_m))
+        if rows.size:
+            z = depth[rows, cols].astype(np.float64)
+            u, v = cols * stride + 0.5, rows * stride + 0.5
+            cam = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=1)
+    if cam is None:  # the frustum: the camera centre and the image corners at max_range_m
+        u, v = np.array([0.0, w, 0.0, w]), np.array([0.0, 0.0, h, h])
+        cam = np.concatenate([np.zeros((1, 3)), np.stack([(u - cx) / fx * max_range_m,
+                                                          (v - cy) / fy * max_range_m,
+                                                          np.full(4, max_range_m)], axis=1)])
+    world = cam @ pose[:3, :3].T + pose[:3, 3]
+    return world.min(axis=0) - pad_m, world.max(axis=0) + pad_m
+
+
+def robot_groups(
+    windows: Iterable[tuple[str, Iterable[Keyframe]]],
+    xyz: np.ndarray,  # (N, 3) world points
+    max_range_m: float,
+) -> list[tuple[tuple[str, ...], np.ndarray]] | None:
+    """Which robots' windows answer each point: those with a keyframe whose :func:`observed_box`
+    holds it (all robots with keyframes where none does). Returns ``(robots, point indices)``
+    groups, or None when one group would take every point with every robot (fewer than two robots
+    with keyframes, or every point inside every robot's boxes): then all windows answer all points,
+    as one window does."""
+    held = [(robot, list(keyframes)) for robot, keyframes in windows]
+    held = [(robot, keyframes) for robot, keyframes in held if keyframes]
+    if len(held) < 2:
+        return None
+    points = np.asarray(xyz, np.float64)
+    inside = np.zeros((len(held), points.shape[0]), bool)
+    for r, (_, keyframes) in enumerate(held):
+        for keyframe in keyframes:
+            lo, hi = observed_box(keyframe, max_range_m)
+            inside[r] |= np.all((points >= lo) & (points <= hi), axis=1)
+    inside[:, ~inside.any(axis=0)] = True  # seen by no window's box: every window may answer
+    codes = np.packbits(inside, axis=0, bitorder="little")  # (ceil(R / 8), N)
+    keys, group = np.unique(codes.T, axis=0, return_inverse=True)
+    if keys.shape[0] == 1 and inside[:, 0].all():
+        return None
+    out = []
+    for g in range(keys.shape[0]):
+        idx = np.flatnonzero(group.reshape(-1) == g)
+        robots = tuple(robot for r, (robot, _) in enumerate(held) if inside[r, idx[0]])
+        out.append((robots, idx))
+    return out
 
 
 class TooManyRobots(ValueError):
@@ -131,6 +189,12 @@ class RobotWindows:
         """The keyframes of ``robot``'s window, oldest first (none before its first frame)."""
         window = self._windows.get(robot)
         return () if window is None else window.keyframes
+
+    def keyframes_of(self, robots: Iterable[str]) -> tuple[Keyframe, ...]:
+        """The keyframes of these robots' windows (in :attr:`robots` order)."""
+        wanted = set(robots)
+        return tuple(k for robot, window in self._windows.items() if robot in wanted
+                     for k in window.keyframes)
 
     def __len__(self) -> int:
         return sum(len(window) for window in self._windows.values())

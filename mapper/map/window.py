@@ -397,6 +397,7 @@ def keyframes_from_arrays(
                 depth_m=depth_m,
                 ov=ov,
                 ov_space=ov_space if ov is not None else None,
+                robot=robot,
             )
         )
     return keyframes

@@ -49,7 +49,8 @@ def install_serve_stages(node: MapperNode) -> ServeStages:
         from mapper.runtime.model_runtime import ModelRuntime
 
         runtime = ModelRuntime(config.model)
-        robots = RobotRuntimes(runtime)  # one runtime per robot window, on this runtime's model
+        # one runtime per robot window, on this runtime's model
+        robots = RobotRuntimes(runtime, config.global_map.max_depth_m)
         rendered = install_learned_backend(node, robots)
     if config.triangulation.enabled:
         from mapper.node.workers.triangulation import install_triangulation

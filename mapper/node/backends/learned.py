@@ -117,7 +117,8 @@ def install_learned_backend(
     earlier is picked up (the runtimes record the keyframes already in the windows).
     """
     ctx = node.ctx
-    robots = runtime if isinstance(runtime, RobotRuntimes) else RobotRuntimes(runtime)
+    robots = runtime if isinstance(runtime, RobotRuntimes) else \
+        RobotRuntimes(runtime, ctx.config.global_map.max_depth_m)
     with ctx.state.lock:
         robots.attach(ctx.state.window)
     backend = LearnedBackend(robots)

@@ -9,10 +9,12 @@ fed by one robot serves exactly as that runtime alone.
 :class:`RobotRuntimes` answers like one runtime (what the learned backend and the node's workers
 call), by these rules:
 
-* **points** (``segment``, ``segment_cosines``, ``point_features``): every robot's runtime that
-  answers a point counts; where several do, the point takes the mean of their cosines (of their
-  blended features for ``point_features``), each window once; a point no window sees has no
-  answer (the global map answers it). With one robot, that runtime's answer as it is.
+* **points** (``segment``, ``segment_cosines``, ``point_features``): a point is asked of the
+  runtimes of the robots whose windows observed it (a keyframe's input depth, or its frustum up to
+  ``global_map.max_depth_m``, holds it: :func:`mapper.map.robot_windows.robot_groups`; of every
+  robot where none does); where several of them answer, the point takes the mean of their
+  cosines (of their blended features for ``point_features``), each window once; a point no window
+  sees has no answer (the global map answers it). With one robot, that runtime's answer as it is.
 * **renders**: the runtime of the robot whose window holds the keyframe nearest the rendered
   camera (camera centres).
 * **per-keyframe settings** (``set_view_extent``, ``set_view_depth_prior``): the runtime of the
@@ -28,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from mapper.errors import RuntimeNotReady
-from mapper.map.robot_windows import RobotWindows
+from mapper.map.robot_windows import RobotWindows, robot_groups
 from mapper.map.window import Keyframe, KeyframeWindow
 from mapper.runtime.entries import keyframe_key
 from mapper.runtime.model_runtime import ModelRuntime, RenderFrame
@@ -50,8 +52,11 @@ class RobotRuntimes:
     """One :class:`ModelRuntime` per robot window (module docstring). Thread-safe: the robots'
     runtimes are made under the node's state lock and read as one tuple swapped whole."""
 
-    def __init__(self, primary: ModelRuntime) -> None:
+    def __init__(self, primary: ModelRuntime, max_range_m: float = 8.0) -> None:
         self.primary = primary
+        self.max_range_m = max_range_m
+        """How far a keyframe without depth observes (``global_map.max_depth_m``): which windows a
+        point is asked of."""
         self._runtimes: tuple[tuple[str, ModelRuntime, KeyframeWindow], ...] = ()
         self._robot_of: dict[Key, str] = {}
         """Keyframe key -> its robot, for the keyframes in a window (the per-keyframe settings)."""
@@ -155,6 +160,16 @@ class RobotRuntimes:
         live = [rt for _, rt, window in self._runtimes if len(window)]
         return live or [self.primary]
 
+    def _groups(self, points: np.ndarray) -> list[tuple[list[ModelRuntime], np.ndarray]] | None:
+        """Which runtimes each point is asked of (module docstring), None: every runtime holding
+        keyframes, every point."""
+        held = [(robot, window.keyframes) for robot, _, window in self._runtimes]
+        groups = robot_groups(held, points, self.max_range_m)
+        if groups is None:
+            return None
+        by_robot = self.runtimes()
+        return [([by_robot[r] for r in robots], idx) for robots, idx in groups]
+
     def segment(
         self, points: np.ndarray, texts: Sequence[str], *, use_depth: bool = False
     ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
@@ -167,25 +182,29 @@ class RobotRuntimes:
     def segment_cosines(
         self, points: np.ndarray, texts: Sequence[str], *, use_depth: bool = False
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, float]]:
-        """Every answering window's cosines, averaged where several see a point (module docstring)."""
+        """The cosines of the windows that observed each point, averaged where several answer
+        (module docstring)."""
         runtimes = self._answering()
         if len(runtimes) == 1:
             return runtimes[0].segment_cosines(points, texts, use_depth=use_depth)
-        n = np.asarray(points).shape[0]
+        xyz = np.asarray(points, np.float32)
+        n = xyz.shape[0]
+        groups = self._groups(xyz) or [(runtimes, np.arange(n))]
         total = np.zeros((n, len(texts)), np.float32)
         count = np.zeros(n, np.float32)
         timings: list[dict[str, float]] = []
         refusal: RuntimeNotReady | None = None
-        for runtime in runtimes:
-            try:
-                label, _, cos, timing = runtime.segment_cosines(points, texts, use_depth=use_depth)
-            except RuntimeNotReady as exc:  # e.g. a window without OV views: the others answer
-                refusal = refusal or exc
-                continue
-            seen = label >= 0
-            total[seen] += cos[seen]
-            count[seen] += 1.0
-            timings.append(timing)
+        for members, idx in groups:
+            for runtime in members:
+                try:
+                    label, _, cos, timing = runtime.segment_cosines(xyz[idx], texts, use_depth=use_depth)
+                except RuntimeNotReady as exc:  # e.g. a window without OV views: the others answer
+                    refusal = refusal or exc
+                    continue
+                seen = label >= 0
+                total[idx[seen]] += cos[seen]
+                count[idx[seen]] += 1.0
+                timings.append(timing)
         if not timings:
             assert refusal is not None
             raise refusal
@@ -194,27 +213,32 @@ class RobotRuntimes:
         label = np.where(seen, np.argmax(cos, axis=1), -1).astype(np.int32)
         score = np.where(seen, cos[np.arange(n), np.maximum(label, 0)], 0.0).astype(np.float32)
         timing = _merge_timing(timings)
-        timing["robots_answering"] = float(len(timings))
+        timing["robot_groups"] = float(len(groups))
         return label, score, cos, timing
 
     def point_features(self, points: np.ndarray, *, use_depth: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """The blended features of every answering window, averaged where several see a point."""
+        """The blended features of the windows that observed each point, averaged where several
+        answer."""
         runtimes = self._answering()
         if len(runtimes) == 1:
             return runtimes[0].point_features(points, use_depth=use_depth)
+        xyz = np.asarray(points, np.float32)
+        n = xyz.shape[0]
+        groups = self._groups(xyz) or [(runtimes, np.arange(n))]
         total: np.ndarray | None = None
-        count = np.zeros(np.asarray(points).shape[0], np.float32)
+        count = np.zeros(n, np.float32)
         refusal: RuntimeNotReady | None = None
-        for runtime in runtimes:
-            try:
-                feats, valid = runtime.point_features(points, use_depth=use_depth)
-            except RuntimeNotReady as exc:
-                refusal = refusal or exc
-                continue
-            if total is None:
-                total = np.zeros(feats.shape, np.float32)
-            total[valid] += feats[valid]
-            count[valid] += 1.0
+        for members, idx in groups:
+            for runtime in members:
+                try:
+                    feats, valid = runtime.point_features(xyz[idx], use_depth=use_depth)
+                except RuntimeNotReady as exc:
+                    refusal = refusal or exc
+                    continue
+                if total is None:
+                    total = np.zeros((n, feats.shape[1]), np.float32)
+                total[idx[valid]] += feats[valid]
+                count[idx[valid]] += 1.0
         if total is None:
             assert refusal is not None
             raise refusal
