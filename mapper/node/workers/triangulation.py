@@ -64,7 +64,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
@@ -182,6 +182,30 @@ class _Candidate:
             self.features = extractor.detect(np.asarray(self.rgb))
             self.rgb = None
         return self.features
+
+
+class _RobotCandidates:
+    """Partner candidates by robot: each robot's ``maxlen`` most recent keyframes (a keyframe's
+    partners are its own robot's); ``len`` and iteration cover every robot's."""
+
+    def __init__(self, maxlen: int) -> None:
+        self.maxlen = maxlen
+        self._by_robot: dict[str, deque[_Candidate]] = {}
+
+    def append(self, candidate: _Candidate) -> None:
+        self._by_robot.setdefault(candidate.robot, deque(maxlen=self.maxlen)).append(candidate)
+
+    def of(self, robot: str) -> list[_Candidate]:
+        return list(self._by_robot.get(robot, ()))
+
+    def clear(self) -> None:
+        self._by_robot.clear()
+
+    def __len__(self) -> int:
+        return sum(len(d) for d in self._by_robot.values())
+
+    def __iter__(self) -> Iterator[_Candidate]:
+        return (c for d in list(self._by_robot.values()) for c in list(d))
 
 
 @dataclass
@@ -402,8 +426,7 @@ class SparseTriangulation:
         self._queue: KeyframeQueue[tuple[Any, int, GlobalSemanticMap, bool]] = KeyframeQueue(
             self.config.max_pending
         )  # (keyframe, its map version, the node's map when it was queued, restored by a load)
-        self._candidates: dict[str, deque[_Candidate]] = {}
-        """Partner candidates by robot: each robot's ``candidate_keyframes`` most recent keyframes."""
+        self._candidates = _RobotCandidates(self.config.candidate_keyframes)
         self._points: _KeyframeBudget[SparsePoints] = _KeyframeBudget(self.config.max_points, len)
         self._swept: _KeyframeBudget[tuple[np.ndarray, np.ndarray]] = _KeyframeBudget(  # (xyz, sigma)
             self.stereo.max_points, lambda xyz_sigma: len(xyz_sigma[1])
@@ -525,7 +548,7 @@ class SparseTriangulation:
                     self._reset_locked()
                 self._map = target
             generation = self._generation
-            candidates = list(self._candidates.get(getattr(keyframe, "robot", ""), ()))
+            candidates = self._candidates.of(getattr(keyframe, "robot", ""))
         try:
             height, width = keyframe.rgb.shape[:2]
             pose = np.asarray(keyframe.world_from_cam, np.float64)
@@ -641,9 +664,7 @@ class SparseTriangulation:
         with self._lock:
             if generation != self._generation:
                 return False
-            recent = self._candidates.setdefault(candidate.robot,
-                                                 deque(maxlen=self.config.candidate_keyframes))
-            recent.append(candidate)
+            self._candidates.append(candidate)
             return True
 
     def _reset_locked(self) -> None:
@@ -798,7 +819,7 @@ class SparseTriangulation:
         with self._lock:
             pts = sum(p.xyz.nbytes + p.sigma_m.nbytes * 5 + p.uv.nbytes for p in self._points.items.values())
             pts += self._priors.nbytes_locked()
-            candidates = [c for robot in self._candidates.values() for c in robot]
+            candidates = list(self._candidates)
         feats = 0
         for c in candidates:
             f = c.features
