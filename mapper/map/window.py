@@ -43,7 +43,8 @@ class WindowConfig:
     """The bounded window of keyframes (see :mod:`mapper.map.window`)."""
 
     max_keyframes: int = 30
-    """Most keyframes kept; adding one more evicts the oldest. 1..10000."""
+    """Most keyframes kept (per robot: each robot has its own window, ``max_robots``); adding one
+    more evicts the oldest. 1..10000."""
 
     min_translation_m: float = 0.10
     """A frame becomes a keyframe when its camera centre moved at least this far (metres) from the
