@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapper.map.robot_windows import RobotWindows, TooManyRobots
+from mapper.map.robot_windows import RobotWindows, TooManyRobots, observed_box, robot_groups
 from mapper.map.window import Keyframe, KeyframeWindow, WindowConfig
 
 CONFIG = WindowConfig(max_keyframes=3, min_translation_m=0.1, min_rotation_deg=10.0, max_robots=2)
@@ -94,3 +94,42 @@ def test_swap_stays_in_the_robot_window() -> None:
     assert windows.swap(old, new)
     assert windows.robot_keyframes("b") == (new,) and len(windows.robot_keyframes("a")) == 1
     assert not windows.swap(old, new)  # no longer there
+
+
+def depth_kf(seq: int, x: float, robot: str, depth_m: float | None = 2.0) -> Keyframe:
+    """A keyframe at (x, 0, 0) looking along +z (identity rotation), with flat depth or none."""
+    world_from_cam = np.eye(4)
+    world_from_cam[0, 3] = x
+    depth = None if depth_m is None else np.full((12, 16), depth_m, np.float32)
+    return Keyframe(seq=seq, stamp_ns=seq, camera="cam0", K=np.array([8.0, 8.0, 8.0, 6.0]),
+                    world_from_cam=world_from_cam, rgb=np.zeros((12, 16, 3), np.uint8), depth_m=depth,
+                    robot=robot)
+
+
+def test_observed_box_is_the_depth_or_the_frustum() -> None:
+    lo, hi = observed_box(depth_kf(0, 5.0, "a"), max_range_m=8.0)
+    assert lo[2] == pytest.approx(1.9) and hi[2] == pytest.approx(2.1)  # the depth, padded 10 cm
+    assert lo[0] == pytest.approx(5.0 - 2.0 - 0.1, abs=0.3) and hi[0] <= 5.0 + 2.0 + 0.1
+    lo, hi = observed_box(depth_kf(0, 5.0, "a", depth_m=None), max_range_m=8.0)
+    assert lo[2] == pytest.approx(-0.1) and hi[2] == pytest.approx(8.1)  # camera centre to 8 m
+    assert hi[0] - lo[0] == pytest.approx(16.0 + 0.2)  # the frustum's width at 8 m (fx 8, 16 px)
+
+
+def test_robot_groups_ask_the_windows_that_observed_a_point() -> None:
+    windows = [("a", [depth_kf(0, 0.0, "a")]), ("b", [depth_kf(1, 12.0, "b")])]
+    xyz = np.array([[0.0, 0.0, 2.0], [12.0, 0.0, 2.0], [6.0, 0.0, 40.0], [11.0, 0.3, 2.0]], np.float32)
+    groups = robot_groups(windows, xyz, max_range_m=8.0)
+    assert groups is not None
+    got = {robots: idx.tolist() for robots, idx in groups}
+    assert got == {("a",): [0], ("b",): [1, 3], ("a", "b"): [2]}  # seen by none: every window
+    # where both observed a point, both windows answer it
+    both = [("a", [depth_kf(0, 0.0, "a")]), ("b", [depth_kf(1, 0.5, "b")])]
+    assert robot_groups(both, xyz[:1], max_range_m=8.0) is None  # in every robot's boxes: as one window
+    groups = robot_groups(both, np.array([[0.0, 0.0, 2.0], [0.6, 0.0, 2.0]], np.float32), max_range_m=8.0)
+    assert groups is not None and {r: i.tolist() for r, i in groups} == {("a", "b"): [0], ("b",): [1]}
+
+
+def test_robot_groups_with_one_robot_are_none() -> None:
+    xyz = np.zeros((3, 3), np.float32)
+    assert robot_groups([("a", [depth_kf(0, 0.0, "a")])], xyz, 8.0) is None
+    assert robot_groups([("a", [depth_kf(0, 0.0, "a")]), ("b", [])], xyz, 8.0) is None
