@@ -594,6 +594,9 @@ class WireField:
     """None is a valid Python value (and is not checked)."""
     send_nil: bool = False
     """A None value is sent as nil rather than left out."""
+    omit_default: bool = False
+    """The default value is left out of the wire (a key added compatibly: a message that does not
+    use it encodes to the same bytes as before the key existed)."""
     dim: str | None = None
     """The shape symbol an int field sets (`width` -> "W")."""
     before: str | None = None
@@ -638,6 +641,7 @@ def wire(
     default: Any = MISSING,
     default_factory: Any = MISSING,
     send_nil: bool = False,
+    omit_default: bool = False,
     dim: str | None = None,
     before: str | None = None,
     doc: str = "",
@@ -645,10 +649,12 @@ def wire(
     """Declare a message field: a dataclass field carrying its row of the field table.
 
     `name` is the wire key (default: the attribute name); a field is required unless it has a
-    default (or says ``required=False``, or gives a condition such as ``"if ov"``).
+    default (or says ``required=False``, or gives a condition such as ``"if ov"``); with
+    `omit_default` its default value is not sent.
     """
     spec = dict(
-        kind=kind, name=name, unit=unit, required=required, send_nil=send_nil, dim=dim, before=before, doc=doc
+        kind=kind, name=name, unit=unit, required=required, send_nil=send_nil, omit_default=omit_default,
+        dim=dim, before=before, doc=doc,
     )
     return field(default=default, default_factory=default_factory, metadata={"wire": spec})
 
@@ -688,6 +694,7 @@ def _row(f: Any) -> WireField:
         default_factory=None if f.default_factory is MISSING else f.default_factory,
         nullable=(f.default is None) or spec["send_nil"],
         send_nil=spec["send_nil"],
+        omit_default=spec["omit_default"],
         dim=spec["dim"],
         before=spec["before"],
         doc=spec["doc"],
@@ -742,11 +749,14 @@ def check_fields(msg: Any) -> None:
 
 def fields_to_wire(msg: Any, wire: dict[str, Any]) -> dict[str, Any]:
     """Add the message's fields to `wire` (its header): `id` first, then declaration order
-    (but see `WireField.before`); None values are left out unless `send_nil`."""
+    (but see `WireField.before`); None values are left out unless `send_nil`, and default values
+    of `omit_default` fields are left out."""
     for f in msg.ENCODE_ORDER:
         value = getattr(msg, f.py) if f.py is not None else f.value(msg)
         if f.wire is None:
             f.kind.put(wire, value)
+        elif f.omit_default and value is not None and value == f.default:
+            continue
         elif value is not None:
             wire[f.wire] = f.kind.encode(value, msg)
         elif f.send_nil:

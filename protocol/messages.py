@@ -131,6 +131,12 @@ ACK_STATUSES: tuple[str, ...] = ("keyframe", "accepted", "rejected")
 NAME_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
 """Allowed `save`/`load` map names (besides which "." and ".." are refused)."""
 
+MAX_ROBOT_CHARS = 32
+"""Longest robot name of a `frame`, characters."""
+
+ROBOT_RE = re.compile(rf"[A-Za-z0-9_.\-]{{0,{MAX_ROBOT_CHARS}}}")
+"""Allowed robot names of a `frame`: "" (the default robot) or 1..32 characters of [A-Za-z0-9_.-]."""
+
 Direction = Literal["request", "reply", "any"]
 RequestId = int | str | None
 
@@ -251,6 +257,22 @@ class MapName(Kind):
             raise bad(
                 f"{name}: {short(value)} is not a valid map name; use 1..64 characters from "
                 "[A-Za-z0-9_.-], not '.' or '..'"
+            )
+        return value
+
+
+class RobotName(Kind):
+    """A `frame`'s robot name: `ROBOT_RE` ("" is the default robot)."""
+
+    TYPE_DOC: ClassVar[str] = "str"
+
+    def check(self, name: str, value: Any, ctx: Ctx) -> str:
+        if not isinstance(value, str):
+            raise bad(f"{name}: expected a string, got {type_name(value)} {short(value)}")
+        if not ROBOT_RE.fullmatch(value):
+            raise bad(
+                f"{name}: {short(value)} is not a valid robot name; use 0..{MAX_ROBOT_CHARS} characters "
+                "from [A-Za-z0-9_.-] (\"\" is the default robot)"
             )
         return value
 
@@ -381,6 +403,11 @@ class Frame(Message):
     )
     rgb: np.ndarray = wire(Image(encoding_attr="rgb_encoding"), doc="(H, W, 3) uint8 colour image, R, G, B.")
     camera: str = wire(NAME, default="cam0", before="width", doc="Camera name.")
+    robot: str = wire(
+        RobotName(), default="", omit_default=True, before="width",
+        doc='Robot name: each robot has its own keyframe window in the node; "" (the default, not sent) '
+        "is the default robot.",
+    )
     depth_m: np.ndarray | None = wire(
         Depth(), name="depth", unit="m", default=None,
         doc="(H, W) float32 depth along the optical axis (z); 0 = unknown (non-finite/negative become 0).",

@@ -12,6 +12,7 @@ See docs/how-to/simulator.md for the export layout.
 from __future__ import annotations
 
 import argparse
+import copy
 import re
 import sys
 import time
@@ -21,6 +22,7 @@ from typing import Any
 from clients.sim.export import FLOOR_PATH, RGB_ENCODINGS, RecordConfig, SimStream, record
 from clients.sim.paths import PATH_KINDS
 from clients.sim.scenes.floor import FLOOR_ROOMS
+from protocol.messages import ROBOT_RE, Frame
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -71,6 +73,15 @@ def _record(args: argparse.Namespace) -> int:
     return 0
 
 
+def _named(frame: Frame, robot: str) -> Frame:
+    """``frame`` with its ``robot`` set (the name was checked; ``frame`` itself when none)."""
+    if not robot:
+        return frame
+    named = copy.copy(frame)
+    named.robot = robot
+    return named
+
+
 def _stream(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -84,6 +95,8 @@ def _stream(args: argparse.Namespace) -> int:
         raise ValueError(f"--ingest {args.ingest!r} is not a ZeroMQ endpoint (e.g. tcp://127.0.0.1:5555)")
     if args.window < 1 or args.timeout <= 0:
         raise ValueError(f"--window {args.window} must be >= 1 and --timeout {args.timeout} > 0")
+    if not ROBOT_RE.fullmatch(args.robot):
+        raise ValueError(f"--robot {args.robot!r} is not a robot name: 0..32 characters from [A-Za-z0-9_.-]")
     try:
         curve = curve_from_args(args)
     except ProtocolError as exc:
@@ -93,7 +106,7 @@ def _stream(args: argparse.Namespace) -> int:
     statuses: Counter[str] = Counter()
     t0 = time.perf_counter()
     with MapperClient(ingest=args.ingest, timeout_s=args.timeout, curve=curve) as client:
-        frames = (frame for frame, _ in stream.frames())
+        frames = (_named(frame, args.robot) for frame, _ in stream.frames())
         results = client.send_frames(frames, window=args.window, rate_hz=args.rate)
         for res in tqdm(results, total=cfg.frames, desc=f"sim stream -> {args.ingest}", unit="frame",
                         disable=args.quiet):
@@ -127,6 +140,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="frames per second, 0 = unthrottled (default 10)")
     st.add_argument("--window", type=int, default=1, help="frames in flight before waiting for acks")
     st.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for each ack")
+    st.add_argument("--robot", default="",
+                    help="robot name on every frame ([A-Za-z0-9_.-]{0,32}; each robot has its own window "
+                         "in the node; default: none, the default robot)")
     st.add_argument("--quiet", action="store_true", help="no progress bar")
     from clients.client import add_curve_arguments
 

@@ -43,7 +43,8 @@ class WindowConfig:
     """The bounded window of keyframes (see :mod:`mapper.map.window`)."""
 
     max_keyframes: int = 30
-    """Most keyframes kept; adding one more evicts the oldest. 1..10000."""
+    """Most keyframes kept (per robot: each robot has its own window, ``max_robots``); adding one
+    more evicts the oldest. 1..10000."""
 
     min_translation_m: float = 0.10
     """A frame becomes a keyframe when its camera centre moved at least this far (metres) from the
@@ -66,8 +67,15 @@ class WindowConfig:
     a 640 x 480 camera's 384-d features at 1/4 resolution (160 x 120, 14.7 MB in float16) are kept
     at 3.7 MB. 0 = always as sent. 0..10000000."""
 
+    max_robots: int = 4
+    """Most robots (the frames' ``robot`` names; "" the default robot counts once it sent a frame),
+    each with a window of its own of up to ``max_keyframes`` keyframes
+    (:mod:`mapper.map.robot_windows`); a frame naming one robot more is refused (``bad_request``).
+    1..64."""
+
     def validate(self, where: str) -> None:
         _check_range(where, "window.max_keyframes", self.max_keyframes, 1, 10_000)
+        _check_range(where, "window.max_robots", self.max_robots, 1, 64)
         _check_range(where, "window.max_image_side", self.max_image_side, 0, 4096)
         _check_range(where, "window.max_ov_cells", self.max_ov_cells, 0, 10_000_000)
         if 0 < self.max_image_side < 16:
@@ -98,6 +106,9 @@ class Keyframe:
     """(h, w, d) float16/float32 open-vocabulary feature map at its own resolution, or None."""
     ov_space: str | None = None
     """Embedding space of ``ov`` (e.g. "minilm-l6-v2"); None when ``ov`` is None."""
+    robot: str = ""
+    """Robot name (the frame's ``robot``; "" the default robot): each robot has its own window
+    (:class:`mapper.map.robot_windows.RobotWindows`)."""
 
     def __post_init__(self) -> None:
         for name in ("K", "world_from_cam", "rgb", "depth_m", "ov"):
@@ -330,14 +341,15 @@ def keyframes_to_arrays(
             value = getattr(keyframe, name)
             if value is not None:
                 arrays[f"{prefix}.{i}.{name}"] = np.ascontiguousarray(value)
-        entries.append(
-            {
-                "seq": keyframe.seq,
-                "stamp_ns": keyframe.stamp_ns,
-                "camera": keyframe.camera,
-                "ov_space": keyframe.ov_space,
-            }
-        )
+        entry: dict[str, object] = {
+            "seq": keyframe.seq,
+            "stamp_ns": keyframe.stamp_ns,
+            "camera": keyframe.camera,
+            "ov_space": keyframe.ov_space,
+        }
+        if keyframe.robot:  # the default robot's keyframes are saved as before robots existed
+            entry["robot"] = keyframe.robot
+        entries.append(entry)
     return arrays, entries
 
 
@@ -358,6 +370,9 @@ def keyframes_from_arrays(
             raise ValueError(f"{where}: seq/stamp_ns must be int and camera str, got {entry!r}")
         if ov_space is not None and not isinstance(ov_space, str):
             raise ValueError(f"{where}: ov_space must be a string or null, got {ov_space!r}")
+        robot = entry.get("robot", "")
+        if not isinstance(robot, str) or len(robot) > 64:
+            raise ValueError(f"{where}: robot must be a string of at most 64 characters, got {robot!r}")
         got = {name: arrays.get(f"{prefix}.{i}.{name}") for name in _ARRAY_FIELDS}
         K, world_from_cam, rgb, depth_m, ov = (got[name] for name in _ARRAY_FIELDS)
         if K is None or K.shape != (4,) or not np.isfinite(K).all():
@@ -383,6 +398,7 @@ def keyframes_from_arrays(
                 depth_m=depth_m,
                 ov=ov,
                 ov_space=ov_space if ov is not None else None,
+                robot=robot,
             )
         )
     return keyframes

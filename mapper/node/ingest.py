@@ -3,7 +3,8 @@
 :func:`ingest_frame` runs on the ingest thread. Under the state lock it validates the frame against
 the map (OV space and feature dimension), then recognises a resent frame (same seq, stamp, camera,
 pose and K as a keyframe already in the window: acked ``accepted`` as a duplicate, not added twice),
-then lets :meth:`mapper.map.window.KeyframeWindow.consider` decide keyframe or not. A resent frame
+then lets the frame's robot's window (:class:`mapper.map.robot_windows.RobotWindows`; a robot beyond
+``window.max_robots`` is ``bad_request``) decide keyframe or not. A resent frame
 counts as a duplicate only after it passed the same validation as a new one. Outside the lock the
 new keyframe goes to the integrator (:mod:`mapper.node.integration`).
 """
@@ -55,11 +56,23 @@ def _check_against_map(ctx: NodeContext, frame: Frame) -> Ack | None:
     return None
 
 
+def _check_robot(ctx: NodeContext, frame: Frame) -> None:
+    """Raise ``bad_request`` when the frame names a robot beyond ``window.max_robots`` (state lock
+    held; nothing changed)."""
+    from mapper.map.robot_windows import TooManyRobots
+
+    try:
+        ctx.state.window.check_robot(frame.robot)
+    except TooManyRobots as exc:
+        raise ProtocolError("bad_request", f"frame seq {frame.seq}: {exc}") from None
+
+
 def _duplicate(ctx: NodeContext, frame: Frame, kept_K: np.ndarray) -> Ack | None:
-    """An ``accepted`` ack when ``frame`` is already a keyframe of the window (a client's retry after
-    a timeout or a node restart: same seq, stamp, camera, pose and K), else None (state lock held)."""
+    """An ``accepted`` ack when ``frame`` is already a keyframe of its robot's window (a client's
+    retry after a timeout or a node restart: same seq, stamp, camera, pose and K), else None (state
+    lock held)."""
     state = ctx.state
-    for kept in state.window.keyframes:
+    for kept in state.window.robot_keyframes(frame.robot):
         same_id = (kept.seq, kept.stamp_ns, kept.camera) == (frame.seq, frame.stamp_ns, frame.camera)
         same_pose = np.array_equal(kept.world_from_cam, frame.world_from_cam)
         if same_id and same_pose and np.array_equal(kept.K, kept_K):
@@ -98,6 +111,7 @@ def ingest_frame(ctx: NodeContext, frame: Frame) -> Ack:
         depth_m=frame.depth_m,
         ov=frame.ov,
         ov_space=frame.ov_space,
+        robot=frame.robot,
     )
     state = ctx.state
     max_side = ctx.config.window.max_image_side
@@ -109,7 +123,8 @@ def ingest_frame(ctx: NodeContext, frame: Frame) -> Ack:
     will_keep = False
     if big_image or big_ov or events:
         with state.lock:  # work only for what will be a keyframe (the ingest thread alone adds)
-            will_keep = state.window.is_keyframe(frame.camera, frame.world_from_cam)[0]
+            _check_robot(ctx, frame)
+            will_keep = state.window.is_keyframe(frame.camera, frame.world_from_cam, frame.robot)[0]
     if will_keep and (big_image or big_ov):  # outside the lock (tens of ms at 4096 px)
         fitted = fit_ov(fit_image(keyframe, max_side) if big_image else keyframe, max_cells)
         if fitted is not keyframe:
@@ -117,6 +132,7 @@ def ingest_frame(ctx: NodeContext, frame: Frame) -> Ack:
             ctx.frames_downscaled += 1
     region = _changed_region(ctx, keyframe) if events and will_keep else None
     with state.lock:
+        _check_robot(ctx, frame)
         refused = _check_against_map(ctx, frame)
         if refused is not None:
             return refused

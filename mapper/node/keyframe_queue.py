@@ -138,8 +138,8 @@ def with_current_features(node: Any, keyframe: Any) -> Any:
         return keyframe
     with node.state.lock:
         for current in node.state.window.keyframes:
-            if (current.camera, current.seq, current.stamp_ns) == (
-                keyframe.camera, keyframe.seq, keyframe.stamp_ns
+            if (current.camera, current.seq, current.stamp_ns, current.robot) == (
+                keyframe.camera, keyframe.seq, keyframe.stamp_ns, getattr(keyframe, "robot", "")
             ) and current.ov is not None:
                 return current
     return keyframe

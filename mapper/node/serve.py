@@ -42,17 +42,21 @@ def install_serve_stages(node: MapperNode) -> ServeStages:
     (``dense_flow.enabled``), then the OV backend
     (``ov_backend.kind``; after the learned backend, it adds its notes to the ``not_ready`` answers)."""
     config = node.config
-    runtime = rendered = tri = ov = flow = None
+    runtime = rendered = tri = ov = flow = robots = None
     if config.serve_model:
         from mapper.node.backends.learned import install_learned_backend
+        from mapper.node.backends.robot_runtimes import RobotRuntimes
         from mapper.runtime.model_runtime import ModelRuntime
 
         runtime = ModelRuntime(config.model)
-        rendered = install_learned_backend(node, runtime)
+        # one runtime per robot window, on this runtime's model
+        robots = RobotRuntimes(runtime, config.global_map.max_depth_m)
+        rendered = install_learned_backend(node, robots)
     if config.triangulation.enabled:
         from mapper.node.workers.triangulation import install_triangulation
 
-        tri = install_triangulation(node, runtime if runtime is not None and runtime.ready else None)
+        # the keyframes' extents and depth priors go to their robot's runtime
+        tri = install_triangulation(node, robots if robots is not None and robots.ready else None)
     if config.dense_flow.enabled:
         from mapper.node.workers.flow_points import install_dense_flow
 

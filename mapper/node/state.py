@@ -12,7 +12,8 @@ from pathlib import Path
 from typing import Any
 
 from mapper.map.global_map import GlobalSemanticMap
-from mapper.map.window import Keyframe, KeyframeWindow
+from mapper.map.robot_windows import RobotWindows
+from mapper.map.window import Keyframe
 from mapper.node.config import NodeConfig
 
 __all__ = ["MapSnapshot", "MapState"]
@@ -34,7 +35,8 @@ class MapState:
     def __init__(self, config: NodeConfig) -> None:
         self.lock = threading.Lock()
         self.config = config
-        self.window = KeyframeWindow(config.window)
+        self.window = RobotWindows(config.window)
+        """The keyframe windows, one per robot (``window.max_robots``); ``keyframes`` are all of them."""
         self.global_map = GlobalSemanticMap(config.global_map, tile_dir=Path(config.map_dir) / ".tiles")
         """Global semantic point map (own lock; kept when keyframes leave the window; tiles beyond
         ``global_map.max_points`` page out to ``<map_dir>/.tiles``)."""

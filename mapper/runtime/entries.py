@@ -46,8 +46,10 @@ class ViewEntry:
 
 
 def keyframe_key(keyframe: Any) -> tuple[str, int, int]:
-    """``(camera, seq, stamp_ns)``: a keyframe's identity that survives a swap in the window."""
-    return (str(getattr(keyframe, "camera", "")), int(keyframe.seq), int(keyframe.stamp_ns))
+    """``(camera, seq, stamp_ns)``: a keyframe's identity that survives a swap in the window; a
+    named robot's camera is ``"<robot>/<camera>"`` (two robots' frames may share seq and stamp)."""
+    camera, robot = str(getattr(keyframe, "camera", "")), str(getattr(keyframe, "robot", ""))
+    return (f"{robot}/{camera}" if robot else camera, int(keyframe.seq), int(keyframe.stamp_ns))
 
 
 def render_extents(entries: Iterable[ViewEntry]) -> list[Tensor]:

@@ -157,6 +157,18 @@ class ModelRuntime:
         for keyframe in window.keyframes:
             self.on_add(keyframe)
 
+    def sibling(self) -> ModelRuntime:
+        """A runtime over the same loaded model (network, point head and config shared: a changed
+        ``config`` reaches both) with views and a cost volume of its own, for another window (one
+        per robot, :mod:`mapper.node.backends.robot_runtimes`). Not attached to any window yet."""
+        twin = ModelRuntime.__new__(ModelRuntime)
+        twin._loaded = self._loaded
+        twin._volume = WindowVolume(self._loaded)
+        twin._points = PointAnswers(self._loaded, twin._volume)
+        twin._renderer = Renderer(self._loaded, twin._volume)
+        twin._attached = []
+        return twin
+
     def on_add(self, keyframe: Any) -> None:
         """Record that ``keyframe`` entered the window (applied by the next :meth:`sync`); O(1), no
         model work (it runs under the node's state lock)."""

@@ -48,6 +48,7 @@ TEXTS_MAX, NEGATIVES_MAX, TEXT_CHARS_MAX = _numbers(
 MAP_NAME_MAX, CAMERA_MAX, ID_MAX = _numbers(
     r"\{1,(\d+)\}`; camera / ov_space 1\.\.(\d+) characters; string ids <= (\d+)", _row("names")
 )
+ROBOT_MAX = _numbers(r"\{0,(\d+)\}", _row("robot names"))[0]
 
 
 def _image_frame(width: int) -> dict[str, Any]:
@@ -79,6 +80,7 @@ CASES: list[tuple[str, int, Callable[[int], dict[str, Any]]]] = [
     ("text chars", TEXT_CHARS_MAX, lambda n: {"v": 1, "type": "query_points", "texts": ["x" * n]}),
     ("map name", MAP_NAME_MAX, lambda n: {"v": 1, "type": "load", "name": "m" * n}),
     ("camera", CAMERA_MAX, lambda n: {**BASE_FRAME, "camera": "c" * n}),
+    ("robot", ROBOT_MAX, lambda n: {**BASE_FRAME, "robot": "r" * n}),
     ("ov_space", CAMERA_MAX, lambda n: {**BASE_FRAME, **_ov(1, 1, 2, "s" * n)}),
     ("string id", ID_MAX, lambda n: {"v": 1, "type": "status", "id": "i" * n}),
 ]

@@ -8,6 +8,7 @@ import os
 import time
 
 from mapper.map.global_map import GlobalSemanticMap
+from mapper.map.robot_windows import TooManyRobots
 from mapper.map.window import keyframes_from_arrays, keyframes_to_arrays
 from mapper.node.config import to_dict
 from mapper.node.context import NodeContext
@@ -167,7 +168,10 @@ class Persistence:
             raise ProtocolError("bad_request", f"load failed: map {name!r}: {exc}") from None
         state = ctx.state
         with state.lock:
-            state.window.replace(keyframes)
+            try:
+                state.window.replace(keyframes)  # checks the robots first: nothing changed on refusal
+            except TooManyRobots as exc:
+                raise ProtocolError("bad_request", f"load failed: map {name!r}: {exc}") from None
             state.ov_space = ov_space if ov_space is not None else ctx.config.ov_space
             state.ov_dim = ov_dim
             # keep the saved version when it is ahead, so versions seen by clients stay comparable

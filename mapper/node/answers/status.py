@@ -42,6 +42,8 @@ class StatusAnswers:
         with state.lock:
             extra: dict[str, Any] = {
                 "max_keyframes": config.window.max_keyframes,
+                "max_robots": config.window.max_robots,
+                "robots": state.window.counts(),
                 "frames_keyframe": state.ack_counts["keyframe"],
                 "frames_accepted": state.ack_counts["accepted"],
                 "frames_rejected_ack": state.ack_counts["rejected"],

@@ -26,7 +26,7 @@ from protocol.messages import SegmentPoints
 if TYPE_CHECKING:
     from mapper.map.global_map import GlobalMapSnapshot
 
-__all__ = ["PointAnswer", "RenderBackend", "SegmentBackend"]
+__all__ = ["PointAnswer", "RenderBackend", "SegmentBackend", "gather_answers"]
 
 
 @dataclass
@@ -62,6 +62,32 @@ class PointAnswer:
     def answered(self) -> np.ndarray:
         """(N,) bool: :attr:`seen`, or ``label >= 0``."""
         return self.seen if self.seen is not None else self.label >= 0
+
+
+def gather_answers(n: int, parts: Sequence[tuple[np.ndarray, PointAnswer]]) -> PointAnswer:
+    """One answer for ``n`` points from answers for parts of them (``(point indices, answer)``,
+    each index in one part): each point keeps its part's answer; cosines (and the other optional
+    per-point arrays) where every part has them; no snapshot or nearest rows (each part may have
+    looked at another snapshot: the map's fill looks again); timings summed."""
+    answers = [a for _, a in parts]
+    first = answers[0]
+    out = PointAnswer(label=np.full(n, -1, np.int32), score=np.zeros(n, np.float32),
+                      seen=np.zeros(n, bool), text_emb=first.text_emb)
+    for idx, answer in parts:
+        out.label[idx] = answer.label
+        out.score[idx] = answer.score
+        out.seen[idx] = answer.answered()  # type: ignore[index]
+        for key, value in answer.timing_ms.items():
+            out.timing_ms[key] = out.timing_ms.get(key, 0.0) + float(value)
+    for name in ("cos", "map_only", "views", "evicted_views", "evicted_cos"):
+        arrays = [getattr(a, name) for a in answers]
+        if any(a is None for a in arrays):
+            continue
+        full = np.zeros((n, *arrays[0].shape[1:]), arrays[0].dtype)
+        for (idx, _), array in zip(parts, arrays, strict=True):
+            full[idx] = array
+        setattr(out, name, full)
+    return out
 
 
 class SegmentBackend(Protocol):

@@ -21,7 +21,7 @@ from mapper.map.evicted_frames import EvictedFrameStore, merged_prior
 from mapper.map.evicted_views import EvictedViewStore
 from mapper.map.global_map import GlobalMapSnapshot
 from mapper.map.window import Keyframe
-from mapper.node.backends import PointAnswer
+from mapper.node.backends import PointAnswer, gather_answers
 from mapper.node.context import NodeContext
 from protocol.errors import ProtocolError
 from protocol.messages import SegmentPoints
@@ -127,24 +127,48 @@ class AveragingBackend:
         return self.use_depth
 
     def segment(self, msg: SegmentPoints, want_cos: bool, want_evicted: bool = False) -> PointAnswer:
-        """The averaging's answer with the points in Z-order of map voxels where they do not come
-        spatially coherent (``queries.spatial_sort``, :func:`mapper.node.queries.spatial_order`),
-        returned in the request's order. (The learned model's path groups its points by view set
-        and cell already: a shuffled request costs it about as much as a coherent one.) With
+        """The averaging's answer. With several robots, each point is averaged over the keyframes
+        of the robots whose windows observed it (:func:`mapper.map.robot_windows.robot_groups`:
+        a robot's keyframe from another room does not count for it), group by group; with
         ``want_evicted`` the answer's ``evicted_cos`` holds the evicted views' own cosines."""
+        from mapper.map.robot_windows import robot_groups
+
+        ctx = self.ctx
+        with ctx.state.lock:
+            windows = [(robot, window.keyframes) for robot, window in ctx.state.window.windows()]
+        xyz = np.asarray(msg.xyz, np.float32)
+        groups = robot_groups(windows, xyz, ctx.config.global_map.max_depth_m)
+        if groups is None:
+            return self._segment_sorted(msg, want_evicted, None)
+        parts = []
+        for robots, idx in groups:
+            part = copy.copy(msg)  # a subset of points validated at the boundary: not checked again
+            part.xyz = xyz[idx]
+            parts.append((idx, self._segment_sorted(part, want_evicted, robots)))
+        answer = gather_answers(xyz.shape[0], parts)
+        answer.timing_ms["robot_groups"] = float(len(groups))
+        return answer
+
+    def _segment_sorted(self, msg: SegmentPoints, want_evicted: bool, robots: tuple[str, ...] | None
+                        ) -> PointAnswer:
+        """The averaging's answer (over ``robots``' keyframes; None: every window's) with the points
+        in Z-order of map voxels where they do not come spatially coherent (``queries.spatial_sort``,
+        :func:`mapper.node.queries.spatial_order`), returned in the request's order. (The learned
+        model's path groups its points by view set and cell already: a shuffled request costs it
+        about as much as a coherent one.)"""
         if not self.ctx.config.queries.spatial_sort:
-            return self._segment_ordered(msg, want_evicted)
+            return self._segment_ordered(msg, want_evicted, robots)
         from mapper.node.queries import spatial_order
 
         started = time.perf_counter()
         xyz = np.asarray(msg.xyz, np.float32)
         order = spatial_order(xyz, self.ctx.config.global_map.voxel_size_m)
         if order is None:
-            return self._segment_ordered(msg, want_evicted)
+            return self._segment_ordered(msg, want_evicted, robots)
         sorted_ms = 1e3 * (time.perf_counter() - started)
         in_order = copy.copy(msg)  # a permutation of points validated at the boundary: not checked again
         in_order.xyz = xyz[order]
-        answer = self._segment_ordered(in_order, want_evicted)
+        answer = self._segment_ordered(in_order, want_evicted, robots)
         # back to the request's order
         for name in ("label", "score", "seen", "cos", "nearest", "map_only", "views", "evicted_views",
                      "evicted_cos"):
@@ -176,7 +200,8 @@ class AveragingBackend:
             out.update({i: z[j] for j, i in enumerate(same)})
         return out
 
-    def _segment_ordered(self, msg: SegmentPoints, want_evicted: bool = False) -> PointAnswer:
+    def _segment_ordered(self, msg: SegmentPoints, want_evicted: bool = False,
+                         robots: tuple[str, ...] | None = None) -> PointAnswer:
         """The averaging over the window's keyframes where they see a point, together with the
         views of keyframes that left the window at its nearest map voxel (:meth:`_evicted_prior`)."""
         from mapper.node.queries import best_text, segment_average_cosines
@@ -184,7 +209,8 @@ class AveragingBackend:
         ctx, use_depth, method = self.ctx, self.use_depth, self.method
         started = time.perf_counter()
         with ctx.state.lock:
-            keyframes = ctx.state.window.keyframes
+            window = ctx.state.window
+            keyframes = window.keyframes if robots is None else window.keyframes_of(robots)
         with_ov = [k for k in keyframes if k.ov is not None]
         xyz = np.asarray(msg.xyz, np.float32)
         occluders = self._occluder_depths(xyz, with_ov) if use_depth else {}

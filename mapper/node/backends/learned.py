@@ -1,7 +1,8 @@
 """The learned backend ``govnesf``: ``segment_points`` and ``render`` from the GOV-NeSF model.
 
 ``install_learned_backend(node, runtime)`` attaches the runtime
-(:class:`mapper.runtime.model_runtime.ModelRuntime`) to the node's keyframe window and registers
+(:class:`mapper.runtime.model_runtime.ModelRuntime`; one per robot window on the same model,
+:mod:`mapper.node.backends.robot_runtimes`) to the node's keyframe windows and registers
 :class:`LearnedBackend` as the node's ``govnesf`` segment method and its render backend. What comes
 after the backend's answer (the global map's answer beyond the window, surfaces for renders) is
 the node's, the same for every backend (:mod:`mapper.node.answers`). With
@@ -27,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from mapper.node.backends import PointAnswer
+from mapper.node.backends.robot_runtimes import RobotRuntimes
 from mapper.node.workers.depth_points import RenderedDepthPoints
 from mapper.node.workers.map_features import PreEvictionFeatures
 from mapper.runtime.model_runtime import ModelRuntime, RuntimeNotReady
@@ -98,42 +100,51 @@ class LearnedBackend:
             raise ProtocolError("bad_request", f"render: {exc}") from None
 
 
-def install_learned_backend(node: MapperNode, runtime: ModelRuntime) -> RenderedDepthPoints | None:
-    """Attach ``runtime`` to ``node``'s window and serve ``render`` and ``segment_points`` (govnesf).
+def install_learned_backend(
+    node: MapperNode, runtime: ModelRuntime | RobotRuntimes
+) -> RenderedDepthPoints | None:
+    """Attach ``runtime`` to ``node``'s windows and serve ``render`` and ``segment_points`` (govnesf).
 
-    With a loaded model and ``global_map.rendered_depth`` (the default), keyframes without input
-    depth also add global-map points from the model's rendered depth
+    Each robot's window gets a runtime of its own on the same loaded model
+    (:class:`mapper.node.backends.robot_runtimes.RobotRuntimes`, made here around ``runtime`` unless
+    given; the first robot's is ``runtime`` itself). With a loaded model and
+    ``global_map.rendered_depth`` (the default), keyframes without input depth also add global-map
+    points from the model's rendered depth
     (:class:`mapper.node.workers.depth_points.RenderedDepthPoints`, returned; None otherwise).
     Its worker thread runs from ``node.start()``.
 
     Call once, after the node is constructed (before ``start()`` for the workers); a map loaded
-    earlier is picked up (the runtime records the keyframes already in the window).
+    earlier is picked up (the runtimes record the keyframes already in the windows).
     """
     ctx = node.ctx
+    robots = runtime if isinstance(runtime, RobotRuntimes) else \
+        RobotRuntimes(runtime, ctx.config.global_map.max_depth_m)
     with ctx.state.lock:
-        runtime.attach(ctx.state.window)
-    backend = LearnedBackend(runtime)
-    if runtime.load_error:
+        robots.attach(ctx.state.window)
+    backend = LearnedBackend(robots)
+    if robots.load_error:
         # status' "serving" and "segment_methods" leave out a backend that is not ready
-        log.warning("learned backend installed without a model: %s", runtime.load_error)
+        log.warning("learned backend installed without a model: %s", robots.load_error)
     node.segment.register("govnesf", backend)
     node.render.backend = backend
-    ctx.memory_providers.append(runtime.memory_bytes)
-    ctx.status_providers["model"] = runtime.stats
-    if not runtime.load_error and runtime.device.type == "cpu":
+    ctx.memory_providers.append(robots.memory_bytes)
+    ctx.status_providers["model"] = robots.stats
+    if not robots.load_error and robots.device.type == "cpu":
         # the point answers' compiled kernels, warmed by node.start()
         ctx.kernel_modules += ["mapper.model.ops.sample_kernel", "mapper.model.ops.fusion_kernel",
                                "mapper.model.ops.answer_kernel"]
-    if not runtime.load_error and ctx.config.global_map.learned_features:
-        install_pre_eviction_features(ctx, runtime)
-    if runtime.load_error or not ctx.config.global_map.rendered_depth:
+    if not robots.load_error and ctx.config.global_map.learned_features:
+        install_pre_eviction_features(ctx, robots)
+    if robots.load_error or not ctx.config.global_map.rendered_depth:
         return None
-    points = RenderedDepthPoints(ctx, runtime)
+    points = RenderedDepthPoints(ctx, robots)
     points.install()
     return points
 
 
-def install_pre_eviction_features(ctx: NodeContext, runtime: ModelRuntime) -> PreEvictionFeatures:
+def install_pre_eviction_features(
+    ctx: NodeContext, runtime: ModelRuntime | RobotRuntimes
+) -> PreEvictionFeatures:
     """Write the model's blended features into the global map before keyframes leave the window
     (:mod:`mapper.node.workers.map_features`); returns the installed worker (its thread runs from
     ``node.start()``; :meth:`PreEvictionFeatures.process_pending` runs it in place)."""

@@ -71,6 +71,7 @@ from mapper.runtime.model_runtime import ModelRuntime, RuntimeNotReady
 
 if TYPE_CHECKING:
     from mapper.map.global_map import GlobalSemanticMap
+    from mapper.node.backends.robot_runtimes import RobotRuntimes
     from mapper.node.context import NodeContext
 
 __all__ = [
@@ -117,7 +118,7 @@ def depth_edges(depth: np.ndarray, rel: float) -> np.ndarray:
 
 
 def render_keyframe_depth(
-    runtime: ModelRuntime, keyframe: Any, config: GlobalMapConfig
+    runtime: ModelRuntime | RobotRuntimes, keyframe: Any, config: GlobalMapConfig
 ) -> RenderedKeyframe:
     """Render the model's depth at ``keyframe``'s pose at ``1 / rendered_depth_stride`` of its size,
     from the window's volume, or (``rendered_volume_views`` > 1) from a cost volume over that many
@@ -311,7 +312,7 @@ class RenderedDepthPoints:
     """
 
     def __init__(
-        self, ctx: NodeContext, runtime: ModelRuntime, config: GlobalMapConfig | None = None
+        self, ctx: NodeContext, runtime: ModelRuntime | RobotRuntimes, config: GlobalMapConfig | None = None
     ) -> None:
         self.ctx = ctx
         self.runtime = runtime

@@ -88,6 +88,7 @@ def flow_keyframe(
 class _Candidate:
     key: KeyframeKey
     view: FlowView
+    robot: str = ""  # a keyframe's partners are its own robot's
 
 
 class DenseFlowPoints:
@@ -144,14 +145,15 @@ class DenseFlowPoints:
         """A load replaced the map: forget the old map's candidates and points; the loaded window's
         keyframes become the partner candidates of the keyframes that follow (their points are in
         the loaded map already)."""
-        views = [(keyframe_key(k), flow_view(k.rgb, k.K, k.world_from_cam, self.config.max_width))
-                 for k in keyframes[-self.config.candidate_keyframes:]] if self.config.enabled else []
+        views = [(keyframe_key(k), flow_view(k.rgb, k.K, k.world_from_cam, self.config.max_width),
+                  getattr(k, "robot", "")) for k in keyframes[-self.config.candidate_keyframes:]] \
+            if self.config.enabled else []
         with self._lock:
             self._loaded_version = max(self._loaded_version, int(map_version))
             self._reset_locked()
             self._map = global_map
-            for key, view in views:
-                self._candidates.append(_Candidate(key, view))
+            for key, view, robot in views:
+                self._candidates.append(_Candidate(key, view, robot))
 
     def _reset_locked(self) -> None:
         self._generation += 1
@@ -199,12 +201,13 @@ class DenseFlowPoints:
                     self._reset_locked()
                 self._map = target
             generation = self._generation
-            candidates = list(self._candidates)
+            robot = getattr(keyframe, "robot", "")
+            candidates = [c for c in self._candidates if c.robot == robot]
         view = flow_view(keyframe.rgb, keyframe.K, keyframe.world_from_cam, self.config.max_width)
         key = keyframe_key(keyframe)
         with self._lock:
             if generation == self._generation:
-                self._candidates.append(_Candidate(key, view))
+                self._candidates.append(_Candidate(key, view, robot))
         if keyframe.depth_m is not None:
             return 0
         chosen = select_flow_partners(view.posed, [c.view.posed for c in candidates], self.config)

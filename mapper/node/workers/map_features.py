@@ -87,10 +87,11 @@ class PreEvictionFeatures:
     # -- keyframe-listener thread ----------------------------------------------------------
 
     def on_keyframe(self, keyframe: Keyframe, map_version: int) -> None:
-        """After a new keyframe: queue the window's oldest when the window is full (it leaves next)."""
+        """After a new keyframe: queue its robot's window's oldest when that window is full (it leaves
+        next)."""
         state = self.ctx.state
         with state.lock:
-            keyframes = state.window.keyframes
+            keyframes = state.window.robot_keyframes(keyframe.robot)
             if len(keyframes) < self.ctx.config.window.max_keyframes or id(keyframes[0]) in self._queued:
                 return
             due = [k for k in keyframes[: self.ctx.config.global_map.learned_features_batch]

@@ -70,6 +70,7 @@ from protocol.messages import Message, QueryPoints, Render, SegmentPoints
 
 if TYPE_CHECKING:
     from mapper.map.global_map import GlobalSemanticMap
+    from mapper.map.robot_windows import RobotWindows
     from mapper.map.window import Keyframe, KeyframeWindow
     from mapper.node.context import NodeContext, QueryHandler
     from mapper.node.service import MapperNode
@@ -131,7 +132,7 @@ def _check_pinned(ctx: NodeContext | MapperNode, space: str) -> None:
         )
 
 
-def _swap_keyframe(window: KeyframeWindow, old: Keyframe, new: Keyframe) -> bool:
+def _swap_keyframe(window: KeyframeWindow | RobotWindows, old: Keyframe, new: Keyframe) -> bool:
     """Replace ``old`` by ``new`` in ``window`` (state lock held); False if ``old`` left it.
 
     ``KeyframeWindow.swap``: same position, ``on_evict(old)`` then ``on_add(new)`` fire (the learned

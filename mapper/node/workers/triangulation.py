@@ -64,7 +64,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
@@ -116,8 +116,10 @@ class ExtentSink(Protocol):
 
 
 def keyframe_key(keyframe: Any) -> KeyframeKey:
-    """``(camera, seq, stamp_ns)``: a keyframe's identity that survives a swap in the window."""
-    return (str(getattr(keyframe, "camera", "")), int(keyframe.seq), int(keyframe.stamp_ns))
+    """``(camera, seq, stamp_ns)``: a keyframe's identity that survives a swap in the window; a
+    named robot's camera is ``"<robot>/<camera>"`` (two robots' frames may share seq and stamp)."""
+    camera, robot = str(getattr(keyframe, "camera", "")), str(getattr(keyframe, "robot", ""))
+    return (f"{robot}/{camera}" if robot else camera, int(keyframe.seq), int(keyframe.stamp_ns))
 
 
 @dataclass(frozen=True)
@@ -172,6 +174,7 @@ class _Candidate:
     features: Features | None = None
     stereo: _StereoImage | None = None  # its image (and depth) at the sweep's working size
     points: tuple[np.ndarray, np.ndarray] | None = None  # its triangulated keypoints: (feature index, xyz)
+    robot: str = ""  # partners are the same robot's recent keyframes
 
     def detected(self, extractor: FeatureExtractor) -> Features:
         if self.features is None:
@@ -179,6 +182,30 @@ class _Candidate:
             self.features = extractor.detect(np.asarray(self.rgb))
             self.rgb = None
         return self.features
+
+
+class _RobotCandidates:
+    """Partner candidates by robot: each robot's ``maxlen`` most recent keyframes (a keyframe's
+    partners are its own robot's); ``len`` and iteration cover every robot's."""
+
+    def __init__(self, maxlen: int) -> None:
+        self.maxlen = maxlen
+        self._by_robot: dict[str, deque[_Candidate]] = {}
+
+    def append(self, candidate: _Candidate) -> None:
+        self._by_robot.setdefault(candidate.robot, deque(maxlen=self.maxlen)).append(candidate)
+
+    def of(self, robot: str) -> list[_Candidate]:
+        return list(self._by_robot.get(robot, ()))
+
+    def clear(self) -> None:
+        self._by_robot.clear()
+
+    def __len__(self) -> int:
+        return sum(len(d) for d in self._by_robot.values())
+
+    def __iter__(self) -> Iterator[_Candidate]:
+        return (c for d in list(self._by_robot.values()) for c in list(d))
 
 
 @dataclass
@@ -399,7 +426,7 @@ class SparseTriangulation:
         self._queue: KeyframeQueue[tuple[Any, int, GlobalSemanticMap, bool]] = KeyframeQueue(
             self.config.max_pending
         )  # (keyframe, its map version, the node's map when it was queued, restored by a load)
-        self._candidates: deque[_Candidate] = deque(maxlen=self.config.candidate_keyframes)
+        self._candidates = _RobotCandidates(self.config.candidate_keyframes)
         self._points: _KeyframeBudget[SparsePoints] = _KeyframeBudget(self.config.max_points, len)
         self._swept: _KeyframeBudget[tuple[np.ndarray, np.ndarray]] = _KeyframeBudget(  # (xyz, sigma)
             self.stereo.max_points, lambda xyz_sigma: len(xyz_sigma[1])
@@ -521,14 +548,15 @@ class SparseTriangulation:
                     self._reset_locked()
                 self._map = target
             generation = self._generation
-            candidates = list(self._candidates)
+            candidates = self._candidates.of(getattr(keyframe, "robot", ""))
         try:
             height, width = keyframe.rgb.shape[:2]
             pose = np.asarray(keyframe.world_from_cam, np.float64)
             view = PosedView(np.asarray(keyframe.K, np.float64), pose, int(width), int(height))
             image = stereo_image(keyframe, self.stereo) if self.stereo.enabled else None
             if keyframe.depth_m is not None:
-                candidate = _Candidate(keyframe_key(keyframe), view, keyframe.rgb, stereo=image)
+                candidate = _Candidate(keyframe_key(keyframe), view, keyframe.rgb, stereo=image,
+                                       robot=getattr(keyframe, "robot", ""))
                 if not self._add_candidate(generation, candidate):
                     self.stale += 1  # a load meanwhile
                 return 0
@@ -547,7 +575,8 @@ class SparseTriangulation:
                     keyframe = replace(keyframe, world_from_cam=refined.world_from_cam)
                     view = replace(view, world_from_cam=refined.world_from_cam)
                     image = stereo_image(keyframe, self.stereo) if image is not None else None
-            own = _Candidate(keyframe_key(keyframe), view, None, features, stereo=image)
+            own = _Candidate(keyframe_key(keyframe), view, None, features, stereo=image,
+                             robot=getattr(keyframe, "robot", ""))
             if not self._add_candidate(generation, own):
                 self.stale += 1  # a load while it was detected
                 return 0

@@ -112,7 +112,8 @@ def test_cli_rejects_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert (tmp_path / "b" / "x").read_text() == "keep me"
 
 
-def test_cli_stream_sends_frames_and_waits_for_acks() -> None:
+@pytest.mark.parametrize("robot", ["", "r2"])
+def test_cli_stream_sends_frames_and_waits_for_acks(robot: str) -> None:
     ctx = zmq.Context.instance()
     router = ctx.socket(zmq.ROUTER)
     port = router.bind_to_random_port("tcp://127.0.0.1")
@@ -132,15 +133,18 @@ def test_cli_stream_sends_frames_and_waits_for_acks() -> None:
     t.start()
     try:
         rc = main(["stream", "--seed", "2", "--frames", "3", "--width", "32", "--height", "24", "--no-ov",
-                   "--depth", "--ingest", f"tcp://127.0.0.1:{port}", "--rate", "0", "--quiet"])
+                   "--depth", "--ingest", f"tcp://127.0.0.1:{port}", "--rate", "0", "--quiet",
+                   *(["--robot", robot] if robot else [])])
     finally:
         t.join(timeout=15)
         router.close(linger=0)
     assert rc == 0
     assert [f.seq for f in received] == [0, 1, 2]
-    assert all(f.depth_m is not None and f.ov is None for f in received)
+    assert all(f.depth_m is not None and f.ov is None and f.robot == robot for f in received)
 
 
 def test_cli_stream_rejects_bad_endpoint(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["stream", "--seed", "0", "--frames", "2", "--no-ov", "--ingest", "localhost:5555"]) == 2
     assert "not a ZeroMQ endpoint" in capsys.readouterr().err
+    assert main(["stream", "--seed", "0", "--frames", "2", "--no-ov", "--robot", "a b"]) == 2
+    assert "not a robot name" in capsys.readouterr().err
