@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         local = [dataclasses.replace(p, a=p.a - lo, b=p.b - lo) for p in pairs if p.a >= lo and p.b >= lo]
         sent_w = np.stack([v.world_from_cam for v in views[lo:]])
         K_w = np.stack([v.K for v in views[lo:]])
-        out = adjust_poses(K_w, sent_w, local, config)
+        out = adjust_poses(K_w, sent_w, local, config, start=np.stack(estimate[lo:]))  # as the node
         for j in range(lo, i + 1):
             estimate[j] = out.world_from_cam[j - lo]
         seconds.append(time.perf_counter() - t0)

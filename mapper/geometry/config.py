@@ -191,7 +191,7 @@ class TriangulationConfig:
     pose_flow_sigma_px: float = 0.5
     """"window": expected error of a dense match (pixels, 1 sigma per axis). 0.01..100."""
 
-    pose_max_evaluations: int = 60
+    pose_max_evaluations: int = 20
     """"window": most residual evaluations of one adjustment (SciPy's ``max_nfev``). 5..10000."""
 
     def validate(self, where: str) -> None:
