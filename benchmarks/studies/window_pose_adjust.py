@@ -15,6 +15,8 @@ Usage::
 
     python benchmarks/studies/window_pose_adjust.py --seed 5 --frames 96 --pose-noise 0.02,1.0
     python benchmarks/studies/window_pose_adjust.py --seed 4 --style studio --stride 3 --set pose_window=8
+    python benchmarks/studies/window_pose_adjust.py --real ../shared/data/icl_livingroom1 \
+        --frames 0 --stride 2
 """
 
 from __future__ import annotations
@@ -22,7 +24,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,15 +39,30 @@ from mapper.geometry.pose_refine import pose_change
 from mapper.geometry.window_adjust import PairMatches, adjust_poses, pair_matches
 
 
+def _frames(args: argparse.Namespace) -> tuple[Any, list[np.ndarray], np.ndarray]:
+    """(images (lazy), K per frame, true poses (F, 4, 4)): the simulated room, or with ``--real`` an
+    Open3D-layout sequence read as ``govnesf import`` does (its poses taken as the truth)."""
+    if args.real:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from real_sequence import ICL_K, load_sequence
+
+        frames, _ = load_sequence(Path(args.real), ICL_K)
+        frames = frames[: args.frames] if args.frames else frames
+        return ([f.rgb for f in frames], [np.asarray(f.K, np.float64) for f in frames],
+                np.stack([f.world_from_cam for f in frames]).astype(np.float64))
+    stream = sim_stream(args.seed, args.frames, args.width, args.height, depth=False, ov=False,
+                        style=args.style)
+    return ((frame.rgb for frame, _ in stream.frames()), [np.asarray(stream.K, np.float64)] * args.frames,
+            np.asarray(stream.poses, np.float64))
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     config = TriangulationConfig(pose_prior_m=args.pose_noise[0], pose_prior_deg=args.pose_noise[1])
     for key, value in args.overrides:
         config = dataclasses.replace(config, **{key: type(getattr(config, key))(value)})
     config.validate("--set")
     flow = DenseFlowConfig()
-    stream = sim_stream(args.seed, args.frames, args.width, args.height, depth=False, ov=False,
-                        style=args.style)
-    truth_all = np.asarray(stream.poses, np.float64)
+    images, Ks, truth_all = _frames(args)
     sent_all = noisy_poses(truth_all, args.pose_noise[0], args.pose_noise[1], seed=args.seed,
                            drift=args.drift)
     views: list[Any] = []
@@ -52,10 +71,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     used: list[np.ndarray] = []
     pairs: list[PairMatches] = []
     seconds: list[float] = []
-    for k, (frame, _) in enumerate(stream.frames()):
+    for k, (rgb, K) in enumerate(zip(images, Ks, strict=True)):
         if k % args.stride:
             continue
-        view = flow_view(frame.rgb, stream.K, sent_all[k], flow.max_width)
+        view = flow_view(rgb, K, sent_all[k], flow.max_width)
         views.append(view)
         truth.append(truth_all[k])
         estimate.append(sent_all[k].copy())
@@ -104,6 +123,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--height", type=int, default=120)
     parser.add_argument("--pose-noise", default="0.02,1.0", help="T_M,R_DEG per frame (1 sigma per axis)")
     parser.add_argument("--drift", action="store_true", help="a random walk of such steps")
+    parser.add_argument("--real", default="", metavar="DIR",
+                        help="an Open3D-layout sequence instead of the simulator, e.g. "
+                             "../shared/data/icl_livingroom1 (its poses as the truth; --frames 0 = all)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a TriangulationConfig field (pose_window, pose_partners, ...)")
     parser.add_argument("--json", help="write the result here")
