@@ -144,10 +144,9 @@ class TriangulationConfig:
     0..16."""
 
     refine_poses: bool = False
-    """Refine each RGB-only keyframe's pose against the points earlier keyframes triangulated
-    (:mod:`mapper.geometry.pose_refine`: robust PnP with the pose as sent as a prior) before its own
-    triangulation and stereo; later keyframes use the refined pose too. The window, the ack and the
-    saved map keep the pose as sent. Off by default: docs/concepts/rgb-only.md has the measurement."""
+    """Refine each RGB-only keyframe's pose (``pose_method``) before its own triangulation and
+    stereo; later keyframes use the refined pose too. The window, the ack and the saved map keep the
+    pose as sent. Off by default: docs/concepts/rgb-only.md has the measurements."""
 
     pose_prior_m: float = 0.02
     """Expected odometry error of a keyframe's camera centre, per axis (metres, 1 sigma): the
