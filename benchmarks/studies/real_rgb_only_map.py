@@ -23,6 +23,7 @@ Usage::
     OMP_NUM_THREADS=1 python benchmarks/studies/real_rgb_only_map.py [--width 320]
         [--modes rgb+tri,rgb+tri+stereo]
         [--set model.surface_planes=false]     # node config overrides, as in rgb_only.py
+        [--pose-noise 0.02,1.0]                # odometry error on the poses sent
 
 Skips (exit 0, says so) when the sequence is absent.
 """
@@ -48,6 +49,7 @@ sys.path.insert(0, str(ROOT / "benchmarks" / "studies"))
 from real_sequence import DEFAULT_DATA, ICL_K, PosedFrame, load_sequence  # noqa: E402
 from rgb_only import parse_overrides  # noqa: E402
 
+from clients.sim.sensor import noisy_poses  # noqa: E402
 from mapper.node.config import config_from_dict  # noqa: E402
 from mapper.node.serve import install_serve_stages  # noqa: E402
 from mapper.node.service import MapperNode  # noqa: E402
@@ -142,6 +144,8 @@ def run(frames: list[PosedFrame], tree: cKDTree, args: argparse.Namespace, stere
     started = time.perf_counter()
     every = args.holdout_every
     held_out = [k for k in range(len(frames)) if every > 0 and k % every == every // 2]
+    truth = np.stack([np.asarray(f.world_from_cam, np.float64) for f in frames])
+    sent = noisy_poses(truth, *args.pose_noise, seed=0) if args.pose_noise else truth
     try:
         for k, f in enumerate(frames):
             if k in held_out:
@@ -149,7 +153,7 @@ def run(frames: list[PosedFrame], tree: cKDTree, args: argparse.Namespace, stere
             rgb, _, K = resized(f, args.width)
             node.handle_ingest(encode(Frame(
                 seq=k, stamp_ns=int(f.stamp_ns) or (k + 1) * 33_000_000, width=rgb.shape[1],
-                height=rgb.shape[0], K=K, world_from_cam=np.asarray(f.world_from_cam, np.float64), rgb=rgb,
+                height=rgb.shape[0], K=K, world_from_cam=sent[k], rgb=rgb,
             )))  # fmt: skip
             if (k + 1) % args.process_every == 0:
                 tri.process_pending()
@@ -168,7 +172,7 @@ def run(frames: list[PosedFrame], tree: cKDTree, args: argparse.Namespace, stere
             "worker_ms_per_keyframe": stats["mean_ms"],
             "stereo_depths_per_keyframe": stats["stereo"]["depths_per_keyframe"],
             "stereo_ms_per_keyframe": stats["stereo"]["mean_ms"],
-            "map_points": len(snap), "map": _distances(tree, snap.xyz),
+            "map_points": len(snap), "map": _distances(tree, snap.xyz), "poses": stats["poses"],
             "wall_s": time.perf_counter() - started,
         }  # fmt: skip
         if held_out:
@@ -191,10 +195,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--render-width", type=int, default=160, help="width of the held-out renders")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--json", type=Path)
-    p.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE",
+    p.add_argument("--pose-noise", default="", metavar="T_M,R_DEG",
+                   help="per-frame pose error sent to the node (1 sigma per axis, "
+                        "clients.sim.sensor.noisy_poses, seed 0), e.g. 0.02,1.0; the ground truth and "
+                        "the held-out renders keep the true poses")
+    p.add_argument("--set", nargs="*", action="extend", default=[], metavar="SECTION.KEY=VALUE",
                    help="node config overrides, e.g. model.surface_planes=false")
     args = p.parse_args(argv)
     args.overrides = parse_overrides(args.set)
+    try:
+        args.pose_noise = tuple(float(v) for v in args.pose_noise.split(",")) if args.pose_noise else ()
+    except ValueError:
+        p.error(f"--pose-noise must be T_M,R_DEG, got {args.pose_noise!r}")
+    if args.pose_noise and len(args.pose_noise) != 2:
+        p.error(f"--pose-noise must be T_M,R_DEG, got {args.pose_noise!r}")
     if args.holdout_every < 0 or not 8 <= args.render_width <= 4096:
         p.error(f"--holdout-every must be >= 0 (got {args.holdout_every}) and --render-width 8..4096 "
                 f"(got {args.render_width})")
