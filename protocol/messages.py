@@ -599,8 +599,8 @@ class Segmentation(Message):
     )
     fallback: np.ndarray | None = wire(
         Array("uint8", ("N",)), default=None,
-        doc="Per point, 1 where averaging answered for the learned method (its geometry not ready; "
-        "extension).",
+        doc="Per point, 1 where averaging answered for the learned method (its geometry not ready, or "
+        "the averaging far more decided at the point; extension).",
     )
 
 

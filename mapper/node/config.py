@@ -237,6 +237,24 @@ class QueryConfig:
     test while the window has depth): that blend mixes the evicted views' mean in already.
     Measured on the tuning split in docs/concepts/window-and-map.md. 0 = off. 0..1."""
 
+    learned_toward_average: float = 3.0
+    """Do no harm per point: a ``govnesf`` answer (not fallen back) is mixed with the averaging's
+    whole answer (``average``, or ``average_depth`` with ``use_depth``: its window's and the map's,
+    as that method answers) where the averaging's answer is this many times as decided as the
+    learned one's, the margin of each (its best text's cosine minus the second best's) telling how
+    decided it is: by ``d = margin_avg - this x margin_learned``, the best text of ``(1 - w)`` x the
+    learned cosines + ``w`` x the averaging's, ``w = min(1, d / learned_toward_average_ramp)``
+    where ``d > 0``; a point only the averaging answers takes its answer; the reply's ``fallback``
+    marks the points whose label the averaging's answer changed
+    (:func:`mapper.node.answers.segment.toward_averaging`). Where the two disagree on the scenario
+    matrix's tuning streams, the averaging is right more often than the model where its margin is
+    3 or more times the model's, the model where it is below (docs/concepts/answers.md, with the
+    measured effect). 0 = off. 0..100."""
+
+    learned_toward_average_ramp: float = 0.02
+    """The margin lead (cosine) over which ``learned_toward_average``'s weight goes from 0 to 1.
+    0.0001..1."""
+
     evicted_frames_mb: float = 256.0
     """With ``evicted_views`` "both": keep the keyframes without input depth that leave the window
     as reduced views (pose, intrinsics, the OV map area-averaged to ``evicted_frames_cells``; never
@@ -276,6 +294,9 @@ class QueryConfig:
                      0.0, 1.0)
         _check_range(where, "queries.learned_average_mix", self.learned_average_mix, 0.0, 1.0)
         _check_range(where, "queries.learned_evicted_views", self.learned_evicted_views, 0.0, 1.0)
+        _check_range(where, "queries.learned_toward_average", self.learned_toward_average, 0.0, 100.0)
+        _check_range(where, "queries.learned_toward_average_ramp", self.learned_toward_average_ramp,
+                     1e-4, 1.0)
         _check_range(where, "queries.evicted_views_max_pending", self.evicted_views_max_pending, 1, 100_000)
         _check_range(where, "queries.evicted_views_max_pending_mb", self.evicted_views_max_pending_mb,
                      0.0, 100_000.0)

@@ -899,6 +899,7 @@ def fill_from_map(
     nearest: np.ndarray | None = None,  # (N,) int64 snapshot.nearest_with_feature(xyz, radius_m), if known
     map_cos: tuple[np.ndarray, np.ndarray] | None = None,  # ((N, T) float32 cosines, (N,) bool where given)
     map_cos_weight: float = 1.0,
+    out_cos: np.ndarray | None = None,  # (N, T) float32: filled with the answers' cosines (see below)
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Answer the points the window did not from the map: (label (N,) int32, score (N,) float32,
     source (N,) uint8). A point the window saw keeps the window's answer (``SOURCE_WINDOW``); an
@@ -914,7 +915,9 @@ def fill_from_map(
     already. ``map_cos``: the map's cosines for some points, used instead of their nearest map
     row's fused feature where that row exists (:func:`evicted_view_cosines`: the views of the
     keyframes that left the window, at the row's voxel), mixed with the row's own as
-    ``(1 - map_cos_weight) * own + map_cos_weight * map_cos`` (1: instead of it)."""
+    ``(1 - map_cos_weight) * own + map_cos_weight * map_cos`` (1: instead of it). ``out_cos``,
+    holding the window's cosines where it answered (the caller's), takes every text's cosine of the
+    answer where the map answered or blended (the rows the answer's label is the best text of)."""
     label = np.array(label, np.int32, copy=True)
     score = np.array(score, np.float32, copy=True)
     seen = np.asarray(window_seen, bool)
@@ -958,8 +961,12 @@ def fill_from_map(
             label[idx] = best.astype(np.int32)
             score[idx] = best_score
             source[idx[changed]] = SOURCE_MAP
+            if out_cos is not None:
+                out_cos[idx] = sims
             return label, score, source
         take = ~seen[idx] | map_more_confident(best, best_score, label[idx], score[idx])
+        if out_cos is not None:
+            out_cos[idx[take]] = sims[take]
         idx = idx[take]
         label[idx] = best[take].astype(np.int32)
         score[idx] = best_score[take]

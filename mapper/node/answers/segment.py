@@ -9,8 +9,10 @@ here, once, for every backend; the reply's ``source`` says per point which answe
 
 Do no harm: a backend that falls back to averaging (``govnesf``) is answered by ``average`` (or
 ``average_depth`` with ``use_depth``) while the window's keyframes mostly lack input depth and the
-node's geometry work is pending (``queries.learned_fallback``); the reply's ``fallback`` says so
-per point. A request's ``settle_timeout_s`` first waits (bounded) for the node's background work;
+node's geometry work is pending (``queries.learned_fallback``), and per point, where the
+averaging's whole answer is far more decided than the learned one's, the learned answer is mixed
+toward it (``queries.learned_toward_average``, :func:`toward_averaging`); the reply's ``fallback``
+says so per point. A request's ``settle_timeout_s`` first waits (bounded) for the node's background work;
 the reply's ``settled`` says whether none was pending when it answered.
 """
 
@@ -28,7 +30,7 @@ from mapper.node.context import NodeContext
 from protocol.errors import ProtocolError
 from protocol.messages import Message, Segmentation, SegmentPoints
 
-__all__ = ["SegmentAnswers", "answer_from_map", "evicted_frame_cosines", "mix_answers"]
+__all__ = ["SegmentAnswers", "answer_from_map", "evicted_frame_cosines", "mix_answers", "toward_averaging"]
 
 
 class _LearnedNotLoaded:
@@ -59,6 +61,7 @@ def answer_from_map(
     depth_tested: bool = False,  # the window's answer already passed a depth test
     nearest: np.ndarray | None = None,  # (N,) int64 the snapshot's nearest rows, if looked up already
     learned: bool = False,  # the window's answer is the learned model's (not averaging's)
+    out_cos: np.ndarray | None = None,  # (N, T) float32 holding window_cos: takes the answers' cosines
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Fill the points the window did not answer from the global map's snapshot (nearest point
     with a feature within ``queries.map_radius_voxels`` voxels) and, with ``window_cos``, blend
@@ -69,7 +72,8 @@ def answer_from_map(
     the ``learned`` model's answers, mixed with the voxel's own feature (which holds the model's
     blend), ``queries.evicted_views_learned_weight``. Points nothing answers take the kept views of
     evicted keyframes without depth (``queries.evicted_frames_mb``) where one sees them, for every
-    method (a depth-tested answer only there)."""
+    method (a depth-tested answer only there). ``out_cos`` (the window's cosines where it answered)
+    takes every text's cosine of the answer where the map answered or blended."""
     from mapper.node.queries import evicted_view_cosines, fill_from_map
 
     gmap = ctx.state.global_map
@@ -91,13 +95,15 @@ def answer_from_map(
         snap, xyz, text_emb, label, score, window_seen, ctx.map_radius_m,
         more_confident=ctx.config.queries.map_when_more_confident, window_cos=window_cos,
         blend=ctx.map_blend(depth_tested=depth_tested), nearest=nearest, map_cos=map_cos,
-        map_cos_weight=ctx.config.queries.evicted_views_learned_weight if learned else 1.0)
+        map_cos_weight=ctx.config.queries.evicted_views_learned_weight if learned else 1.0, out_cos=out_cos)
     from mapper.node.queries import SOURCE_MAP, SOURCE_NONE, best_text
 
     if frames_cos is not None:  # no map voxel near, unseen by the window: the kept views answer
         todo = np.flatnonzero((source == SOURCE_NONE) & frames_cos[1])
         label[todo], score[todo] = best_text(frames_cos[0][todo], np.ones(todo.shape[0], bool))
         source[todo] = SOURCE_MAP
+        if out_cos is not None:
+            out_cos[todo] = frames_cos[0][todo]
     elif depth_tested and len(gmap.evicted.frames):
         # a depth-tested answer never mixes views without depth in, but a point nothing else
         # answers takes the kept views' answer rather than none
@@ -109,6 +115,8 @@ def answer_from_map(
                 todo = none[sub[1]]
                 label[todo], score[todo] = best_text(sub[0][sub[1]], np.ones(todo.shape[0], bool))
                 source[todo] = SOURCE_MAP
+                if out_cos is not None:
+                    out_cos[todo] = sub[0][sub[1]]
     return label, score, source
 
 
@@ -190,6 +198,58 @@ def mix_answers(learned: PointAnswer, averaging: PointAnswer, weight: float | np
                        map_only=map_only)
 
 
+def _top_margin(cos: np.ndarray) -> np.ndarray:
+    """(N,) the best text's cosine minus the second best's (the best's alone for one text)."""
+    if cos.shape[1] < 2:
+        return cos.max(axis=1) if cos.shape[1] else np.zeros(cos.shape[0], np.float32)
+    top = np.partition(cos, cos.shape[1] - 2, axis=1)[:, -2:]
+    return (top[:, 1] - top[:, 0]).astype(np.float32)
+
+
+def toward_averaging(
+    label: np.ndarray,  # (N,) int32 the learned answer (-1: none)
+    score: np.ndarray,  # (N,) float32
+    cos: np.ndarray,  # (N, T) float32 its cosines (rows where it answers)
+    a_label: np.ndarray,  # (N,) int32 the averaging's answer (-1: none)
+    a_score: np.ndarray,  # (N,) float32
+    a_cos: np.ndarray,  # (N, T) float32 its cosines
+    ratio: float,  # > 0: how many times the learned margin the averaging's must exceed
+    ramp: float,  # > 0: the lead over which the averaging's weight goes from 0 to 1
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Do no harm per point (``queries.learned_toward_average``): where both answer a point and the
+    averaging's margin (best text's cosine minus the second's) exceeds ``ratio`` times the learned
+    answer's by ``d`` > 0, the best text of ``(1 - w)`` x the learned cosines + ``w`` x the
+    averaging's, ``w = min(1, d / ramp)``; elsewhere the learned answer stays. A point only the
+    averaging answers takes its answer. Returns (label, score, (N,) bool where the label is now the
+    averaging's and was not the learned one's)."""
+    seen_l, seen_a = label >= 0, a_label >= 0
+    out_label = np.array(label, np.int32, copy=True)
+    out_score = np.array(score, np.float32, copy=True)
+    both = np.flatnonzero(seen_l & seen_a)
+    if both.size:
+        lc, ac = np.asarray(cos, np.float32)[both], np.asarray(a_cos, np.float32)[both]
+        lead = _top_margin(ac) - np.float32(ratio) * _top_margin(lc)
+        w = np.clip(lead / np.float32(ramp), 0.0, 1.0)[:, None]
+        moved = np.flatnonzero(w[:, 0] > 0)
+        mixed = (np.float32(1.0) - w[moved]) * lc[moved] + w[moved] * ac[moved]
+        best = np.argmax(mixed, axis=1)
+        out_label[both[moved]] = best.astype(np.int32)
+        out_score[both[moved]] = mixed[np.arange(moved.size), best]
+    only_a = np.flatnonzero(~seen_l & seen_a)
+    out_label[only_a] = a_label[only_a]
+    out_score[only_a] = a_score[only_a]
+    took = (out_label != label) & (out_label == a_label)
+    return out_label, out_score, took
+
+
+def _map_only_to_map(window: PointAnswer, source: np.ndarray) -> None:
+    """Points only views that left the window saw (``window.map_only``) have the map as source."""
+    if window.map_only is not None:
+        from mapper.node.queries import SOURCE_MAP, SOURCE_WINDOW
+
+        source[window.map_only & (source == SOURCE_WINDOW)] = SOURCE_MAP
+
+
 def _evicted_answer(averaging: PointAnswer, where: np.ndarray) -> PointAnswer:
     """The evicted views' own answer from an averaging answer made ``want_evicted``: their mean's
     cosines where any counts (``evicted_views`` > 0) and ``where`` (N,) bool."""
@@ -237,56 +297,67 @@ class SegmentAnswers:
         ctx.state.global_map.page_in_near(np.asarray(msg.xyz, np.float32), ctx.map_radius_m)
         depth_tested = backend.depth_tested(msg)
         want_cos = ctx.map_blend(depth_tested=depth_tested) > 0 and ctx.map_radius_m > 0
-        window, fell_back = self._window_answer(backend, msg, want_cos, depth_tested)
+        learned = bool(getattr(backend, "fallback_to_averaging", False))
+        ratio = ctx.config.queries.learned_toward_average if learned else 0.0
+        window, fell_back, other = self._window_answer(backend, msg, want_cos or ratio > 0, depth_tested)
         t_map = time.perf_counter()
         seen = window.answered()
         emb = window.text_emb if window.text_emb is not None else self._text_emb(msg)
+        out_cos = None
+        if ratio > 0 and not fell_back and emb is not None and window.cos is not None:
+            out_cos = np.array(window.cos, np.float32, copy=True)  # the answer's cosines, map rows filled in
         if emb is None:  # no text encoder for the map's space: the backend's answer alone
             label, score, source = window.label, window.score, seen.astype(np.uint8)  # 1 window, 0 none
         else:
             label, score, source = answer_from_map(
                 ctx, np.asarray(msg.xyz, np.float32), emb, window.label, window.score, seen,
                 window.snapshot, window_cos=window.cos, depth_tested=depth_tested, nearest=window.nearest,
-                learned=bool(getattr(backend, "fallback_to_averaging", False)) and not fell_back,
+                learned=learned and not fell_back, out_cos=out_cos,
             )
-        if window.map_only is not None:
-            from mapper.node.queries import SOURCE_MAP, SOURCE_WINDOW
-
-            # only keyframes that left the window saw these points
-            source[window.map_only & (source == SOURCE_WINDOW)] = SOURCE_MAP
+        _map_only_to_map(window, source)
         timing = dict(window.timing_ms)
+        took = None
+        if out_cos is not None and emb is not None:
+            t_avg = time.perf_counter()
+            answer = (label, score, source, out_cos)
+            label, score, source, took = self._toward_averaging(msg, other, depth_tested, emb, answer, ratio)
+            timing["toward_average"] = (time.perf_counter() - t_avg) * 1e3
+            timing["from_average"] = float(np.count_nonzero(took))
         done = time.perf_counter()
         timing["map"] = (done - t_map) * 1e3
         timing["from_map"] = float(np.count_nonzero(source == 2))
         timing["handler"] = (done - started) * 1e3
         fallback = None
-        if getattr(backend, "fallback_to_averaging", False):
+        if learned:
             fallback = np.full(label.shape[0], int(fell_back), np.uint8)
+            if took is not None:
+                fallback[took] = 1
         return Segmentation(label=label, score=score, timing_ms=timing, id=msg.id, source=source,
                             settled=ctx.settled(), fallback=fallback)
 
     def _window_answer(
         self, backend: SegmentBackend, msg: SegmentPoints, want_cos: bool, depth_tested: bool
-    ) -> tuple[PointAnswer, bool]:
+    ) -> tuple[PointAnswer, bool, PointAnswer | None]:
         """The backend's answer, or, do no harm (``queries.learned_fallback``), the averaging's for
         a backend that falls back to it (the learned one) while an RGB-only window's geometry is
-        pending; and whether it fell back. Averaging that cannot answer (e.g. no depth test
-        possible) leaves the answer to the backend."""
+        pending; whether it fell back; and the averaging's window answer where it was asked (for
+        the learned one's mixes). Averaging that cannot answer (e.g. no depth test possible) leaves
+        the answer to the backend."""
         learned = getattr(backend, "fallback_to_averaging", False)
         averaging = self.backends["average_depth" if depth_tested else "average"]
         if learned and self._learned_not_ready():
             try:
                 window = averaging.segment(msg, want_cos)
             except ProtocolError:
-                return backend.segment(msg, want_cos), False
+                return backend.segment(msg, want_cos), False, None
             window.timing_ms["fallback"] = 1.0
-            return window, True
+            return window, True, None
         q = self.ctx.config.queries
         mix, share = q.learned_average_mix, q.learned_evicted_views
         if share > 0 and (self.ctx.map_blend(depth_tested=depth_tested) > 0 or not self._has_evicted_views()):
             share = 0.0  # the map's blend mixes the evicted views' mean in already (a window with depth)
         if not learned or (mix <= 0 and share <= 0):
-            return backend.segment(msg, want_cos), False
+            return backend.segment(msg, want_cos), False, None
         answer = backend.segment(msg, True)
         started = time.perf_counter()
         try:
@@ -295,7 +366,7 @@ class SegmentAnswers:
             else:
                 other = averaging.segment(msg, True)
         except ProtocolError:  # averaging cannot answer (e.g. no depth test possible): the model's alone
-            return answer, False
+            return answer, False, None
         weight: float | np.ndarray = mix
         if share > 0 and other.views is not None and other.evicted_views is not None \
                 and other.evicted_cos is not None:
@@ -307,7 +378,35 @@ class SegmentAnswers:
             answer = mix_answers(answer, _evicted_answer(other, answer.answered()), part)
         mixed = mix_answers(answer, other, weight) if mix > 0 else answer
         mixed.timing_ms["mix_average"] = (time.perf_counter() - started) * 1e3
-        return mixed, False
+        return mixed, False, other
+
+    def _toward_averaging(
+        self, msg: SegmentPoints, other: PointAnswer | None, depth_tested: bool, emb: np.ndarray,
+        answer: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], ratio: float,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Do no harm per point (``queries.learned_toward_average``): the learned ``answer``
+        (label, score, source, cosines: after the map's) mixed with the averaging's whole answer
+        (its window's, ``other`` when asked already, then the map's as for its own method) by
+        :func:`toward_averaging`; returns (label, score, source, (N,) bool where the averaging's
+        answer was taken). Averaging that cannot answer leaves the learned answer as it is."""
+        label, score, source, cos = answer
+        if other is None or other.cos is None:
+            try:
+                other = self.backends["average_depth" if depth_tested else "average"].segment(msg, True)
+            except ProtocolError:
+                return label, score, source, np.zeros(label.shape[0], bool)
+        if other.cos is None or other.cos.shape != cos.shape:
+            return label, score, source, np.zeros(label.shape[0], bool)
+        a_cos = np.array(other.cos, np.float32, copy=True)
+        a_label, a_score, a_source = answer_from_map(
+            self.ctx, np.asarray(msg.xyz, np.float32), emb, other.label, other.score, other.answered(),
+            other.snapshot, window_cos=other.cos, depth_tested=depth_tested, nearest=other.nearest,
+            out_cos=a_cos)
+        _map_only_to_map(other, a_source)
+        new_label, new_score, took = toward_averaging(label, score, cos, a_label, a_score, a_cos, ratio,
+                                                      self.ctx.config.queries.learned_toward_average_ramp)
+        source = np.where(took, a_source, source).astype(np.uint8)
+        return new_label, new_score, source, took
 
     def _has_evicted_views(self) -> bool:
         """Whether views of keyframes that left the window are kept for the averaging that would

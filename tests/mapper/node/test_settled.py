@@ -73,8 +73,8 @@ def _ask(node: MapperNode, msg: Message) -> Any:
     return decode(node.handle_query(encode(msg)), direction="reply")
 
 
-def _streamed(tmp_path: Path, *, depth: bool) -> MapperNode:
-    node = in_process_node(tmp_path, global_map={"integrate_queue": 0})
+def _streamed(tmp_path: Path, *, depth: bool, queries: dict[str, Any] | None = None) -> MapperNode:
+    node = in_process_node(tmp_path, global_map={"integrate_queue": 0}, queries=queries or {})
     for seq in range(0, 20, 2):
         frame = synthetic_frame(seq, 20, 64, 48)
         if not depth:
@@ -129,7 +129,8 @@ def test_the_settle_wait_is_bounded(tmp_path: Path) -> None:
 def test_learned_falls_back_to_averaging_while_rgb_only_geometry_is_pending(
     tmp_path: Path, depth: bool
 ) -> None:
-    node = _streamed(tmp_path, depth=depth)
+    # the per-point mix toward a more decided averaging off: the geometry's fallback alone
+    node = _streamed(tmp_path, depth=depth, queries={"learned_toward_average": 0.0})
     node.segment.register("govnesf", LearnedBackend(ConstantRuntime()))
     geometry = Pending(2)
     node.ctx.register_pending("triangulation", geometry, geometry=True)
@@ -148,7 +149,8 @@ def test_learned_falls_back_to_averaging_while_rgb_only_geometry_is_pending(
 
 
 def test_the_fallback_can_be_turned_off(tmp_path: Path) -> None:
-    node = in_process_node(tmp_path, global_map={"integrate_queue": 0}, queries={"learned_fallback": "off"})
+    node = in_process_node(tmp_path, global_map={"integrate_queue": 0},
+                           queries={"learned_fallback": "off", "learned_toward_average": 0.0})
     for seq in range(0, 20, 2):
         frame = synthetic_frame(seq, 20, 64, 48)
         frame.depth_m = None
@@ -161,7 +163,7 @@ def test_the_fallback_can_be_turned_off(tmp_path: Path) -> None:
 
 def test_the_pending_fallback_also_covers_windows_with_depth(tmp_path: Path) -> None:
     node = in_process_node(tmp_path, global_map={"integrate_queue": 0},
-                           queries={"learned_fallback": "pending"})
+                           queries={"learned_fallback": "pending", "learned_toward_average": 0.0})
     for seq in range(0, 20, 2):
         node.handle_ingest(encode(synthetic_frame(seq, 20, 64, 48)))
     node.segment.register("govnesf", LearnedBackend(ConstantRuntime()))
@@ -173,3 +175,43 @@ def test_the_pending_fallback_also_covers_windows_with_depth(tmp_path: Path) -> 
     features.n = 0
     settled = _ask(node, SegmentPoints(xyz=xyz, texts=TEXTS, method="govnesf"))
     assert isinstance(settled, Segmentation) and settled.fallback is not None and not settled.fallback.any()
+
+
+class UndecidedRuntime(ConstantRuntime):
+    """A learned model that labels every point with text 2, barely ahead of text 1."""
+
+    def segment_cosines(
+        self, xyz: Any, texts: Sequence[str], *, use_depth: bool
+    ) -> tuple[Any, Any, Any, dict]:
+        label, score, cos, timing = super().segment_cosines(xyz, texts, use_depth=use_depth)
+        cos[:, 1] = 0.98
+        return label, score, cos, timing
+
+
+@pytest.mark.parametrize("runtime", [ConstantRuntime, UndecidedRuntime], ids=["decided", "undecided"])
+def test_learned_answers_move_toward_a_more_decided_averaging(tmp_path: Path, runtime: type) -> None:
+    """``queries.learned_toward_average``: a learned answer barely decided takes the averaging's
+    where the averaging is more decided, and the reply's ``fallback`` marks those points; a
+    decided one (margin 0.99: no averaging's margin is 3 times that) stays."""
+    node = in_process_node(tmp_path, global_map={"integrate_queue": 0},
+                           queries={"learned_toward_average": 3.0, "learned_toward_average_ramp": 0.05,
+                                    "map_radius_voxels": 0.0})
+    for seq in range(0, 20, 2):
+        node.handle_ingest(encode(synthetic_frame(seq, 20, 64, 48)))
+    node.segment.register("govnesf", LearnedBackend(runtime()))
+    xyz = _points(node)
+    average = _ask(node, SegmentPoints(xyz=xyz, texts=TEXTS, method="average"))
+    reply = _ask(node, SegmentPoints(xyz=xyz, texts=TEXTS, method="govnesf"))
+    assert isinstance(average, Segmentation) and isinstance(reply, Segmentation)
+    assert reply.fallback is not None
+    seen = average.label >= 0
+    assert seen.any() and (average.label[seen] != 2).any()
+    if runtime is ConstantRuntime:
+        assert (reply.label[seen] == 2).all() and not reply.fallback.any()
+    else:
+        # the averaging's answer where it is decided enough to move the label (text 2 at 0.99 over
+        # text 1 at 0.98), and the fallback flags exactly those points
+        moved = reply.label != 2
+        assert moved.sum() > (seen & (average.label != 2)).sum() // 2
+        assert np.array_equal(reply.label[moved], average.label[moved])
+        assert np.array_equal(reply.fallback.astype(bool), moved)

@@ -452,3 +452,31 @@ def test_mix_answers_takes_a_weight_per_point() -> None:
     np.testing.assert_allclose(mixed.cos[2], [0.52, 0.48], atol=1e-6)
     np.testing.assert_allclose(mixed.score[:2], [0.9, 0.9], atol=1e-6)
 
+
+
+def test_toward_averaging_moves_by_how_far_the_averaging_is_more_decided() -> None:
+    """``queries.learned_toward_average``: the learned answer stays where the averaging's margin is
+    not ``ratio`` times its own; where it leads that by ``d``, the mix takes ``min(1, d / ramp)``
+    of it; a point only the averaging answers takes its answer; the flags mark changed labels."""
+    from mapper.node.answers.segment import toward_averaging
+
+    cos_l = np.array([[0.6, 0.2], [0.45, 0.4], [0.45, 0.4], [0.0, 0.0], [0.5, 0.1]], np.float32)
+    cos_a = np.array([[0.3, 0.5], [0.2, 0.6], [0.38, 0.42], [0.1, 0.7], [0.0, 0.0]], np.float32)
+    label_l = np.array([0, 0, 0, -1, 0], np.int32)
+    label_a = np.array([1, 1, 1, 1, -1], np.int32)
+    score_l, score_a = cos_l.max(1), cos_a.max(1)
+    label, score, took = toward_averaging(label_l, score_l, cos_l, label_a, score_a, cos_a, 1.0, 0.2)
+    # 0: learned margin 0.4 >= 0.2: stays; 1: 0.05 vs 0.4, w = 1: the averaging's (0.2, 0.6);
+    # 2: 0.05 vs 0.04: stays; 3: only the averaging answers; 4: only the learned one
+    assert label.tolist() == [0, 1, 0, 1, 0]
+    np.testing.assert_allclose(score, [0.6, 0.6, 0.45, 0.7, 0.5], atol=1e-6)
+    assert took.tolist() == [False, True, False, True, False]
+    # ratio 10: point 1's averaging margin (0.4) is below 10 x 0.05: the learned answer stays
+    label, _, took = toward_averaging(label_l, score_l, cos_l, label_a, score_a, cos_a, 10.0, 0.2)
+    assert label.tolist() == [0, 0, 0, 1, 0] and took.tolist() == [False, False, False, True, False]
+    # a partial weight: margins 0.05 (learned) and 0.15 (averaging), scale 0.2: w = 0.5
+    half_l, half_a = np.array([[0.45, 0.4]], np.float32), np.array([[0.3, 0.45]], np.float32)
+    one, top = np.array([0], np.int32), np.array([0.45], np.float32)
+    label, score, took = toward_averaging(one, top, half_l, one + 1, top, half_a, 1.0, 0.2)
+    assert label.tolist() == [1] and took.tolist() == [True]  # (0.375, 0.425)
+    np.testing.assert_allclose(score, [0.425], atol=1e-6)
