@@ -56,9 +56,8 @@ def reduce_ov(ov: np.ndarray, max_cells: int) -> np.ndarray:
     if max_cells < 1:
         raise ValueError(f"max_cells must be >= 1, got {max_cells}")
     h, w = int(ov.shape[0]), int(ov.shape[1])
-    feat = np.asarray(ov, np.float32)
     if h * w <= max_cells:
-        return np.ascontiguousarray(feat)
+        return np.ascontiguousarray(ov, np.float32)
     s = np.sqrt(max_cells / (h * w))
     h2, w2 = max(1, int(np.floor(h * s))), max(1, int(np.floor(w * s)))
     while h2 * w2 > max_cells:  # a side floored at 1 (a very thin map)
@@ -67,8 +66,15 @@ def reduce_ov(ov: np.ndarray, max_cells: int) -> np.ndarray:
         else:
             h2 -= 1
     if h % h2 == 0 and w % w2 == 0:  # whole blocks: their mean, the same area average without the weights
-        blocks = np.asarray(ov).reshape(h2, h // h2, w2, w // w2, -1)
-        return np.ascontiguousarray(blocks.mean(axis=(1, 3), dtype=np.float32))
+        bh, bw = h // h2, w // w2
+        blocks = np.asarray(ov).reshape(h2, bh, w2, bw, -1)
+        acc = np.zeros((h2, w2, blocks.shape[-1]), np.float32)
+        for i in range(bh):  # one strided slice per offset in the block: no float32 copy of the whole map
+            for j in range(bw):
+                acc += blocks[:, i, :, j]
+        acc *= np.float32(1.0 / (bh * bw))
+        return acc
+    feat = np.asarray(ov, np.float32)
     out = np.einsum("ih,hwd,jw->ijd", _area_weights(h, h2), feat, _area_weights(w, w2), optimize=True)
     return np.ascontiguousarray(out, np.float32)
 

@@ -59,6 +59,8 @@ Example::
 
 from __future__ import annotations
 
+import math
+
 import hashlib
 import itertools
 import logging
@@ -111,6 +113,12 @@ class GlobalMapConfig:
 
     pixel_stride: int = 2
     """Back-project every ``pixel_stride``-th pixel of each keyframe's depth (both axes). 1..64."""
+
+    max_observed_pixels: int = 19_200
+    """Most depth pixels a keyframe fuses: a larger frame's stride grows to ``ceil(sqrt(H W /
+    max_observed_pixels))`` (a 640 x 480 frame at the default: stride 4, 19 200 pixels, about 2 cm
+    apart at 3 m with a 60 degree lens, finer than ``voxel_size_m``), so fusing a keyframe costs the
+    same at any resolution. 160 x 120 and 320 x 240 keep ``pixel_stride`` 2. 100..1e8."""
 
     max_points: int = 250_000
     """Most voxels kept in memory. Beyond this, with ``paging`` (default), the least recently
@@ -339,6 +347,7 @@ class GlobalMapConfig:
         _check_range(where, "global_map.carve_min_weight", self.carve_min_weight, 1e-6, 1000.0)
         _check_range(where, "global_map.voxel_size_m", self.voxel_size_m, 0.005, 1.0)
         _check_range(where, "global_map.pixel_stride", self.pixel_stride, 1, 64)
+        _check_range(where, "global_map.max_observed_pixels", self.max_observed_pixels, 100, 100_000_000)
         _check_range(where, "global_map.max_points", self.max_points, 1, 100_000_000)
         _check_range(where, "global_map.prune_to_fraction", self.prune_to_fraction, 0.1, 1.0)
         _check_range(where, "global_map.stale_half_life_keyframes", self.stale_half_life_keyframes, 1e-3, 1e9)
@@ -800,7 +809,10 @@ def observe_keyframe(
     height, width = depth.shape
     if confidence is not None:
         check_shape(confidence, "H W", "confidence (the depth's H, W)", dims)
-    stride = cfg.pixel_stride if pixel_stride is None else int(pixel_stride)
+    if pixel_stride is None:  # the config's stride, coarser for large frames (max_observed_pixels)
+        stride = max(cfg.pixel_stride, math.ceil(math.sqrt(height * width / cfg.max_observed_pixels)))
+    else:
+        stride = int(pixel_stride)
     if stride < 1:
         raise ValueError(f"pixel_stride {stride} out of range: must be >= 1")
     rows = np.arange(stride // 2, height, stride)
