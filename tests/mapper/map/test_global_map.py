@@ -371,3 +371,22 @@ def test_integrate_features_skips_voxels_not_in_the_map_and_refuses_bad_input() 
     np.testing.assert_array_equal(after.weight, before.weight)
     assert after.n_with_features == len(after) and after.feat is not None and after.feat.shape[1] == 4
     assert gmap.integrate_features(make_kf(None, ov=ov)).skipped == "no depth"
+
+
+def test_a_large_frame_fuses_at_a_coarser_stride_within_max_observed_pixels() -> None:
+    """global_map.max_observed_pixels: the stride grows with the frame (ceil(sqrt(H W / max))), so a
+    keyframe never fuses more pixels than that; a small frame keeps pixel_stride; an explicit
+    pixel_stride is used as given."""
+    from mapper.map.global_map import Observations, observe_keyframe
+
+    cfg = GlobalMapConfig(pixel_stride=2, max_observed_pixels=100, grazing_power=0.0, min_weight=0.0)
+    small = observe_keyframe(cfg, make_kf(plane_depth()))  # 32 x 24 = 768 pixels: stride 3 (ceil 2.77)
+    big = observe_keyframe(cfg, make_kf(np.full((4 * H, 4 * W), 2.0, np.float32)))  # stride 12 (ceil 11.09)
+    assert isinstance(small, Observations) and isinstance(big, Observations)
+    assert len(small.xyz) == len(range(1, H, 3)) * len(range(1, W, 3)) <= 100
+    assert len(big.xyz) == len(range(6, 4 * H, 12)) * len(range(6, 4 * W, 12)) <= 100
+    loose = dataclasses.replace(cfg, max_observed_pixels=10_000)
+    kept = observe_keyframe(loose, make_kf(plane_depth()))
+    assert isinstance(kept, Observations) and len(kept.xyz) == (H // 2) * (W // 2)  # pixel_stride 2
+    given = observe_keyframe(cfg, make_kf(plane_depth()), pixel_stride=1)
+    assert isinstance(given, Observations) and len(given.xyz) == H * W
