@@ -59,11 +59,10 @@ Example::
 
 from __future__ import annotations
 
-import math
-
 import hashlib
 import itertools
 import logging
+import math
 import os
 import sys
 import tempfile
