@@ -19,9 +19,12 @@ import time
 from collections import Counter
 from typing import Any
 
+import numpy as np
+
 from clients.sim.export import FLOOR_PATH, RGB_ENCODINGS, RecordConfig, SimStream, record
 from clients.sim.paths import PATH_KINDS
 from clients.sim.scenes.floor import FLOOR_ROOMS
+from clients.sim.sensor import POSE_ERRORS, perturb_poses
 from protocol.messages import ROBOT_RE, Frame
 
 
@@ -82,6 +85,15 @@ def _named(frame: Frame, robot: str) -> Frame:
     return named
 
 
+def _posed(frame: Frame, world_from_cam: np.ndarray) -> Frame:
+    """``frame`` with the pose odometry reported (``frame`` itself when it is the true one)."""
+    if np.array_equal(frame.world_from_cam, world_from_cam):
+        return frame
+    posed = copy.copy(frame)
+    posed.world_from_cam = np.asarray(world_from_cam, np.float64)
+    return posed
+
+
 def _stream(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -103,10 +115,12 @@ def _stream(args: argparse.Namespace) -> int:
         raise ValueError(exc.message) from None
     cfg = _config(args, novel_views=0, previews=0)
     stream = SimStream.build(cfg)
+    sent = perturb_poses(stream.poses, args.pose_error, seed=cfg.seed)  # what odometry reports
     statuses: Counter[str] = Counter()
     t0 = time.perf_counter()
     with MapperClient(ingest=args.ingest, timeout_s=args.timeout, curve=curve) as client:
-        frames = (_named(frame, args.robot) for frame, _ in stream.frames())
+        frames = (_named(_posed(frame, sent[k]), args.robot)
+                  for k, (frame, _) in enumerate(stream.frames()))
         results = client.send_frames(frames, window=args.window, rate_hz=args.rate)
         for res in tqdm(results, total=cfg.frames, desc=f"sim stream -> {args.ingest}", unit="frame",
                         disable=args.quiet):
@@ -140,6 +154,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="frames per second, 0 = unthrottled (default 10)")
     st.add_argument("--window", type=int, default=1, help="frames in flight before waiting for acks")
     st.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for each ack")
+    st.add_argument("--pose-error", default="exact", choices=sorted(POSE_ERRORS),
+                    help="odometry error on the poses sent (the scenario matrix's levels: noise_1cm = "
+                         "1 cm / 0.5 deg per frame, noise_3cm = 3 cm / 1.5 deg, drift = a random walk); "
+                         "default exact")
     st.add_argument("--robot", default="",
                     help="robot name on every frame ([A-Za-z0-9_.-]{0,32}; each robot has its own window "
                          "in the node; default: none, the default robot)")

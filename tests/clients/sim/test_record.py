@@ -112,8 +112,8 @@ def test_cli_rejects_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert (tmp_path / "b" / "x").read_text() == "keep me"
 
 
-@pytest.mark.parametrize("robot", ["", "r2"])
-def test_cli_stream_sends_frames_and_waits_for_acks(robot: str) -> None:
+@pytest.mark.parametrize("robot,pose_error", [("", "exact"), ("r2", "noise_3cm")])
+def test_cli_stream_sends_frames_and_waits_for_acks(robot: str, pose_error: str) -> None:
     ctx = zmq.Context.instance()
     router = ctx.socket(zmq.ROUTER)
     port = router.bind_to_random_port("tcp://127.0.0.1")
@@ -134,13 +134,21 @@ def test_cli_stream_sends_frames_and_waits_for_acks(robot: str) -> None:
     try:
         rc = main(["stream", "--seed", "2", "--frames", "3", "--width", "32", "--height", "24", "--no-ov",
                    "--depth", "--ingest", f"tcp://127.0.0.1:{port}", "--rate", "0", "--quiet",
-                   *(["--robot", robot] if robot else [])])
+                   "--pose-error", pose_error, *(["--robot", robot] if robot else [])])
     finally:
         t.join(timeout=15)
         router.close(linger=0)
     assert rc == 0
     assert [f.seq for f in received] == [0, 1, 2]
     assert all(f.depth_m is not None and f.ov is None and f.robot == robot for f in received)
+    from clients.sim.export import RecordConfig, SimStream
+    from clients.sim.sensor import perturb_poses
+
+    true = SimStream.build(RecordConfig(seed=2, frames=3, width=32, height=24, depth=True, ov=False,
+                                        novel_views=0, previews=0)).poses
+    sent = np.stack([f.world_from_cam for f in received])
+    np.testing.assert_allclose(sent, perturb_poses(true, pose_error, seed=2))  # odometry's poses went out
+    assert (pose_error == "exact") == bool(np.allclose(sent, true))
 
 
 def test_cli_stream_rejects_bad_endpoint(capsys: pytest.CaptureFixture[str]) -> None:
