@@ -7,6 +7,8 @@ read. Frames are pre-encoded so the client's encoding cost is not measured.
 
     .venv/bin/python benchmarks/speed/ingest_rate.py                 # 1000 frames 160x120, windows 1 and 16
     .venv/bin/python benchmarks/speed/ingest_rate.py --window 1 --frames 300 --with-ov --encoding jpeg
+    .venv/bin/python benchmarks/speed/ingest_rate.py --window 16 --frames 300 --with-ov \
+        --set triangulation.refine_poses=true --set 'triangulation.pose_method="window"'    # RGB-only
 """
 
 from __future__ import annotations
@@ -57,7 +59,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--encoding", choices=("rgb8", "jpeg", "png"), default="rgb8")
     parser.add_argument("--with-ov", action="store_true", help="include the demo's small OV feature map")
     parser.add_argument("--with-depth", action="store_true", help="keep the float32 depth map")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a node setting (as `govnesf serve --set`), repeatable, e.g. "
+                             "triangulation.refine_poses=true")
     args = parser.parse_args(argv)
+    if any("=" not in item for item in args.set):
+        parser.error(f"--set expects KEY=VALUE, got {args.set}")
     windows = args.window or [1, 16]
 
     payloads = []
@@ -75,7 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     with tempfile.TemporaryDirectory() as tmp:
         started = time.perf_counter()
-        node = NodeProcess(Path(tmp) / "maps", log_path=Path(tmp) / "node.log", events=False)
+        extra = [a for item in args.set for a in ("--set", item)]
+        node = NodeProcess(Path(tmp) / "maps", log_path=Path(tmp) / "node.log", events=False,
+                           extra_args=extra)
         with node:
             node.wait_ready()
             print(
