@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -32,17 +33,13 @@ import numpy as np
 
 from clients.harness import NodeProcess, mean_iou
 from clients.matrix.driver import _settle
-from clients.sim.export import OV_SPACE, count_views
-from clients.sim.paths import camera_path
-from clients.sim.raycast import SceneRenderer
-from clients.sim.robot import default_intrinsics
-from clients.sim.scenes import CLASS_NAMES, LABEL_OF, generate_scene
+from clients.sim.scenes import CLASS_NAMES
 from protocol.messages import Frame
 
-LAYOUTS = ("apartment", "studio", "office", "living_large", "sparse", "corridor")
-"""The room of seed ``s`` is ``LAYOUTS[s % len(LAYOUTS)]`` (as ``continue_map.py``'s)."""
-NODE_ARGS = ("--set", "save_on_exit=false", "--set", "load_autosave_on_start=false",
-             "--set", "autosave_name=")
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # its sibling, run as a file or imported
+from continue_map import NODE_ARGS  # noqa: E402
+from continue_map import prepare as prepare_room  # noqa: E402
+
 OFFSET_M = 12.0
 
 
@@ -54,31 +51,16 @@ class Room:
 
 
 def prepare(seed: int, frames: int, offset_m: float, samples: int = 6000) -> Room:
-    """Render the seed's room (160x120, 70 deg, input depth) with its world moved ``offset_m``
-    along x (the poses and the ground truth; the rendering is the room's own)."""
-    from clients.sim.simlseg import SimLSeg, SimLSegConfig
-    from clients.sim.text import get_text_encoder
-
-    scene = generate_scene(seed, LAYOUTS[seed % len(LAYOUTS)])
-    poses = camera_path(scene, "loop", frames, seed=seed)
-    width, height = 160, 120
-    K = default_intrinsics(width, height, 70.0)
-    renderer = SceneRenderer(scene)
-    simlseg = SimLSeg(CLASS_NAMES, get_text_encoder(), seed=seed, config=SimLSegConfig(stride=4))
-    gt_xyz, gt_label, _ = scene.sample_surface(samples, seed=seed, exclude_labels=(LABEL_OF["ceiling"],))
-    views = np.zeros(len(gt_xyz), np.int32)
+    """Render the seed's room (160x120, 70 deg, input depth; ``continue_map.prepare``'s frames) with
+    its world moved ``offset_m`` along x (the poses and the ground truth; the rendering is the
+    room's own)."""
+    room = prepare_room(seed, frames, depth=True, samples=samples)
     shift = np.eye(4)
     shift[0, 3] = offset_m
-    out: list[Frame] = []
-    for k in range(frames):
-        view = renderer.render(K, poses[k], width, height)
-        count_views(gt_xyz, K, poses[k], view.depth_m, views)
-        ov = simlseg.features(view, frame_index=k, K=K)
-        out.append(Frame(seq=k, stamp_ns=int(round(k * 1e8)), width=width, height=height, K=K.copy(),
-                         world_from_cam=shift @ poses[k], rgb=view.rgb, depth_m=view.depth_m, ov=ov,
-                         ov_space=OV_SPACE))
-    seen = views > 0
-    return Room(out, (gt_xyz[seen] + shift[:3, 3]).astype(np.float32), gt_label[seen].astype(np.int64))
+    for frame in room.frames:
+        frame.world_from_cam = shift @ frame.world_from_cam
+    gt_xyz = (room.gt_xyz.astype(np.float64) + shift[:3, 3]).astype(np.float32)
+    return Room(room.frames, gt_xyz, room.gt_label)
 
 
 def ask(client: Any, room: Room, methods: list[str]) -> dict[str, Any]:

@@ -33,6 +33,7 @@ import numpy as np
 
 from clients.harness import sim_stream
 from clients.sim.sensor import noisy_poses
+from mapper.errors import ConfigError
 from mapper.geometry.config import DenseFlowConfig, TriangulationConfig
 from mapper.geometry.dense_flow import flow_view, select_flow_partners
 from mapper.geometry.pose_refine import pose_change
@@ -56,11 +57,18 @@ def _frames(args: argparse.Namespace) -> tuple[Any, list[np.ndarray], np.ndarray
             np.asarray(stream.poses, np.float64))
 
 
-def run(args: argparse.Namespace) -> dict[str, Any]:
+def study_config(args: argparse.Namespace) -> TriangulationConfig:
+    """The adjustment's settings: the priors at the noise sent, then ``--set`` (ValueError or
+    ConfigError on a bad value)."""
     config = TriangulationConfig(pose_prior_m=args.pose_noise[0], pose_prior_deg=args.pose_noise[1])
     for key, value in args.overrides:
         config = dataclasses.replace(config, **{key: type(getattr(config, key))(value)})
     config.validate("--set")
+    return config
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    config = study_config(args)
     flow = DenseFlowConfig()
     images, Ks, truth_all = _frames(args)
     sent_all = noisy_poses(truth_all, args.pose_noise[0], args.pose_noise[1], seed=args.seed,
@@ -130,6 +138,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="a TriangulationConfig field (pose_window, pose_partners, ...)")
     parser.add_argument("--json", help="write the result here")
     args = parser.parse_args(argv)
+    if args.stride < 1 or args.frames < 0 or (args.frames < 2 and not args.real):
+        parser.error(f"--stride must be >= 1 and --frames >= 2 (0 = all with --real); got {args.stride}, "
+                     f"{args.frames}")
+    if args.real and not Path(args.real).is_dir():
+        parser.error(f"--real {args.real!r} is not a folder (an Open3D-layout sequence)")
     try:
         t, r = (float(v) for v in args.pose_noise.split(","))
     except ValueError:
@@ -141,6 +154,10 @@ def main(argv: list[str] | None = None) -> int:
         if not sep or key not in {f.name for f in dataclasses.fields(TriangulationConfig)}:
             parser.error(f"--set {item!r}: expected KEY=VALUE with KEY a TriangulationConfig field")
         args.overrides.append((key, value))
+    try:
+        study_config(args)
+    except (ValueError, ConfigError) as exc:
+        parser.error(str(exc))
     result = run(args)
     print(json.dumps(result, indent=1))
     if args.json:

@@ -131,25 +131,29 @@ def _fundamentals(Ka: np.ndarray, Kb: np.ndarray, Ra: np.ndarray, ca: np.ndarray
     return np.swapaxes(_k_inv(Kb), 1, 2) @ E @ _k_inv(Ka)
 
 
-def _sampson(F: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray) -> np.ndarray:
-    """(M,) signed Sampson distance (pixels) of matches under per-match F (M, 3, 3)."""
-    xa = np.concatenate([uv_a, np.ones((len(uv_a), 1))], axis=1)
-    xb = np.concatenate([uv_b, np.ones((len(uv_b), 1))], axis=1)
-    Fxa = np.einsum("mij,mj->mi", F, xa)
-    Ftxb = np.einsum("mji,mj->mi", F, xb)
-    e = np.einsum("mi,mi->m", xb, Fxa)
-    denom = Fxa[:, 0] ** 2 + Fxa[:, 1] ** 2 + Ftxb[:, 0] ** 2 + Ftxb[:, 1] ** 2
-    return e / np.sqrt(np.maximum(denom, 1e-300))
-
-
-def _sampson_gradient(F: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray) -> np.ndarray:
-    """(M, 9) derivative of :func:`_sampson` with respect to each match's F (row-major)."""
+def _epipolar_terms(F: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What the Sampson distance of matches under per-match F (M, 3, 3) is made of: the homogeneous
+    pixels ``xa``, ``xb`` (M, 3), ``F xa`` and ``F^T xb`` (M, 3), the epipolar residual
+    ``e = xb^T F xa`` (M,) and the squared gradient norm ``d`` (M,, floored above 0)."""
     xa = np.concatenate([uv_a, np.ones((len(uv_a), 1))], axis=1)
     xb = np.concatenate([uv_b, np.ones((len(uv_b), 1))], axis=1)
     Fxa = np.einsum("mij,mj->mi", F, xa)
     Ftxb = np.einsum("mji,mj->mi", F, xb)
     e = np.einsum("mi,mi->m", xb, Fxa)
     d = np.maximum(Fxa[:, 0] ** 2 + Fxa[:, 1] ** 2 + Ftxb[:, 0] ** 2 + Ftxb[:, 1] ** 2, 1e-300)
+    return xa, xb, Fxa, Ftxb, e, d
+
+
+def _sampson(F: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray) -> np.ndarray:
+    """(M,) signed Sampson distance (pixels) of matches under per-match F (M, 3, 3)."""
+    *_, e, d = _epipolar_terms(F, uv_a, uv_b)
+    return e / np.sqrt(d)
+
+
+def _sampson_gradient(F: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray) -> np.ndarray:
+    """(M, 9) derivative of :func:`_sampson` with respect to each match's F (row-major)."""
+    xa, xb, Fxa, Ftxb, e, d = _epipolar_terms(F, uv_a, uv_b)
     de = xb[:, :, None] * xa[:, None, :]  # d e / d F_ij = xb_i xa_j
     Fxa2, Ftxb2 = Fxa.copy(), Ftxb.copy()
     Fxa2[:, 2] = 0.0  # only the first two rows / columns enter d
@@ -359,10 +363,10 @@ def adjust_poses(
     left_out = np.zeros(n, bool)
     if n_free and len(uv_a):
         x = _solve(residuals, jacobian, x, prior, n_free, sigma, config)
-        keep = np.abs(_sampson(fundamentals(full(x))[pair_of], uv_a, uv_b)) <= config.pose_ransac_px
+        dist = np.abs(_sampson(fundamentals(full(x))[pair_of], uv_a, uv_b))
+        keep = dist <= config.pose_ransac_px
         # a view whose matches the solution still explains worst by far (a pose sent far off, which
         # the others would bend to) is left out, at its pose as sent, and the rest solved again
-        dist = np.abs(_sampson(fundamentals(full(x))[pair_of], uv_a, uv_b))
         per_view = np.zeros(n)
         for v in range(n):
             own = ((ia == v) | (ib == v)) & keep
