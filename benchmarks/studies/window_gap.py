@@ -77,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--index", type=int, default=0, help="the scenario's index in the split")
     p.add_argument("--scenario", default="", help="a scenario as JSON (every axis but index and frames)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a node setting (repeat)")
+    p.add_argument("--save", default="", metavar="NPZ", help="also write both nodes' labels and sources here")
     args = p.parse_args(argv)
     try:
         scenario = scenario_of(args)
@@ -87,10 +88,17 @@ def main(argv: list[str] | None = None) -> int:
     prep = prepare(scenario, RunSettings())
     got = {which: answers(scenario, prep, which, args.set) for which in ("window", "all")}
     gt, n_texts = prep.gt_label, len(CLASS_NAMES)
+    if args.save:
+        np.savez_compressed(args.save, gt=gt, xyz=prep.gt_xyz, **{
+            f"{which}_{method}_{part}": got[which][method][k]
+            for which in got for method in METHODS for k, part in enumerate(("label", "source"))})
     for method in METHODS:
         (lw, sw), (la, sa) = got["window"][method], got["all"][method]
-        print(f"{method}: mIoU window {100 * mean_iou(lw, gt, n_texts)[0]:.1f}, "
-              f"every keyframe {100 * mean_iou(la, gt, n_texts)[0]:.1f}")
+        (m_w, iou_w), (m_a, iou_a) = mean_iou(lw, gt, n_texts), mean_iou(la, gt, n_texts)
+        print(f"{method}: mIoU window {100 * m_w:.1f}, every keyframe {100 * m_a:.1f}")
+        print("  classes by their share of the gap (IoU window / every keyframe, points): " + ", ".join(
+            f"{CLASS_NAMES[c]} {100 * iou_w[c]:.0f}/{100 * iou_a[c]:.0f} ({int(np.sum(gt == c))})"
+            for c in sorted(iou_w, key=lambda c: iou_w[c] - iou_a[c])[:5]))
         for source, name in enumerate(("none", "window", "map")):
             sel = sw == source
             if not sel.any():

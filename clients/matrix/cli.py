@@ -27,6 +27,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", default="", help="comma-separated scenario indices to run (default: all)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--gt-samples", type=int, default=None, help="ground-truth surface samples per room")
+    p.add_argument("--min-class-points", type=int, default=None,
+                   help="each class seen is asked at no fewer points (samples on its own surfaces; "
+                        "default 50, quick 10; 0: area-uniform samples only)")
     p.add_argument("--settle-timeout", type=float, default=120.0,
                    help="longest wait for the node to settle, s")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="node_set",
@@ -45,7 +48,10 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"--only {args.only!r}: expected comma-separated integers")
         scenarios = [s for s in scenarios if s.index in keep]
     gt = args.gt_samples or (1500 if args.quick else 6000)
-    settings = RunSettings(gt_samples=gt, novel_views=1 if args.quick else 3,
+    min_class = args.min_class_points if args.min_class_points is not None else (10 if args.quick else 50)
+    if gt < 1 or min_class < 0:
+        p.error(f"--gt-samples {gt} must be >= 1 and --min-class-points {min_class} >= 0")
+    settings = RunSettings(gt_samples=gt, min_class_points=min_class, novel_views=1 if args.quick else 3,
                            settle_timeout_s=args.settle_timeout, log_dir=args.out / "logs",
                            node_settings=tuple(args.node_set))
     args.out.mkdir(parents=True, exist_ok=True)

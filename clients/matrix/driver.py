@@ -18,8 +18,8 @@ count). Each node is asked, as fast as acks come back:
   poses near the path (true poses: a drifting map is judged where the room really is).
 
 Scores use the true geometry: 3D mIoU over the classes present (harness.mean_iou; unlabelled
-points count as wrong), the rendered depth's median relative error and PSNR where the simulator
-sees a surface.
+points count as wrong; each class seen asked at no fewer than ``min_class_points`` points), the
+rendered depth's median relative error and PSNR where the simulator sees a surface.
 """
 
 from __future__ import annotations
@@ -63,7 +63,12 @@ class RunSettings:
     """How scenarios are run."""
 
     gt_samples: int = 6000
-    """Ground-truth surface samples per room (those the stream sees are asked)."""
+    """Ground-truth surface samples per room, uniform by area (those the stream sees are asked)."""
+    min_class_points: int = 50
+    """Each class the stream sees is asked at no fewer points than this (while its seen surface
+    gives them): samples on that class's own surfaces are added to the area-uniform ones. mIoU weighs
+    every class alike, so a class with one area-uniform sample (a vase across a studio) would move
+    the score by 1 / classes (5-7 points) on one point's label. 0 = area-uniform samples only."""
     novel_views: int = 3
     settle_timeout_s: float = 120.0
     request_timeout_s: float = 600.0
@@ -122,6 +127,42 @@ class Prepared:
     render_s: float
 
 
+def ground_truth_pool(scene: Any, settings: RunSettings, seed: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Candidate ground-truth points: ``gt_samples`` uniform by area (ceiling excluded), then, with
+    ``min_class_points``, 4 x that many on each class's own surfaces. Returns xyz (P, 3) float32,
+    label (P,) int32 and how many of them are the area-uniform ones (they come first)."""
+    exclude = (LABEL_OF["ceiling"],)
+    xyz, label, _ = scene.sample_surface(settings.gt_samples, seed=seed, exclude_labels=exclude)
+    n_uniform = len(xyz)
+    if settings.min_class_points > 0:
+        parts_xyz, parts_label = [xyz], [label]
+        for c in np.unique(scene.face_label):
+            if int(c) in exclude:
+                continue
+            extra_xyz, extra_label, _ = scene.sample_surface(
+                4 * settings.min_class_points, seed=seed + 1000 + int(c), only_labels=(int(c),))
+            parts_xyz.append(extra_xyz)
+            parts_label.append(extra_label)
+        xyz, label = np.concatenate(parts_xyz), np.concatenate(parts_label)
+    return xyz, label, n_uniform
+
+
+def asked_points(label: np.ndarray, seen: np.ndarray, n_uniform: int, min_class_points: int) -> np.ndarray:
+    """(P,) bool: the seen area-uniform points (the first ``n_uniform``), and for each class with fewer
+    than ``min_class_points`` of them, its seen extra points (after them, in order) up to that many."""
+    asked = np.zeros(len(label), bool)
+    asked[:n_uniform] = seen[:n_uniform]
+    if min_class_points <= 0 or len(label) == n_uniform:
+        return asked
+    have = np.bincount(label[asked], minlength=int(label.max()) + 1)
+    extra = np.flatnonzero(seen[n_uniform:]) + n_uniform
+    for c in np.unique(label[extra]):
+        want = min_class_points - int(have[c])
+        if want > 0:
+            asked[extra[label[extra] == c][:want]] = True
+    return asked
+
+
 def prepare(scenario: Scenario, settings: RunSettings) -> Prepared:
     """Render the scenario's frames, corrupt them, and pick the ground truth to ask about."""
     from clients.sim.simlseg import SimLSeg, SimLSegConfig
@@ -144,8 +185,7 @@ def prepare(scenario: Scenario, settings: RunSettings) -> Prepared:
     stream = SimStream(config, scene, SceneRenderer(scene), K, poses, simlseg)
     sent_poses = perturb_poses(poses, s.pose_error, seed=s.seed)
     gains = exposure_gains(s.frames, seed=s.seed) if s.effect == "exposure" else None
-    gt_xyz, gt_label, _ = scene.sample_surface(settings.gt_samples, seed=s.seed,
-                                               exclude_labels=(LABEL_OF["ceiling"],))
+    gt_xyz, gt_label, n_uniform = ground_truth_pool(scene, settings, s.seed)
     views = np.zeros(len(gt_xyz), np.int32)
     frames: list[Frame] = []
     for k in range(s.frames):
@@ -161,7 +201,7 @@ def prepare(scenario: Scenario, settings: RunSettings) -> Prepared:
             seq=k, stamp_ns=int(round(k * 1e8)), width=s.width, height=s.height, K=K.copy(),
             world_from_cam=sent_poses[k].copy(), rgb=rgb, depth_m=view.depth_m if s.depth else None,
             ov=ov, ov_space=OV_SPACE, rgb_encoding="jpeg" if s.effect == "jpeg" else "rgb8"))
-    seen = views > 0
+    seen = asked_points(gt_label, views > 0, n_uniform, settings.min_class_points)
     present = {inst.class_name for inst in scene.instances}
     order = np.random.default_rng([s.seed, 7]).permutation(len(OBJECT_CLASSES))
     others = [OBJECT_CLASSES[i] for i in order if OBJECT_CLASSES[i] in present][:2]

@@ -113,9 +113,11 @@ class Scene:
         return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
 
     def sample_surface(
-        self, n_points: int, seed: int = 0, exclude_labels: tuple[int, ...] = ()
+        self, n_points: int, seed: int = 0, exclude_labels: tuple[int, ...] = (),
+        only_labels: tuple[int, ...] = (),
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Sample points uniformly by area on the surfaces.
+        """Sample points uniformly by area on the surfaces (only those of ``only_labels`` when given;
+        never those of ``exclude_labels``).
 
         Returns xyz (P, 3) float32, label (P,) int32, instance (P,) int32.
         """
@@ -124,6 +126,11 @@ class Scene:
         areas = self.face_areas()
         if exclude_labels:
             areas = np.where(np.isin(self.face_label, exclude_labels), 0.0, areas)
+        if only_labels:
+            areas = np.where(np.isin(self.face_label, only_labels), areas, 0.0)
+        if not areas.sum() > 0:
+            raise ValueError(f"no surface to sample (only_labels {only_labels}, "
+                             f"exclude_labels {exclude_labels})")
         rng = np.random.default_rng(seed)
         face = rng.choice(len(areas), size=n_points, p=areas / areas.sum())
         r1, r2 = rng.random(n_points), rng.random(n_points)

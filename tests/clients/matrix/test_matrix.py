@@ -8,9 +8,17 @@ import json
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from clients.matrix.driver import methods_of, pending_work, psnr_db
+from clients.matrix.driver import (
+    RunSettings,
+    asked_points,
+    ground_truth_pool,
+    methods_of,
+    pending_work,
+    psnr_db,
+)
 from clients.matrix.report import figures, summarise
 from clients.matrix.scenarios import (
     EFFECTS,
@@ -52,6 +60,34 @@ def test_pending_work_reads_the_status_maps() -> None:
              "triangulation": {"pending": 2}, "rendered_depth": "not a map", "model": {"pending": 9}}
     assert pending_work(extra) == {"integration": 3, "triangulation": 2}
     assert pending_work({}) == {}
+
+
+def test_asked_points_top_up_small_classes_from_their_own_seen_samples() -> None:
+    # 6 area-uniform points (class 0 x4, class 1 x1, class 2 x1 unseen), then extras of each class
+    label = np.array([0, 0, 0, 0, 1, 2] + [0] * 3 + [1] * 4 + [2] * 4)
+    seen = np.array([1, 1, 1, 0, 1, 0] + [1] * 3 + [1, 0, 1, 1] + [1, 1, 0, 0], bool)
+    asked = asked_points(label, seen, n_uniform=6, min_class_points=3)
+    assert asked[:6].tolist() == [True, True, True, False, True, False]  # uniform: exactly the seen ones
+    assert not asked[6:9].any()  # class 0 already has 3 seen uniform points
+    assert asked[9:13].tolist() == [True, False, True, False]  # class 1: 1 + the first 2 seen extras
+    assert asked[13:].tolist() == [True, True, False, False]  # class 2: only what is seen, up to 3
+    assert asked_points(label, seen, 6, 0).tolist() == asked[:6].tolist() + [False] * 11
+    assert not (asked & ~seen).any()  # nothing unseen is ever asked
+
+
+def test_ground_truth_pool_samples_each_class_on_its_own_surface() -> None:
+    from clients.sim.scenes import LABEL_OF, generate_scene
+
+    scene = generate_scene(5, "studio")
+    xyz, label, n_uniform = ground_truth_pool(scene, RunSettings(gt_samples=300, min_class_points=5), seed=5)
+    assert n_uniform == 300 and xyz.shape == (len(label), 3)
+    classes = set(np.unique(scene.face_label).tolist()) - {LABEL_OF["ceiling"]}
+    assert set(np.unique(label[n_uniform:]).tolist()) == classes
+    assert np.all(np.bincount(label[n_uniform:])[sorted(classes)] == 20)  # 4 x min_class_points each
+    assert LABEL_OF["ceiling"] not in label
+    plain, plain_label, n = ground_truth_pool(scene, RunSettings(gt_samples=300, min_class_points=0), seed=5)
+    assert n == len(plain) == 300
+    assert np.array_equal(plain, xyz[:300]) and np.array_equal(plain_label, label[:300])
 
 
 def test_methods_follow_the_depth_axis() -> None:

@@ -141,6 +141,15 @@ def test_surface_samples_lie_on_labelled_faces() -> None:
         assert (label[inst == i] == scene.instances[i].label).all()
 
 
+def test_surface_samples_of_only_some_labels() -> None:
+    scene = generate_scene(2)
+    chair = LABEL_OF["chair"] if LABEL_OF["chair"] in scene.face_label else int(scene.face_label[0])
+    _, label, _ = scene.sample_surface(200, seed=3, only_labels=(chair,))
+    assert (label == chair).all()
+    with pytest.raises(ValueError, match="no surface"):
+        scene.sample_surface(10, only_labels=(chair,), exclude_labels=(chair,))
+
+
 @pytest.mark.parametrize("seed, style", [(-1, "apartment"), (0, "castle")])
 def test_bad_arguments_raise(seed: int, style: str) -> None:
     with pytest.raises(ValueError, match="seed|style"):
