@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["EvictedFrameStore", "KeptFrame", "merged_prior", "reduce_ov"]
+__all__ = ["EvictedFrameStore", "KeptFrame", "merged_prior", "reduce_ov", "reduced_shape"]
 
 _FIELDS = ("cam_from_world", "K", "image_wh", "ov_wh", "order")
 
@@ -46,6 +46,12 @@ def _area_weights(n_in: int, n_out: int) -> np.ndarray:  # (n_out, n_in) float32
     cells = np.arange(n_in, dtype=np.float64)[None, :]
     overlap = np.clip(np.minimum(hi, cells + 1.0) - np.maximum(lo, cells), 0.0, None)
     return (overlap / (n_in / n_out)).astype(np.float32)
+
+
+def reduced_shape(h: int, w: int, max_cells: int) -> tuple[int, int]:
+    """(h', w') of an (h, w) OV map reduced by :func:`reduce_ov` to at most ``max_cells`` cells."""
+    out = reduce_ov(np.zeros((h, w, 1), np.float32), max_cells)
+    return int(out.shape[0]), int(out.shape[1])
 
 
 def reduce_ov(ov: np.ndarray, max_cells: int) -> np.ndarray:
@@ -109,6 +115,9 @@ class EvictedFrameStore:
         self._dim = dim
         self._cells = cells  # rows per slot
         self._table = np.zeros((0, dim or 0), np.float32)
+        self._learned: np.ndarray | None = None  # the learned maps' table (rows as ``_table``), once one came
+        self._has_learned = np.zeros(0, bool)
+        self._keys: dict[int, Any] = {}  # slot -> the key its view was added with
         self._slots = 0
         self._used = np.zeros(0, bool)
         self._cam_from_world = np.zeros((0, 4, 4), np.float32)
@@ -128,7 +137,8 @@ class EvictedFrameStore:
             return int(self._used.sum())
 
     def _frame_bytes(self) -> int:
-        return self._cells * (self._dim or 0) * 4 + 4 * 16 + 8 * 16 + 16 + 32 + 8 + 1
+        tables = 1 if self._learned is None else 2
+        return tables * self._cells * (self._dim or 0) * 4 + 4 * 16 + 8 * 16 + 16 + 32 + 8 + 2
 
     @property
     def nbytes(self) -> int:
@@ -144,6 +154,10 @@ class EvictedFrameStore:
         table = np.zeros((new * self._cells, self._dim or 0), np.float32)
         table[: self._table.shape[0]] = self._table
         self._table = table
+        if self._learned is not None:
+            learned = np.zeros_like(table)
+            learned[: self._learned.shape[0]] = self._learned
+            self._learned = learned
 
         def grown(a: np.ndarray, fill: Any = 0) -> np.ndarray:
             out = np.full((new, *a.shape[1:]), fill, a.dtype)
@@ -151,6 +165,7 @@ class EvictedFrameStore:
             return out
 
         self._used = grown(self._used, False)
+        self._has_learned = grown(self._has_learned, False)
         self._cam_from_world = grown(self._cam_from_world)
         self._world_from_cam = grown(self._world_from_cam)
         self._K = grown(self._K)
@@ -178,10 +193,16 @@ class EvictedFrameStore:
         *,
         max_cells: int,
         budget_bytes: int,
+        learned: tuple[np.ndarray, np.ndarray] | None = None,  # (h', w', D) float32, (h', w') bool valid
+        key: Any = None,
     ) -> list[KeptFrame]:
         """Keep one evicted view (its OV map reduced to at most ``max_cells`` cells); returns the
         views dropped to stay within ``budget_bytes`` (oldest first), or this view itself when the
-        budget holds none. ``ValueError`` on bad shapes or another dimension (nothing changed)."""
+        budget holds none. ``learned``: the learned model's features at the reduced grid's cells
+        (:func:`reduced_shape`) and where they are valid, kept beside it for the learned method's
+        answers (:meth:`means` with ``learned``; its invalid cells take the reduced map's rows),
+        now or later by ``key`` (:meth:`set_learned`). ``ValueError`` on bad shapes or another
+        dimension (nothing changed)."""
         from mapper.kernels.average import invert_poses
 
         K = np.asarray(K, np.float64).reshape(-1)
@@ -192,6 +213,8 @@ class EvictedFrameStore:
             raise ValueError(f"evicted frame: image size {image_wh} must be positive")
         small = reduce_ov(np.asarray(ov), max_cells)
         h, w, dim = small.shape
+        if learned is not None:
+            learned = (_learned_rows(learned, small), learned[1])
         with self._lock:
             if self._dim is not None and dim != self._dim and self._used.any():
                 raise ValueError(f"evicted frame: dimension {dim}, the store's {self._dim}")
@@ -199,7 +222,10 @@ class EvictedFrameStore:
                 self._reset(dim, max_cells)
             if h * w > self._cells:  # a store restored with fewer cells: reduced to its own
                 small = reduce_ov(small, self._cells)
+                learned = None if learned is None else (reduce_ov(learned[0], self._cells), learned[1])
                 h, w, dim = small.shape
+            if learned is not None and self._learned is None:  # the first learned map: a second table
+                self._learned = self._table.copy()
             room = budget_bytes // self._frame_bytes()
             dropped: list[KeptFrame] = []
             while int(self._used.sum()) >= max(room, 1) and self._used.any():
@@ -214,6 +240,13 @@ class EvictedFrameStore:
                 free = np.flatnonzero(~self._used)
             slot = int(free[0])
             self._table[slot * self._cells: slot * self._cells + h * w] = small.reshape(h * w, dim)
+            if self._learned is not None:
+                rows = small if learned is None else learned[0]
+                self._learned[slot * self._cells: slot * self._cells + h * w] = rows.reshape(h * w, dim)
+            self._has_learned[slot] = learned is not None
+            self._keys = {s: k for s, k in self._keys.items() if self._used[s] and s != slot}
+            if key is not None:
+                self._keys[slot] = key
             self._world_from_cam[slot] = pose
             self._cam_from_world[slot] = invert_poses(pose.astype(np.float32)[None])[0]
             self._K[slot] = K.astype(np.float32)
@@ -226,6 +259,24 @@ class EvictedFrameStore:
             self.dropped += len(dropped)
             return dropped
 
+    def set_learned(self, key: Any, learned: tuple[np.ndarray, np.ndarray]) -> bool:
+        """Give the view added with ``key`` its learned features (``learned`` as :meth:`add` takes
+        it, at the view's reduced grid). Returns False (nothing changed) when no kept view has that
+        key (not kept yet, or dropped); ``ValueError`` on bad shapes."""
+        with self._lock:
+            slot = next((s for s, k in self._keys.items() if k == key and self._used[s]), None)
+            if slot is None:
+                return False
+            w, h = (int(x) for x in self._ov_wh[slot])
+            base = slot * self._cells
+            small = self._table[base: base + w * h].reshape(h, w, -1)
+            rows = _learned_rows(learned, small)
+            if self._learned is None:
+                self._learned = self._table.copy()
+            self._learned[base: base + w * h] = rows.reshape(h * w, -1)
+            self._has_learned[slot] = True
+            return True
+
     def means(
         self,
         xyz: np.ndarray,  # (N, 3) float32 world points
@@ -237,6 +288,7 @@ class EvictedFrameStore:
         occlusion_footprint_m: float = 0.0,
         depth_tol: float = 0.25,
         occluders: np.ndarray | None = None,  # (M, 3) the points splatted (default: ``xyz``)
+        learned: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The kept views' samples at the points: (rows (m,) int64 of the points at least one
         view counts for, their mean samples (m, D) float32, their view counts (m,) float32). A view
@@ -246,7 +298,8 @@ class EvictedFrameStore:
         of the points hides the point in it: the points are splatted into each view (each covering
         that footprint, at most :data:`OCCLUSION_SIDE` pixels a side) and a point passes where its
         depth is within ``depth_tol`` of that z-buffer (the test ``average_depth`` makes against the
-        request's points for window keyframes without depth)."""
+        request's points for window keyframes without depth). With ``learned``, the views kept with
+        the learned model's features (:meth:`add`) are sampled from those."""
         from mapper.kernels import average_kernel as kernel
         from mapper.map.query_kernels import morton_codes
 
@@ -257,6 +310,7 @@ class EvictedFrameStore:
             slots = np.flatnonzero(self._used)
             if n == 0 or slots.size == 0:
                 return empty
+            table = self._learned if learned and self._learned is not None else self._table
             order = np.argsort(morton_codes(pts.astype(np.float64), pts.min(axis=0), cell_m), kind="stable")
             means = np.zeros((n, self._dim or 0), np.float32)
             counts = np.zeros(n, np.float32)
@@ -284,7 +338,7 @@ class EvictedFrameStore:
                 out, count = kernel.average_kernel(
                     pts[idx], self._cam_from_world[vis], self._K[vis], right, bottom, float(border_px), 1e-6,
                     vis.astype(np.int64) * self._cells, self._ov_wh[vis, 0], self._ov_wh[vis, 1], ov_scale,
-                    self._table, use_depth=occ is not None, has_depth=np.ones(k, bool),
+                    table, use_depth=occ is not None, has_depth=np.ones(k, bool),
                     depth_flat=depth[0], d_off=depth[1], d_w=depth[2],
                     d_h=depth[3], d_scale=depth[4], depth_tol=float(depth_tol),
                     distance_power=0.0, view_weights=None, texts=None, threads=threads, raw=True)
@@ -357,7 +411,8 @@ class EvictedFrameStore:
         """``status`` figures; without the lock (a query may hold it for its whole computation and
         ``status`` runs under the node's state lock): counts read as they are."""
         kept = int(self._used.sum())
-        return {"frames": kept, "frames_bytes": kept * self._frame_bytes(),
+        return {"frames": kept, "frames_learned": int((self._used & self._has_learned).sum()),
+                "frames_bytes": kept * self._frame_bytes(),
                 "frames_dropped": self.dropped, "frames_added": self.added, "frame_cells": self._cells}
 
     # -- persistence (inside the evicted views' section of the global map) ----------------------
@@ -375,7 +430,14 @@ class EvictedFrameStore:
                       f"{prefix}.K": self._K[used].astype(np.float64),
                       f"{prefix}.image_wh": self._image_wh[used].copy(),
                       f"{prefix}.ov_wh": self._ov_wh[used].copy()}
-            return arrays, {"frames": int(used.shape[0]), "dim": self._dim, "cells": self._cells}
+            if self._learned is not None:
+                learned = np.zeros_like(ov)
+                for i, s in enumerate(used):
+                    learned[i] = self._learned[s * self._cells: (s + 1) * self._cells]
+                arrays[f"{prefix}.learned"] = learned
+                arrays[f"{prefix}.has_learned"] = self._has_learned[used].copy()
+            return arrays, {"frames": int(used.shape[0]), "dim": self._dim, "cells": self._cells,
+                            "learned": self._learned is not None}
 
     def restore(self, arrays: dict[str, np.ndarray], manifest: object, prefix: str) -> None:
         """Replace the content with a saved one (inverse of :meth:`to_arrays`); ``ValueError``
@@ -401,6 +463,13 @@ class EvictedFrameStore:
         if n and ((got["image_wh"] < 1).any() or (got["ov_wh"] < 1).any()
                   or (got["ov_wh"].prod(axis=1) > cells).any()):
             raise ValueError("evicted frames section: image_wh and ov_wh must be >= 1, ov_wh within 'cells'")
+        learned = manifest.get("learned", False) is True  # maps saved before the learned table: none
+        if learned:
+            table, has = arrays.get(f"{prefix}.learned"), arrays.get(f"{prefix}.has_learned")
+            if table is None or table.dtype != np.float32 or table.shape != got["ov"].shape \
+                    or not np.isfinite(table).all() or has is None or has.dtype != bool or has.shape != (n,):
+                raise ValueError(f"evicted frames section: learned must be finite float32 {got['ov'].shape} "
+                                 f"and has_learned bool ({n},)")
         from mapper.kernels.average import invert_poses
 
         with self._lock:
@@ -409,6 +478,10 @@ class EvictedFrameStore:
                 return
             self._grow(n)
             self._table[: n * cells] = got["ov"].reshape(n * cells, -1)
+            if learned:
+                self._learned = np.zeros_like(self._table)
+                self._learned[: n * cells] = arrays[f"{prefix}.learned"].reshape(n * cells, -1)
+                self._has_learned[:n] = arrays[f"{prefix}.has_learned"]
             self._world_from_cam[:n] = got["world_from_cam"]
             self._cam_from_world[:n] = invert_poses(got["world_from_cam"].astype(np.float32))
             self._K[:n] = got["K"].astype(np.float32)
@@ -417,6 +490,16 @@ class EvictedFrameStore:
             self._order[:n] = np.arange(n)
             self._next = n
             self._used[:n] = True
+
+
+def _learned_rows(learned: tuple[np.ndarray, np.ndarray], small: np.ndarray) -> np.ndarray:
+    """(h', w', D) float32: the learned features where valid, the reduced map ``small`` elsewhere;
+    ``ValueError`` unless they are finite at ``small``'s shape with an (h', w') mask."""
+    feats, valid = np.asarray(learned[0], np.float32), np.asarray(learned[1], bool)
+    if feats.shape != small.shape or valid.shape != small.shape[:2] or not np.isfinite(feats).all():
+        raise ValueError(f"evicted frame: learned features must be finite {small.shape} with a "
+                         f"{small.shape[:2]} mask, got {feats.shape} and {valid.shape}")
+    return np.where(valid[..., None], feats, small).astype(np.float32)
 
 
 def merged_prior(

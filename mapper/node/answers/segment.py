@@ -88,7 +88,7 @@ def answer_from_map(
     if learned and not depth_tested:  # the kept views of evicted keyframes without depth, mixed in
         if nearest is None and ctx.map_radius_m > 0 and snap.n_with_features > 0:
             nearest = snap.nearest_with_feature(xyz, ctx.map_radius_m)
-        frames_cos = evicted_frame_cosines(ctx, gmap.evicted, snap, nearest, xyz, text_emb)
+        frames_cos = evicted_frame_cosines(ctx, gmap.evicted, snap, nearest, xyz, text_emb, learned=True)
         if frames_cos is not None:
             map_cos = _overlaid(map_cos, frames_cos)
     label, score, source = fill_from_map(
@@ -110,7 +110,7 @@ def answer_from_map(
         none = np.flatnonzero(source == SOURCE_NONE)
         if none.size:
             sub = evicted_frame_cosines(ctx, gmap.evicted, snap, None if nearest is None else nearest[none],
-                                        np.asarray(xyz)[none], text_emb)
+                                        np.asarray(xyz)[none], text_emb, learned=learned)
             if sub is not None:
                 todo = none[sub[1]]
                 label[todo], score[todo] = best_text(sub[0][sub[1]], np.ones(todo.shape[0], bool))
@@ -137,6 +137,7 @@ def evicted_frame_cosines(
     nearest: np.ndarray | None,  # (N,) int64 nearest map rows with a feature (-1: none), or None
     xyz: np.ndarray,  # (N, 3) float32
     text_emb: np.ndarray,  # (T, D) float32 unit rows
+    learned: bool = False,  # for the learned method: the kept views' learned maps where they have one
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The evicted views' answer at each point that a kept view of an evicted keyframe without
     depth counts for (``queries.evicted_frames_mb``, :mod:`mapper.map.evicted_frames`): cosines
@@ -149,7 +150,7 @@ def evicted_frame_cosines(
     from mapper.map.evicted_frames import merged_prior
 
     n = xyz.shape[0]
-    rows, mean, count = frames.means(np.asarray(xyz, np.float32))
+    rows, mean, count = frames.means(np.asarray(xyz, np.float32), learned=learned)
     if rows.size == 0:
         return None
     voxel = None

@@ -73,12 +73,14 @@ def evicted_cosines(
     frames: EvictedFrameStore | None,
     footprint_m: float,
     chunk: int = FRAMES_CHUNK,
+    learned: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The evicted views' own answer: (cosines (N, T) float32 of the mean of each point's
     voxel's evicted views and the kept views that count for it, zero rows where none does; their
     views (N,) float32). With ``footprint_m`` > 0 a kept view counts only where the request's other
     points do not hide the point in it (:meth:`EvictedFrameStore.means`); without it the kept views
-    are left out (they carry no depth)."""
+    are left out (they carry no depth). ``learned``: the kept views' learned maps where they have one
+    (``queries.evicted_frames_learned``)."""
     n, dim = xyz.shape[0], text_emb.shape[1]
     cos = np.zeros((n, text_emb.shape[0]), np.float32)
     count = np.zeros(n, np.float32)
@@ -89,7 +91,7 @@ def evicted_cosines(
         rows, mean, views = np.zeros(0, np.int64), np.zeros((0, dim), np.float32), np.zeros(0, np.float32)
         if frames is not None and footprint_m > 0:
             rows, mean, views = frames.means(part, occlusion_footprint_m=footprint_m,
-                                             occluders=xyz if n > m else None)
+                                             occluders=xyz if n > m else None, learned=learned)
         merged = merged_prior(m, part_prior, rows, mean, views, dim)
         if merged is not None:
             cos[lo: lo + m] = prior_cosines(merged, text_emb)
@@ -266,9 +268,10 @@ class AveragingBackend:
             n_views = np.zeros(xyz.shape[0], np.int64)
         evicted_cos = evicted_count = None
         if want_evicted:  # the evicted views' own answer, the kept views with the occlusion test
+            # (asked for the learned answer's mix: the kept views' learned maps where they have one)
             kept = self._evicted_frames(map_store, text_emb)
             footprint = self._occlusion_footprint(xyz) if kept is not None else 0.0
-            evicted_cos, evicted_count = evicted_cosines(xyz, text_emb, prior, kept, footprint)
+            evicted_cos, evicted_count = evicted_cosines(xyz, text_emb, prior, kept, footprint, learned=True)
         with_prior = evicted > 0
         evicted_only = (n_views == 0) & with_prior
         seen = (n_views > 0) | evicted_only

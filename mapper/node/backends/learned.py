@@ -39,7 +39,7 @@ if TYPE_CHECKING:
     from mapper.node.context import NodeContext
     from mapper.node.service import MapperNode
 
-__all__ = ["LearnedBackend", "install_learned_backend", "install_pre_eviction_features"]
+__all__ = ["LearnedBackend", "install_learned_backend", "install_pre_eviction_features", "learned_view_map"]
 
 log = logging.getLogger("mapper.node.backends.learned")
 
@@ -156,6 +156,51 @@ def install_pre_eviction_features(
         except RuntimeNotReady:
             return None
 
-    worker = PreEvictionFeatures(ctx, features)
+    view_features = None
+    if ctx.config.queries.evicted_frames_learned:
+        min_opacity = ctx.config.global_map.rendered_min_opacity
+
+        def view_features(keyframe: Any, grid_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray] | None:
+            try:
+                return learned_view_map(runtime, keyframe, grid_hw, min_opacity)
+            except RuntimeNotReady:
+                return None
+
+    worker = PreEvictionFeatures(ctx, features, view_features)
     worker.install()
     return worker
+
+
+def learned_view_map(
+    runtime: ModelRuntime | RobotRuntimes,
+    keyframe: Any,  # a Keyframe: rgb (H, W, 3), K (4,) in its pixels, world_from_cam (4, 4)
+    grid_hw: tuple[int, int],  # (h', w') cells over the whole image
+    min_opacity: float,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The model's blended features at a keyframe's grid of cells: (features (h', w', D) float32,
+    valid (h', w') bool), or None where no cell's ray meets a surface. Each cell's ray (through its
+    centre) is rendered for depth at the keyframe's pose; where its opacity reaches ``min_opacity``
+    the point at that depth takes :meth:`ModelRuntime.point_features` (cross-view blend over the
+    window). Raises :class:`RuntimeNotReady` like the runtime."""
+    from mapper.geometry.triangulation import backproject
+
+    h, w = (int(v) for v in grid_hw)
+    height, width = keyframe.rgb.shape[:2]
+    sx, sy = w / width, h / height
+    fx, fy, cx, cy = (float(v) for v in keyframe.K)
+    K = np.array([fx * sx, fy * sy, cx * sx, cy * sy], np.float64)
+    pose = np.asarray(keyframe.world_from_cam, np.float64)
+    frame = runtime.render(K, pose, w, h, outputs=("depth",))
+    if frame.depth_m is None or frame.opacity is None:
+        return None
+    opacity = np.nan_to_num(np.asarray(frame.opacity, np.float32), nan=0.0)
+    depth = np.where(opacity >= min_opacity, frame.depth_m, 0.0).astype(np.float32)
+    rows, cols, xyz = backproject(depth, K, pose)
+    if rows.size == 0:
+        return None
+    feats, valid = runtime.point_features(xyz.astype(np.float32))
+    out = np.zeros((h, w, feats.shape[1]), np.float32)
+    ok = np.zeros((h, w), bool)
+    out[rows[valid], cols[valid]] = feats[valid]
+    ok[rows[valid], cols[valid]] = True
+    return (out, ok) if ok.any() else None

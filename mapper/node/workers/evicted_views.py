@@ -32,6 +32,11 @@ OCCLUSION_REL_TOL = 0.25
 it is hidden from the keyframe (the averaging's depth-test tolerance)."""
 
 
+def frame_key(keyframe: Keyframe) -> tuple[Any, ...]:
+    """A keyframe's identity across the workers (robot, camera, seq, stamp)."""
+    return (keyframe.robot, keyframe.camera, int(keyframe.seq), int(keyframe.stamp_ns))
+
+
 def keyframe_bytes(keyframe: Keyframe) -> int:
     """What a queued keyframe holds: its colour, depth and OV arrays."""
     return sum(int(a.nbytes) for a in (keyframe.rgb, keyframe.depth_m, keyframe.ov) if a is not None)
@@ -70,6 +75,11 @@ class EvictedViews:
         self.deferred = 0
         """Times the worker left queued keyframes for later because the integrator had work."""
         self.seconds_total = 0.0
+        self._learned_lock = threading.Lock()
+        self._learned_waiting: dict[tuple[Any, ...], tuple[np.ndarray, np.ndarray]] = {}
+        """Learned maps (:meth:`offer_learned`) of keyframes not kept yet, by :func:`frame_key`."""
+        self.learned_late = 0
+        """Learned maps whose keyframe was not kept (dropped, a depth keyframe, a map loaded since)."""
 
     def install(self) -> None:
         self.ctx.workers.append(("evicted-views", self.run))
@@ -126,6 +136,28 @@ class EvictedViews:
     def pending(self) -> int:
         return len(self.queue) + self._in_batch
 
+    def offer_learned(self, keyframe: Keyframe, gmap: Any, learned: tuple[np.ndarray, np.ndarray]) -> None:
+        """The learned model's features at ``keyframe``'s kept view's cells (``(h', w', D)``, ``(h',
+        w')`` valid; :meth:`EvictedFrameStore.add`), from the pre-eviction worker: given to its kept
+        view now, or when the keyframe is kept (any thread). At most ``4 x window.max_keyframes`` wait;
+        beyond that the oldest is dropped (counted in ``learned_late``)."""
+        with self.ctx.state.lock:
+            current = self.ctx.state.global_map
+        if gmap is not current or self.frames_budget <= 0:
+            return
+        key = frame_key(keyframe)
+        with self._learned_lock:  # held across the store's update: _absorb reads the waiting ones under it
+            try:
+                if gmap.evicted.frames.set_learned(key, learned):
+                    return
+            except ValueError:  # another grid than its kept view's (cells changed by a load)
+                self.learned_late += 1
+                return
+            self._learned_waiting[key] = learned
+            while len(self._learned_waiting) > 4 * self.ctx.config.window.max_keyframes:
+                self._learned_waiting.pop(next(iter(self._learned_waiting)))
+                self.learned_late += 1
+
     def _absorb(self, keyframe: Keyframe, gmap: Any) -> None:  # gmap: GlobalSemanticMap
         """One evicted keyframe: kept as a reduced view when it has no depth and
         ``queries.evicted_frames_mb`` is on (the views that budget drops: sampled at the voxels
@@ -137,9 +169,20 @@ class EvictedViews:
             self.stale += 1
             return
         if self.frames_budget > 0 and keyframe.depth_m is None and keyframe.ov is not None:
-            dropped = gmap.evicted.frames.add(keyframe.ov, keyframe.K, keyframe.world_from_cam,
-                                              (keyframe.width, keyframe.height), max_cells=self.frame_cells,
-                                              budget_bytes=self.frames_budget)
+            key = frame_key(keyframe)
+            with self._learned_lock:
+                learned = self._learned_waiting.pop(key, None)
+                try:
+                    dropped = gmap.evicted.frames.add(
+                        keyframe.ov, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
+                        max_cells=self.frame_cells, budget_bytes=self.frames_budget, learned=learned, key=key)
+                except ValueError:  # a learned map of another grid: the view is kept without it
+                    if learned is None:
+                        raise
+                    self.learned_late += 1
+                    dropped = gmap.evicted.frames.add(
+                        keyframe.ov, keyframe.K, keyframe.world_from_cam, (keyframe.width, keyframe.height),
+                        max_cells=self.frame_cells, budget_bytes=self.frames_budget, key=key)
             gmap.evicted.absorb(np.zeros(0, np.int64), {})  # counts the keyframe
             for frame in dropped:
                 self._absorb_voxels(frame, gmap, count=False)
@@ -197,6 +240,7 @@ class EvictedViews:
             "stale": self.stale,
             "deferred": self.deferred,
             "ms_per_keyframe": round(1e3 * self.seconds_total / max(self.done, 1), 3),
+            "learned_late": self.learned_late,
             "bytes": store.nbytes,
             **store.stats(),
             **store.frames.stats(),

@@ -42,7 +42,7 @@ if TYPE_CHECKING:
     from mapper.map.global_map import GlobalSemanticMap
     from mapper.node.context import NodeContext
 
-__all__ = ["FeatureFn", "PreEvictionFeatures"]
+__all__ = ["FeatureFn", "PreEvictionFeatures", "ViewFeatureFn"]
 
 log = logging.getLogger("mapper.node.workers.map_features")
 
@@ -50,13 +50,24 @@ FeatureFn = Callable[[np.ndarray], "tuple[np.ndarray, np.ndarray] | None"]
 """``features(xyz (M, 3) float32) -> (features (M, D) float32, valid (M,) bool)``, or None when
 the model cannot answer now (not ready: nothing is written)."""
 
+ViewFeatureFn = Callable[[Keyframe, "tuple[int, int]"], "tuple[np.ndarray, np.ndarray] | None"]
+"""``view_features(keyframe, (h', w')) -> (features (h', w', D) float32, valid (h', w') bool)``: the
+model's blended features at a keyframe's cells (its rendered surface through each), or None."""
+
 
 class PreEvictionFeatures:
     """See the module docstring. ``install()`` hooks it into the node (before ``node.start()``)."""
 
-    def __init__(self, ctx: NodeContext, features: FeatureFn) -> None:
+    def __init__(
+        self, ctx: NodeContext, features: FeatureFn, view_features: ViewFeatureFn | None = None
+    ) -> None:
         self.ctx = ctx
         self.features = features
+        self.view_features = view_features
+        """With ``queries.evicted_frames_learned``: the learned map of each keyframe without depth,
+        handed to the kept view the evicted-views worker makes of it
+        (:meth:`mapper.node.workers.evicted_views.EvictedViews.offer_learned`)."""
+        self.views_learned = 0
         self.queue: KeyframeQueue[tuple[Keyframe, GlobalSemanticMap]] = KeyframeQueue(
             ctx.config.global_map.learned_features_max_pending
         )
@@ -164,10 +175,27 @@ class PreEvictionFeatures:
                 return
             feats, valid = answer
             self.voxels_set += gmap.set_features(keys[valid], feats[valid])
+        self._learned_views(keyframes, gmap)
         self.keyframes_done += len(keyframes)
         self.keyframes_late += sum(1 for k in keyframes if id(k) not in in_window)
         self.calls += 1
         self.seconds_total += time.perf_counter() - started
+
+    def _learned_views(self, keyframes: list[Keyframe], gmap: GlobalSemanticMap) -> None:
+        """The learned maps of the keyframes without depth, for their kept views (``view_features``)."""
+        evicted = self.ctx.evicted_views
+        if self.view_features is None or evicted is None or evicted.frames_budget <= 0:
+            return
+        from mapper.map.evicted_frames import reduced_shape
+
+        cells = self.ctx.config.queries.evicted_frames_cells
+        for k in keyframes:
+            if k.depth_m is not None or k.ov is None:
+                continue
+            learned = self.view_features(k, reduced_shape(k.ov.shape[0], k.ov.shape[1], cells))
+            if learned is not None:
+                evicted.offer_learned(k, gmap, learned)
+                self.views_learned += 1
 
     def stats(self) -> dict[str, Any]:
         """``status`` key ``map_features`` (called under the state lock: takes no node lock)."""
@@ -179,6 +207,7 @@ class PreEvictionFeatures:
             "late": self.keyframes_late,
             "not_ready": self.keyframes_not_ready,
             "voxels_set": self.voxels_set,
+            "views_learned": self.views_learned,
             "calls": self.calls,
             "ms_per_call": round(1e3 * self.seconds_total / max(self.calls, 1), 3),
         }

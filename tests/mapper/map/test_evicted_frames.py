@@ -326,3 +326,94 @@ def test_learned_answers_mix_the_evicted_views_by_their_share(tmp_path: Path, sh
     else:
         assert np.array_equal(got.label[only_evicted], average.label[only_evicted])
         assert (average.label[only_evicted] != 3).any()  # the test can tell the two apart
+
+
+def test_learned_maps_are_read_only_by_learned_means_and_round_trip() -> None:
+    """A view kept with the learned model's features (:meth:`EvictedFrameStore.add` ``learned`` or
+    later :meth:`~EvictedFrameStore.set_learned` by key) answers ``means(learned=True)`` from them
+    (invalid cells from its reduced map); ``means()`` reads the OV maps as before."""
+    rng = np.random.default_rng(5)
+    views = _random_views(rng, 4, 4)
+    plain, store = EvictedFrameStore(), EvictedFrameStore()
+    learned_maps = [rng.standard_normal((6, 8, 4)).astype(np.float32) for _ in views]
+    valid = np.ones((6, 8), bool)
+    valid[:, :2] = False
+    for i, v in enumerate(views):
+        plain.add(*v, max_cells=48, budget_bytes=_BIG)
+        store.add(*v, max_cells=48, budget_bytes=_BIG, key=("r", i),
+                  learned=(learned_maps[i], valid) if i == 0 else None)
+    assert store.set_learned(("r", 1), (learned_maps[1], valid))
+    assert not store.set_learned(("r", 9), (learned_maps[1], valid))  # no such view: nothing changes
+    with pytest.raises(ValueError, match="learned"):
+        store.set_learned(("r", 2), (learned_maps[2][:3], valid))
+    assert store.stats()["frames_learned"] == 2 and store.nbytes > plain.nbytes
+    pts = rng.uniform(-4, 4, (3000, 3)).astype(np.float32)
+    for a, b in zip(store.means(pts), plain.means(pts), strict=True):  # the averaging: unchanged
+        np.testing.assert_array_equal(a, b)
+    rows, mean, count = store.means(pts, learned=True)
+    # the same as a store whose views 0 and 1 carry the learned maps (the invalid cells their own)
+    swapped = EvictedFrameStore()
+    for i, (ov, k, pose, wh) in enumerate(views):
+        small = reduce_ov(ov, 48)
+        if i < 2:
+            small = np.where(valid[..., None], learned_maps[i], small)
+        swapped.add(small, k, pose, wh, max_cells=48, budget_bytes=_BIG)
+    want = swapped.means(pts)
+    assert np.array_equal(rows, want[0]) and np.array_equal(count, want[2])
+    np.testing.assert_allclose(mean, want[1], atol=1e-6)
+    arrays, manifest = store.to_arrays("f")
+    fresh = EvictedFrameStore()
+    fresh.restore(arrays, manifest, "f")
+    for a, b in zip(fresh.means(pts, learned=True), (rows, mean, count), strict=True):
+        np.testing.assert_array_equal(a, b)
+    broken = dict(arrays)
+    broken["f.learned"] = broken["f.learned"][:1]
+    with pytest.raises(ValueError, match="learned"):
+        EvictedFrameStore().restore(broken, manifest, "f")
+    legacy = {k: v for k, v in arrays.items() if "learned" not in k}  # a map saved before learned maps
+    old = EvictedFrameStore()
+    old.restore(legacy, {**manifest, "learned": False}, "f")
+    for a, b in zip(old.means(pts, learned=True), plain.means(pts), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_the_learned_answer_reads_the_learned_maps_offered_before_or_after_a_view_is_kept(
+    tmp_path: Path,
+) -> None:
+    """The pre-eviction worker's learned map of a keyframe (``EvictedViews.offer_learned``) reaches
+    its kept view whether it comes before the keyframe is kept or after; ``govnesf``'s map answer
+    then takes it where only the kept views answer, ``average`` keeps the OV maps."""
+    from mapper.map.evicted_frames import reduced_shape
+    from mapper.node.answers.segment import answer_from_map
+
+    frames = _frames(depth=False)
+    node = _node(tmp_path, 2, evicted_frames_mb=16.0)
+    worker = node.ctx.evicted_views
+    assert worker is not None
+    _stream(node, frames[:2])
+    k0, k1 = node.state.window.keyframes
+    _stream(node, frames[2:3])  # k0 leaves and is kept; k1 stays in the window
+    gmap = node.state.global_map
+    emb = node.ctx.text_encoder("test").encode(["c0", "c1", "c2", "c3"])
+    grid = reduced_shape(6, 8, node.ctx.config.queries.evicted_frames_cells)
+    cells = np.broadcast_to(emb[3] * 5.0, (*grid, emb.shape[1])).astype(np.float32)  # every cell "c3"
+    learned = (cells, np.ones(grid, bool))
+    assert gmap.evicted.frames.stats()["frames_learned"] == 0
+    worker.offer_learned(k0, gmap, learned)  # after it was kept: given at once
+    assert gmap.evicted.frames.stats()["frames_learned"] == 1
+    worker.offer_learned(k1, gmap, learned)  # before: it waits for the keyframe
+    assert gmap.evicted.frames.stats()["frames_learned"] == 1
+    _stream(node, frames[3:])
+    assert gmap.evicted.frames.stats()["frames_learned"] == 2 and worker.learned_late == 0
+    assert worker.stats()["frames_learned"] == 2
+    xyz = _wall()
+    n = xyz.shape[0]
+    args = (xyz, emb, np.full(n, -1, np.int32), np.zeros(n, np.float32), np.zeros(n, bool))
+    label_l, _, source = answer_from_map(node.ctx, *args, learned=True)
+    plain = _node(tmp_path, 2, evicted_frames_mb=16.0)
+    _stream(plain, frames)
+    label_p, _, source_p = answer_from_map(plain.ctx, *args, learned=True)
+    answered = source == SOURCE_MAP
+    assert answered.sum() > 20 and np.array_equal(source, source_p)
+    changed = answered & (label_l != label_p)
+    assert changed.sum() > 0 and (label_l[changed] == 3).all()  # only ever toward the learned maps' text

@@ -480,3 +480,47 @@ def test_toward_averaging_moves_by_how_far_the_averaging_is_more_decided() -> No
     label, score, took = toward_averaging(one, top, half_l, one + 1, top, half_a, 1.0, 0.2)
     assert label.tolist() == [1] and took.tolist() == [True]  # (0.375, 0.425)
     np.testing.assert_allclose(score, [0.425], atol=1e-6)
+
+
+class _WallRuntime:
+    """A runtime whose render sees a wall at z = 2 (opacity 0 in the first column) and whose
+    blended feature at a point is (x, y, z, 1)."""
+
+    def __init__(self) -> None:
+        self.rendered: list[tuple[np.ndarray, int, int]] = []
+
+    def render(self, K: np.ndarray, pose: np.ndarray, w: int, h: int, outputs: Sequence[str]) -> object:
+        from types import SimpleNamespace
+
+        self.rendered.append((np.asarray(K), w, h))
+        opacity = np.ones((h, w), np.float32)
+        opacity[:, 0] = 0.0
+        return SimpleNamespace(depth_m=np.full((h, w), 2.0, np.float32), opacity=opacity)
+
+    def point_features(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.concatenate([xyz, np.ones((len(xyz), 1), np.float32)], axis=1), np.ones(len(xyz), bool)
+
+
+def test_learned_view_map_takes_the_blend_at_each_cells_rendered_surface() -> None:
+    """Each cell of the grid: its ray through the cell centre (K scaled to the grid) meets the
+    rendered surface, and the blended feature there is the cell's; cells whose ray meets no
+    surface (opacity below the threshold) are not valid."""
+    from types import SimpleNamespace
+
+    from mapper.node.backends.learned import learned_view_map
+
+    K = np.array([80.0, 80.0, 80.0, 60.0])
+    pose = np.eye(4)
+    pose[:3, 3] = [0.5, 0.0, 0.0]
+    keyframe = SimpleNamespace(rgb=np.zeros((120, 160, 3), np.uint8), K=K, world_from_cam=pose)
+    runtime = _WallRuntime()
+    got = learned_view_map(runtime, keyframe, (15, 20), 0.5)  # type: ignore[arg-type]
+    assert got is not None
+    feats, valid = got
+    assert feats.shape == (15, 20, 4) and valid.shape == (15, 20)
+    assert not valid[:, 0].any() and valid[:, 1:].all()
+    np.testing.assert_allclose(runtime.rendered[0][0], [10.0, 10.0, 10.0, 7.5])  # K at 1/8
+    # the cell (row 7, col 10): its centre (10.5, 7.5) in the grid is pixel (84, 60) of the image
+    want = np.array([0.5 + (84.0 - 80.0) / 80.0 * 2.0, (60.0 - 60.0) / 80.0 * 2.0, 2.0, 1.0])
+    np.testing.assert_allclose(feats[7, 10], want, atol=1e-5)
+    assert np.allclose(feats[:, 1:, 2], 2.0) and (feats[:, 0] == 0).all()
