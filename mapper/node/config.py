@@ -268,12 +268,15 @@ class QueryConfig:
     stream with odometry drift ``average`` -5.0, as low as the node holding every keyframe there
     (docs/concepts/window-and-map.md). 0..100000."""
 
-    evicted_frames_learned: bool = True
-    """With the learned model served: each keyframe without depth, before it leaves the window, also
-    gets the model's blended features at its kept view's cells (the model's rendered surface through
-    each cell, :func:`mapper.node.backends.learned.learned_view_map`; the pre-eviction worker), kept
-    beside its reduced OV map (twice the memory of a kept view) and read by ``govnesf``'s answers
-    from the kept views; the averaging methods read the OV maps as before."""
+    evicted_frames_learned: bool = False
+    """With the learned model served: each keyframe without depth, while it is still in the window
+    (the pre-eviction worker; one that left first is skipped), also gets the model's blended
+    features at its kept view's cells (the model's rendered surface through each cell,
+    :func:`mapper.node.backends.learned.learned_view_map`), kept beside its reduced OV map (twice the
+    memory of a kept view) and read by ``govnesf``'s answers from the kept views; the averaging
+    methods read the OV maps as before. Off: on the scenario matrix's streams, sent as fast as acks
+    come back, the worker reached 4 of 52 keyframes before they left (window studio stream,
+    ``govnesf`` 45.5 -> 45.2); computed for the keyframes that had left too, 45.5 -> 42.5."""
     evicted_frames_cells: int = 300
     """Most cells of a kept evicted view's OV map (``evicted_frames_mb``): area-averaged to the
     largest size of the map's aspect within this (a 40 x 30 map: 20 x 15); float32, 384-d: 1.5 KB a

@@ -175,14 +175,16 @@ class PreEvictionFeatures:
                 return
             feats, valid = answer
             self.voxels_set += gmap.set_features(keys[valid], feats[valid])
-        self._learned_views(keyframes, gmap)
+        self._learned_views([k for k in keyframes if id(k) in in_window], gmap)
         self.keyframes_done += len(keyframes)
         self.keyframes_late += sum(1 for k in keyframes if id(k) not in in_window)
         self.calls += 1
         self.seconds_total += time.perf_counter() - started
 
     def _learned_views(self, keyframes: list[Keyframe], gmap: GlobalSemanticMap) -> None:
-        """The learned maps of the keyframes without depth, for their kept views (``view_features``)."""
+        """The learned maps of the keyframes without depth still in the window, for their kept views
+        (``view_features``; a keyframe that left already is skipped: the window's volume and views no
+        longer hold it)."""
         evicted = self.ctx.evicted_views
         if self.view_features is None or evicted is None or evicted.frames_budget <= 0:
             return
