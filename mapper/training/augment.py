@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["SENSOR_EFFECTS", "motion_blur_kernel", "perturb_poses", "sensor_effects"]
+__all__ = ["SENSOR_EFFECTS", "motion_blur_kernel", "ov_noise", "perturb_poses", "sensor_effects"]
 
 SENSOR_EFFECTS = ("blur", "noise", "jpeg")
 """The effects :func:`sensor_effects` draws from (one or more per example)."""
@@ -88,6 +88,44 @@ def sensor_effects(
                 img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED).astype(np.float32) / 255.0
         out.append(torch.from_numpy(np.clip(img, 0.0, 1.0)).permute(2, 0, 1))
     return torch.stack(out).to(rgb.dtype)
+
+
+def ov_noise(
+    ov: Tensor,  # (N, D, h, w) float: the source views' OV maps
+    rng: np.random.Generator,
+    strength: float = 1.0,
+) -> Tensor:  # (N, D, h, w)
+    """A 2D model's worse days on each source view's OV map, independently: Gaussian noise of std up
+    to ``0.5 * strength`` times the map's mean cell norm, and with probability 1/2 one to three
+    regions (each side 15-40% of the map's) confused with another region of the same map (its
+    features copied in: a wall read as the sofa next to it), as SimLSeg's ``harsh`` level doubles
+    the calibrated level's noise and confusions (``clients.matrix.driver.HARSH_OV``). The target's
+    OV supervision stays as it was, so the blend learns to weigh down views that disagree.
+    ``strength`` 0 returns the input unchanged.
+
+    >>> x = torch.rand(2, 4, 6, 8)
+    >>> bool(torch.equal(ov_noise(x, np.random.default_rng(0), 0.0), x))
+    True
+    """
+    if ov.ndim != 4:
+        raise ValueError(f"ov must have shape (N, D, h, w), got {tuple(ov.shape)}")
+    if not 0.0 <= strength <= 4.0:
+        raise ValueError(f"strength {strength} out of range 0..4")
+    if strength == 0.0:
+        return ov
+    out = ov.clone()
+    n, d, h, w = ov.shape
+    for i in range(n):
+        scale = float(out[i].norm(dim=0).mean())
+        std = float(rng.uniform(0.0, 0.5 * strength)) * scale / math.sqrt(max(d, 1))
+        out[i] += torch.from_numpy(rng.normal(0.0, std, (d, h, w)).astype(np.float32)).to(ov.dtype)
+        if rng.random() < 0.5:
+            for _ in range(int(rng.integers(1, 4))):
+                rh, rw = max(1, int(h * rng.uniform(0.15, 0.4))), max(1, int(w * rng.uniform(0.15, 0.4)))
+                y0, x0 = int(rng.integers(0, h - rh + 1)), int(rng.integers(0, w - rw + 1))
+                y1, x1 = int(rng.integers(0, h - rh + 1)), int(rng.integers(0, w - rw + 1))
+                out[i, :, y0: y0 + rh, x0: x0 + rw] = ov[i, :, y1: y1 + rh, x1: x1 + rw]
+    return out
 
 
 def perturb_poses(

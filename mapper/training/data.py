@@ -78,6 +78,7 @@ _MIX_STREAM = 1
 scenes (``RaySampler.extra_weight``); separate from the example's own stream, see ``sample``."""
 _VOLUME_STREAM = 2
 _SENSOR_STREAM = 3  # sensor effects and source pose error (mapper.training.augment)
+_OV_NOISE_STREAM = 4  # the sources' OV maps made noisier (mapper.training.augment.ov_noise)
 """Extra entropy word of the random stream that draws an example's number of volume sources
 (``RaySampler.volume_sources``); separate from the example's own stream."""
 
@@ -561,6 +562,8 @@ class RaySampler:
         pose_noise_prob: float = 0.0,
         pose_noise_m: float = 0.02,
         pose_noise_deg: float = 1.0,
+        ov_noise_prob: float = 0.0,
+        ov_noise_strength: float = 1.0,
     ) -> None:
         if not scenes:
             raise ValueError("RaySampler needs at least one scene")
@@ -570,7 +573,8 @@ class RaySampler:
             raise ValueError(f"point_ov_rel_tol {point_ov_rel_tol} out of range: must be >= 0")
         if volume_sources < 0:
             raise ValueError(f"volume_sources {volume_sources} out of range: must be >= 0")
-        for name, p in (("sensor_prob", sensor_prob), ("pose_noise_prob", pose_noise_prob)):
+        for name, p in (("sensor_prob", sensor_prob), ("pose_noise_prob", pose_noise_prob),
+                        ("ov_noise_prob", ov_noise_prob)):
             if not 0.0 <= p <= 1.0:
                 raise ValueError(f"{name} {p} out of range 0..1")
         if not (0.0 <= sensor_strength <= 4.0 and pose_noise_m >= 0.0 and pose_noise_deg >= 0.0):
@@ -635,6 +639,12 @@ class RaySampler:
         axis, scaled per example by a uniform draw in [0, 1]); the target rays stay true."""
         self.pose_noise_m = pose_noise_m
         self.pose_noise_deg = pose_noise_deg
+        if not 0.0 <= ov_noise_strength <= 4.0:
+            raise ValueError(f"ov_noise_strength {ov_noise_strength} out of range 0..4")
+        self.ov_noise_prob = ov_noise_prob
+        """Fraction of examples whose sources' OV maps get noise and confused regions
+        (:func:`mapper.training.augment.ov_noise` at ``ov_noise_strength``)."""
+        self.ov_noise_strength = ov_noise_strength
 
     def rng(self, step: int, item: int) -> np.random.Generator:
         return np.random.default_rng(np.random.SeedSequence([self.seed, step, item]))
@@ -717,6 +727,12 @@ class RaySampler:
         if self.sensor_prob > 0 or self.pose_noise_prob > 0:  # its own stream: the rest is unchanged
             self._degrade(sample, np.random.default_rng(np.random.SeedSequence([self.seed, step, item,
                                                                                 _SENSOR_STREAM])))
+        if self.ov_noise_prob > 0 and sample.has_ov:  # its own stream: the rest is unchanged
+            rng_ov = np.random.default_rng(np.random.SeedSequence([self.seed, step, item, _OV_NOISE_STREAM]))
+            if rng_ov.random() < self.ov_noise_prob:
+                from mapper.training.augment import ov_noise
+
+                sample.sources.ov = ov_noise(sample.sources.ov, rng_ov, self.ov_noise_strength)
         return sample
 
     def _degrade(self, sample: TrainSample, rng: np.random.Generator) -> None:

@@ -188,6 +188,12 @@ class TrainConfig:
     """Largest std per axis of that translation error (each example draws a scale in [0, 1])."""
     pose_noise_deg: float = 1.0
     """Largest std per axis of that rotation error (degrees)."""
+    ov_noise_prob: float = 0.0
+    """Fraction of examples whose SOURCE views' OV maps get a 2D model's worse days: noise and
+    regions confused with others (``mapper.training.augment.ov_noise``; the target's OV supervision
+    stays). 0 = off."""
+    ov_noise_strength: float = 1.0
+    """Size of that noise (0..4; 1: std up to half the cells' mean norm)."""
     depth_guided_masking: bool = False
     """Depth Guided Masking in every example (the rays' samples and the surface points)."""
     depth_guided_masking_prob: float = 0.0
@@ -258,6 +264,8 @@ class TrainConfig:
             (0.0 <= self.sensor_prob <= 1.0, "sensor_prob", "in [0, 1]"),
             (0.0 <= self.sensor_strength <= 4.0, "sensor_strength", "in [0, 4]"),
             (0.0 <= self.pose_noise_prob <= 1.0, "pose_noise_prob", "in [0, 1]"),
+            (0.0 <= self.ov_noise_prob <= 1.0, "ov_noise_prob", "in [0, 1]"),
+            (0.0 <= self.ov_noise_strength <= 4.0, "ov_noise_strength", "in [0, 4]"),
             (self.pose_noise_m >= 0, "pose_noise_m", ">= 0"),
             (self.pose_noise_deg >= 0, "pose_noise_deg", ">= 0"),
             (self.log_every >= 1, "log_every", ">= 1"),
@@ -754,6 +762,8 @@ def _load_data(cfg: TrainConfig, dd: _Dist, model_cfg: ModelConfig | None) -> _D
         pose_noise_prob=cfg.pose_noise_prob,
         pose_noise_m=cfg.pose_noise_m,
         pose_noise_deg=cfg.pose_noise_deg,
+        ov_noise_prob=cfg.ov_noise_prob,
+        ov_noise_strength=cfg.ov_noise_strength,
         extra_scenes=extra_scenes,
         extra_weight=cfg.extra_train_weight,
         volume_sources=cfg.volume_sources,

@@ -1,4 +1,5 @@
-"""mapper.training.augment: sensor effects on the sources, odometry-like pose error, in the sampler."""
+"""mapper.training.augment: sensor effects on the sources, odometry-like pose error, a 2D model's
+noisier OV maps, in the sampler."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from mapper.training.augment import motion_blur_kernel, perturb_poses, sensor_effects
+from mapper.training.augment import motion_blur_kernel, ov_noise, perturb_poses, sensor_effects
 from mapper.training.data import RaySampler, load_scene
 from tests.mapper.training.test_data import tiny_model_config, write_tiny_scene
 
@@ -109,3 +110,48 @@ def test_sampler_degrades_sources_only_and_leaves_other_draws_unchanged(scene_di
         RaySampler([s], cfg, rays_per_view=8, sensor_prob=1.5)
     with pytest.raises(ValueError, match="pose_noise_m"):
         RaySampler([s], cfg, rays_per_view=8, pose_noise_m=-0.1)
+
+
+def test_ov_noise_adds_bounded_noise_and_copies_whole_regions() -> None:
+    rng = np.random.default_rng(0)
+    ov = torch.from_numpy(rng.standard_normal((6, 16, 12, 16)).astype(np.float32))
+    out = ov_noise(ov, np.random.default_rng(1), 1.0)
+    assert out.shape == ov.shape and out.dtype == ov.dtype and not torch.equal(out, ov)
+    assert torch.equal(ov_noise(ov, np.random.default_rng(1), 1.0), out)  # seeded
+    scale = float(ov.norm(dim=1).mean())
+    diff = out - ov
+    for i in range(ov.shape[0]):  # away from confused regions the noise is at most 0.5 x the cell norm
+        small = diff[i].abs() < 5.0 * 0.5 * scale / 4.0  # (D, h, w): within 5 sigma of the largest std
+        assert float(small.float().mean()) > 0.5
+    noise_only = ov_noise(torch.zeros(2, 4, 5, 5), np.random.default_rng(2), 1.0)
+    assert torch.equal(noise_only, torch.zeros(2, 4, 5, 5))  # zero maps: zero norm, zero noise
+    # confusion copies cells of the same map: with noise scaled to nothing the result is a re-arrangement
+    flat = torch.arange(2 * 3 * 10 * 10, dtype=torch.float32).reshape(2, 3, 10, 10)
+    for seed in range(8):
+        got = ov_noise(flat * 1e6, np.random.default_rng(seed), 1e-9)
+        for i in range(2):
+            cells = {tuple(c) for c in (flat[i] * 1e6).reshape(3, -1).T.tolist()}
+            assert all(tuple(np.round(c, -3)) in {tuple(np.round(x, -3)) for x in cells}
+                       for c in got[i].reshape(3, -1).T.tolist())
+    with pytest.raises(ValueError, match="ov"):
+        ov_noise(ov[0], rng, 1.0)
+    with pytest.raises(ValueError, match="strength"):
+        ov_noise(ov, rng, 5.0)
+
+
+def test_sampler_ov_noise_touches_only_the_sources_ov(scene_dir: Path) -> None:
+    s = load_scene(scene_dir)
+    cfg = tiny_model_config()
+    clean = RaySampler([s], cfg, rays_per_view=32, seed=3)
+    noisy = RaySampler([s], cfg, rays_per_view=32, seed=3, ov_noise_prob=1.0)
+    changed = 0
+    for step in range(4):
+        a, b = clean.sample(step, 0), noisy.sample(step, 0)
+        assert torch.equal(a.target_ov, b.target_ov) and torch.equal(a.target_rgb, b.target_rgb)
+        assert torch.equal(a.sources.rgb, b.sources.rgb)
+        assert np.array_equal(a.sources.indices, b.sources.indices)
+        changed += not torch.equal(a.sources.ov, b.sources.ov)
+        assert torch.equal(b.sources.ov, noisy.sample(step, 0).sources.ov)
+    assert changed == 4
+    with pytest.raises(ValueError, match="ov_noise_prob"):
+        RaySampler([s], cfg, rays_per_view=8, ov_noise_prob=2.0)
