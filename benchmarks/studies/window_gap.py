@@ -3,11 +3,12 @@
 One scenario of the scenario matrix (``clients.matrix``: a split and an index, or any combination
 of its axes given as JSON) is streamed, as the matrix does, into a node at the default window and
 into the same node holding every keyframe; once both settled, ``segment_points`` at the
-ground-truth surface points for ``average`` and ``govnesf``. For each method it prints the 3D mIoU
-of both nodes and, by the window node's ``source`` (0 none, 1 window, 2 map), how many points and
-how many of them each node labels correctly, with the every-keyframe node's sources for the same
-points: a gap from points nothing answers (no map point near) reads differently from one where
-the window's own views answer worse.
+ground-truth surface points for ``average``, ``govnesf`` and DGM (``govnesf`` with
+``use_depth``). For each method it prints the 3D mIoU of both nodes, the classes behind the gap,
+and, by the window node's ``source`` (0 none, 1 window, 2 map), how many points and how many of
+them each node labels correctly, with the every-keyframe node's sources for the same points: a gap
+from points nothing answers (no map point near) reads differently from one where the window's own
+views answer worse.
 
 Run (a few minutes a scenario on 2 cores)::
 
@@ -35,7 +36,8 @@ from clients.matrix.driver import RunSettings, _settle, prepare
 from clients.matrix.scenarios import FRAMES, Scenario, build_matrix
 from clients.sim.scenes import CLASS_NAMES
 
-METHODS = ("average", "govnesf")
+METHODS = (("average", "average", False), ("govnesf", "govnesf", False), ("dgm", "govnesf", True))
+"""(name, ``segment_points`` method, ``use_depth``) asked of both nodes."""
 
 
 def scenario_of(args: argparse.Namespace) -> Scenario:
@@ -65,9 +67,10 @@ def answers(
                 for _ in client.send_frames(iter(prep.frames), window=4):
                     pass
                 _settle(client, 120)
-                for method in METHODS:
-                    seg = client.segment_points(prep.gt_xyz, list(CLASS_NAMES), method=method, timeout_s=600)
-                    out[method] = (seg.label.astype(np.int64), np.asarray(seg.source))
+                for name, method, use_depth in METHODS:
+                    seg = client.segment_points(prep.gt_xyz, list(CLASS_NAMES), method=method,
+                                                use_depth=use_depth, timeout_s=600)
+                    out[name] = (seg.label.astype(np.int64), np.asarray(seg.source))
     return out
 
 
@@ -91,8 +94,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.save:
         np.savez_compressed(args.save, gt=gt, xyz=prep.gt_xyz, **{
             f"{which}_{method}_{part}": got[which][method][k]
-            for which in got for method in METHODS for k, part in enumerate(("label", "source"))})
-    for method in METHODS:
+            for which in got for method, _, _ in METHODS for k, part in enumerate(("label", "source"))})
+    for method, _, _ in METHODS:
         (lw, sw), (la, sa) = got["window"][method], got["all"][method]
         (m_w, iou_w), (m_a, iou_a) = mean_iou(lw, gt, n_texts), mean_iou(la, gt, n_texts)
         print(f"{method}: mIoU window {100 * m_w:.1f}, every keyframe {100 * m_a:.1f}")
