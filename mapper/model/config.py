@@ -5,7 +5,7 @@ Presets:
 * ``cpu-small`` -- tiny; meant to train on 2 CPU cores within about an hour on 160x120 images.
 * ``gpu-medium`` -- ``cpu-small``'s inputs (8 views, 160x120) with twice its widths, two blocks per
   encoder stage, 48 samples a ray and a 3.4 times finer voxel budget; meant for a GPU
-  (docs/how-to/train.md "Training on a GPU"); it still runs on a CPU, a few times slower.
+  (docs/how-to/train.md, runs G1-G3); it still runs on a CPU, a few times slower.
 * ``paper`` -- the paper's / official code's sizes (ResNet-34-style encoder, 30 source views,
   320x240, 64 samples a ray between 0.2 and 8 m, 512-d OV features).
 

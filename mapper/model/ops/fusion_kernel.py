@@ -3,9 +3,10 @@
 ``FusionNet.forward_fast`` with ``query_dirs=None`` (how ``segment_points`` and the map's learned
 features weigh a point's views) runs as a chain of small torch ops over (points x views) rows; for
 a small network (the distilled point head, widths 8 / 4) those ops cost about the same whatever
-the width: each one writes and reads its whole (P*N, C) result (docs/results.md, tenth
-session). Here every point block's intermediates stay in small per-block buffers, with the points
-of a block as the inner, contiguous, vectorised axis (the samples' own layout, P fastest):
+the width: each one writes and reads its whole (P*N, C) result
+(``benchmarks/speed/point_head_speed.py --kernel-ab`` compares the two). Here every point block's
+intermediates stay in small per-block buffers, with the points of a block as the inner,
+contiguous, vectorised axis (the samples' own layout, P fastest):
 
     per block of B points:  mean / var over views -> the per-point part of MLP_a's first layer
     per view:               MLP_a -> + DE [+ RE] -> q, k, v (linear attention, masked keys)
