@@ -106,16 +106,11 @@ def answer_from_map(
             out_cos[todo] = frames_cos[0][todo]
     elif depth_tested and len(gmap.evicted.frames):
         # a depth-tested answer never mixes views without depth in, but a point nothing else
-        # answers takes the kept views' answer rather than none, where the request's other points
-        # do not hide it in them (the test the window's views without depth get)
+        # answers takes the kept views' answer rather than none
         none = np.flatnonzero(source == SOURCE_NONE)
         if none.size:
-            from mapper.node.backends.average import occlusion_footprint
-
-            pts = np.asarray(xyz, np.float32)
             sub = evicted_frame_cosines(ctx, gmap.evicted, snap, None if nearest is None else nearest[none],
-                                        pts[none], text_emb, learned=learned,
-                                        occlusion_footprint_m=occlusion_footprint(ctx, pts), occluders=pts)
+                                        np.asarray(xyz)[none], text_emb, learned=learned)
             if sub is not None:
                 todo = none[sub[1]]
                 label[todo], score[todo] = best_text(sub[0][sub[1]], np.ones(todo.shape[0], bool))
@@ -143,8 +138,6 @@ def evicted_frame_cosines(
     xyz: np.ndarray,  # (N, 3) float32
     text_emb: np.ndarray,  # (T, D) float32 unit rows
     learned: bool = False,  # for the learned method: the kept views' learned maps where they have one
-    occlusion_footprint_m: float = 0.0,  # > 0: a kept view counts only where ``occluders`` do not hide it
-    occluders: np.ndarray | None = None,  # (M, 3) float32 the points splatted (default: ``xyz``)
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The evicted views' answer at each point that a kept view of an evicted keyframe without
     depth counts for (``queries.evicted_frames_mb``, :mod:`mapper.map.evicted_frames`): cosines
@@ -157,8 +150,7 @@ def evicted_frame_cosines(
     from mapper.map.evicted_frames import merged_prior
 
     n = xyz.shape[0]
-    rows, mean, count = frames.means(np.asarray(xyz, np.float32), learned=learned,
-                                     occlusion_footprint_m=occlusion_footprint_m, occluders=occluders)
+    rows, mean, count = frames.means(np.asarray(xyz, np.float32), learned=learned)
     if rows.size == 0:
         return None
     voxel = None

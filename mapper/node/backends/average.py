@@ -26,7 +26,7 @@ from mapper.node.context import NodeContext
 from protocol.errors import ProtocolError
 from protocol.messages import SegmentPoints
 
-__all__ = ["AveragingBackend", "average_with_frames", "evicted_cosines", "occlusion_footprint"]
+__all__ = ["AveragingBackend", "average_with_frames", "evicted_cosines"]
 
 FRAMES_CHUNK = 65_536
 """Points averaged at a time with the kept evicted views (their merged prior is (chunk, D) float32)."""
@@ -97,17 +97,6 @@ def evicted_cosines(
             cos[lo: lo + m] = prior_cosines(merged, text_emb)
             count[lo: lo + m] = np.where(merged[1] >= 0, merged[2], 0.0)
     return cos, count
-
-
-def occlusion_footprint(ctx: NodeContext, xyz: np.ndarray) -> float:
-    """The footprint (m) of each of the request's points (N, 3) splatted as an occluder into the kept
-    views of evicted keyframes (``queries.point_occlusion``: ``model.point_occlusion_footprint``
-    times the points' median spacing), 0 when that test is off or the points have no spacing."""
-    if not ctx.config.queries.point_occlusion or xyz.shape[0] < 2:
-        return 0.0
-    from mapper.geometry.splat import point_spacing
-
-    return float(ctx.config.model.point_occlusion_footprint * point_spacing(xyz))
 
 
 def prior_cosines(
@@ -305,7 +294,14 @@ class AveragingBackend:
                            evicted_cos=evicted_cos)
 
     def _occlusion_footprint(self, xyz: np.ndarray) -> float:
-        return occlusion_footprint(self.ctx, xyz)
+        """The footprint (m) of each of the request's points splatted as an occluder into the kept
+        views of evicted keyframes (``queries.point_occlusion``: ``model.point_occlusion_footprint``
+        times the points' median spacing), 0 when that test is off or the points have no spacing."""
+        if not self.ctx.config.queries.point_occlusion or xyz.shape[0] < 2:
+            return 0.0
+        from mapper.geometry.splat import point_spacing
+
+        return float(self.ctx.config.model.point_occlusion_footprint * point_spacing(xyz))
 
     def _evicted_frames(self, store: EvictedViewStore, text_emb: np.ndarray) -> EvictedFrameStore | None:
         """The kept views of evicted keyframes without depth (``queries.evicted_frames_mb``), or

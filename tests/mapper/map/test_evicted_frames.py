@@ -283,26 +283,6 @@ def test_depth_tested_answers_take_the_kept_views_only_where_nothing_answers(tmp
     np.testing.assert_allclose(got.score[answered], without.score[answered], atol=1e-6)
 
 
-def test_depth_tested_answers_take_only_the_kept_views_the_request_does_not_hide(tmp_path: Path) -> None:
-    """The kept views' answer at a point nothing else answers, for a depth-tested method, counts
-    only the views in which the request's other points do not hide it (``queries.point_occlusion``,
-    the test the window's views without depth get): a plane of points asked in front of the wall
-    hides the wall from the evicted cameras."""
-    frames = _frames(depth=False)
-    kept = _node(tmp_path, 2, evicted_frames_mb=16.0)
-    _stream(kept, frames)
-    wall = _wall()
-    alone = _segment(kept, "average_depth", wall)
-    filled = alone.source == SOURCE_MAP
-    assert filled.sum() > 20
-    xs, ys = np.meshgrid(np.linspace(-3.0, 3.0, 86), np.linspace(-1.5, 1.5, 43))
-    screen = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 1.0)], axis=1).astype(np.float32)
-    both = _segment(kept, "average_depth", np.concatenate([wall, screen]))
-    behind = both.source[: len(wall)]
-    assert (behind[filled] == SOURCE_NONE).mean() > 0.9  # hidden from every kept view: no answer
-    assert (both.source[len(wall):] == SOURCE_MAP).sum() > 20  # the screen itself is seen by them
-
-
 class _ConstantLearned:
     """A stand-in learned backend (falls back to averaging like ``govnesf``): text ``c3`` at every
     point, cosine 1, the others 0."""
