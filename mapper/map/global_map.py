@@ -251,9 +251,9 @@ class GlobalMapConfig:
 
     rendered_consistency_sigmas: float = 1.0
     """A triangulated point agrees with a rendered depth within this many of its 1-sigma
-    uncertainties (but never less than ``rendered_consistency_voxels`` voxels). 0..100. (3 and 2
-    voxels before 2026-12-03; 1 and 1: RGB-only map points 0.095 -> 0.073 m median
-    from the surface, docs/concepts/rgb-only.md.)"""
+    uncertainties (but never less than ``rendered_consistency_voxels`` voxels). 0..100. (1 and 1
+    rather than 3 and 2: RGB-only map points 0.095 -> 0.073 m median from the surface,
+    docs/concepts/rgb-only.md.)"""
 
     rendered_consistency_voxels: float = 1.0
     """Depth tolerance between two keyframes' rendered depths, and the least tolerance against a
