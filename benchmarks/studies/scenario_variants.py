@@ -27,13 +27,11 @@ import argparse
 import dataclasses
 import json
 import sys
-import tempfile
-from pathlib import Path
 
 import numpy as np
 
-from clients.harness import NodeProcess, mean_iou
-from clients.matrix.driver import RunSettings, _settle, methods_of, prepare
+from clients.harness import mean_iou
+from clients.matrix.driver import RunSettings, _settle, methods_of, node_client, prepare, stream
 from clients.matrix.scenarios import Scenario, build_matrix
 from clients.sim.scenes import CLASS_NAMES
 
@@ -61,33 +59,28 @@ def main(argv: list[str] | None = None) -> int:
                    help="change an axis (repeat)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a node setting (repeat)")
     args = p.parse_args(argv)
+    for item in args.set:
+        if "=" not in item or not item.split("=", 1)[0].strip():
+            p.error(f"--set {item!r}: expected KEY=VALUE")
     try:
         scenario = varied(build_matrix(args.split)[args.index], args.vary)
     except (IndexError, ValueError, TypeError) as exc:
         p.error(str(exc))
     print(scenario.name, flush=True)
-    prep = prepare(scenario, RunSettings())
-    extra = ["--set", "save_on_exit=false", "--set", "load_autosave_on_start=false"]
-    for item in args.set:
-        extra += ["--set", item]
-    with tempfile.TemporaryDirectory(prefix="govnesf-variants-") as tmp:
-        node = NodeProcess(Path(tmp) / "maps", log_path=Path(tmp) / "node.log", extra_args=extra,
-                           events=False)
-        with node:
-            node.wait_ready(120)
-            with node.client(timeout_s=600) as client:
-                for _ in client.send_frames(iter(prep.frames), window=4):
-                    pass
-                settled, settle_s, pending = _settle(client, 120)
-                print(f"settled {settled} in {settle_s:.1f} s{'' if settled else f', pending {pending}'}")
-                extra_status = client.status().extra
-                for key in ("map_features", "evicted_views"):
-                    print(f"{key}: {json.dumps(extra_status.get(key), default=str)}")
-                for name, method, use_depth in methods_of(scenario):
-                    seg = client.segment_points(prep.gt_xyz, list(CLASS_NAMES), method=method,
-                                                use_depth=use_depth, timeout_s=600)
-                    miou = mean_iou(seg.label.astype(np.int64), prep.gt_label, len(CLASS_NAMES))[0]
-                    print(f"{name}: {100 * miou:.1f}")
+    run = RunSettings(node_settings=tuple(args.set))
+    prep = prepare(scenario, run)
+    with node_client(scenario, "window", run) as client:
+        stream(client, prep)
+        settled, settle_s, pending = _settle(client, run.settle_timeout_s)
+        print(f"settled {settled} in {settle_s:.1f} s{'' if settled else f', pending {pending}'}")
+        extra_status = client.status().extra
+        for key in ("map_features", "evicted_views"):
+            print(f"{key}: {json.dumps(extra_status.get(key), default=str)}")
+        for name, method, use_depth in methods_of(scenario):
+            seg = client.segment_points(prep.gt_xyz, list(CLASS_NAMES), method=method,
+                                        use_depth=use_depth, timeout_s=run.request_timeout_s)
+            miou = mean_iou(seg.label.astype(np.int64), prep.gt_label, len(CLASS_NAMES))[0]
+            print(f"{name}: {100 * miou:.1f}")
     return 0
 
 

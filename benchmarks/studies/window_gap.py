@@ -25,14 +25,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from clients.harness import NodeProcess, mean_iou
-from clients.matrix.driver import RunSettings, _settle, prepare
+from clients.harness import mean_iou
+from clients.matrix.driver import RunSettings, _settle, node_client, prepare, stream
 from clients.matrix.scenarios import FRAMES, Scenario, build_matrix
 from clients.sim.scenes import CLASS_NAMES
 
@@ -52,25 +50,15 @@ def answers(
     scenario: Scenario, prep: Any, which: str, settings: list[str]
 ) -> dict[str, tuple[np.ndarray, ...]]:
     """(label, source) per method of a fresh node (``window`` or ``all``) once settled."""
-    extra = ["--set", "save_on_exit=false", "--set", "load_autosave_on_start=false"]
-    for item in settings:
-        extra += ["--set", item]
-    if which == "all":
-        extra += ["--set", f"window.max_keyframes={scenario.frames + 10}"]
     out: dict[str, tuple[np.ndarray, ...]] = {}
-    with tempfile.TemporaryDirectory(prefix="govnesf-gap-") as tmp:
-        log = Path(tmp) / "node.log"
-        node = NodeProcess(Path(tmp) / "maps", log_path=log, extra_args=extra, events=False)
-        with node:
-            node.wait_ready(120)
-            with node.client(timeout_s=600) as client:
-                for _ in client.send_frames(iter(prep.frames), window=4):
-                    pass
-                _settle(client, 120)
-                for name, method, use_depth in METHODS:
-                    seg = client.segment_points(prep.gt_xyz, list(CLASS_NAMES), method=method,
-                                                use_depth=use_depth, timeout_s=600)
-                    out[name] = (seg.label.astype(np.int64), np.asarray(seg.source))
+    run = RunSettings(node_settings=tuple(settings))
+    with node_client(scenario, which, run) as client:
+        stream(client, prep)
+        _settle(client, run.settle_timeout_s)
+        for name, method, use_depth in METHODS:
+            seg = client.segment_points(prep.gt_xyz, list(CLASS_NAMES), method=method,
+                                        use_depth=use_depth, timeout_s=run.request_timeout_s)
+            out[name] = (seg.label.astype(np.int64), np.asarray(seg.source))
     return out
 
 
@@ -82,6 +70,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a node setting (repeat)")
     p.add_argument("--save", default="", metavar="NPZ", help="also write both nodes' labels and sources here")
     args = p.parse_args(argv)
+    for item in args.set:
+        if "=" not in item or not item.split("=", 1)[0].strip():
+            p.error(f"--set {item!r}: expected KEY=VALUE")
     try:
         scenario = scenario_of(args)
     except (ValueError, KeyError, TypeError, IndexError) as exc:  # bad JSON, a missing axis, no such index

@@ -28,7 +28,8 @@ import dataclasses
 import math
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -267,8 +268,10 @@ def _renders(client: Any, prep: Prepared, timeout_s: float) -> dict[str, Any]:
             "render_psnr_db": float(np.mean(psnr)) if psnr else None}
 
 
-def run_node(scenario: Scenario, prep: Prepared, which: str, settings: RunSettings) -> dict[str, Any]:
-    """Stream the prepared frames into a fresh node (``which``: ``window`` or ``all``); ask; score."""
+@contextmanager
+def node_client(scenario: Scenario, which: str, settings: RunSettings) -> Iterator[Any]:
+    """A fresh node with the run's settings (``which``: ``window``, the defaults, or ``all``, every
+    keyframe held), started; yields its client. Its log goes to ``settings.log_dir`` when set."""
     extra = ["--set", "save_on_exit=false", "--set", "load_autosave_on_start=false"]
     for item in settings.node_settings:
         extra += ["--set", item]
@@ -282,25 +285,36 @@ def run_node(scenario: Scenario, prep: Prepared, which: str, settings: RunSettin
         with node:
             node.wait_ready(settings.node_start_timeout_s)
             with node.client(timeout_s=settings.request_timeout_s) as client:
-                t0 = time.perf_counter()
-                for _ in client.send_frames(iter(prep.frames), window=4):
-                    pass
-                out: dict[str, Any] = {"stream_s": time.perf_counter() - t0}
-                t_ack = time.perf_counter()
-                out["pending_at_ack"] = pending_work(client.status().extra)
-                out["after_ack"] = _segment(client, scenario, prep, settings.request_timeout_s)
-                out["after_ack_s"] = time.perf_counter() - t_ack
-                settled, wait_s, left = _settle(client, settings.settle_timeout_s)
-                out["settled_ok"] = settled
-                out["settle_s"] = time.perf_counter() - t_ack if settled else None
-                out["pending_at_timeout"] = left
-                out["settled"] = _segment(client, scenario, prep, settings.request_timeout_s)
-                status = client.status()
-                out["keyframes"] = int(status.extra.get("frames_keyframe", 0))
-                out["global_points"] = status.extra.get("global_points")
-                if which == "window":
-                    out.update(_objects(client, prep, settings.request_timeout_s))
-                    out.update(_renders(client, prep, settings.request_timeout_s))
+                yield client
+
+
+def stream(client: Any, prep: Prepared) -> None:
+    """Send the prepared frames as fast as acks come back (4 in flight)."""
+    for _ in client.send_frames(iter(prep.frames), window=4):
+        pass
+
+
+def run_node(scenario: Scenario, prep: Prepared, which: str, settings: RunSettings) -> dict[str, Any]:
+    """Stream the prepared frames into a fresh node (``which``: ``window`` or ``all``); ask; score."""
+    with node_client(scenario, which, settings) as client:
+        t0 = time.perf_counter()
+        stream(client, prep)
+        out: dict[str, Any] = {"stream_s": time.perf_counter() - t0}
+        t_ack = time.perf_counter()
+        out["pending_at_ack"] = pending_work(client.status().extra)
+        out["after_ack"] = _segment(client, scenario, prep, settings.request_timeout_s)
+        out["after_ack_s"] = time.perf_counter() - t_ack
+        settled, wait_s, left = _settle(client, settings.settle_timeout_s)
+        out["settled_ok"] = settled
+        out["settle_s"] = time.perf_counter() - t_ack if settled else None
+        out["pending_at_timeout"] = left
+        out["settled"] = _segment(client, scenario, prep, settings.request_timeout_s)
+        status = client.status()
+        out["keyframes"] = int(status.extra.get("frames_keyframe", 0))
+        out["global_points"] = status.extra.get("global_points")
+        if which == "window":
+            out.update(_objects(client, prep, settings.request_timeout_s))
+            out.update(_renders(client, prep, settings.request_timeout_s))
     return out
 
 

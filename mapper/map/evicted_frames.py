@@ -182,6 +182,7 @@ class EvictedFrameStore:
                           self._world_from_cam[slot].copy(), int(self._image_wh[slot, 0]),
                           int(self._image_wh[slot, 1]))
         self._used[slot] = False
+        self._keys.pop(slot, None)
         return frame
 
     def add(
@@ -244,7 +245,7 @@ class EvictedFrameStore:
                 rows = small if learned is None else learned[0]
                 self._learned[slot * self._cells: slot * self._cells + h * w] = rows.reshape(h * w, dim)
             self._has_learned[slot] = learned is not None
-            self._keys = {s: k for s, k in self._keys.items() if self._used[s] and s != slot}
+            self._keys.pop(slot, None)
             if key is not None:
                 self._keys[slot] = key
             self._world_from_cam[slot] = pose
@@ -264,7 +265,7 @@ class EvictedFrameStore:
         it, at the view's reduced grid). Returns False (nothing changed) when no kept view has that
         key (not kept yet, or dropped); ``ValueError`` on bad shapes."""
         with self._lock:
-            slot = next((s for s, k in self._keys.items() if k == key and self._used[s]), None)
+            slot = next((s for s, k in self._keys.items() if k == key), None)
             if slot is None:
                 return False
             w, h = (int(x) for x in self._ov_wh[slot])

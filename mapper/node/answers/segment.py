@@ -98,12 +98,15 @@ def answer_from_map(
         map_cos_weight=ctx.config.queries.evicted_views_learned_weight if learned else 1.0, out_cos=out_cos)
     from mapper.node.queries import SOURCE_MAP, SOURCE_NONE, best_text
 
-    if frames_cos is not None:  # no map voxel near, unseen by the window: the kept views answer
-        todo = np.flatnonzero((source == SOURCE_NONE) & frames_cos[1])
-        label[todo], score[todo] = best_text(frames_cos[0][todo], np.ones(todo.shape[0], bool))
+    def take(todo: np.ndarray, cos: np.ndarray) -> None:  # the kept views' answer (cos) at those points
+        label[todo], score[todo] = best_text(cos, np.ones(todo.shape[0], bool))
         source[todo] = SOURCE_MAP
         if out_cos is not None:
-            out_cos[todo] = frames_cos[0][todo]
+            out_cos[todo] = cos
+
+    if frames_cos is not None:  # no map voxel near, unseen by the window: the kept views answer
+        todo = np.flatnonzero((source == SOURCE_NONE) & frames_cos[1])
+        take(todo, frames_cos[0][todo])
     elif depth_tested and len(gmap.evicted.frames):
         # a depth-tested answer never mixes views without depth in, but a point nothing else
         # answers takes the kept views' answer rather than none
@@ -112,11 +115,7 @@ def answer_from_map(
             sub = evicted_frame_cosines(ctx, gmap.evicted, snap, None if nearest is None else nearest[none],
                                         np.asarray(xyz)[none], text_emb, learned=learned)
             if sub is not None:
-                todo = none[sub[1]]
-                label[todo], score[todo] = best_text(sub[0][sub[1]], np.ones(todo.shape[0], bool))
-                source[todo] = SOURCE_MAP
-                if out_cos is not None:
-                    out_cos[todo] = sub[0][sub[1]]
+                take(none[sub[1]], sub[0][sub[1]])
     return label, score, source
 
 

@@ -29,7 +29,7 @@ import numpy as np
 
 from mapper.node.backends import PointAnswer
 from mapper.node.backends.robot_runtimes import RobotRuntimes
-from mapper.node.workers.depth_points import RenderedDepthPoints
+from mapper.node.workers.depth_points import RenderedDepthPoints, render_opaque_depth
 from mapper.node.workers.map_features import PreEvictionFeatures
 from mapper.runtime.model_runtime import ModelRuntime, RuntimeNotReady
 from protocol.errors import ProtocolError
@@ -185,16 +185,8 @@ def learned_view_map(
     from mapper.geometry.triangulation import backproject
 
     h, w = (int(v) for v in grid_hw)
-    height, width = keyframe.rgb.shape[:2]
-    sx, sy = w / width, h / height
-    fx, fy, cx, cy = (float(v) for v in keyframe.K)
-    K = np.array([fx * sx, fy * sy, cx * sx, cy * sy], np.float64)
+    K, depth, _ = render_opaque_depth(runtime, keyframe, (h, w), min_opacity)
     pose = np.asarray(keyframe.world_from_cam, np.float64)
-    frame = runtime.render(K, pose, w, h, outputs=("depth",))
-    if frame.depth_m is None or frame.opacity is None:
-        return None
-    opacity = np.nan_to_num(np.asarray(frame.opacity, np.float32), nan=0.0)
-    depth = np.where(opacity >= min_opacity, frame.depth_m, 0.0).astype(np.float32)
     rows, cols, xyz = backproject(depth, K, pose)
     if rows.size == 0:
         return None

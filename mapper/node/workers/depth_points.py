@@ -78,6 +78,7 @@ __all__ = [
     "RenderedDepthPoints",
     "RenderedKeyframe",
     "consistency_mask",
+    "render_opaque_depth",
     "sparse_agreement",
     "view_agreement",
 ]
@@ -117,6 +118,29 @@ def depth_edges(depth: np.ndarray, rel: float) -> np.ndarray:
     return edge
 
 
+def render_opaque_depth(
+    runtime: ModelRuntime | RobotRuntimes,
+    keyframe: Any,  # rgb (H, W, 3), K (4,) in its pixels, world_from_cam (4, 4)
+    size_hw: tuple[int, int],  # (h, w) of the render over the whole image
+    min_opacity: float,
+    volume_views: int | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The model's depth at ``keyframe``'s pose at ``size_hw``: (K (4,) float64 scaled to that size,
+    z-depth (h, w) float32 with 0 where the ray's opacity stays below ``min_opacity``, opacity
+    (h, w) float32). Raises :class:`RuntimeNotReady` like the runtime's render."""
+    h, w = (int(v) for v in size_hw)
+    height, width = keyframe.rgb.shape[:2]
+    sx, sy = w / width, h / height
+    fx, fy, cx, cy = (float(v) for v in keyframe.K)
+    K = np.array([fx * sx, fy * sy, cx * sx, cy * sy], np.float64)
+    pose = np.asarray(keyframe.world_from_cam, np.float64)
+    frame = runtime.render(K, pose, w, h, outputs=("depth",), volume_views=volume_views)
+    assert frame.depth_m is not None and frame.opacity is not None
+    opacity = np.nan_to_num(np.asarray(frame.opacity, np.float32), nan=0.0)
+    depth = np.where(opacity >= min_opacity, frame.depth_m, 0.0).astype(np.float32)
+    return K, depth, opacity
+
+
 def render_keyframe_depth(
     runtime: ModelRuntime | RobotRuntimes, keyframe: Any, config: GlobalMapConfig
 ) -> RenderedKeyframe:
@@ -129,14 +153,9 @@ def render_keyframe_depth(
     height, width = keyframe.rgb.shape[:2]
     stride = config.rendered_depth_stride
     w, h = max(1, width // stride), max(1, height // stride)
-    sx, sy = w / width, h / height
-    fx, fy, cx, cy = (float(v) for v in keyframe.K)
-    K = np.array([fx * sx, fy * sy, cx * sx, cy * sy], np.float64)
+    K, depth, opacity = render_opaque_depth(runtime, keyframe, (h, w), config.rendered_min_opacity,
+                                            config.rendered_volume_views)
     pose = np.asarray(keyframe.world_from_cam, np.float64)
-    frame = runtime.render(K, pose, w, h, outputs=("depth",), volume_views=config.rendered_volume_views)
-    assert frame.depth_m is not None and frame.opacity is not None
-    opacity = np.nan_to_num(frame.opacity.astype(np.float32), nan=0.0)
-    depth = np.where(opacity >= config.rendered_min_opacity, frame.depth_m, 0.0).astype(np.float32)
     if config.rendered_edge_rel > 0:
         depth[depth_edges(depth, config.rendered_edge_rel)] = 0.0
     return RenderedKeyframe(

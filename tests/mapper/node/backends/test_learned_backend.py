@@ -489,7 +489,8 @@ class _WallRuntime:
     def __init__(self) -> None:
         self.rendered: list[tuple[np.ndarray, int, int]] = []
 
-    def render(self, K: np.ndarray, pose: np.ndarray, w: int, h: int, outputs: Sequence[str]) -> object:
+    def render(self, K: np.ndarray, pose: np.ndarray, w: int, h: int, outputs: Sequence[str],
+               volume_views: int | None = None) -> object:
         from types import SimpleNamespace
 
         self.rendered.append((np.asarray(K), w, h))
