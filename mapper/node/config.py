@@ -279,8 +279,7 @@ class QueryConfig:
     ``govnesf`` 45.5 -> 45.2); computed for the keyframes that had left too, 45.5 -> 42.5. Computed
     in time, half a window before each keyframe leaves (``global_map.learned_features_batch`` 15, 1200
     cells), the learned maps still cost ``govnesf`` 0.5-5.7 on four RGB-only tuning streams (office
-    wall-hugging 41.8 -> 36.1): the model's surface through a cell misses where the kept view's own
-    OV map does not."""
+    wall-hugging 41.8 -> 36.1; not diagnosed further)."""
     evicted_frames_cells: int = 1200
     """Most cells of a kept evicted view's OV map (``evicted_frames_mb``): area-averaged to the
     largest size of the map's aspect within this (a 160 x 120 keyframe's 40 x 30 map is kept whole, a
