@@ -221,9 +221,9 @@ def fit_ov(keyframe: Keyframe, max_cells: int) -> Keyframe:
     ov = keyframe.ov
     if ov is None or max_cells <= 0 or ov.shape[0] * ov.shape[1] <= max_cells:
         return keyframe
-    from mapper.map.evicted_frames import reduce_ov
+    from mapper.map.evicted_frames import as_dtype, reduce_ov
 
-    return dataclasses.replace(keyframe, ov=reduce_ov(np.asarray(ov), max_cells).astype(ov.dtype))
+    return dataclasses.replace(keyframe, ov=as_dtype(reduce_ov(np.asarray(ov), max_cells), ov.dtype))
 
 
 @dataclass

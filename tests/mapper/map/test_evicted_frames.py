@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from mapper.kernels.average import OVView, kernel_average
-from mapper.map.evicted_frames import EvictedFrameStore, merged_prior, reduce_ov
+from mapper.map.evicted_frames import EvictedFrameStore, as_dtype, merged_prior, reduce_ov
 from mapper.node.config import ConfigError, config_from_dict
 from mapper.node.queries import SOURCE_MAP, SOURCE_NONE
 from mapper.node.service import MapperNode
@@ -54,6 +54,28 @@ def test_reduce_ov_whole_blocks_equal_the_area_weights() -> None:
                      _area_weights(160, 80).astype(np.float64))
     assert small.shape == (60, 80, 6) and small.dtype == np.float32
     np.testing.assert_allclose(small, want, atol=1e-6)
+
+
+def test_as_dtype_converts_half_floats_as_numpy_does() -> None:
+    """float16 <-> float32 through OpenCV: bit for bit numpy's cast (rounding, overflow to Inf,
+    signed zeros, subnormals, NaN), any shape and strides; other dtypes as numpy."""
+    rng = np.random.default_rng(3)
+    wide = (rng.standard_normal((7, 9, 5)) * 10.0 ** rng.integers(-9, 6, (7, 9, 5))).astype(np.float32)
+    wide.flat[:6] = [70000.0, -1e-9, -0.0, np.inf, -np.inf, np.nan]
+    with np.errstate(over="ignore"):
+        want16 = wide.astype(np.float16)
+    got16 = as_dtype(wide, np.float16)
+    assert got16.dtype == np.float16 and got16.flags.c_contiguous
+    assert np.array_equal(got16.view(np.uint16) & 0x7FFF >= 0x7C01, want16.view(np.uint16) & 0x7FFF >= 0x7C01)
+    finite = np.isfinite(want16)
+    assert np.array_equal(got16[finite].view(np.uint16), want16[finite].view(np.uint16))  # signed zeros too
+    assert np.array_equal(np.isinf(got16), np.isinf(want16))
+    half = want16[:, ::2, :]  # strided
+    got32 = as_dtype(half, np.float32)
+    assert got32.dtype == np.float32 and got32.shape == half.shape
+    np.testing.assert_array_equal(got32, half.astype(np.float32))
+    assert as_dtype(np.arange(4, dtype=np.int32), np.float32).tolist() == [0.0, 1.0, 2.0, 3.0]
+    assert as_dtype(np.zeros((0, 3), np.float16), np.float32).shape == (0, 3)
 
 
 def _random_views(rng: np.random.Generator, n: int, dim: int) -> list[tuple[Any, ...]]:
