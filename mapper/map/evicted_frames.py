@@ -67,7 +67,7 @@ def as_dtype(a: np.ndarray, dtype: Any) -> np.ndarray:
 
     flat = np.ascontiguousarray(a).reshape(-1, a.shape[-1])
     depth = cv2.CV_32F if dtype == np.float32 else cv2.CV_16F
-    return np.asarray(cv2.multiply(flat, 1.0, dtype=depth)).reshape(a.shape)
+    return np.asarray(cv2.multiply(flat, 1.0, dtype=depth)).reshape(a.shape)  # type: ignore[call-overload]
 
 
 def reduce_ov(ov: np.ndarray, max_cells: int) -> np.ndarray:
