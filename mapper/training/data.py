@@ -79,6 +79,7 @@ scenes (``RaySampler.extra_weight``); separate from the example's own stream, se
 _VOLUME_STREAM = 2
 _SENSOR_STREAM = 3  # sensor effects and source pose error (mapper.training.augment)
 _OV_NOISE_STREAM = 4  # the sources' OV maps made noisier (mapper.training.augment.ov_noise)
+_SCALE_STREAM = 5  # the example's world scaled (RaySampler.world_scale_prob)
 """Extra entropy word of the random stream that draws an example's number of volume sources
 (``RaySampler.volume_sources``); separate from the example's own stream."""
 
@@ -438,6 +439,45 @@ class SourceBatch:
         )
 
 
+def source_bounds(
+    scene: Scene, idx: np.ndarray, cfg: ModelConfig, *, frustum_range_m: float | None = None,
+    world_scale: float = 1.0,
+) -> VolumeBounds:
+    """The volume bounds (cfg.volume budget) over source frames ``idx`` (N,): from their depth
+    points, or, with ``frustum_range_m``, from their viewing frusta up to that range (the node's
+    ``model.max_range_m``, the same in any world), in the scene's world scaled by ``world_scale``."""
+    w_from_c = np.array(scene.world_from_cam[idx], np.float64)
+    w_from_c[:, :3, 3] *= world_scale
+    if frustum_range_m is not None:
+        w, h = scene.image_wh
+        pts = torch.cat(
+            [
+                frustum_points(
+                    torch.from_numpy(scene.K[i]).double(),
+                    torch.from_numpy(pose),
+                    w,
+                    h,
+                    min(0.2, 0.5 * frustum_range_m),
+                    frustum_range_m,
+                )
+                for i, pose in zip(idx, w_from_c, strict=True)
+            ]
+        ).float().numpy()
+    else:
+        pts = scene.points_m[idx].reshape(-1, 3) * np.float32(world_scale)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) == 0:  # no depth at all: a box around the cameras
+        centres = w_from_c[:, :3, 3]
+        pts = np.concatenate([centres - 1.0, centres + 1.0]).astype(np.float32)
+    vc = cfg.volume
+    return bounds_from_points(
+        torch.from_numpy(np.ascontiguousarray(pts, np.float32)),
+        max_voxels=vc.max_voxels,
+        min_voxel_size_m=vc.min_voxel_size_m,
+        margin_m=vc.margin_m,
+    )
+
+
 def source_batch(
     scene: Scene, indices: np.ndarray, cfg: ModelConfig, *, frustum_range_m: float | None = None
 ) -> SourceBatch:
@@ -446,34 +486,7 @@ def source_batch(
     does for frames without depth (``mapper.runtime.model_runtime``), so a model trained on both
     does not learn that surfaces lie near the volume's faces."""
     idx = np.asarray(indices, dtype=np.int64)
-    if frustum_range_m is not None:
-        w, h = scene.image_wh
-        pts = torch.cat(
-            [
-                frustum_points(
-                    torch.from_numpy(scene.K[i]).double(),
-                    torch.from_numpy(scene.world_from_cam[i]).double(),
-                    w,
-                    h,
-                    min(0.2, 0.5 * frustum_range_m),
-                    frustum_range_m,
-                )
-                for i in idx
-            ]
-        ).float().numpy()
-    else:
-        pts = scene.points_m[idx].reshape(-1, 3)
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    if len(pts) == 0:  # no depth at all: a box around the cameras
-        centres = scene.world_from_cam[idx, :3, 3]
-        pts = np.concatenate([centres - 1.0, centres + 1.0]).astype(np.float32)
-    vc = cfg.volume
-    bounds = bounds_from_points(
-        torch.from_numpy(pts),
-        max_voxels=vc.max_voxels,
-        min_voxel_size_m=vc.min_voxel_size_m,
-        margin_m=vc.margin_m,
-    )
+    bounds = source_bounds(scene, idx, cfg, frustum_range_m=frustum_range_m)
     return SourceBatch(
         rgb=torch.from_numpy(scene.rgb[idx]).permute(0, 3, 1, 2).float() / 255.0,
         ov=torch.from_numpy(scene.ov[idx]).permute(0, 3, 1, 2).float(),
@@ -564,6 +577,8 @@ class RaySampler:
         pose_noise_deg: float = 1.0,
         ov_noise_prob: float = 0.0,
         ov_noise_strength: float = 1.0,
+        world_scale_prob: float = 0.0,
+        world_scale_max: float = 1.5,
     ) -> None:
         if not scenes:
             raise ValueError("RaySampler needs at least one scene")
@@ -645,6 +660,14 @@ class RaySampler:
         """Fraction of examples whose sources' OV maps get noise and confused regions
         (:func:`mapper.training.augment.ov_noise` at ``ov_noise_strength``)."""
         self.ov_noise_strength = ov_noise_strength
+        if not 0.0 <= world_scale_prob <= 1.0 or not 1.0 <= world_scale_max <= 4.0:
+            raise ValueError(f"world_scale_prob {world_scale_prob} (0..1) or world_scale_max "
+                             f"{world_scale_max} (1..4) out of range")
+        self.world_scale_prob = world_scale_prob
+        """Fraction of examples whose whole world (camera centres, depths, the target's rays and
+        surface distances, the volume bounds) is scaled by a factor drawn log-uniformly in
+        [1 / ``world_scale_max``, ``world_scale_max``]: the same images, a room of another size."""
+        self.world_scale_max = world_scale_max
 
     def rng(self, step: int, item: int) -> np.random.Generator:
         return np.random.default_rng(np.random.SeedSequence([self.seed, step, item]))
@@ -733,6 +756,11 @@ class RaySampler:
                 from mapper.training.augment import ov_noise
 
                 sample.sources.ov = ov_noise(sample.sources.ov, rng_ov, self.ov_noise_strength)
+        if self.world_scale_prob > 0:  # its own stream: the rest is unchanged
+            rng_s = np.random.default_rng(np.random.SeedSequence([self.seed, step, item, _SCALE_STREAM]))
+            if rng_s.random() < self.world_scale_prob:
+                factor = float(np.exp(rng_s.uniform(-1.0, 1.0) * np.log(self.world_scale_max)))
+                scale_world(sample, scene, self.cfg, factor, range_m)
         return sample
 
     def _degrade(self, sample: TrainSample, rng: np.random.Generator) -> None:
@@ -746,6 +774,26 @@ class RaySampler:
             scale = float(rng.random())
             sample.sources.world_from_cam = perturb_poses(
                 sample.sources.world_from_cam, rng, scale * self.pose_noise_m, scale * self.pose_noise_deg)
+
+
+def scale_world(
+    sample: TrainSample, scene: Scene, cfg: ModelConfig, factor: float, frustum_range_m: float | None
+) -> None:
+    """``sample`` in its scene's world scaled by ``factor`` about the origin, in place: the sources'
+    camera centres and depths, the target rays' origins and surface distances, and the volume
+    bounds as :func:`source_batch` makes them there (frusta keep their range in metres, as the
+    node's ``model.max_range_m``). Images, OV maps and ray directions are unchanged."""
+    f = np.float32(factor)
+    sources = sample.sources
+    poses = sources.world_from_cam.clone()
+    poses[:, :3, 3] *= f
+    sources.world_from_cam = poses
+    sources.depth_m = sources.depth_m * f
+    sample.origins = sample.origins * f
+    if sample.target_t is not None:
+        sample.target_t = sample.target_t * f
+    sources.bounds = source_bounds(scene, sources.indices, cfg, frustum_range_m=frustum_range_m,
+                                   world_scale=factor)
 
 
 POINT_OV_TARGETS = ("frame", "visible_mean")

@@ -194,6 +194,14 @@ class TrainConfig:
     stays). 0 = off."""
     ov_noise_strength: float = 1.0
     """Size of that noise (0..4; 1: std up to half the cells' mean norm)."""
+    world_scale_prob: float = 0.0
+    """Fraction of examples whose world is scaled (camera centres, depths, the target's rays, the
+    volume bounds; ``mapper.training.data.scale_world``) by a factor drawn log-uniformly in
+    [1 / ``world_scale_max``, ``world_scale_max``]: rooms of other sizes behind the same images, so
+    the depth the model renders follows the cost volume rather than the training rooms' sizes.
+    0 = off."""
+    world_scale_max: float = 1.5
+    """Largest factor of that scaling (1..4)."""
     depth_guided_masking: bool = False
     """Depth Guided Masking in every example (the rays' samples and the surface points)."""
     depth_guided_masking_prob: float = 0.0
@@ -265,6 +273,8 @@ class TrainConfig:
             (0.0 <= self.sensor_strength <= 4.0, "sensor_strength", "in [0, 4]"),
             (0.0 <= self.pose_noise_prob <= 1.0, "pose_noise_prob", "in [0, 1]"),
             (0.0 <= self.ov_noise_prob <= 1.0, "ov_noise_prob", "in [0, 1]"),
+            (0.0 <= self.world_scale_prob <= 1.0, "world_scale_prob", "in [0, 1]"),
+            (1.0 <= self.world_scale_max <= 4.0, "world_scale_max", "in [1, 4]"),
             (0.0 <= self.ov_noise_strength <= 4.0, "ov_noise_strength", "in [0, 4]"),
             (self.pose_noise_m >= 0, "pose_noise_m", ">= 0"),
             (self.pose_noise_deg >= 0, "pose_noise_deg", ">= 0"),
@@ -764,6 +774,8 @@ def _load_data(cfg: TrainConfig, dd: _Dist, model_cfg: ModelConfig | None) -> _D
         pose_noise_deg=cfg.pose_noise_deg,
         ov_noise_prob=cfg.ov_noise_prob,
         ov_noise_strength=cfg.ov_noise_strength,
+        world_scale_prob=cfg.world_scale_prob,
+        world_scale_max=cfg.world_scale_max,
         extra_scenes=extra_scenes,
         extra_weight=cfg.extra_train_weight,
         volume_sources=cfg.volume_sources,

@@ -155,3 +155,40 @@ def test_sampler_ov_noise_touches_only_the_sources_ov(scene_dir: Path) -> None:
     assert changed == 4
     with pytest.raises(ValueError, match="ov_noise_prob"):
         RaySampler([s], cfg, rays_per_view=8, ov_noise_prob=2.0)
+
+
+def test_sampler_world_scale_scales_every_length_and_nothing_else(scene_dir: Path) -> None:
+    """``world_scale_prob``: the example's camera centres, depths, rays' origins and surface distances
+    scaled by one factor in [1 / max, max], the volume bounds made in that world; the images, OV
+    maps and ray directions as they were."""
+    from mapper.training.data import source_bounds
+
+    s = load_scene(scene_dir)
+    cfg = tiny_model_config()
+    plain = RaySampler([s], cfg, rays_per_view=32, seed=5)
+    scaled = RaySampler([s], cfg, rays_per_view=32, seed=5, world_scale_prob=1.0, world_scale_max=2.0)
+    factors = []
+    for step in range(6):
+        a, b = plain.sample(step, 0), scaled.sample(step, 0)
+        for name in ("target_ov", "target_rgb", "directions"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
+        assert torch.equal(a.sources.rgb, b.sources.rgb) and torch.equal(a.sources.ov, b.sources.ov)
+        ta, tb = a.sources.world_from_cam[:, :3, 3], b.sources.world_from_cam[:, :3, 3]
+        f = float(tb.norm() / ta.norm())
+        assert 0.5 - 1e-6 <= f <= 2.0 + 1e-6
+        torch.testing.assert_close(tb, ta * f, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(b.sources.world_from_cam[:, :3, :3], a.sources.world_from_cam[:, :3, :3])
+        torch.testing.assert_close(b.sources.depth_m, a.sources.depth_m * f, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(b.origins, a.origins * f, rtol=1e-5, atol=1e-6)
+        assert a.target_t is not None and b.target_t is not None
+        torch.testing.assert_close(b.target_t, a.target_t * f, rtol=1e-5, atol=1e-6)
+        # the bounds of the depth points or of the frusta (4 m, as the sampler's default), in the scaled world
+        want = [source_bounds(s, b.sources.indices, cfg, frustum_range_m=r, world_scale=f)
+                for r in (None, 4.0)]
+        assert b.sources.bounds in want
+        factors.append(f)
+    assert max(factors) / min(factors) > 1.1  # drawn per example
+    assert torch.equal(plain.sample(0, 0).origins, RaySampler([s], cfg, rays_per_view=32, seed=5,
+                                                              world_scale_prob=0.0).sample(0, 0).origins)
+    with pytest.raises(ValueError, match="world_scale"):
+        RaySampler([s], cfg, rays_per_view=8, world_scale_prob=0.5, world_scale_max=0.5)
