@@ -354,8 +354,10 @@ class SegmentAnswers:
             return window, True, None
         q = self.ctx.config.queries
         mix, share = q.learned_average_mix, q.learned_evicted_views
-        if share > 0 and (self.ctx.map_blend(depth_tested=depth_tested) > 0 or not self._has_evicted_views()):
-            share = 0.0  # the map's blend mixes the evicted views' mean in already (a window with depth)
+        if self.ctx.map_blend(depth_tested=depth_tested) > 0:  # a window with depth, no depth test
+            share = q.learned_evicted_views_blended
+        if share > 0 and not self._has_evicted_views():
+            share = 0.0
         if not learned or (mix <= 0 and share <= 0):
             return backend.segment(msg, want_cos), False, None
         answer = backend.segment(msg, True)

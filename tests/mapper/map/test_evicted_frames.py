@@ -439,3 +439,30 @@ def test_the_learned_answer_reads_the_learned_maps_offered_before_or_after_a_vie
     assert answered.sum() > 20 and np.array_equal(source, source_p)
     changed = answered & (label_l != label_p)
     assert changed.sum() > 0 and (label_l[changed] == 3).all()  # only ever toward the learned maps' text
+
+
+@pytest.mark.parametrize("share", [0.0, 1.0])
+def test_learned_answers_with_depth_mix_the_evicted_views_before_the_maps_blend(
+    tmp_path: Path, share: float
+) -> None:
+    """``queries.learned_evicted_views_blended``: in a window with depth, where ``map_blend`` applies
+    (``govnesf`` without a depth test), the model's cosines are mixed with the voxels' evicted views
+    by their share before the map's blend; at 0 the answer is as before (the map's blend alone)."""
+    from mapper.node.answers.segment import SegmentAnswers
+
+    def answers(weight: float) -> Any:
+        node = _node(tmp_path, 2, learned_evicted_views_blended=weight)
+        _stream(node, _frames(depth=True))
+        assert isinstance(node.segment, SegmentAnswers)
+        node.segment.register("govnesf", _ConstantLearned())  # type: ignore[arg-type]
+        return node, _segment(node, "govnesf", _wall())
+
+    node, got = answers(share)
+    _, off = answers(0.0)
+    assert node.ctx.map_blend(depth_tested=False) > 0  # the window has depth: the blend applies
+    mixed = got.timing_ms.get("mixed", 0.0)
+    if share == 0.0:
+        assert mixed == 0.0
+    else:
+        assert mixed > 20  # points the evicted views count for took their share
+        assert not np.array_equal(got.score, off.score)

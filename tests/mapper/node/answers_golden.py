@@ -17,7 +17,9 @@ depth-tested view selection (``global_map.learned_features_depth_test``), and ag
 again when the evicted views' ``all`` channel began leaving out what a keyframe with depth cannot
 see (``queries.evicted_views_occlusion``), and again when ``govnesf``'s answers began taking the
 averaging's per point where the averaging's is far more decided (``queries.learned_toward_average``;
-with it at 0 the answers equal the stored ones before).
+with it at 0 the answers equal the stored ones before), and again when ``govnesf``'s answers
+without a depth test in a window with depth began mixing the evicted views' mean by their share too
+(``queries.learned_evicted_views_blended``; with it at 0 the answers equal the stored ones before).
 """
 
 from __future__ import annotations
