@@ -22,18 +22,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import tempfile
-import time
 from typing import Any
 
 import numpy as np
 
+from benchmarks.studies.query_settings import settled_node
 from clients.harness import mean_iou
 from clients.matrix.driver import RunSettings, prepare
 from clients.matrix.scenarios import Scenario, build_matrix
 from clients.sim.scenes import CLASS_NAMES
-
-SETTLE_TIMEOUT_S = 600.0
 
 
 def _labels(cos: np.ndarray, seen: np.ndarray) -> np.ndarray:
@@ -43,48 +40,29 @@ def _labels(cos: np.ndarray, seen: np.ndarray) -> np.ndarray:
 
 def evidence(scenario: Scenario, overrides: dict[str, Any]) -> dict[str, Any]:
     """The figures of one scenario (module docstring)."""
-    from mapper.node.config import load_config
     from mapper.node.queries import segment_average_cosines
-    from mapper.node.serve import install_serve_stages
-    from mapper.node.service import MapperNode
     from protocol.messages import Segmentation, SegmentPoints, decode, encode
 
     prep = prepare(scenario, RunSettings())
     texts, xyz, gt = list(CLASS_NAMES), np.asarray(prep.gt_xyz, np.float32), prep.gt_label
     out: dict[str, Any] = {"scenario": scenario.name}
-    with tempfile.TemporaryDirectory(prefix="govnesf-evidence-") as tmp:
-        cfg = load_config(None, {
-            "map_dir": tmp, "autosave_name": "", "save_on_exit": False, "load_autosave_on_start": False,
-            "ingest_endpoint": f"ipc://{tmp}/ingest", "query_endpoint": f"ipc://{tmp}/query",
-            "events_endpoint": "", **overrides,
-        })  # fmt: skip
-        node = MapperNode(cfg)
-        install_serve_stages(node)
-        node.start()
-        try:
-            started = time.perf_counter()
-            for frame in prep.frames:
-                node.handle_ingest(encode(frame))
-            while not node.ctx.settled() and time.perf_counter() - started < SETTLE_TIMEOUT_S:
-                time.sleep(0.5)
-            for method in ("govnesf", "average"):
-                reply = decode(node.handle_query(encode(SegmentPoints(xyz=xyz, texts=texts, method=method))),
-                               direction="reply")
-                assert isinstance(reply, Segmentation), reply
-                out[method] = 100.0 * mean_iou(np.asarray(reply.label, np.int64), gt, len(texts))[0]
-            learned = node.segment.backends["govnesf"].segment(
-                SegmentPoints(xyz=xyz, texts=texts, method="govnesf"), True)
-            averaging = node.segment.backends["average"].segment(  # type: ignore[call-arg]
-                SegmentPoints(xyz=xyz, texts=texts, method="average"), True, want_evicted=True)
-            with node.ctx.state.lock:
-                keyframes = list(node.ctx.state.window.keyframes)
-            views = [(k.ov, k.K, k.world_from_cam, (k.width, k.height), k.depth_m) for k in keyframes
-                     if k.ov is not None]
-            assert averaging.text_emb is not None and learned.cos is not None
-            emb = averaging.text_emb
-            window_cos, window_views = segment_average_cosines(xyz, views, emb, use_depth=False)
-        finally:
-            node.stop()
+    with settled_node(prep, overrides) as (node, _):
+        for method in ("govnesf", "average"):
+            reply = decode(node.handle_query(encode(SegmentPoints(xyz=xyz, texts=texts, method=method))),
+                           direction="reply")
+            assert isinstance(reply, Segmentation), reply
+            out[method] = 100.0 * mean_iou(np.asarray(reply.label, np.int64), gt, len(texts))[0]
+        learned = node.segment.backends["govnesf"].segment(
+            SegmentPoints(xyz=xyz, texts=texts, method="govnesf"), True)
+        averaging = node.segment.backends["average"].segment(  # type: ignore[call-arg]
+            SegmentPoints(xyz=xyz, texts=texts, method="average"), True, want_evicted=True)
+        with node.ctx.state.lock:
+            keyframes = list(node.ctx.state.window.keyframes)
+        views = [(k.ov, k.K, k.world_from_cam, (k.width, k.height), k.depth_m) for k in keyframes
+                 if k.ov is not None]
+        assert averaging.text_emb is not None and learned.cos is not None
+        emb = averaging.text_emb
+        window_cos, window_views = segment_average_cosines(xyz, views, emb, use_depth=False)
     lab_learned = _labels(learned.cos, learned.answered())
     lab_window = _labels(window_cos, window_views > 0)
     evicted = averaging.evicted_views if averaging.evicted_views is not None else np.zeros(len(gt))

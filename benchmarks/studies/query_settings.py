@@ -26,11 +26,13 @@ Choose settings on tuning seeds only (``--split tune``); the held-out split is f
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -69,19 +71,18 @@ def parse_variants(text: str) -> dict[str, dict[str, Any]]:
     return variants
 
 
-def answer_variants(
-    scenario: Scenario, variants: dict[str, dict[str, Any]], overrides: dict[str, Any]
-) -> dict[str, dict[str, float]]:
-    """Per variant, the 3D mIoU of each method (``NAMES``; the depth-tested ones only where
-    the node answers them) on one settled node streamed with ``scenario``."""
+@contextlib.contextmanager
+def settled_node(prep: Any, overrides: dict[str, Any]) -> Iterator[tuple[Any, float]]:
+    """A node built in this process as ``govnesf serve`` builds it (default settings and
+    ``overrides``, dotted keys), the prepared scenario (:func:`clients.matrix.driver.prepare`)
+    streamed into it and nothing pending (at most ``SETTLE_TIMEOUT_S``): yields (the node, seconds
+    to stream and settle); stopped on exit."""
     from mapper.node.config import load_config
     from mapper.node.serve import install_serve_stages
     from mapper.node.service import MapperNode
-    from protocol.messages import Segmentation, SegmentPoints, decode, encode
+    from protocol.messages import encode
 
-    prep = prepare(scenario, RunSettings())
-    out: dict[str, dict[str, float]] = {}
-    with tempfile.TemporaryDirectory(prefix="govnesf-query-settings-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="govnesf-study-") as tmp:
         cfg = load_config(None, {
             "map_dir": tmp, "autosave_name": "", "save_on_exit": False, "load_autosave_on_start": False,
             "ingest_endpoint": f"ipc://{tmp}/ingest", "query_endpoint": f"ipc://{tmp}/query",
@@ -96,26 +97,38 @@ def answer_variants(
                 node.handle_ingest(encode(frame))
             while not node.ctx.settled() and time.perf_counter() - started < SETTLE_TIMEOUT_S:
                 time.sleep(0.5)
-            took = time.perf_counter() - started
-            print(f"{scenario.name}: streamed and settled in {took:.0f} s", flush=True)
-            queries = node.ctx.config.queries
-            defaults = {k: getattr(queries, k) for v in variants.values() for k in v}
-            for name, settings in variants.items():
-                for key, value in {**defaults, **settings}.items():
-                    object.__setattr__(queries, key, value)  # frozen: replaced in place between variants
-                queries.validate("--variants")
-                scores: dict[str, float] = {}
-                for label, (method, use_depth) in zip(NAMES, METHODS, strict=True):
-                    msg = SegmentPoints(xyz=prep.gt_xyz, texts=list(CLASS_NAMES), method=method,  # type: ignore[arg-type]
-                                        use_depth=use_depth)
-                    reply = decode(node.handle_query(encode(msg)), direction="reply")
-                    if isinstance(reply, Segmentation):
-                        pred = np.asarray(reply.label, np.int64)
-                        scores[label] = 100.0 * mean_iou(pred, prep.gt_label, len(CLASS_NAMES))[0]
-                out[name] = scores
-                print(f"  {name:>12}: " + "  ".join(f"{k} {v:.1f}" for k, v in scores.items()), flush=True)
+            yield node, time.perf_counter() - started
         finally:
             node.stop()
+
+
+def answer_variants(
+    scenario: Scenario, variants: dict[str, dict[str, Any]], overrides: dict[str, Any]
+) -> dict[str, dict[str, float]]:
+    """Per variant, the 3D mIoU of each method (``NAMES``; the depth-tested ones only where
+    the node answers them) on one settled node streamed with ``scenario``."""
+    from protocol.messages import Segmentation, SegmentPoints, decode, encode
+
+    prep = prepare(scenario, RunSettings())
+    out: dict[str, dict[str, float]] = {}
+    with settled_node(prep, overrides) as (node, took):
+        print(f"{scenario.name}: streamed and settled in {took:.0f} s", flush=True)
+        queries = node.ctx.config.queries
+        defaults = {k: getattr(queries, k) for v in variants.values() for k in v}
+        for name, settings in variants.items():
+            for key, value in {**defaults, **settings}.items():
+                object.__setattr__(queries, key, value)  # frozen: replaced in place between variants
+            queries.validate("--variants")
+            scores: dict[str, float] = {}
+            for label, (method, use_depth) in zip(NAMES, METHODS, strict=True):
+                msg = SegmentPoints(xyz=prep.gt_xyz, texts=list(CLASS_NAMES), method=method,  # type: ignore[arg-type]
+                                    use_depth=use_depth)
+                reply = decode(node.handle_query(encode(msg)), direction="reply")
+                if isinstance(reply, Segmentation):
+                    pred = np.asarray(reply.label, np.int64)
+                    scores[label] = 100.0 * mean_iou(pred, prep.gt_label, len(CLASS_NAMES))[0]
+            out[name] = scores
+            print(f"  {name:>12}: " + "  ".join(f"{k} {v:.1f}" for k, v in scores.items()), flush=True)
     return out
 
 
