@@ -326,6 +326,14 @@ class StereoConfig:
     worker keeps up with the cheaper sparse geometry instead of dropping keyframes. 0 = never
     skip. 0..100000."""
 
+    max_deferred: int = 32
+    """A sweep skipped while busy (``max_backlog``) is remembered and done later, oldest first,
+    whenever no keyframe waits for the worker (``status``: ``stereo.deferred``, ``deferred_swept``,
+    ``deferred_forgotten``); beyond this many remembered, the oldest is forgotten. A stream sent as
+    fast as acks come back had 22-37 of its 40-54 keyframes skipped for good before (the scenario
+    matrix's RGB-only streams: docs/concepts/rgb-only.md). Each holds its keyframe (and its
+    partners' working images) until swept. 0 = a skipped sweep is never done. 0..100000."""
+
     max_width: int = 200
     """Keyframes wider than this are swept at this width (area-downscaled; the depth is scaled
     back up, nearest pixel): the cost grows with the pixels. 16..4096."""
@@ -420,6 +428,7 @@ class StereoConfig:
         check("sigma_rel", self.sigma_rel, 1e-4, 1.0)
         check("max_points", self.max_points, 0, 100_000_000)
         check("max_backlog", self.max_backlog, 0, 100_000)
+        check("max_deferred", self.max_deferred, 0, 100_000)
 
 
 FLOW_PRESETS = ("ultrafast", "fast", "medium")

@@ -31,7 +31,9 @@ depth range from its triangulated points); depths that a partner's own depth con
 global map (``stereo.global_map_weight``), are kept as points with a relative sigma for the
 rendered-depth points' consistency check (:meth:`SparseTriangulation.geometry_points`), and, filled
 along the image, become the runtime's depth prior. With more than ``stereo.max_backlog`` keyframes
-waiting the sweep is skipped (the worker keeps up with the sparse geometry). Points added before
+waiting the sweep is put off (the worker keeps up with the sparse geometry) and done later, oldest
+first, whenever no keyframe waits (``stereo.max_deferred`` remembered; ``pending`` counts them, so
+the node is not settled before they are swept). Points added before
 the in-process OV backend encoded their keyframe get its features later
 (``node.feature_listeners`` -> :meth:`SparseTriangulation.on_features`).
 
@@ -258,6 +260,19 @@ def swept_keyframe(
     )
 
 
+@dataclass
+class _DeferredSweep:
+    """A sweep put off while the worker was busy (``stereo.max_backlog``): what it needs later."""
+
+    keyframe: Any  # as triangulated (the refined pose where refine_poses moved it)
+    image: _StereoImage
+    partners: list[_Candidate]
+    points: SparsePoints
+    target: GlobalSemanticMap  # the map it belongs to
+    generation: int  # the triangulation's generation when it was put off (a load forgets it)
+    restored: bool  # a keyframe of a loaded window: its points are in the map already
+
+
 class _KeyframeBudget(Generic[T]):
     """Per-keyframe items (newest last) whose sizes sum to at most ``budget``: beyond it the oldest
     keyframes' items go first, but a keyframe's own item is never split or dropped for itself."""
@@ -462,6 +477,10 @@ class SparseTriangulation:
         self.stereo_map_points = 0
         self.stereo_seconds_total = 0.0
         self.stereo_skipped_busy = 0
+        self._deferred: deque[_DeferredSweep] = deque()  # sweeps put off while busy, newest last
+        self._sweeping_deferred = 0  # 1 while a put-off sweep is being done (for `pending`)
+        self.deferred_swept = 0
+        self.deferred_forgotten = 0
         self._priors = _DepthPriors(ctx, self.config, self.stereo, runtime, self._lock)
         self.poses = KeyframePoses(self.config)  # triangulation.refine_poses
         self._log = LimitedLog(log)
@@ -504,7 +523,13 @@ class SparseTriangulation:
 
     @property
     def pending(self) -> int:
-        """Keyframes waiting, including those of the batch the worker took and has not finished."""
+        """Keyframes waiting, including those of the batch the worker took and has not finished,
+        and the sweeps put off while busy (``stereo.max_deferred``)."""
+        return self._waiting + len(self._deferred) + self._sweeping_deferred
+
+    @property
+    def _waiting(self) -> int:
+        """Keyframes queued or in the batch being worked on (what ``stereo.max_backlog`` counts)."""
         return len(self._queue) + self._in_batch
 
     def process_pending(self) -> int:
@@ -524,7 +549,9 @@ class SparseTriangulation:
                     done += self._process_one(kf, version, target, restored)
                 finally:
                     self._in_batch -= 1
-            if done:
+            self._in_batch = 0
+            swept_later = self.sweep_deferred()
+            if done or swept_later:
                 try:
                     self.refresh_priors()
                 except Exception as exc:  # a bad geometry point must not kill the worker
@@ -533,6 +560,69 @@ class SparseTriangulation:
         finally:
             self._in_batch = 0
             self._work_lock.release()
+
+    def sweep_deferred(self) -> int:
+        """Do the sweeps put off while busy, oldest first (a sweep keeps the depths its partners'
+        own depths confirm, and its partners are older keyframes), while no keyframe waits (the
+        worker thread, from :meth:`process_pending`); returns how many were swept."""
+        swept = 0
+        while not self._stop.is_set() and not len(self._queue):
+            with self._lock:
+                if not self._deferred:
+                    break
+                item = self._deferred.popleft()
+                self._sweeping_deferred = 1
+            try:
+                swept += self._sweep_deferred_one(item)
+            finally:
+                self._sweeping_deferred = 0
+        return swept
+
+    def _defer(self, item: _DeferredSweep) -> None:
+        """Remember a sweep put off while busy (``_lock`` held): beyond ``stereo.max_deferred`` the
+        oldest is forgotten."""
+        if self.stereo.max_deferred <= 0:
+            return
+        self._deferred.append(item)
+        while len(self._deferred) > self.stereo.max_deferred:
+            self._deferred.popleft()
+            self.deferred_forgotten += 1
+
+    def _sweep_deferred_one(self, item: _DeferredSweep) -> int:
+        """One put-off sweep, kept, fused and made a prior as :meth:`_process_one` does; 1 when kept."""
+        with self._lock:
+            if item.generation != self._generation:  # a load since: its map was replaced
+                self.deferred_forgotten += 1
+                return 0
+        try:
+            swept = self._sweep(item.image, item.partners, item.points)
+        except Exception as exc:  # bad input, OpenCV errors: count, never kill the worker
+            self._failed(item.keyframe, exc)
+            return 0
+        if swept is None:
+            self.deferred_forgotten += 1
+            return 0
+        key = keyframe_key(item.keyframe)
+        with self._lock:
+            if item.generation != self._generation:
+                self.deferred_forgotten += 1
+                return 0
+            self._store_swept(key, item.image, swept[0], swept[1])
+        current = self._current(item.keyframe)
+        swept_frame = swept_keyframe(current, swept[0], swept[1], self.stereo)
+        self._priors.set(item.keyframe, item.points, swept_frame, item.image, self.geometry_points)
+        if not item.restored:
+            self._integrate_swept(current, swept_frame, item.target)
+        self.deferred_swept += 1
+        return 1
+
+    def _current(self, keyframe: Any) -> Any:
+        """``keyframe`` with its OV features if they came since it was queued, at its pose as
+        triangulated (the window's copy carries the pose as sent)."""
+        current = with_current_features(self.ctx, keyframe)
+        if current is not keyframe:
+            current = replace(current, world_from_cam=keyframe.world_from_cam)
+        return current
 
     def _process_one(self, keyframe: Any, map_version: int, target: GlobalSemanticMap,
                      restored: bool = False) -> int:
@@ -583,11 +673,13 @@ class SparseTriangulation:
             points = triangulate_keyframe(self.extractor, view, features, partners, self.config, matched)
             if points.feature_index is not None:
                 own.points = (points.feature_index, points.xyz)
-            swept = None
+            swept, deferred = None, None
             if image is not None:
                 backlog = self.stereo.max_backlog
-                if backlog and self.pending > backlog:  # keep up: sparse geometry only for now
+                if backlog and self._waiting > backlog:  # keep up: sparse geometry now, the sweep later
                     self.stereo_skipped_busy += 1
+                    deferred = _DeferredSweep(keyframe, image, [candidates[i] for i in chosen], points,
+                                              target, generation, restored)
                 else:
                     swept = self._sweep(image, [candidates[i] for i in chosen], points)
         except Exception as exc:  # bad input, OpenCV errors (cv2.error): count, never kill the worker
@@ -600,11 +692,11 @@ class SparseTriangulation:
             self._store(keyframe_key(keyframe), points)
             if swept is not None and image is not None:
                 self._store_swept(keyframe_key(keyframe), image, swept[0], swept[1])
+            if deferred is not None:
+                self._defer(deferred)
             if self.runtime is not None and self.config.bounds:
                 self._set_extent(keyframe_key(keyframe), view, points)
-        current = with_current_features(self.ctx, keyframe)  # its OV features, if they came meanwhile
-        if current is not keyframe:  # the window's copy carries the pose as sent
-            current = replace(current, world_from_cam=keyframe.world_from_cam)
+        current = self._current(keyframe)  # its OV features, if they came meanwhile
         swept_frame = None if swept is None else swept_keyframe(current, swept[0], swept[1], self.stereo)
         self._priors.set(keyframe, points, swept_frame, image, self.geometry_points)
         self.restored += int(restored)
@@ -678,6 +770,8 @@ class SparseTriangulation:
         self._points.clear()
         self._swept.clear()
         self._featureless.clear()
+        self.deferred_forgotten += len(self._deferred)
+        self._deferred.clear()
         self._candidates.clear()
         self._room_depths.clear()
         self._without_extent.clear()
@@ -823,6 +917,9 @@ class SparseTriangulation:
         with self._lock:
             pts = sum(p.xyz.nbytes + p.sigma_m.nbytes * 5 + p.uv.nbytes for p in self._points.items.values())
             pts += self._priors.nbytes_locked()
+            for item in self._deferred:  # the put-off sweeps' own working images
+                depth = item.image.depth_m
+                pts += item.image.view.gray.nbytes + (0 if depth is None else depth.nbytes)
             candidates = list(self._candidates)
         feats = 0
         for c in candidates:
@@ -877,6 +974,9 @@ class SparseTriangulation:
                 "global_map_points": self.stereo_map_points,
                 "points": self._swept.total,
                 "skipped_busy": self.stereo_skipped_busy,
+                "deferred": len(self._deferred) + self._sweeping_deferred,
+                "deferred_swept": self.deferred_swept,
+                "deferred_forgotten": self.deferred_forgotten,
                 "mean_ms": round(1e3 * self.stereo_seconds_total / max(self.stereo_keyframes, 1), 1),
                 "prior_refreshes": self._priors.refreshes,
             },

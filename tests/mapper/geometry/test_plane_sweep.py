@@ -352,7 +352,7 @@ def test_stacked_box_filter_and_top_k_equal_their_plain_definitions() -> None:
 
 
 def test_a_backlog_skips_the_sweep_but_not_the_triangulation(tmp_path: Path, texture: np.ndarray) -> None:
-    node = make_node(tmp_path, {"top_k": 1, "max_backlog": 1})
+    node = make_node(tmp_path, {"top_k": 1, "max_backlog": 1, "max_deferred": 0})
     try:
         tri = SparseTriangulation(node.ctx, runtime=Sink())
         tri.install()
@@ -362,7 +362,63 @@ def test_a_backlog_skips_the_sweep_but_not_the_triangulation(tmp_path: Path, tex
         assert tri.process_pending() == 3
         stereo = tri.stats()["stereo"]
         assert stereo["skipped_busy"] == 2 and stereo["keyframes"] == 1
+        assert stereo["deferred"] == 0 and stereo["deferred_swept"] == 0  # max_deferred 0: never done
         assert tri.stats()["keyframes"] == 3 and len(tri.points()[0]) > 0  # all three triangulated
+    finally:
+        node.stop()
+
+
+def test_sweeps_put_off_while_busy_are_done_once_no_keyframe_waits(
+    tmp_path: Path, texture: np.ndarray
+) -> None:
+    node = make_node(tmp_path, {"top_k": 1, "max_backlog": 1})
+    try:
+        sink = Sink()
+        tri = SparseTriangulation(node.ctx, runtime=sink)
+        tri.install()
+        for i in (0, 1, 2, 3):
+            node.handle_ingest(encode(plane_frame(i, texture, depth=i == 0)))
+        points_before = len(node.state.global_map)
+        assert tri.process_pending() == 3
+        stereo = tri.stats()["stereo"]
+        # two put off while the batch waited, then swept (oldest first) once the queue was empty
+        assert stereo["skipped_busy"] == 2 and stereo["deferred_swept"] == 2 and stereo["deferred"] == 0
+        assert stereo["keyframes"] == 3 and stereo["deferred_forgotten"] == 0 and tri.pending == 0
+        assert len(node.state.global_map) > points_before  # their depths reached the map
+        prior = sink.priors[keyframe_key(plane_frame(2, texture))]  # and became priors
+        truth = plane_depth(POSES[2])
+        on = prior > 0
+        assert on.mean() > 0.3 and np.median(np.abs(prior[on] - truth[on]) / truth[on]) < 0.02
+    finally:
+        node.stop()
+
+
+def test_put_off_sweeps_beyond_max_deferred_or_before_a_load_are_forgotten(
+    tmp_path: Path, texture: np.ndarray
+) -> None:
+    import dataclasses
+
+    node = make_node(tmp_path, {"top_k": 1, "max_backlog": 1, "max_deferred": 1})
+    try:
+        tri = SparseTriangulation(node.ctx, runtime=Sink())
+        tri.install()
+        for i in (0, 1, 2, 3):
+            node.handle_ingest(encode(plane_frame(i, texture, depth=i == 0)))
+        tri.process_pending()
+        stereo = tri.stats()["stereo"]
+        assert stereo["deferred_forgotten"] == 1 and stereo["deferred_swept"] == 1
+        # a put-off sweep of a map that a load replaced is forgotten, never fused into the new map
+        for n, i in enumerate((1, 2)):  # two more RGB-only keyframes (poses seen before, new stamps)
+            again = dataclasses.replace(plane_frame(i, texture), seq=4 + n, stamp_ns=2000 + n)
+            node.handle_ingest(encode(again))
+        for item in tri._queue.drain():  # as the worker would with more keyframes waiting: put off
+            tri._in_batch = 3
+            tri._process_one(*item)
+        tri._in_batch = 0
+        assert tri.pending == 1  # one remembered (max_deferred), the other forgotten
+        tri.on_map_loaded(node.state.global_map, 10**9)
+        assert tri.pending == 0 and tri.sweep_deferred() == 0
+        assert tri.stats()["stereo"]["deferred_forgotten"] == 3 and tri.stats()["stereo"]["deferred_swept"] == 1
     finally:
         node.stop()
 
