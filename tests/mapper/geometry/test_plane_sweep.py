@@ -418,7 +418,8 @@ def test_put_off_sweeps_beyond_max_deferred_or_before_a_load_are_forgotten(
         assert tri.pending == 1  # one remembered (max_deferred), the other forgotten
         tri.on_map_loaded(node.state.global_map, 10**9)
         assert tri.pending == 0 and tri.sweep_deferred() == 0
-        assert tri.stats()["stereo"]["deferred_forgotten"] == 3 and tri.stats()["stereo"]["deferred_swept"] == 1
+        stereo = tri.stats()["stereo"]
+        assert stereo["deferred_forgotten"] == 3 and stereo["deferred_swept"] == 1
     finally:
         node.stop()
 
