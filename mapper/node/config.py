@@ -47,6 +47,15 @@ from mapper.runtime.config import ModelRuntimeConfig
 DEFAULT_CONFIG_PATH = find_data_file("launch/node.toml")
 
 
+OBJECT_VOCABULARY: tuple[str, ...] = (
+    "cabinet", "bed", "chair", "sofa", "table", "door", "window", "bookshelf", "picture", "counter",
+    "desk", "curtain", "refrigerator", "shower curtain", "toilet", "sink", "bathtub",
+)
+"""The default ``queries.object_vocabulary``: the object classes of ScanNet's 20-class benchmark
+(wall, floor and "other furniture" left out), the field's common indoor label set: what a found
+object may be instead of the text asked for (:func:`mapper.node.queries.vocabulary_factor`)."""
+
+
 @dataclass(frozen=True)
 class QueryConfig:
     """Semantic queries (see :mod:`mapper.node.queries`)."""
@@ -89,6 +98,19 @@ class QueryConfig:
     furniture: the largest merged table-and-chairs candidate measured had 1 652 points,
     docs/concepts/window-and-map.md); the split's cost is a pass over half a candidate's points. 0 = no limit.
     0..100000000."""
+
+    object_vocabulary: tuple[str, ...] = OBJECT_VOCABULARY
+    """What a found object may be instead of the text asked for (a TOML list of strings; default
+    :data:`OBJECT_VOCABULARY`, ScanNet's 20 benchmark classes less wall, floor and "other
+    furniture"). Words within the negatives' similarity (0.8) of a text asked for are left out.
+    See ``object_vocabulary_temperature``."""
+
+    object_vocabulary_temperature: float = 0.05
+    """``query_points`` objects: an object's score is multiplied by ``exp(min(0, m) / this)``, ``m``
+    the cosine of its mean feature with its text minus its best cosine with a word of
+    ``object_vocabulary``: a sofa found for "chair" (its features nearer "sofa") falls behind the
+    chairs (:func:`mapper.node.queries.vocabulary_factor`). Points are labelled as before; only the
+    objects' scores and order change. 0 = off. 0..10."""
 
     max_objects: int = 32
     """Most object candidates per reply (best first). >= 1."""
@@ -349,6 +371,10 @@ class QueryConfig:
         _check_range(where, "queries.object_split_clean_share", self.object_split_clean_share, 0.0, 1.0)
         _check_range(where, "queries.light_text_chars", self.light_text_chars, 0, 1_000_000)
         _check_range(where, "queries.max_objects", self.max_objects, 1, 10_000)
+        _check_range(where, "queries.object_vocabulary_temperature", self.object_vocabulary_temperature,
+                     0.0, 10.0)
+        if not all(w.strip() for w in self.object_vocabulary) or len(self.object_vocabulary) > 1024:
+            raise ConfigError(f"{where}: queries.object_vocabulary must be at most 1024 non-empty words")
         _check_range(where, "queries.max_settle_wait_s", self.max_settle_wait_s, 0.0, 600.0)
         if self.learned_fallback not in ("off", "geometry", "pending"):
             raise ConfigError(f"{where}: queries.learned_fallback = {self.learned_fallback!r}: must be "
@@ -758,6 +784,10 @@ def _coerce(hint: Any, value: Any, where: str, key: str) -> Any:
         hint, optional = args[0], True
     if optional and (value is None or value == ""):
         return None
+    if origin is tuple and typing.get_args(hint) == (str, Ellipsis):  # a TOML list of strings
+        if isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
+            return tuple(value)
+        raise ConfigError(f"{where}: {key} must be a list of strings, got {type(value).__name__} {value!r}")
     ok: bool
     if hint is bool:
         ok = isinstance(value, bool)

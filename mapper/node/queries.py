@@ -37,6 +37,7 @@ z-buffered splat of the map where the render found no surface). Each answer says
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 import hashlib
 import re
@@ -65,7 +66,7 @@ from mapper.geometry.splat import (
 )
 from mapper.map.evicted_views import EvictedViewStore
 from mapper.map.global_map import GlobalMapSnapshot
-from mapper.node.config import QueryConfig
+from mapper.node.config import OBJECT_VOCABULARY, QueryConfig
 from mapper.ov.encoders import TextEncoder
 from mapper.runtime.config import ModelRuntimeConfig
 from protocol.errors import ProtocolError
@@ -89,7 +90,10 @@ __all__ = [
     "label_with_texts",
     "map_surface_depth",
     "normalise_query",
+    "OBJECT_VOCABULARY",
     "query_points",
+    "rank_by_vocabulary",
+    "vocabulary_factor",
     "render_from_map",
     "segment_average",
     "segment_average_cosines",
@@ -256,6 +260,52 @@ def cluster_points(
         bounds = np.cumsum(sizes[big])
         for members in np.split(members_all, bounds[:-1]):
             out.append(_scored_cluster(int(lab), idx[members], xyz, score, support_points))
+    out.sort(key=lambda c: (-c.score, -c.indices.size))
+    return out
+
+
+def vocabulary_factor(
+    mean_feat: np.ndarray,  # (K, D) float32 unit rows: each object's mean feature
+    text_emb: np.ndarray,  # (K, D) float32 unit rows: the text each object was found for
+    vocab_emb: np.ndarray,  # (V, D) float32 unit rows: what an object may be instead
+    temperature: float,
+) -> np.ndarray:
+    """(K,) float32 in (0, 1]: ``exp(min(0, margin) / temperature)``, the margin being the cosine of
+    an object's mean feature with its text minus its best cosine with a vocabulary word. 1 where
+    the text explains the object at least as well as every other word (or no word is given); a
+    sofa found for "chair" (its feature nearer "sofa" than "chair" by 0.1) keeps exp(-0.1 / T).
+
+    >>> import numpy as np
+    >>> e = np.eye(3, dtype=np.float32)
+    >>> sofa_like = np.array([[0.6, 0.8, 0.0]], np.float32)   # found for text e0, nearer word e1
+    >>> [round(float(f), 3) for f in vocabulary_factor(sofa_like, e[:1], e[1:2], 0.1)]
+    [0.135]
+    >>> vocabulary_factor(e[:1], e[:1], e[1:2], 0.1).tolist()
+    [1.0]
+    """
+    if vocab_emb.shape[0] == 0 or mean_feat.shape[0] == 0:
+        return np.ones(mean_feat.shape[0], np.float32)
+    own = np.einsum("kd,kd->k", mean_feat, text_emb)
+    other = (mean_feat @ vocab_emb.T).max(axis=1)
+    return np.exp(np.minimum(0.0, own - other) / np.float32(temperature)).astype(np.float32)
+
+
+def rank_by_vocabulary(
+    clusters: Sequence[Cluster],
+    feat: np.ndarray,  # (N, D) unit rows (float16/32) of the points the clusters index
+    text_emb: np.ndarray,  # (T, D) float32 unit rows, by Cluster.label
+    vocab_emb: np.ndarray,  # (V, D) float32 unit rows
+    temperature: float,
+) -> list[Cluster]:
+    """The clusters with their scores times :func:`vocabulary_factor` of their mean features,
+    sorted best first (``queries.object_vocabulary``)."""
+    if not clusters or vocab_emb.shape[0] == 0 or temperature <= 0:
+        return list(clusters)
+    means = np.stack([np.asarray(feat[c.indices], np.float32).mean(axis=0) for c in clusters])
+    means /= np.maximum(np.linalg.norm(means, axis=1, keepdims=True), np.float32(1e-12))
+    own = text_emb[np.array([c.label for c in clusters])]
+    factor = vocabulary_factor(means, own, vocab_emb, temperature)
+    out = [dataclasses.replace(c, score=float(c.score * f)) for c, f in zip(clusters, factor, strict=True)]
     out.sort(key=lambda c: (-c.score, -c.indices.size))
     return out
 
@@ -715,6 +765,14 @@ def query_points(
             split_depth=config.object_split_depth, split_max_points=config.object_split_max_points,
             split_clean_share=config.object_split_clean_share,
         )
+        ranked = config.object_vocabulary_temperature > 0 and config.object_vocabulary
+        if ranked and snapshot.feat is not None:
+            vocab = [normalise_query(w) for w in config.object_vocabulary]
+            vocab_emb = np.asarray(encoder.encode(vocab), np.float32)
+            # words that name a text asked for are not an alternative to it
+            vocab_emb = vocab_emb[(vocab_emb @ text_emb.T).max(axis=1) < NEGATIVE_DROP_SIMILARITY]
+            clusters = rank_by_vocabulary(clusters, snapshot.feat[sel], np.asarray(text_emb, np.float32),
+                                          vocab_emb, config.object_vocabulary_temperature)
         for c in clusters[: config.max_objects]:
             candidates.append(
                 ObjectCandidate(

@@ -358,3 +358,66 @@ def test_strict_cores_that_fall_into_dust_keep_the_object_whole(room: GlobalMapS
         frag = query_points(room, get_text_encoder(), [text], config=dusty, negatives=None, min_score=None,
                             max_points=None, objects=True).objects[0]  # fmt: skip
         assert frag.n_points < top.n_points and _nearest_object(frag.centroid)[1] > 0.3
+
+
+def test_an_object_another_word_explains_better_falls_behind_the_one_asked_for() -> None:
+    # a large sofa whose features also sit near "chair", and a small chair seen through noise:
+    # by score alone the sofa is the best "chair"; its mean feature is nearer "sofa" than "chair"
+    encoder = get_text_encoder()
+    chair_e, sofa_e = encoder.encode(["chair", "sofa"])
+    rng = np.random.default_rng(4)
+    sofa_xyz = _box_surface((1.0, 4.0, 0.55), 0.45)
+    chair_xyz = _box_surface((3.0, 1.0, 0.45), 0.2)
+    sofa_f = np.tile(0.8 * sofa_e + 0.6 * chair_e, (len(sofa_xyz), 1))
+    chair_f = chair_e + 0.06 * rng.normal(size=(len(chair_xyz), chair_e.size)).astype(np.float32)
+    feat = np.concatenate([sofa_f, chair_f])
+    feat /= np.linalg.norm(feat, axis=1, keepdims=True)
+    xyz = np.concatenate([sofa_xyz, chair_xyz]).astype(np.float32)
+    n = len(xyz)
+    snapshot = GlobalMapSnapshot(
+        version=1, map_version=1, voxel_size_m=0.05, xyz=xyz, feat=feat.astype(np.float16),
+        weight=np.ones(n, np.float32), feat_weight=np.ones(n, np.float32), hits=np.ones(n, np.int32),
+        last_seen_ns=np.zeros(n, np.int64))
+    opts: dict[str, object] = {"negatives": None, "min_score": None, "max_points": None, "objects": True}
+    off = replace(CONFIG, object_vocabulary_temperature=0.0)
+    plain = query_points(snapshot, encoder, ["find the chair"], config=off, **opts)  # type: ignore[arg-type]
+    ranked = query_points(snapshot, encoder, ["find the chair"], config=CONFIG, **opts)  # type: ignore[arg-type]
+    assert _nearest_object(plain.objects[0].centroid)[0] == "sofa"
+    assert _nearest_object(ranked.objects[0].centroid)[0] == "chair"
+    assert [o.score for o in ranked.objects] == sorted((o.score for o in ranked.objects), reverse=True)
+    # the points and their labels do not change, only the objects' scores and order
+    np.testing.assert_array_equal(plain.xyz, ranked.xyz)
+    np.testing.assert_array_equal(plain.score, ranked.score)
+    # asking for the sofa too: "sofa" is a text, not an alternative, and the sofa is labelled sofa
+    both = query_points(snapshot, encoder, ["chair", "sofa"], config=CONFIG, **opts)  # type: ignore[arg-type]
+    found = {o.text: _nearest_object(o.centroid)[0] for o in both.objects}
+    assert found == {"chair": "chair", "sofa": "sofa"}
+
+
+def test_vocabulary_factor_against_a_float64_reference() -> None:
+    from mapper.node.queries import vocabulary_factor
+
+    rng = np.random.default_rng(0)
+    unit = lambda a: a / np.linalg.norm(a, axis=1, keepdims=True)  # noqa: E731
+    mean, text, vocab = (unit(rng.normal(size=(k, 16))) for k in (9, 9, 5))
+    for temperature in (1e-4, 0.05, 10.0):
+        ref = np.exp(np.minimum(0.0, (mean * text).sum(1) - (mean @ vocab.T).max(1)) / temperature)
+        got = vocabulary_factor(mean.astype(np.float32), text.astype(np.float32), vocab.astype(np.float32),
+                                temperature)
+        assert got.dtype == np.float32 and np.all((got >= 0) & (got <= 1))
+        np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-30)
+    assert np.all(vocabulary_factor(mean.astype(np.float32), text.astype(np.float32),
+                                    np.zeros((0, 16), np.float32), 0.05) == 1.0)
+
+
+def test_object_vocabulary_config_is_checked() -> None:
+    from mapper.node.config import ConfigError, config_from_dict
+
+    cfg = config_from_dict({"queries": {"object_vocabulary": ["lamp", "rug"]}})
+    assert cfg.queries.object_vocabulary == ("lamp", "rug")
+    with pytest.raises(ConfigError, match="object_vocabulary must be a list of strings"):
+        config_from_dict({"queries": {"object_vocabulary": "lamp"}})
+    with pytest.raises(ConfigError, match="non-empty"):
+        config_from_dict({"queries": {"object_vocabulary": ["lamp", " "]}})
+    with pytest.raises(ConfigError, match="object_vocabulary_temperature"):
+        config_from_dict({"queries": {"object_vocabulary_temperature": -1.0}})
