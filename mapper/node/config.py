@@ -589,6 +589,15 @@ class NodeConfig:
     after a crash serves the last saved map). A file that cannot be loaded is renamed aside
     (``NAME.govmap.unreadable``) and the node starts empty."""
 
+    follow_map: str | None = None
+    """Serve a read-only copy of the map of this name in ``map_dir``, saved by another node (its
+    ``autosave_name``, with ``autosave_interval_s``): loaded at start and again whenever the file
+    changes (:mod:`mapper.node.follower`); frames are rejected, ``save`` and ``load`` refused.
+    "" (None): the node maps what it receives."""
+
+    follow_interval_s: float = 2.0
+    """How often a follower (``follow_map``) checks the file for a new save (seconds). 0.05..3600."""
+
     poll_interval_s: float = 0.1
     """How often the socket threads wake up to check for shutdown (seconds). 0.001..5."""
 
@@ -657,6 +666,15 @@ class NodeConfig:
                 validate_map_name(self.autosave_name)
             except ValueError as exc:
                 raise ConfigError(f"{where}: autosave_name: {exc}") from None
+        _check_range(where, "follow_interval_s", self.follow_interval_s, 0.05, 3600.0)
+        if self.follow_map is not None:
+            try:
+                validate_map_name(self.follow_map)
+            except ValueError as exc:
+                raise ConfigError(f"{where}: follow_map: {exc}") from None
+            if self.autosave_name is not None:
+                raise ConfigError(f"{where}: follow_map {self.follow_map!r} and autosave_name "
+                                  f"{self.autosave_name!r}: a follower never saves; set one of them")
         self.window.validate(where)
         self.global_map.validate(where)
         self.queries.validate(where)

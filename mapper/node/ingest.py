@@ -114,6 +114,10 @@ def ingest_frame(ctx: NodeContext, frame: Frame) -> Ack:
         robot=frame.robot,
     )
     state = ctx.state
+    if ctx.config.follow_map:  # a read-only copy of another node's map
+        with state.lock:
+            return _reject(ctx, frame, f"this node serves a read-only copy of map {ctx.config.follow_map!r} "
+                                       "(follow_map): send frames to the node that writes it")
     max_side = ctx.config.window.max_image_side
     kept_K = fit_intrinsics(frame.K, frame.width, frame.height, max_side)  # K as a keyframe keeps it
     max_cells = ctx.config.window.max_ov_cells

@@ -73,6 +73,7 @@ from mapper.node.answers.segment import SegmentAnswers
 from mapper.node.answers.status import StatusAnswers
 from mapper.node.config import NodeConfig
 from mapper.node.context import NodeContext, QueryHandler, is_not_ready, warm_all_kernels
+from mapper.node.follower import install_follower
 from mapper.node.ingest import ingest_frame
 from mapper.node.query_pool import QueryPool
 from mapper.node.security import CurveServer, exposure_problem, security_mode
@@ -129,6 +130,8 @@ class MapperNode:
         self.ctx = NodeContext(config)
         """What every request shares (:class:`mapper.node.context.NodeContext`)."""
         self.persistence = Persistence(self.ctx)
+        self.follower = install_follower(self.ctx, self.persistence)
+        """With ``follow_map``: the read-only copy's loader (:mod:`mapper.node.follower`), else None."""
         self.query_points = QueryPointsAnswers(self.ctx)
         self.segment = SegmentAnswers(self.ctx)
         """``segment_points`` by method (backends: ``node.segment.register``)."""
@@ -217,6 +220,8 @@ class MapperNode:
         limit_blas_threads(cfg.limits.blas_threads)  # again: plugins may have loaded another BLAS (OpenCV's)
         self._start_security(self._endpoints())
         self.persistence.load_autosave()
+        if self.follower is not None:  # a follower serves its first copy from the start
+            self.follower.poll_once()
         # before the socket threads, so the first keyframe already goes to it; on stop it finishes
         # its queue (what the ingest thread submits after that is integrated inline)
         integrator = self.ctx.integration.start(self.ctx.stop)

@@ -30,8 +30,16 @@ class Persistence:
 
     # -- requests -----------------------------------------------------------------------------
 
+    def _refuse_when_following(self, what: str) -> None:
+        """A follower (``follow_map``) neither saves nor loads on request: its map is the writer's."""
+        name = self.ctx.config.follow_map
+        if name:
+            raise ProtocolError("bad_request", f"{what} refused: this node serves a read-only copy of map "
+                                               f"{name!r} (follow_map); {what} on the node that writes it")
+
     def handle_save(self, msg: Message) -> Ok:
         assert isinstance(msg, Save)
+        self._refuse_when_following("save")
         try:
             path, version, count = self.save_to(msg.name, reason="request")
         except StoreWriteError as exc:
@@ -43,6 +51,7 @@ class Persistence:
 
     def handle_load(self, msg: Message) -> Ok:
         assert isinstance(msg, Load)
+        self._refuse_when_following("load")
         return Ok(id=msg.id, message=self.load_map(msg.name))
 
     # -- saving -------------------------------------------------------------------------------
