@@ -67,6 +67,24 @@ def found_objects(scenario: Any, variants: dict[str, dict[str, Any]], overrides:
     return out
 
 
+def tally(rows_by_scenario: list[tuple[bool, dict[str, dict[str, float | None]]]]
+          ) -> dict[str, dict[str, list[int]]]:
+    """Per variant, ``[found, asked]`` for the chair and for every class asked, with depth (``d``)
+    and without (``rgb``), from each scenario's (depth, :func:`found_objects`) rows; found = the top
+    object within ``FOUND_RADIUS_M``."""
+    out: dict[str, dict[str, list[int]]] = {}
+    for depth, rows in rows_by_scenario:
+        kind = "d" if depth else "rgb"
+        for name, row in rows.items():
+            counts = out.setdefault(name, {k: [0, 0] for k in ("chair d", "chair rgb", "all d", "all rgb")})
+            for cls, d in row.items():
+                hit = int(d is not None and d <= FOUND_RADIUS_M)
+                for key in ([f"chair {kind}"] if cls == "chair" else []) + [f"all {kind}"]:
+                    counts[key][0] += hit
+                    counts[key][1] += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--split", default="tune", choices=("tune", "heldout"))
@@ -93,25 +111,19 @@ def main(argv: list[str] | None = None) -> int:
         chosen = [scenarios[i] for i in args.index] if args.index else scenarios
     except IndexError:
         p.error(f"--index: the {args.split} split has {len(scenarios)} scenarios")
-    tally: dict[str, dict[str, list[int]]] = {v: {"chair d": [0, 0], "chair rgb": [0, 0], "all d": [0, 0],
-                                                 "all rgb": [0, 0]} for v in variants}
+    seen: list[tuple[bool, dict[str, dict[str, float | None]]]] = []
     for scenario in chosen:
         rows = found_objects(scenario, variants, overrides)
-        kind = "d" if scenario.depth else "rgb"
+        seen.append((scenario.depth, rows))
         for name, row in rows.items():
             print(f"  {name:>10}: " + ", ".join(
                 f"{cls} {'-' if d is None else f'{d:.2f} m'}" for cls, d in row.items()), flush=True)
-            for cls, d in row.items():
-                hit = int(d is not None and d <= FOUND_RADIUS_M)
-                for key in ([f"chair {kind}"] if cls == "chair" else []) + [f"all {kind}"]:
-                    tally[name][key][0] += hit
-                    tally[name][key][1] += 1
         if args.out:
             with open(args.out, "a", encoding="utf-8") as fh:
-                row = {"scenario": scenario.name, "depth": scenario.depth, "rows": rows}
-                fh.write(json.dumps(row) + "\n")
+                record = {"scenario": scenario.name, "depth": scenario.depth, "rows": rows}
+                fh.write(json.dumps(record) + "\n")
     print(f"\nfound within {FOUND_RADIUS_M:.2f} m (found / asked):")
-    for name, counts in tally.items():
+    for name, counts in tally(seen).items():
         print(f"  {name:>10}: " + ", ".join(f"{k} {v[0]}/{v[1]}" for k, v in counts.items()))
     return 0
 
