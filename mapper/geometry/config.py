@@ -326,13 +326,18 @@ class StereoConfig:
     worker keeps up with the cheaper sparse geometry instead of dropping keyframes. 0 = never
     skip. 0..100000."""
 
-    max_deferred: int = 32
+    max_deferred: int = 128
     """A sweep skipped while busy (``max_backlog``) is remembered and done later, oldest first,
     whenever no keyframe waits for the worker (``status``: ``stereo.deferred``, ``deferred_swept``,
-    ``deferred_forgotten``); beyond this many remembered, the oldest is forgotten. A stream sent as
-    fast as acks come back had 22-37 of its 40-54 keyframes skipped for good before (the scenario
-    matrix's RGB-only streams: docs/concepts/rgb-only.md). Each holds its keyframe (and its
-    partners' working images) until swept. 0 = a skipped sweep is never done. 0..100000."""
+    ``deferred_forgotten``); beyond this many remembered (or ``max_deferred_mb``), the oldest is
+    forgotten. A stream sent as fast as acks come back had 22-37 of its 40-54 keyframes skipped for
+    good before (the scenario matrix's RGB-only streams: docs/concepts/rgb-only.md). 0 = a skipped
+    sweep is never done. 0..100000."""
+
+    max_deferred_mb: float = 256.0
+    """Most memory the remembered sweeps hold (MB): each keeps its keyframe (colour, OV map) and its
+    working image until swept, about 1 MB at 160 x 120 with a 40 x 30 x 384 OV map; the oldest is
+    forgotten beyond. 0..1e6."""
 
     max_width: int = 200
     """Keyframes wider than this are swept at this width (area-downscaled; the depth is scaled
@@ -429,6 +434,7 @@ class StereoConfig:
         check("max_points", self.max_points, 0, 100_000_000)
         check("max_backlog", self.max_backlog, 0, 100_000)
         check("max_deferred", self.max_deferred, 0, 100_000)
+        check("max_deferred_mb", self.max_deferred_mb, 0.0, 1e6)
 
 
 FLOW_PRESETS = ("ultrafast", "fast", "medium")

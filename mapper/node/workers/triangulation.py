@@ -272,6 +272,14 @@ class _DeferredSweep:
     generation: int  # the triangulation's generation when it was put off (a load forgets it)
     restored: bool  # a keyframe of a loaded window: its points are in the map already
 
+    @property
+    def nbytes(self) -> int:
+        """What it keeps alive: its keyframe's colour and OV map, and its working image."""
+        kf, image = self.keyframe, self.image
+        held = int(np.asarray(kf.rgb).nbytes) + (0 if kf.ov is None else int(np.asarray(kf.ov).nbytes))
+        held += image.view.gray.nbytes + (0 if image.depth_m is None else image.depth_m.nbytes)
+        return held
+
 
 class _KeyframeBudget(Generic[T]):
     """Per-keyframe items (newest last) whose sizes sum to at most ``budget``: beyond it the oldest
@@ -478,6 +486,7 @@ class SparseTriangulation:
         self.stereo_seconds_total = 0.0
         self.stereo_skipped_busy = 0
         self._deferred: deque[_DeferredSweep] = deque()  # sweeps put off while busy, newest last
+        self._deferred_bytes = 0
         self._sweeping_deferred = 0  # 1 while a put-off sweep is being done (for `pending`)
         self.deferred_swept = 0
         self.deferred_forgotten = 0
@@ -571,6 +580,7 @@ class SparseTriangulation:
                 if not self._deferred:
                     break
                 item = self._deferred.popleft()
+                self._deferred_bytes -= item.nbytes
                 self._sweeping_deferred = 1
             try:
                 swept += self._sweep_deferred_one(item)
@@ -579,13 +589,17 @@ class SparseTriangulation:
         return swept
 
     def _defer(self, item: _DeferredSweep) -> None:
-        """Remember a sweep put off while busy (``_lock`` held): beyond ``stereo.max_deferred`` the
-        oldest is forgotten."""
-        if self.stereo.max_deferred <= 0:
+        """Remember a sweep put off while busy (``_lock`` held): beyond ``stereo.max_deferred`` or
+        ``stereo.max_deferred_mb`` the oldest is forgotten."""
+        cfg = self.stereo
+        if cfg.max_deferred <= 0:
+            self.deferred_forgotten += 1
             return
         self._deferred.append(item)
-        while len(self._deferred) > self.stereo.max_deferred:
-            self._deferred.popleft()
+        self._deferred_bytes += item.nbytes
+        budget = cfg.max_deferred_mb * 2**20
+        while self._deferred and (len(self._deferred) > cfg.max_deferred or self._deferred_bytes > budget):
+            self._deferred_bytes -= self._deferred.popleft().nbytes
             self.deferred_forgotten += 1
 
     def _sweep_deferred_one(self, item: _DeferredSweep) -> int:
@@ -772,6 +786,7 @@ class SparseTriangulation:
         self._featureless.clear()
         self.deferred_forgotten += len(self._deferred)
         self._deferred.clear()
+        self._deferred_bytes = 0
         self._candidates.clear()
         self._room_depths.clear()
         self._without_extent.clear()
@@ -917,9 +932,7 @@ class SparseTriangulation:
         with self._lock:
             pts = sum(p.xyz.nbytes + p.sigma_m.nbytes * 5 + p.uv.nbytes for p in self._points.items.values())
             pts += self._priors.nbytes_locked()
-            for item in self._deferred:  # the put-off sweeps' own working images
-                depth = item.image.depth_m
-                pts += item.image.view.gray.nbytes + (0 if depth is None else depth.nbytes)
+            pts += self._deferred_bytes  # the put-off sweeps' keyframes and working images
             candidates = list(self._candidates)
         feats = 0
         for c in candidates:

@@ -424,6 +424,22 @@ def test_put_off_sweeps_beyond_max_deferred_or_before_a_load_are_forgotten(
         node.stop()
 
 
+def test_put_off_sweeps_beyond_their_memory_budget_are_forgotten(tmp_path: Path, texture: np.ndarray) -> None:
+    node = make_node(tmp_path, {"top_k": 1, "max_backlog": 1, "max_deferred_mb": 0.05})  # < one keyframe
+    try:
+        tri = SparseTriangulation(node.ctx, runtime=Sink())
+        tri.install()
+        for i in (0, 1, 2, 3):
+            node.handle_ingest(encode(plane_frame(i, texture, depth=i == 0)))
+        tri.process_pending()
+        stereo = tri.stats()["stereo"]
+        assert stereo["skipped_busy"] == 2 and stereo["deferred_forgotten"] == 2
+        assert stereo["deferred_swept"] == 0
+        assert tri._deferred_bytes == 0 and tri.pending == 0
+    finally:
+        node.stop()
+
+
 def test_features_that_arrive_later_reach_the_triangulated_and_swept_points(
     tmp_path: Path, texture: np.ndarray
 ) -> None:
