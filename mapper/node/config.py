@@ -312,6 +312,16 @@ class QueryConfig:
     in time, half a window before each keyframe leaves (``global_map.learned_features_batch`` 15, 1200
     cells), the learned maps still cost ``govnesf`` 0.5-5.7 on four RGB-only tuning streams (office
     wall-hugging 41.8 -> 36.1; not diagnosed further)."""
+    evicted_frames_depth_tested: str = "first"
+    """Where depth-tested answers (DGM: ``govnesf`` with ``use_depth``; ``average_depth``) in a window
+    of keyframes without depth take the kept views of evicted keyframes (``evicted_frames_mb``):
+    ``"first"``: before the map's voxels, as ``govnesf`` without the test does (a voxel of an
+    RGB-only map holds the few observations its swept or triangulated points carried; the kept
+    views, every view of the point that left the window); ``"fill"``: only at points neither the
+    window nor a map voxel within ``map_radius_voxels`` answers. On the six RGB-only tuning
+    streams, paired on the same maps (``benchmarks/studies/query_settings.py``): DGM 32.0 -> 38.1 and
+    ``average_depth`` 28.0 -> 35.3 on the studio revisit, the others -0.4 to +0.1 / -0.7 to +1.6."""
+
     evicted_frames_cells: int = 1200
     """Most cells of a kept evicted view's OV map (``evicted_frames_mb``): area-averaged to the
     largest size of the map's aspect within this (a 160 x 120 keyframe's 40 x 30 map is kept whole, a
@@ -371,6 +381,9 @@ class QueryConfig:
         _check_range(where, "queries.object_split_clean_share", self.object_split_clean_share, 0.0, 1.0)
         _check_range(where, "queries.light_text_chars", self.light_text_chars, 0, 1_000_000)
         _check_range(where, "queries.max_objects", self.max_objects, 1, 10_000)
+        if self.evicted_frames_depth_tested not in ("fill", "first"):
+            raise ConfigError(f"{where}: queries.evicted_frames_depth_tested must be \"fill\" or \"first\", "
+                              f"got {self.evicted_frames_depth_tested!r}")
         _check_range(where, "queries.object_vocabulary_temperature", self.object_vocabulary_temperature,
                      0.0, 10.0)
         if not all(w.strip() for w in self.object_vocabulary) or len(self.object_vocabulary) > 1024:

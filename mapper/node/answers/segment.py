@@ -72,8 +72,10 @@ def answer_from_map(
     the ``learned`` model's answers, mixed with the voxel's own feature (which holds the model's
     blend), ``queries.evicted_views_learned_weight``. Points nothing answers take the kept views of
     evicted keyframes without depth (``queries.evicted_frames_mb``) where one sees them, for every
-    method (a depth-tested answer only there). ``out_cos`` (the window's cosines where it answered)
-    takes every text's cosine of the answer where the map answered or blended."""
+    method (a depth-tested answer only there, unless ``queries.evicted_frames_depth_tested`` is
+    "first" and the window lacks depth: then before the map's voxels, as the learned answer).
+    ``out_cos`` (the window's cosines where it answered) takes every text's cosine of the answer
+    where the map answered or blended."""
     from mapper.node.queries import evicted_view_cosines, fill_from_map
 
     gmap = ctx.state.global_map
@@ -85,10 +87,14 @@ def answer_from_map(
             nearest = snap.nearest_with_feature(xyz, ctx.map_radius_m)
         map_cos = evicted_view_cosines(gmap.evicted, snap, nearest, text_emb)
     frames_cos = None
-    if learned and not depth_tested:  # the kept views of evicted keyframes without depth, mixed in
+    if depth_tested:  # in a window without depth (queries.evicted_frames_depth_tested)
+        first = ctx.config.queries.evicted_frames_depth_tested == "first" and not ctx.window_has_depth()
+    else:
+        first = learned
+    if first:  # the kept views of evicted keyframes without depth, before the map's voxels
         if nearest is None and ctx.map_radius_m > 0 and snap.n_with_features > 0:
             nearest = snap.nearest_with_feature(xyz, ctx.map_radius_m)
-        frames_cos = evicted_frame_cosines(ctx, gmap.evicted, snap, nearest, xyz, text_emb, learned=True)
+        frames_cos = evicted_frame_cosines(ctx, gmap.evicted, snap, nearest, xyz, text_emb, learned=learned)
         if frames_cos is not None:
             map_cos = _overlaid(map_cos, frames_cos)
     label, score, source = fill_from_map(

@@ -466,3 +466,39 @@ def test_learned_answers_with_depth_mix_the_evicted_views_before_the_maps_blend(
     else:
         assert mixed > 20  # points the evicted views count for took their share
         assert not np.array_equal(got.score, off.score)
+
+
+@pytest.mark.parametrize("order", ["fill", "first"])
+def test_depth_tested_answers_in_an_rgb_only_window_can_take_the_kept_views_before_the_map(
+    tmp_path: Path, order: str
+) -> None:
+    """``queries.evicted_frames_depth_tested``: a map voxel that says "c0" lies at the points only
+    evicted keyframes saw; "fill" answers them from the voxel, "first" from the kept views (as the
+    node holding every keyframe does)."""
+    from mapper.map.window import Keyframe
+    from tests.mapper.map.test_evicted_views import H, K, SPACE, W
+
+    frames = _frames(depth=False)
+    unbounded = _node(tmp_path, 100)
+    kept = _node(tmp_path, 2, evicted_frames_mb=16.0, evicted_frames_depth_tested=order)
+    for node in (unbounded, kept):
+        _stream(node, frames)
+    pose = np.eye(4)
+    pose[0, 3] = -0.6
+    ov = np.zeros((6, 8, 4), np.float16)
+    ov[..., 0] = 1.0  # "c0" everywhere it sees
+    voxels = Keyframe(seq=99, stamp_ns=99, camera="other", K=K, world_from_cam=pose,
+                      rgb=np.zeros((H, W, 3), np.uint8), depth_m=np.full((H, W), 2.0, np.float32), ov=ov,
+                      ov_space=SPACE)
+    kept.state.global_map.integrate(voxels)  # a map voxel layer on the wall, not in the window
+    assert not kept.ctx.window_has_depth()
+    xyz = _wall()
+    want = _segment(unbounded, "average", xyz)
+    got = _segment(kept, "average_depth", xyz)
+    old = kept.state.window.keyframes[0].world_from_cam[0, 3]
+    only_left = (want.label >= 0) & (xyz[:, 0] < old - 0.9) & (want.label != 0)
+    assert only_left.sum() > 10 and (got.source[only_left] == SOURCE_MAP).all()
+    if order == "fill":
+        assert (got.label[only_left] == 0).all()  # the voxel's "c0"
+    else:
+        assert np.array_equal(got.label[only_left], want.label[only_left])  # the kept views'
