@@ -476,7 +476,7 @@ def test_depth_tested_answers_in_an_rgb_only_window_can_take_the_kept_views_befo
     evicted keyframes saw; "fill" answers them from the voxel, "first" from the kept views (as the
     node holding every keyframe does)."""
     from mapper.map.window import Keyframe
-    from tests.mapper.map.test_evicted_views import H, K, SPACE, W
+    from tests.mapper.map.test_evicted_views import SPACE, H, K, W
 
     frames = _frames(depth=False)
     unbounded = _node(tmp_path, 100)
