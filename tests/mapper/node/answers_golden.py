@@ -19,9 +19,7 @@ see (``queries.evicted_views_occlusion``), and again when ``govnesf``'s answers 
 averaging's per point where the averaging's is far more decided (``queries.learned_toward_average``;
 with it at 0 the answers equal the stored ones before), and again when ``govnesf``'s answers
 without a depth test in a window with depth began mixing the evicted views' mean by their share too
-(``queries.learned_evicted_views_blended``; with it at 0 the answers equal the stored ones before),
-and again when ``query_points`` began ranking its objects against a vocabulary
-(``queries.object_vocabulary_temperature``; with it at 0 the answers equal the stored ones before).
+(``queries.learned_evicted_views_blended``; with it at 0 the answers equal the stored ones before).
 """
 
 from __future__ import annotations

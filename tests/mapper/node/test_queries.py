@@ -379,9 +379,9 @@ def test_an_object_another_word_explains_better_falls_behind_the_one_asked_for()
         weight=np.ones(n, np.float32), feat_weight=np.ones(n, np.float32), hits=np.ones(n, np.int32),
         last_seen_ns=np.zeros(n, np.int64))
     opts: dict[str, object] = {"negatives": None, "min_score": None, "max_points": None, "objects": True}
-    off = replace(CONFIG, object_vocabulary_temperature=0.0)
-    plain = query_points(snapshot, encoder, ["find the chair"], config=off, **opts)  # type: ignore[arg-type]
-    ranked = query_points(snapshot, encoder, ["find the chair"], config=CONFIG, **opts)  # type: ignore[arg-type]
+    on = replace(CONFIG, object_vocabulary_temperature=0.05)
+    plain = query_points(snapshot, encoder, ["find the chair"], config=CONFIG, **opts)  # type: ignore[arg-type]
+    ranked = query_points(snapshot, encoder, ["find the chair"], config=on, **opts)  # type: ignore[arg-type]
     assert _nearest_object(plain.objects[0].centroid)[0] == "sofa"
     assert _nearest_object(ranked.objects[0].centroid)[0] == "chair"
     assert [o.score for o in ranked.objects] == sorted((o.score for o in ranked.objects), reverse=True)
@@ -389,7 +389,7 @@ def test_an_object_another_word_explains_better_falls_behind_the_one_asked_for()
     np.testing.assert_array_equal(plain.xyz, ranked.xyz)
     np.testing.assert_array_equal(plain.score, ranked.score)
     # asking for the sofa too: "sofa" is a text, not an alternative, and the sofa is labelled sofa
-    both = query_points(snapshot, encoder, ["chair", "sofa"], config=CONFIG, **opts)  # type: ignore[arg-type]
+    both = query_points(snapshot, encoder, ["chair", "sofa"], config=on, **opts)  # type: ignore[arg-type]
     found = {o.text: _nearest_object(o.centroid)[0] for o in both.objects}
     assert found == {"chair": "chair", "sofa": "sofa"}
 
