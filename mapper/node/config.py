@@ -111,8 +111,7 @@ class QueryConfig:
     ``object_vocabulary``: a sofa found for "chair" (its features nearer "sofa") falls behind the
     chairs (:func:`mapper.node.queries.vocabulary_factor`). Points are labelled as before; only the
     objects' scores and order change. Off (0): at 0.05 no top object of 36 changed on the tuning
-    split, and on the held-out split a desk went from 0.10 to 0.36 m (docs/concepts/window-and-map.md).
-    0..10."""
+    split (docs/concepts/window-and-map.md). 0..10."""
 
     max_objects: int = 32
     """Most object candidates per reply (best first). >= 1."""
