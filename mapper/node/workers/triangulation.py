@@ -281,6 +281,136 @@ class _DeferredSweep:
         return held
 
 
+class _DeferredSweeps:
+    """The sweeps put off while the worker was busy, oldest first (``stereo.max_deferred``,
+    ``stereo.max_deferred_mb``), what they hold and their counts. Called with the triangulation's
+    lock held."""
+
+    def __init__(self, config: StereoConfig) -> None:
+        self.config = config
+        self.items: deque[_DeferredSweep] = deque()
+        self.nbytes = 0
+        self.sweeping = 0  # 1 while a taken one is being swept (``pending`` counts it)
+        self.swept = 0
+        self.forgotten = 0
+
+    def __len__(self) -> int:
+        return len(self.items) + self.sweeping
+
+    def put(self, item: _DeferredSweep) -> None:
+        """Remember ``item``; beyond ``max_deferred`` or ``max_deferred_mb`` the oldest is forgotten."""
+        if self.config.max_deferred <= 0:
+            self.forgotten += 1
+            return
+        self.items.append(item)
+        self.nbytes += item.nbytes
+        budget = self.config.max_deferred_mb * 2**20
+        while self.items and (len(self.items) > self.config.max_deferred or self.nbytes > budget):
+            self.nbytes -= self.items.popleft().nbytes
+            self.forgotten += 1
+
+    def take(self) -> _DeferredSweep | None:
+        """The oldest, now being swept (:meth:`done` when finished), or None."""
+        if not self.items:
+            return None
+        item = self.items.popleft()
+        self.nbytes -= item.nbytes
+        self.sweeping = 1
+        return item
+
+    def done(self, swept: bool) -> None:
+        self.sweeping = 0
+        self.swept += int(swept)
+        self.forgotten += int(not swept)
+
+    def forget_all(self) -> None:
+        self.forgotten += len(self.items)
+        self.items.clear()
+        self.nbytes = 0
+
+    def stats(self) -> dict[str, int]:
+        return {"deferred": len(self), "deferred_swept": self.swept, "deferred_forgotten": self.forgotten}
+
+
+class _VolumeExtents:
+    """Each keyframe's extent for the learned model's volume bounds: its triangulated points, or,
+    with too few, its frustum up to the room's depth (the median of recent keyframes' far point
+    depth; keyframes seen before any is known wait for it)."""
+
+    def __init__(self, runtime: ExtentSink, config: TriangulationConfig) -> None:
+        self.runtime = runtime
+        self.config = config
+        self.room_depths: deque[float] = deque(maxlen=config.candidate_keyframes)
+        self._waiting: deque[tuple[KeyframeKey, PosedView]] = deque(maxlen=config.candidate_keyframes)
+
+    def set(self, key: KeyframeKey, view: PosedView, points: SparsePoints) -> None:
+        if len(points) >= self.config.bounds_min_points:
+            self.runtime.set_view_extent(key, points.xyz)
+            first = not self.room_depths
+            self.room_depths.append(float(np.quantile(points.depth_m, self.config.bounds_depth_quantile)))
+            if first:  # the keyframes seen before any depth was known get the room's depth now
+                while self._waiting:
+                    self._frustum(*self._waiting.popleft())
+            return
+        if self.room_depths:
+            self._frustum(key, view)
+        else:
+            self._waiting.append((key, view))
+
+    def _frustum(self, key: KeyframeKey, view: PosedView) -> None:
+        far = float(np.median(self.room_depths))
+        near = min(self.config.min_depth_m, 0.5 * far)
+        self.runtime.set_view_extent(key, frustum_points(view, near, far))
+
+    def clear(self) -> None:
+        self.room_depths.clear()
+        self._waiting.clear()
+
+
+class _LateFeatures:
+    """Map points added for keyframes that had no OV features yet (a robot without onboard OV, the
+    node's OV backend encoding them later): their depth maps, kept (``ov_backend.max_pending``
+    keyframes at most) until the features arrive, then fused into those points."""
+
+    def __init__(self, ctx: NodeContext, lock: threading.Lock,
+                 failed: Callable[[Any, BaseException], None]) -> None:
+        self.ctx = ctx
+        self._lock = lock
+        self._failed = failed
+        self.pending: OrderedDict[KeyframeKey, tuple[GlobalSemanticMap, list[TriangulatedKeyframe]]] = (
+            OrderedDict()
+        )  # guarded by ``lock``
+        self.points = 0
+
+    def remember(self, keyframe: Any, depth: TriangulatedKeyframe, target: GlobalSemanticMap) -> None:
+        with self._lock:
+            entry = self.pending.setdefault(keyframe_key(keyframe), (target, []))
+            entry[1].append(depth)
+            while len(self.pending) > max(1, self.ctx.config.ov_backend.max_pending):
+                self.pending.popitem(last=False)  # the backend drops beyond this many too
+        current = with_current_features(self.ctx, keyframe)  # swapped in meanwhile: listener too early
+        if current.ov is not None:
+            self.on_features(current)
+
+    def on_features(self, keyframe: Any) -> None:
+        """``keyframe`` got its OV features: fuse them into the points kept for it. Never raises."""
+        with self._lock:
+            entry = self.pending.pop(keyframe_key(keyframe), None)
+        if entry is None or keyframe.ov is None:
+            return
+        target, depths = entry
+        if target is not self.ctx.state.global_map:
+            return  # a load replaced that map
+        for depth in depths:
+            try:
+                stats = target.integrate_features(replace(depth, ov=keyframe.ov), pixel_stride=1,
+                                                  confidence=depth.confidence)
+            except (ValueError, RuntimeError) as exc:
+                self._failed(keyframe, exc)
+                continue
+            self.points += stats.points
+
+
 class _KeyframeBudget(Generic[T]):
     """Per-keyframe items (newest last) whose sizes sum to at most ``budget``: beyond it the oldest
     keyframes' items go first, but a keyframe's own item is never split or dropped for itself."""
@@ -457,19 +587,12 @@ class SparseTriangulation:
         self._in_batch = 0  # keyframes of the batch being processed, not yet done (for `pending`)
         self._stop = threading.Event()  # the worker's stop event once it runs
         self.left_at_stop = 0
-        # map points added for keyframes that had no OV features yet: (sparse, swept) depth maps
-        # kept until the in-process OV backend's features arrive (on_features), bounded
-        self._featureless: OrderedDict[KeyframeKey, tuple[GlobalSemanticMap, list[TriangulatedKeyframe]]] = (
-            OrderedDict()
-        )
-        self.late_feature_points = 0
         self._map: GlobalSemanticMap | None = None  # the map the candidates and points belong to
         self._loaded_version = -1  # map version of the latest load: keyframes up to it are stale
         self._generation = 0  # +1 on every reset: work begun before it is not kept
-        self._room_depths: deque[float] = deque(maxlen=self.config.candidate_keyframes)
-        self._without_extent: deque[tuple[KeyframeKey, PosedView]] = deque(
-            maxlen=self.config.candidate_keyframes
-        )  # keyframes waiting for the room's depth (no points of their own yet)
+        self._extents = _VolumeExtents(runtime, self.config) if runtime is not None else None
+        self._room_depths: deque[float] = (self._extents.room_depths if self._extents is not None
+                                           else deque(maxlen=self.config.candidate_keyframes))
         self.processed = 0
         self.points_total = 0
         self.points_evicted = 0
@@ -485,11 +608,8 @@ class SparseTriangulation:
         self.stereo_map_points = 0
         self.stereo_seconds_total = 0.0
         self.stereo_skipped_busy = 0
-        self._deferred: deque[_DeferredSweep] = deque()  # sweeps put off while busy, newest last
-        self._deferred_bytes = 0
-        self._sweeping_deferred = 0  # 1 while a put-off sweep is being done (for `pending`)
-        self.deferred_swept = 0
-        self.deferred_forgotten = 0
+        self._deferred = _DeferredSweeps(self.stereo)
+        self._late = _LateFeatures(ctx, self._lock, self._failed)  # points whose features come later
         self._priors = _DepthPriors(ctx, self.config, self.stereo, runtime, self._lock)
         self.poses = KeyframePoses(self.config)  # triangulation.refine_poses
         self._log = LimitedLog(log)
@@ -534,7 +654,7 @@ class SparseTriangulation:
     def pending(self) -> int:
         """Keyframes waiting, including those of the batch the worker took and has not finished,
         and the sweeps put off while busy (``stereo.max_deferred``)."""
-        return self._waiting + len(self._deferred) + self._sweeping_deferred
+        return self._waiting + len(self._deferred)
 
     @property
     def _waiting(self) -> int:
@@ -577,36 +697,22 @@ class SparseTriangulation:
         swept = 0
         while not self._stop.is_set() and not len(self._queue):
             with self._lock:
-                if not self._deferred:
-                    break
-                item = self._deferred.popleft()
-                self._deferred_bytes -= item.nbytes
-                self._sweeping_deferred = 1
+                item = self._deferred.take()
+            if item is None:
+                break
+            kept = 0
             try:
-                swept += self._sweep_deferred_one(item)
+                kept = self._sweep_deferred_one(item)
             finally:
-                self._sweeping_deferred = 0
+                with self._lock:
+                    self._deferred.done(bool(kept))
+            swept += kept
         return swept
-
-    def _defer(self, item: _DeferredSweep) -> None:
-        """Remember a sweep put off while busy (``_lock`` held): beyond ``stereo.max_deferred`` or
-        ``stereo.max_deferred_mb`` the oldest is forgotten."""
-        cfg = self.stereo
-        if cfg.max_deferred <= 0:
-            self.deferred_forgotten += 1
-            return
-        self._deferred.append(item)
-        self._deferred_bytes += item.nbytes
-        budget = cfg.max_deferred_mb * 2**20
-        while self._deferred and (len(self._deferred) > cfg.max_deferred or self._deferred_bytes > budget):
-            self._deferred_bytes -= self._deferred.popleft().nbytes
-            self.deferred_forgotten += 1
 
     def _sweep_deferred_one(self, item: _DeferredSweep) -> int:
         """One put-off sweep, kept, fused and made a prior as :meth:`_process_one` does; 1 when kept."""
         with self._lock:
             if item.generation != self._generation:  # a load since: its map was replaced
-                self.deferred_forgotten += 1
                 return 0
         try:
             swept = self._sweep(item.image, item.partners, item.points)
@@ -614,12 +720,10 @@ class SparseTriangulation:
             self._failed(item.keyframe, exc)
             return 0
         if swept is None:
-            self.deferred_forgotten += 1
             return 0
         key = keyframe_key(item.keyframe)
         with self._lock:
             if item.generation != self._generation:
-                self.deferred_forgotten += 1
                 return 0
             self._store_swept(key, item.image, swept[0], swept[1])
         current = self._current(item.keyframe)
@@ -627,7 +731,6 @@ class SparseTriangulation:
         self._priors.set(item.keyframe, item.points, swept_frame, item.image, self.geometry_points)
         if not item.restored:
             self._integrate_swept(current, swept_frame, item.target)
-        self.deferred_swept += 1
         return 1
 
     def _current(self, keyframe: Any) -> Any:
@@ -707,9 +810,9 @@ class SparseTriangulation:
             if swept is not None and image is not None:
                 self._store_swept(keyframe_key(keyframe), image, swept[0], swept[1])
             if deferred is not None:
-                self._defer(deferred)
-            if self.runtime is not None and self.config.bounds:
-                self._set_extent(keyframe_key(keyframe), view, points)
+                self._deferred.put(deferred)
+            if self._extents is not None and self.config.bounds:
+                self._extents.set(keyframe_key(keyframe), view, points)
         current = self._current(keyframe)  # its OV features, if they came meanwhile
         swept_frame = None if swept is None else swept_keyframe(current, swept[0], swept[1], self.stereo)
         self._priors.set(keyframe, points, swept_frame, image, self.geometry_points)
@@ -783,38 +886,16 @@ class SparseTriangulation:
         self._generation += 1
         self._points.clear()
         self._swept.clear()
-        self._featureless.clear()
-        self.deferred_forgotten += len(self._deferred)
-        self._deferred.clear()
-        self._deferred_bytes = 0
+        self._late.pending.clear()
+        self._deferred.forget_all()
         self._candidates.clear()
-        self._room_depths.clear()
-        self._without_extent.clear()
+        if self._extents is not None:
+            self._extents.clear()
+        else:
+            self._room_depths.clear()
         self._priors.clear_locked()
         self.poses.clear()
         self._map = None
-
-    def _set_extent(self, key: KeyframeKey, view: PosedView, points: SparsePoints) -> None:
-        """The keyframe's extent for the volume bounds (see the module docstring)."""
-        assert self.runtime is not None
-        if len(points) >= self.config.bounds_min_points:
-            self.runtime.set_view_extent(key, points.xyz)
-            first = not self._room_depths
-            self._room_depths.append(float(np.quantile(points.depth_m, self.config.bounds_depth_quantile)))
-            if first:  # the keyframes seen before any depth was known get the room's depth now
-                while self._without_extent:
-                    self._set_frustum_extent(*self._without_extent.popleft())
-            return
-        if self._room_depths:
-            self._set_frustum_extent(key, view)
-        else:
-            self._without_extent.append((key, view))
-
-    def _set_frustum_extent(self, key: KeyframeKey, view: PosedView) -> None:
-        assert self.runtime is not None
-        far = float(np.median(self._room_depths))
-        near = min(self.config.min_depth_m, 0.5 * far)
-        self.runtime.set_view_extent(key, frustum_points(view, near, far))
 
     def _failed(self, keyframe: Any, exc: BaseException) -> None:
         self.failed += 1
@@ -849,39 +930,12 @@ class SparseTriangulation:
         else:
             self.integrated_points += stats.points
         if depth.ov is None and self.ctx.config.ov_backend.kind:  # only a backend brings features later
-            self._remember_featureless(keyframe, depth, target)
-
-    def _remember_featureless(
-        self, keyframe: Any, depth: TriangulatedKeyframe, target: GlobalSemanticMap
-    ) -> None:
-        key = keyframe_key(keyframe)
-        with self._lock:
-            entry = self._featureless.setdefault(key, (target, []))
-            entry[1].append(depth)
-            while len(self._featureless) > max(1, self.ctx.config.ov_backend.max_pending):
-                self._featureless.popitem(last=False)  # the backend drops beyond this many too
-        current = with_current_features(self.ctx, keyframe)  # swapped in meanwhile: listener too early
-        if current.ov is not None:
-            self.on_features(current)
+            self._late.remember(keyframe, depth, target)
 
     def on_features(self, keyframe: Any) -> None:
         """``node.feature_listeners``: ``keyframe`` (no input depth) got its OV features; fuse them
         into the map points this plugin added for it without features. Never raises."""
-        with self._lock:
-            entry = self._featureless.pop(keyframe_key(keyframe), None)
-        if entry is None or keyframe.ov is None:
-            return
-        target, depths = entry
-        if target is not self.ctx.state.global_map:
-            return  # a load replaced that map
-        for depth in depths:
-            try:
-                stats = target.integrate_features(replace(depth, ov=keyframe.ov), pixel_stride=1,
-                                                  confidence=depth.confidence)
-            except (ValueError, RuntimeError) as exc:
-                self._failed(keyframe, exc)
-                continue
-            self.late_feature_points += stats.points
+        self._late.on_features(keyframe)
 
     def _integrate_swept(self, keyframe: Any, swept: TriangulatedKeyframe, target: GlobalSemanticMap) -> None:
         if self.stereo.global_map_weight <= 0.0 or not bool((swept.depth_m > 0).any()):
@@ -932,7 +986,7 @@ class SparseTriangulation:
         with self._lock:
             pts = sum(p.xyz.nbytes + p.sigma_m.nbytes * 5 + p.uv.nbytes for p in self._points.items.values())
             pts += self._priors.nbytes_locked()
-            pts += self._deferred_bytes  # the put-off sweeps' keyframes and working images
+            pts += self._deferred.nbytes  # the put-off sweeps' keyframes and working images
             candidates = list(self._candidates)
         feats = 0
         for c in candidates:
@@ -978,7 +1032,7 @@ class SparseTriangulation:
             "restored": self.restored,
             "failed": self.failed,
             "left_at_stop": self.left_at_stop,
-            "late_feature_points": self.late_feature_points,
+            "late_feature_points": self._late.points,
             "memory_bytes": self.memory_bytes(),
             "stereo": {
                 "enabled": self.stereo.enabled,
@@ -987,9 +1041,7 @@ class SparseTriangulation:
                 "global_map_points": self.stereo_map_points,
                 "points": self._swept.total,
                 "skipped_busy": self.stereo_skipped_busy,
-                "deferred": len(self._deferred) + self._sweeping_deferred,
-                "deferred_swept": self.deferred_swept,
-                "deferred_forgotten": self.deferred_forgotten,
+                **self._deferred.stats(),
                 "mean_ms": round(1e3 * self.stereo_seconds_total / max(self.stereo_keyframes, 1), 1),
                 "prior_refreshes": self._priors.refreshes,
             },

@@ -435,7 +435,7 @@ def test_put_off_sweeps_beyond_their_memory_budget_are_forgotten(tmp_path: Path,
         stereo = tri.stats()["stereo"]
         assert stereo["skipped_busy"] == 2 and stereo["deferred_forgotten"] == 2
         assert stereo["deferred_swept"] == 0
-        assert tri._deferred_bytes == 0 and tri.pending == 0
+        assert tri._deferred.nbytes == 0 and tri.pending == 0
     finally:
         node.stop()
 

@@ -390,19 +390,20 @@ def test_disabled_triangulation_queues_nothing(node: MapperNode, texture: np.nda
 def test_keyframes_without_enough_points_get_the_frustum_to_the_rooms_depth(node: MapperNode) -> None:
     sink = ExtentSink()
     tri = SparseTriangulation(node.ctx, runtime=sink)
+    assert tri._extents is not None
     a, b, c = (view(pose(np.eye(3), (x, 0.0, 0.0))) for x in (0.0, 0.3, 0.6))
-    tri._set_extent(("cam0", 0, 0), a, SparsePoints.empty())  # nothing known yet: waits
+    tri._extents.set(("cam0", 0, 0), a, SparsePoints.empty())  # nothing known yet: waits
     assert sink.extents == {}
     xyz = random_points(20, seed=4)
     uv, z = project(K, b.world_from_cam, xyz)
     ones = np.ones(20)
     pts = SparsePoints(xyz, 0.01 * ones, 5.0 * ones, 0.0 * ones, np.full(20, 3, np.int32), uv, z)
-    tri._set_extent(("cam0", 1, 1), b, pts)
+    tri._extents.set(("cam0", 1, 1), b, pts)
     np.testing.assert_array_equal(sink.extents[("cam0", 1, 1)], xyz)
     far = np.quantile(z, 0.9)
     waited = sink.extents[("cam0", 0, 0)]  # the waiting keyframe got the room's depth
     assert waited is not None and project(K, a.world_from_cam, waited)[1].max() == pytest.approx(far)
-    tri._set_extent(("cam0", 2, 2), c, SparsePoints.empty())
+    tri._extents.set(("cam0", 2, 2), c, SparsePoints.empty())
     later = sink.extents[("cam0", 2, 2)]
     assert later is not None and project(K, c.world_from_cam, later)[1].max() == pytest.approx(far)
 
