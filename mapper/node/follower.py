@@ -54,7 +54,11 @@ class MapFollower:
         self.name: str = name
         self._seen: tuple[int, int] | None = None
         """(size, mtime_ns) of the file last tried: a file is loaded once per change."""
+        self._poll = threading.Lock()
+        """One poll (and load) at a time."""
         self._lock = threading.Lock()
+        """Guards the counters only, never held across a load: ``status`` reads them while it holds
+        the node's state lock, which a load takes."""
         self.loads = 0
         self.failed = 0
         self.last_error = ""
@@ -64,7 +68,7 @@ class MapFollower:
     def poll_once(self) -> bool:
         """Load the followed map when its file changed since the last try; True when loaded.
         Never raises: a missing file is waited for, a failed load is counted and reported."""
-        with self._lock:
+        with self._poll:
             try:
                 stat = self.ctx.store.path_for(self.name).stat()
             except (OSError, StoreError):
@@ -75,20 +79,22 @@ class MapFollower:
             self._seen = seen
             try:
                 note = self.persistence.load_map(self.name)
-            except ProtocolError as exc:
-                self.failed += 1
-                self.last_error = exc.message
-                log.warning("following map %r: %s (serving the copy loaded before)", self.name, exc.message)
+            except Exception as exc:  # a damaged file (ProtocolError) or a bug: keep the old copy
+                message = exc.message if isinstance(exc, ProtocolError) else f"{type(exc).__name__}: {exc}"
+                with self._lock:
+                    self.failed += 1
+                    self.last_error = message
+                if isinstance(exc, ProtocolError):
+                    log.warning("following map %r: %s (serving the copy loaded before)", self.name, message)
+                else:
+                    log.exception("following map %r failed", self.name)
                 return False
-            except Exception as exc:  # a bug: report, keep serving the old copy
-                self.failed += 1
-                self.last_error = f"{type(exc).__name__}: {exc}"
-                log.exception("following map %r failed", self.name)
-                return False
-            self.loads += 1
-            self.last_error = ""
-            self.loaded_version = self.ctx.state.map_version
-            self._loaded_mtime_ns = seen[1]
+            version = self.ctx.state.map_version
+            with self._lock:
+                self.loads += 1
+                self.last_error = ""
+                self.loaded_version = version
+                self._loaded_mtime_ns = seen[1]
             log.info("following map %r: %s", self.name, note)
             return True
 

@@ -168,3 +168,39 @@ def test_a_started_follower_picks_up_saves_on_its_own(tmp_path: Path) -> None:
     finally:
         writer.stop()
         follower.stop()
+
+
+def test_status_during_a_load_does_not_wait_for_it(tmp_path: Path) -> None:
+    # status reads the follower's counters while it holds the node's state lock, which a load takes:
+    # the counters must never be held across a load (that order once deadlocked a started follower)
+    import threading
+
+    writer, follower = _writer(tmp_path), _follower(tmp_path)
+    try:
+        _stream(writer, range(0, 8))
+        _ask(writer, Save(name="latest"))
+        assert follower.follower is not None
+        real = follower.persistence.load_map
+        entered, release = threading.Event(), threading.Event()
+
+        def slow_load(name: str) -> str:
+            entered.set()
+            release.wait(10.0)
+            with follower.state.lock:  # as a load takes the state lock
+                pass
+            return real(name)
+
+        follower.persistence.load_map = slow_load  # type: ignore[method-assign]
+        poll = threading.Thread(target=follower.follower.poll_once, daemon=True)
+        poll.start()
+        assert entered.wait(10.0)
+        answered = threading.Event()
+        asker = threading.Thread(target=lambda: (_ask(follower, StatusRequest()), answered.set()), daemon=True)
+        asker.start()
+        assert answered.wait(10.0), "status waited for the load"
+        release.set()
+        poll.join(30.0)
+        assert not poll.is_alive() and follower.follower.stats()["loads"] == 1
+    finally:
+        writer.stop()
+        follower.stop()
