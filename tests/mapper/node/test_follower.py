@@ -195,8 +195,12 @@ def test_status_during_a_load_does_not_wait_for_it(tmp_path: Path) -> None:
         poll.start()
         assert entered.wait(10.0)
         answered = threading.Event()
-        asker = threading.Thread(target=lambda: (_ask(follower, StatusRequest()), answered.set()), daemon=True)
-        asker.start()
+
+        def ask_status() -> None:
+            _ask(follower, StatusRequest())
+            answered.set()
+
+        threading.Thread(target=ask_status, daemon=True).start()
         assert answered.wait(10.0), "status waited for the load"
         release.set()
         poll.join(30.0)
