@@ -97,15 +97,13 @@ def main(argv: list[str] | None = None) -> int:
         variants = parse_variants(args.variants)
     except ValueError as exc:
         p.error(str(exc))
-    overrides: dict[str, Any] = {}
-    for item in args.set:
-        key, sep, raw = item.partition("=")
-        if not sep or not key.strip():
-            p.error(f"--set {item!r}: expected KEY=VALUE")
-        try:
-            overrides[key.strip()] = json.loads(raw)
-        except json.JSONDecodeError:
-            overrides[key.strip()] = raw
+    from mapper.node.cli import _parse_set  # KEY=VALUE as `govnesf serve --set` reads them
+    from mapper.node.config import ConfigError
+
+    try:
+        overrides: dict[str, Any] = _parse_set(args.set)
+    except ConfigError as exc:
+        p.error(str(exc))
     scenarios = build_matrix(args.split)
     try:
         chosen = [scenarios[i] for i in args.index] if args.index else scenarios
